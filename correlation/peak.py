@@ -1,0 +1,94 @@
+"""Sub-pixel location of correlation peaks (and of any sampled, peaked signal).
+
+The three-point estimators fit a curve through the peak sample and its two neighbours along each
+axis independently (Raffel et al., Particle Image Velocimetry, 3rd ed., section 5.4.4). They work on
+whole stacks of planes at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["PEAK_METHODS", "subpixel_peak", "three_point_offset"]
+
+PEAK_METHODS = ("gaussian", "parabolic", "centroid")
+
+_TINY = 1e-12
+
+
+def three_point_offset(left, centre, right, *, method="gaussian"):
+    """Sub-sample offset of a peak from three samples at -1, 0 and +1.
+
+    Parameters
+    ----------
+    left, centre, right : arrays of one shape
+        Samples at the peak's neighbours and at the peak.
+    method : {"gaussian", "parabolic", "centroid"}
+        ``gaussian``: fit of ``exp(a + b t + c t^2)``, offset
+        ``(ln L - ln R) / (2 (ln L - 2 ln C + ln R))``; it needs three positive samples, and where
+        one is not positive it falls back to the parabolic fit. ``parabolic``:
+        ``(L - R) / (2 (L - 2 C + R))``. ``centroid``: ``(R - L) / (L + C + R)``.
+
+    Returns
+    -------
+    array
+        Offsets, clipped to [-0.5, 0.5] (a peak sample is the maximum, so a larger offset would be a
+        wrong fit); never NaN: a flat triple gives 0.
+    """
+    left, centre, right = (np.asarray(a, dtype=np.float64) for a in (left, centre, right))
+    if method not in PEAK_METHODS:
+        raise ValueError(f"unknown sub-pixel peak method {method!r}; choose one of {PEAK_METHODS}")
+    if method == "centroid":
+        den = left + centre + right
+        off = np.divide(right - left, den, out=np.zeros_like(den), where=np.abs(den) > _TINY)
+        return np.clip(off, -0.5, 0.5)
+    den = left - 2.0 * centre + right
+    parabolic = np.divide(left - right, 2.0 * den, out=np.zeros_like(den), where=den < -_TINY)
+    if method == "parabolic":
+        return np.clip(parabolic, -0.5, 0.5)
+    positive = (left > 0) & (centre > 0) & (right > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ll, lc, lr = (np.log(np.where(positive, a, 1.0)) for a in (left, centre, right))
+    gden = ll - 2.0 * lc + lr
+    ok = positive & (gden < -_TINY)
+    gauss = np.divide(ll - lr, 2.0 * gden, out=np.zeros_like(gden), where=ok)
+    return np.clip(np.where(ok, gauss, parabolic), -0.5, 0.5)
+
+
+def subpixel_peak(planes, *, method="gaussian"):
+    """Locate the highest peak of each plane in a stack to sub-pixel accuracy.
+
+    Parameters
+    ----------
+    planes : (..., h, w) array
+        Correlation planes (or any peaked images).
+    method : {"gaussian", "parabolic", "centroid"}
+        Three-point estimator applied along rows and along columns.
+
+    Returns
+    -------
+    row, col : (...) float arrays
+        Peak position in plane coordinates (index space, pixel centres at integers).
+    on_border : (...) bool array
+        True where the integer peak lies on the plane's edge; there the missing neighbour is
+        taken equal to the peak sample's other neighbour, so the offset is 0 along that axis.
+    """
+    planes = np.asarray(planes, dtype=np.float64)
+    h, w = planes.shape[-2:]
+    flat = planes.reshape(-1, h, w)
+    idx = np.argmax(flat.reshape(len(flat), -1), axis=1)
+    r, c = np.divmod(idx, w)
+    k = np.arange(len(flat))
+    on_border = (r == 0) | (r == h - 1) | (c == 0) | (c == w - 1)
+    rm, rp = np.clip(r - 1, 0, h - 1), np.clip(r + 1, 0, h - 1)
+    cm, cp = np.clip(c - 1, 0, w - 1), np.clip(c + 1, 0, w - 1)
+    centre = flat[k, r, c]
+    # On the border there is no outer neighbour: a symmetric triple gives offset 0 on that axis.
+    up = np.where(r == 0, flat[k, rp, c], flat[k, rm, c])
+    down = np.where(r == h - 1, flat[k, rm, c], flat[k, rp, c])
+    lf = np.where(c == 0, flat[k, r, cp], flat[k, r, cm])
+    rt = np.where(c == w - 1, flat[k, r, cm], flat[k, r, cp])
+    row = r + three_point_offset(up, centre, down, method=method)
+    col = c + three_point_offset(lf, centre, rt, method=method)
+    shape = planes.shape[:-2]
+    return row.reshape(shape), col.reshape(shape), on_border.reshape(shape)

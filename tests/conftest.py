@@ -1,0 +1,38 @@
+"""Shared pytest fixtures: the Warp devices every Warp-based test runs on."""
+
+import pytest
+
+
+def _warp_devices():
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    devices = ["cpu"]
+    if wp.is_cuda_available():
+        devices.append("cuda:0")
+    return devices
+
+
+def pytest_generate_tests(metafunc):
+    # Any test that takes a ``device`` argument runs once per Warp device: test_x[cpu], test_x[cuda:0].
+    if "device" in metafunc.fixturenames:
+        params = []
+        for dev in _warp_devices():
+            marks = [pytest.mark.gpu] if dev.startswith("cuda") else []
+            params.append(pytest.param(dev, id=dev, marks=marks))
+        metafunc.parametrize("device", params)
+
+
+def pytest_collection_modifyitems(config, items):
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        has_cuda = wp.is_cuda_available()
+    except Exception:
+        has_cuda = False
+    skip_gpu = pytest.mark.skip(reason="no CUDA device visible to Warp")
+    for item in items:
+        if "gpu" in item.keywords and not has_cuda and "device" not in getattr(item, "callspec", {}).params:
+            item.add_marker(skip_gpu)
