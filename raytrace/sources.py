@@ -101,5 +101,6 @@ def density_from_config(volume: dict) -> DensityField:
     else:  # gaussian
         cx, cy, cz = (float(c) * 1e-3 for c in p["centre_mm"])
         s = float(p["sigma_mm"]) * 1e-3
-        rho = rho0 + float(p["amplitude_kg_m3"]) * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) / (2 * s * s))
+        r2 = (X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2
+        rho = rho0 + float(p["amplitude_kg_m3"]) * np.exp(-r2 / (2 * s * s))
     return DensityField(rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=size_m, ambient=rho0)

@@ -1,0 +1,352 @@
+"""Warp kernels of the renderer: small typed functions, one job each.
+
+Frames and units: metres; the target plane is z = 0 and the optical axis is +z. Inside the volume
+rays are traced in the volume's local frame (origin at its centre) so that float32 keeps its
+precision. Host code that allocates, launches and copies lives in ``raytrace.render``.
+
+Ray equation. Fermat's equation d/ds (n dx/ds) = grad n is integrated for the position ``x`` and the
+unit tangent ``t``: ``dx/ds = t``, ``dt/ds = (grad n - (t . grad n) t) / n`` (the same equation with
+d/ds(n t) expanded), by classical 4th-order Runge-Kutta with the tangent renormalised after each step.
+Where grad n vanishes the tangent never changes, so a uniform medium gives bit-identical rays to the
+reference trace, whatever its density.
+"""
+
+import warp as wp
+
+LENS_THIN = wp.constant(0)
+LENS_THICK = wp.constant(1)
+
+RAY_OK = wp.constant(0)
+RAY_MISSED_LENS = wp.constant(1)
+RAY_TIR = wp.constant(2)
+
+
+@wp.struct
+class Medium:
+    # (nz, ny, nx) nodes holding (dn/dx, dn/dy, dn/dz, n - 1)
+    field: wp.array3d(dtype=wp.vec4)
+    half: wp.vec3  # half extents of the box (local frame spans [-half, +half])
+    inv_spacing: wp.vec3  # 1 / node spacing along x, y, z
+    centre: wp.vec3  # box centre in the global frame
+
+
+@wp.struct
+class Camera:
+    lens: int  # LENS_THIN or LENS_THICK
+    z_stop: float  # plane of the aperture stop (thin lens plane, or thick lens front vertex)
+    aperture_radius: float
+    focal_length: float  # thin lens
+    z_sensor: float
+    # thick lens: two spherical surfaces of radius r1 (front, centre c1) and r2 (back, centre c2)
+    c1: float
+    r1: float
+    c2: float
+    r2: float
+    glass_index: float
+    semi_diameter: float
+
+
+@wp.struct
+class Sensor:
+    width: int
+    height: int
+    pitch: float
+    cx: float  # pixel coordinates of the optical axis
+    cy: float
+    sigma_px: float  # Gaussian spot standard deviation (pixels)
+    half_width: int  # deposit window half width (pixels)
+    energy: float  # integrated intensity one ray deposits
+
+
+@wp.func
+def sample_medium(m: Medium, p: wp.vec3):
+    """Trilinear sample of (grad n, n - 1) at local point p; zero outside the box."""
+    nz = m.field.shape[0]
+    ny = m.field.shape[1]
+    nx = m.field.shape[2]
+    fx = (p[0] + m.half[0]) * m.inv_spacing[0]
+    fy = (p[1] + m.half[1]) * m.inv_spacing[1]
+    fz = (p[2] + m.half[2]) * m.inv_spacing[2]
+    eps = 1.0e-4
+    if fx < -eps or fy < -eps or fz < -eps:
+        return wp.vec4(0.0)
+    if fx > float(nx - 1) + eps or fy > float(ny - 1) + eps or fz > float(nz - 1) + eps:
+        return wp.vec4(0.0)
+    i = wp.clamp(int(wp.floor(fx)), 0, nx - 2)
+    j = wp.clamp(int(wp.floor(fy)), 0, ny - 2)
+    k = wp.clamp(int(wp.floor(fz)), 0, nz - 2)
+    ax = wp.clamp(fx - float(i), 0.0, 1.0)
+    ay = wp.clamp(fy - float(j), 0.0, 1.0)
+    az = wp.clamp(fz - float(k), 0.0, 1.0)
+    c00 = m.field[k, j, i] * (1.0 - ax) + m.field[k, j, i + 1] * ax
+    c10 = m.field[k, j + 1, i] * (1.0 - ax) + m.field[k, j + 1, i + 1] * ax
+    c01 = m.field[k + 1, j, i] * (1.0 - ax) + m.field[k + 1, j, i + 1] * ax
+    c11 = m.field[k + 1, j + 1, i] * (1.0 - ax) + m.field[k + 1, j + 1, i + 1] * ax
+    c0 = c00 * (1.0 - ay) + c10 * ay
+    c1 = c01 * (1.0 - ay) + c11 * ay
+    return c0 * (1.0 - az) + c1 * az
+
+
+@wp.func
+def tangent_rate(m: Medium, active: int, x: wp.vec3, t: wp.vec3):
+    """dt/ds of Fermat's equation at local point x with unit tangent t."""
+    if active == 0:
+        return wp.vec3(0.0)
+    s = sample_medium(m, x)
+    g = wp.vec3(s[0], s[1], s[2])
+    return (g - wp.dot(t, g) * t) / (1.0 + s[3])
+
+
+@wp.func
+def rk4_step(m: Medium, active: int, x: wp.vec3, t: wp.vec3, h: float):
+    """One classical Runge-Kutta step of length h for (x, t); returns the new position and tangent."""
+    k1t = tangent_rate(m, active, x, t)
+    t2 = t + 0.5 * h * k1t
+    k2t = tangent_rate(m, active, x + 0.5 * h * t, t2)
+    t3 = t + 0.5 * h * k2t
+    k3t = tangent_rate(m, active, x + 0.5 * h * t2, t3)
+    t4 = t + h * k3t
+    k4t = tangent_rate(m, active, x + h * t3, t4)
+    x_new = x + (h / 6.0) * (t + 2.0 * t2 + 2.0 * t3 + t4)
+    t_new = wp.normalize(t + (h / 6.0) * (k1t + 2.0 * k2t + 2.0 * k3t + k4t))
+    return x_new, t_new
+
+
+@wp.func
+def n_steps(m: Medium, t: wp.vec3, step: float):
+    """Number of equal RK4 steps that carry a straight ray of tangent t through the box's depth."""
+    length = 2.0 * m.half[2] / t[2]
+    return wp.max(int(wp.ceil(length / step - 1.0e-4)), 1)
+
+
+@wp.func
+def trace_volume(m: Medium, active: int, x_global: wp.vec3, t: wp.vec3, step: float):
+    """Carry a ray from anywhere in front of the box to its back face.
+
+    Straight to the front face plane, then RK4 across the whole depth of the box in equal steps that
+    end exactly on the back face plane for a straight ray (rays never stop early at a face; outside
+    the box's sides the gradient is zero and the ray runs straight). Returns global position, tangent.
+    """
+    z_front = m.centre[2] - m.half[2]
+    s0 = (z_front - x_global[2]) / t[2]
+    x = x_global + s0 * t - m.centre
+    n = n_steps(m, t, step)
+    h = 2.0 * m.half[2] / t[2] / float(n)
+    tt = t
+    for _ in range(n):
+        x, tt = rk4_step(m, active, x, tt, h)
+    return x + m.centre, tt
+
+
+@wp.func
+def refract(t: wp.vec3, normal: wp.vec3, eta: float):
+    """Vector Snell's law: unit tangent t crossing a surface with unit normal (against t), eta = n1/n2.
+
+    Returns the refracted tangent and a flag that is 1 on total internal reflection (tangent then 0).
+    """
+    cos_i = -wp.dot(normal, t)
+    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
+    if sin2_t > 1.0:
+        return wp.vec3(0.0), 1
+    return wp.normalize(eta * t + (eta * cos_i - wp.sqrt(1.0 - sin2_t)) * normal), 0
+
+
+@wp.func
+def sphere_hit(p: wp.vec3, t: wp.vec3, zc: float, r: float, far: int):
+    """Distance along the ray p + s t to the sphere of radius r centred on the axis at z = zc.
+
+    ``far`` picks the second intersection. Returns -1 when the ray misses the sphere.
+    """
+    oc = p - wp.vec3(0.0, 0.0, zc)
+    b = wp.dot(oc, t)
+    c = wp.dot(oc, oc) - r * r
+    disc = b * b - c
+    if disc < 0.0:
+        return -1.0
+    q = wp.sqrt(disc)
+    if far == 1:
+        return -b + q
+    return -b - q
+
+
+@wp.func
+def thin_lens_to_sensor(cam: Camera, p: wp.vec3, t: wp.vec3):
+    """Ideal thin lens at z_stop (exact imaging in slope form: u' = u - x / f); sensor (x, y) in metres."""
+    s = (cam.z_stop - p[2]) / t[2]
+    xl = p + s * t
+    ux = t[0] / t[2] - xl[0] / cam.focal_length
+    uy = t[1] / t[2] - xl[1] / cam.focal_length
+    dz = cam.z_sensor - cam.z_stop
+    return wp.vec2(xl[0] + dz * ux, xl[1] + dz * uy), RAY_OK
+
+
+@wp.func
+def thick_lens_to_sensor(cam: Camera, p: wp.vec3, t: wp.vec3):
+    """Biconvex spherical lens: refraction at both surfaces by Snell's law; sensor (x, y) in metres."""
+    s1 = sphere_hit(p, t, cam.c1, cam.r1, 0)
+    if s1 < 0.0:
+        return wp.vec2(0.0), RAY_MISSED_LENS
+    h1 = p + s1 * t
+    if h1[0] * h1[0] + h1[1] * h1[1] > cam.semi_diameter * cam.semi_diameter:
+        return wp.vec2(0.0), RAY_MISSED_LENS
+    n1 = wp.normalize(h1 - wp.vec3(0.0, 0.0, cam.c1))  # outward normal points back towards the target
+    t1, tir1 = refract(t, n1, 1.0 / cam.glass_index)
+    if tir1 == 1:
+        return wp.vec2(0.0), RAY_TIR
+    s2 = sphere_hit(h1, t1, cam.c2, cam.r2, 1)
+    if s2 < 0.0:
+        return wp.vec2(0.0), RAY_MISSED_LENS
+    h2 = h1 + s2 * t1
+    if h2[0] * h2[0] + h2[1] * h2[1] > cam.semi_diameter * cam.semi_diameter:
+        return wp.vec2(0.0), RAY_MISSED_LENS
+    n2 = -wp.normalize(h2 - wp.vec3(0.0, 0.0, cam.c2))
+    t2, tir2 = refract(t1, n2, cam.glass_index)
+    if tir2 == 1:
+        return wp.vec2(0.0), RAY_TIR
+    s3 = (cam.z_sensor - h2[2]) / t2[2]
+    return wp.vec2(h2[0] + s3 * t2[0], h2[1] + s3 * t2[1]), RAY_OK
+
+
+@wp.func
+def sensor_to_pixel(sen: Sensor, xs: wp.vec2):
+    """Sensor metres to upright pixel coordinates (x = column, y = row, pixel centres at integers).
+
+    The lens forms an inverted image; the pixel frame is flipped so that columns grow with target x
+    and rows with target y.
+    """
+    return wp.vec2(sen.cx - xs[0] / sen.pitch, sen.cy - xs[1] / sen.pitch)
+
+
+@wp.func
+def deposit_gaussian(image: wp.array2d(dtype=float), sen: Sensor, px: wp.vec2, energy: float):
+    """Add a Gaussian spot of total ``energy`` centred at pixel coordinates px, integrated over each
+    pixel with erf, into ``image`` with atomics."""
+    c0 = int(wp.round(px[0]))
+    r0 = int(wp.round(px[1]))
+    inv = 1.0 / (wp.sqrt(2.0) * sen.sigma_px)
+    hw = sen.half_width
+    for dr in range(-hw, hw + 1):
+        row = r0 + dr
+        if row >= 0 and row < sen.height:
+            fy = 0.5 * (wp.erf((float(row) + 0.5 - px[1]) * inv) - wp.erf((float(row) - 0.5 - px[1]) * inv))
+            for dc in range(-hw, hw + 1):
+                col = c0 + dc
+                if col >= 0 and col < sen.width:
+                    fx = 0.5 * (wp.erf((float(col) + 0.5 - px[0]) * inv) - wp.erf((float(col) - 0.5 - px[0]) * inv))
+                    wp.atomic_add(image, row, col, energy * fx * fy)
+
+
+@wp.func
+def sample_disk(state: wp.uint32, radius: float):
+    """Area-uniform point on a disk of the given radius: r = R sqrt(U), phi = 2 pi U'."""
+    r = radius * wp.sqrt(wp.randf(state))
+    phi = 2.0 * wp.pi * wp.randf(state)
+    return wp.vec2(r * wp.cos(phi), r * wp.sin(phi))
+
+
+@wp.kernel
+def render_rays(
+    medium: Medium,
+    active: int,
+    cam: Camera,
+    sen: Sensor,
+    dots: wp.array(dtype=wp.vec2),
+    nominal_px: wp.array(dtype=wp.vec2),
+    dot_radius: float,
+    step: float,
+    seed: int,
+    ray_start: int,
+    image: wp.array2d(dtype=float),
+    sum_x: wp.array(dtype=wp.float64),
+    sum_y: wp.array(dtype=wp.float64),
+    hits: wp.array(dtype=wp.int32),
+    lost: wp.array(dtype=wp.int32),
+    tir: wp.array(dtype=wp.int32),
+):
+    """One thread per ray: emit from a dot towards the aperture, trace, image, deposit, accumulate.
+
+    Thread ``tid`` is ray ``ray_start + tid // n_dots`` of dot ``tid % n_dots``; its random numbers
+    depend only on (seed, dot, ray), so the reference and gradient images see the same ray set on
+    every device.
+    """
+    tid = wp.tid()
+    n_dots = dots.shape[0]
+    dot = tid % n_dots
+    ray = ray_start + tid / n_dots
+    state = wp.rand_init(seed, ray * n_dots + dot)
+    e2 = dots[dot] + sample_disk(state, dot_radius)
+    a2 = sample_disk(state, cam.aperture_radius)
+    origin = wp.vec3(e2[0], e2[1], 0.0)
+    t = wp.normalize(wp.vec3(a2[0], a2[1], cam.z_stop) - origin)
+    p, t = trace_volume(medium, active, origin, t, step)
+    xs = wp.vec2(0.0)
+    status = RAY_OK
+    if cam.lens == LENS_THIN:
+        xs, status = thin_lens_to_sensor(cam, p, t)
+    else:
+        xs, status = thick_lens_to_sensor(cam, p, t)
+    if status == RAY_TIR:
+        wp.atomic_add(tir, dot, 1)
+    if status != RAY_OK:
+        wp.atomic_add(lost, dot, 1)
+        return
+    px = sensor_to_pixel(sen, xs)
+    if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
+        wp.atomic_add(lost, dot, 1)
+    deposit_gaussian(image, sen, px, sen.energy)
+    wp.atomic_add(sum_x, dot, wp.float64(px[0] - nominal_px[dot][0]))
+    wp.atomic_add(sum_y, dot, wp.float64(px[1] - nominal_px[dot][1]))
+    wp.atomic_add(hits, dot, 1)
+
+
+@wp.kernel
+def integrate_grad_n(
+    medium: Medium,
+    cam: Camera,
+    dots: wp.array(dtype=wp.vec2),
+    n_samples: int,
+    out: wp.array(dtype=wp.vec2),
+):
+    """Line integral of (dn/dx, dn/dy) dz along the straight chief ray from each dot to the centre of
+    the aperture, through the depth of the box (midpoint rule): the integral in Eq. 4."""
+    i = wp.tid()
+    origin = wp.vec3(dots[i][0], dots[i][1], 0.0)
+    t = wp.normalize(wp.vec3(0.0, 0.0, cam.z_stop) - origin)
+    z0 = medium.centre[2] - medium.half[2]
+    dz = 2.0 * medium.half[2] / float(n_samples)
+    acc = wp.vec2(0.0)
+    for k in range(n_samples):
+        z = z0 + (float(k) + 0.5) * dz
+        p = origin + ((z - origin[2]) / t[2]) * t
+        s = sample_medium(medium, p - medium.centre)
+        acc = acc + wp.vec2(s[0], s[1]) * dz
+    out[i] = acc
+
+
+@wp.kernel
+def trace_to_exit(
+    medium: Medium,
+    active: int,
+    origins: wp.array(dtype=wp.vec3),
+    tangents: wp.array(dtype=wp.vec3),
+    step: float,
+    out_x: wp.array(dtype=wp.vec3),
+    out_t: wp.array(dtype=wp.vec3),
+):
+    """Trace given rays through the volume only (used by tests and diagnostics)."""
+    i = wp.tid()
+    p, t = trace_volume(medium, active, origins[i], tangents[i], step)
+    out_x[i] = p
+    out_t[i] = t
+
+
+@wp.kernel
+def deposit_spots(
+    sen: Sensor,
+    px: wp.array(dtype=wp.vec2),
+    energy: wp.array(dtype=float),
+    image: wp.array2d(dtype=float),
+):
+    """Deposit one Gaussian spot per entry (used by tests to compare against the NumPy reference)."""
+    i = wp.tid()
+    deposit_gaussian(image, sen, px[i], energy[i])

@@ -1,0 +1,92 @@
+"""The refracting medium: density -> refractive index (Gladstone-Dale) -> Warp arrays.
+
+``n = 1 + K rho``. The renderer never stores ``n`` itself: it keeps ``n - 1`` (float32 would lose
+most of the digits of a number 1.0003 that differ in the sixth place) and ``grad n`` from central
+differences (one-sided on the faces) computed in float64, packed per node as (dn/dx, dn/dy, dn/dz, n-1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from synthbos import SynthbosError
+
+from . import kernels, sources
+
+__all__ = ["MediumData", "check_density", "medium_from_config", "medium_from_density", "to_warp"]
+
+
+@dataclass(frozen=True)
+class MediumData:
+    """Host-side medium: packed node data and placement (global frame, metres)."""
+
+    field: np.ndarray  # (nz, ny, nx, 4) float32: dn/dx, dn/dy, dn/dz, n - 1
+    size: tuple[float, float, float]
+    centre: tuple[float, float, float]
+    n0: float  # refractive index of the undisturbed (ambient) medium
+    gladstone_dale: float
+    density: sources.DensityField
+
+    @property
+    def spacing(self) -> tuple[float, float, float]:
+        nz, ny, nx = self.field.shape[:3]
+        return tuple(L / (n - 1) for L, n in zip(self.size, (nx, ny, nz), strict=True))
+
+
+def check_density(rho, *, what="density"):
+    """Reject densities the renderer cannot use: non-finite, zero or negative, or not 3-D."""
+    rho = np.asarray(rho)
+    if rho.ndim != 3:
+        raise SynthbosError(f"{what} must be a 3-D array (nz, ny, nx), got shape {rho.shape}")
+    if min(rho.shape) < 2:
+        raise SynthbosError(f"{what} needs at least 2 nodes along every axis, got shape {rho.shape}")
+    bad = ~np.isfinite(rho)
+    if bad.any():
+        k, j, i = np.argwhere(bad)[0]
+        raise SynthbosError(f"{what} has {int(bad.sum())} non-finite value(s), first at node (z={k}, y={j}, x={i})")
+    if (rho <= 0).any():
+        k, j, i = np.argwhere(rho <= 0)[0]
+        raise SynthbosError(
+            f"{what} must be positive everywhere; found {rho[k, j, i]:g} kg/m^3 at node (z={k}, y={j}, x={i})"
+        )
+
+
+def medium_from_density(density: sources.DensityField, *, gladstone_dale, centre) -> MediumData:
+    """Refractive index data for a density field placed with its centre at ``centre`` (metres)."""
+    check_density(density.rho)
+    rho = np.asarray(density.rho, dtype=np.float64)
+    nz, ny, nx = rho.shape
+    size = tuple(float(s) for s in density.size_m)
+    spacing = [L / (n - 1) for L, n in zip(size, (nx, ny, nz), strict=True)]
+    n_minus_1 = gladstone_dale * rho
+    gz, gy, gx = np.gradient(n_minus_1, spacing[2], spacing[1], spacing[0])
+    field = np.stack([gx, gy, gz, n_minus_1], axis=-1).astype(np.float32)
+    return MediumData(
+        field=np.ascontiguousarray(field), size=size, centre=tuple(float(c) for c in centre),
+        n0=1.0 + gladstone_dale * float(density.ambient), gladstone_dale=float(gladstone_dale), density=density,
+    )
+
+
+def medium_from_config(cfg: dict) -> MediumData:
+    """Build the medium described by the ``[volume]`` table of a validated configuration."""
+    vol = cfg["volume"]
+    table = {k: v for k, v in vol.items() if k != "offset_mm"}
+    density = sources.density_from_config(table)
+    ox, oy = (o * 1e-3 for o in vol["offset_mm"])
+    return medium_from_density(
+        density, gladstone_dale=vol["gladstone_dale_m3_per_kg"],
+        centre=(ox, oy, vol["distance_from_target_mm"] * 1e-3),
+    )
+
+
+def to_warp(medium: MediumData, *, device=None) -> kernels.Medium:
+    """Upload the medium to a Warp device as the kernels' ``Medium`` struct."""
+    m = kernels.Medium()
+    m.field = wp.array(medium.field, dtype=wp.vec4, device=device)
+    m.half = wp.vec3(*(0.5 * s for s in medium.size))
+    m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
+    m.centre = wp.vec3(*medium.centre)
+    return m

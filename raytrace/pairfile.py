@@ -1,0 +1,111 @@
+"""The BOS pair: the in-memory result of a render and its HDF5 file format (reader and writer).
+
+File layout
+-----------
+``/images/reference``, ``/images/gradient``
+    (H, W) float32, noise-free.
+``/dots/target_xy_m`` (N, 2)
+    Dot centres on the target plane, metres.
+``/dots/reference_px``, ``/dots/gradient_px``, ``/dots/displacement_px``, ``/dots/theory_px`` (N, 2)
+    Ray-mean image positions without and with the flow, their difference (the exact displacement)
+    and Eq. 4's theoretical displacement; x = column, y = row, pixel centres at integer coordinates.
+``/dots/valid`` (N,) bool
+    Every ray of the dot reached the sensor in both images.
+root attributes
+    ``config`` (the full configuration as TOML text), ``magnification``, ``version``, ``device``,
+    ``render_seconds``, ``n0``, ``spot_diameter_px``, ``sign_convention``.
+
+Sign convention: the image is upright (columns grow with target x, rows with target y) and a
+displacement is gradient-image position minus reference-image position. A ray bends towards higher
+density, so a dot appears shifted *down* the density gradient: Eq. 4 reads
+dX = -(M Z_D / n0) * integral of grad n dz with M > 0.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from synthbos import SynthbosError
+
+__all__ = ["SIGN_CONVENTION", "Pair", "read_pair", "write_pair"]
+
+SIGN_CONVENTION = (
+    "upright image (x = column grows with target x, y = row grows with target y); "
+    "displacement = gradient - reference; dots shift down the density gradient: "
+    "dX = -(M Z_D / n0) * integral(grad n) dz"
+)
+
+_DOT_SETS = ("target_xy_m", "reference_px", "gradient_px", "displacement_px", "theory_px")
+
+
+@dataclass
+class Pair:
+    """A rendered BOS image pair with its per-dot ground truth."""
+
+    reference: np.ndarray
+    gradient: np.ndarray
+    target_xy_m: np.ndarray
+    reference_px: np.ndarray
+    gradient_px: np.ndarray
+    displacement_px: np.ndarray
+    theory_px: np.ndarray
+    valid: np.ndarray
+    attrs: dict = field(default_factory=dict)
+
+    @property
+    def n_dots(self) -> int:
+        return len(self.target_xy_m)
+
+
+def write_pair(path, pair: Pair) -> Path:
+    """Write a pair file atomically: to a temporary name in the same folder, then rename."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise SynthbosError(f"output folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            img = f.create_group("images")
+            img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
+            img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
+            dots = f.create_group("dots")
+            for name in _DOT_SETS:
+                dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
+            dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
+            for key, value in pair.attrs.items():
+                f.attrs[key] = value
+            f.attrs["sign_convention"] = SIGN_CONVENTION
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_pair(path) -> Pair:
+    """Read a pair file written by ``write_pair``; a missing or malformed file raises SynthbosError."""
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"pair file {path} does not exist")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [f"/images/{n}" for n in ("reference", "gradient") if f"images/{n}" not in f]
+            missing += [f"/dots/{n}" for n in (*_DOT_SETS, "valid") if f"dots/{n}" not in f]
+            if missing:
+                raise SynthbosError(f"{path} is not a synthbos pair file: missing {', '.join(missing)}")
+            kwargs = {n: f[f"dots/{n}"][()] for n in _DOT_SETS}
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            return Pair(
+                reference=f["images/reference"][()], gradient=f["images/gradient"][()],
+                valid=f["dots/valid"][()].astype(bool), attrs=attrs, **kwargs,
+            )
+    except OSError as err:
+        raise SynthbosError(f"cannot read pair file {path}: {err}") from None

@@ -1,0 +1,251 @@
+"""Host code of the renderer: allocate, launch the kernels of ``raytrace.kernels``, copy back.
+
+``render_pair(config)`` traces every ray of every dot twice, through the undisturbed medium (the
+reference image) and through the density volume (the gradient image), with the same random ray set,
+and returns the images and per-dot ground truth as a ``Pair``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import warp as wp
+from tqdm.auto import tqdm
+
+import synthbos
+from synthbos import SynthbosError
+
+from . import kernels
+from .camera import CameraModel, camera_from_config
+from .config import config_to_toml, load_config
+from .medium import MediumData, medium_from_config, to_warp
+from .pairfile import Pair
+from .pattern import grid_pattern, random_pattern
+
+__all__ = ["RenderPlan", "plan_render", "render_pair", "trace_rays"]
+
+_INT32_MAX = 2**31 - 1
+
+
+def _init_warp():
+    wp.config.quiet = True
+    wp.init()
+
+
+class RenderPlan:
+    """Everything a render needs, resolved from a configuration on the host (no device work)."""
+
+    def __init__(self, cfg: dict):
+        self.cfg = cfg
+        self.camera: CameraModel = camera_from_config(cfg)
+        self.medium: MediumData = medium_from_config(cfg)
+        tgt, rays, sen = cfg["target"], cfg["rays"], cfg["sensor"]
+        W, H = self.camera.pixels
+        M, pitch = self.camera.magnification, self.camera.pitch
+        if tgt["pattern"] == "grid":
+            px = grid_pattern(W, H, tgt["dots_per_32px"])
+        else:
+            spacing = tgt["min_spacing_px"] if tgt["min_spacing_px"] is not None else tgt["dot_diameter_px"]
+            px = random_pattern(W, H, tgt["dots_per_32px"], min_spacing=spacing, seed=tgt["seed"])
+        self.nominal_px = px
+        self.target_xy = self.camera.pixel_to_target(px)
+        self.dot_radius = 0.0 if tgt["dot_model"] == "point" else 0.5 * tgt["dot_diameter_px"] * pitch / M
+        spot = sen["spot_diameter_px"]
+        if spot == "auto":
+            spot = tgt["dot_diameter_px"] if tgt["dot_model"] == "point" else "diffraction"
+        if spot == "diffraction":
+            spot = self.camera.diffraction_spot_diameter / pitch
+        self.spot_diameter_px = float(spot)
+        self.sigma_px = self.spot_diameter_px / 4.0
+        self.half_width = max(1, math.ceil(3.0 * self.sigma_px))
+        self.rays_per_dot = rays["per_dot"]
+        # Each dot's energy is that of a point dot's spot of peak I0: I0 * 2 pi sigma^2.
+        self.energy_per_ray = sen["peak_intensity"] * 2.0 * math.pi * self.sigma_px**2 / self.rays_per_dot
+        step = rays["step_mm"]
+        self.step = min(self.medium.spacing) if step == "grid" else step * 1e-3
+        if self.n_dots * self.rays_per_dot > _INT32_MAX:
+            raise SynthbosError(
+                f"{self.n_dots} dots x {self.rays_per_dot} rays exceeds 2^31 rays per image; use fewer rays.per_dot"
+            )
+        self._check_field_of_view()
+
+    @property
+    def n_dots(self) -> int:
+        return len(self.nominal_px)
+
+    @property
+    def steps_per_ray(self) -> int:
+        """RK4 steps of an axial ray across the volume (off-axis rays take the same or one more)."""
+        return max(1, math.ceil(self.medium.size[2] / self.step - 1e-4))
+
+    def _check_field_of_view(self):
+        """The volume must intersect the bundle of rays from the imaged part of the target."""
+        cam, med = self.camera, self.medium
+        W, H = cam.pixels
+        half_fov = np.array([W, H]) * cam.pitch / cam.magnification / 2.0
+        z_mid = med.centre[2]
+        # Rays from the field |X| < half_fov towards an aperture of radius a at z_stop cross plane z at
+        # |x| < half_fov (1 - z / z_stop) + a z / z_stop.
+        reach = half_fov * (1.0 - z_mid / cam.z_stop) + cam.aperture_radius * z_mid / cam.z_stop
+        lo = np.array(med.centre[:2]) - np.array(med.size[:2]) / 2.0
+        hi = np.array(med.centre[:2]) + np.array(med.size[:2]) / 2.0
+        if np.any(lo > reach) or np.any(hi < -reach):
+            raise SynthbosError(
+                "the volume misses the field of view entirely: at its mid-plane the camera sees "
+                f"|x| < {reach[0] * 1e3:.1f} mm, |y| < {reach[1] * 1e3:.1f} mm, but the volume spans "
+                f"x in [{lo[0] * 1e3:.1f}, {hi[0] * 1e3:.1f}] mm, y in [{lo[1] * 1e3:.1f}, {hi[1] * 1e3:.1f}] mm"
+            )
+
+
+def plan_render(config=None) -> RenderPlan:
+    """Resolve a configuration (dict, path or None for the defaults) into a render plan."""
+    return RenderPlan(load_config(config))
+
+
+def _camera_struct(cam: CameraModel) -> kernels.Camera:
+    c = kernels.Camera()
+    c.lens = 0 if cam.lens == "thin" else 1
+    c.z_stop = cam.z_stop
+    c.aperture_radius = cam.aperture_radius
+    c.focal_length = cam.focal_length
+    c.z_sensor = cam.z_sensor
+    c.c1, c.r1, c.c2, c.r2 = cam.c1, cam.r1, cam.c2, cam.r2
+    c.glass_index = cam.glass_index
+    c.semi_diameter = cam.semi_diameter
+    return c
+
+
+def _sensor_struct(plan: RenderPlan) -> kernels.Sensor:
+    s = kernels.Sensor()
+    s.width, s.height = plan.camera.pixels
+    s.pitch = plan.camera.pitch
+    s.cx, s.cy = plan.camera.principal_point
+    s.sigma_px = plan.sigma_px
+    s.half_width = plan.half_width
+    s.energy = plan.energy_per_ray
+    return s
+
+
+def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, label=""):
+    """Trace every ray of every dot once and deposit it.
+
+    Parameters
+    ----------
+    plan : RenderPlan
+    active : bool
+        False for the reference (undisturbed medium, straight rays), True through the volume.
+    device : str, optional
+        Warp device ("cpu", "cuda:0"); Warp's default if None.
+    progress : tqdm or None
+        A bar to advance by the number of rays traced.
+
+    Returns
+    -------
+    image : (H, W) float32
+    mean_px : (N, 2) float64 ray-mean position of each dot (x = column, y = row)
+    ok : (N,) bool, every ray of the dot reached the sensor
+    n_tir : int, rays lost to total internal reflection
+    """
+    _init_warp()
+    W, H = plan.camera.pixels
+    n = plan.n_dots
+    medium = to_warp(plan.medium, device=device)
+    cam = _camera_struct(plan.camera)
+    sen = _sensor_struct(plan)
+    dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
+    nominal = wp.array(plan.nominal_px.astype(np.float32), dtype=wp.vec2, device=device)
+    image = wp.zeros((H, W), dtype=float, device=device)
+    sum_x = wp.zeros(n, dtype=wp.float64, device=device)
+    sum_y = wp.zeros(n, dtype=wp.float64, device=device)
+    hits = wp.zeros(n, dtype=wp.int32, device=device)
+    lost = wp.zeros(n, dtype=wp.int32, device=device)
+    tir = wp.zeros(n, dtype=wp.int32, device=device)
+    rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
+    for start in range(0, plan.rays_per_dot, rays_per_launch):
+        count = min(rays_per_launch, plan.rays_per_dot - start)
+        wp.launch(
+            kernels.render_rays, dim=count * n,
+            inputs=[medium, int(active), cam, sen, dots, nominal, plan.dot_radius, plan.step,
+                    plan.cfg["rays"]["seed"], start],
+            outputs=[image, sum_x, sum_y, hits, lost, tir], device=device,
+        )
+        if progress is not None:
+            wp.synchronize_device(device)
+            progress.update(count * n)
+    hits_np = hits.numpy()
+    safe = np.maximum(hits_np, 1)
+    mean = np.stack([sum_x.numpy() / safe, sum_y.numpy() / safe], axis=1) + plan.nominal_px
+    mean[hits_np == 0] = np.nan
+    ok = (lost.numpy() == 0) & (hits_np == plan.rays_per_dot)
+    return image.numpy(), mean, ok, int(tir.numpy().sum())
+
+
+def theory_displacement(plan: RenderPlan, *, device=None, samples_per_step=1):
+    """Eq. 4 at each dot: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels."""
+    _init_warp()
+    medium = to_warp(plan.medium, device=device)
+    cam = _camera_struct(plan.camera)
+    dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
+    out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
+    n_samples = max(8, samples_per_step * plan.steps_per_ray)
+    wp.launch(kernels.integrate_grad_n, dim=plan.n_dots, inputs=[medium, cam, dots, n_samples],
+              outputs=[out], device=device)
+    integral = out.numpy().astype(np.float64)
+    m, z_d = plan.camera.magnification, plan.medium.centre[2]
+    return -(m * z_d / plan.medium.n0) * integral / plan.camera.pitch
+
+
+def render_pair(config=None, *, device=None, progress=False) -> Pair:
+    """Render a BOS image pair with its ground truth.
+
+    Parameters
+    ----------
+    config : None, dict, str or Path
+        Configuration (see ``raytrace.config``); None for the defaults.
+    device : str, optional
+        Warp device: "cpu" or "cuda:0"; Warp's default device if None.
+    progress : bool
+        Show a tqdm bar over the rays.
+
+    Returns
+    -------
+    Pair
+        Images (noise-free float32), dot positions and displacements (see ``raytrace.pairfile``).
+    """
+    plan = config if isinstance(config, RenderPlan) else plan_render(config)
+    _init_warp()
+    device_name = str(wp.get_device(device))
+    total = 2 * plan.n_dots * plan.rays_per_dot
+    bar = tqdm(total=total, unit="ray", unit_scale=True, desc="render", disable=not progress)
+    t0 = time.perf_counter()
+    with bar:
+        ref_img, ref_px, ref_ok, tir_ref = trace_rays(plan, active=False, device=device, progress=bar)
+        grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar)
+        theory = theory_displacement(plan, device=device)
+        wp.synchronize_device(device)
+    seconds = time.perf_counter() - t0
+    if tir_ref + tir_grad:
+        raise SynthbosError(
+            f"{tir_ref + tir_grad} rays met total internal reflection in the thick lens; "
+            "reduce the aperture (camera.f_number) or the field of view"
+        )
+    attrs = {
+        "config": config_to_toml(plan.cfg),
+        "magnification": plan.camera.magnification,
+        "version": synthbos.__version__,
+        "device": device_name,
+        "render_seconds": seconds,
+        "n0": plan.medium.n0,
+        "spot_diameter_px": plan.spot_diameter_px,
+        "rays_per_dot": plan.rays_per_dot,
+        "steps_per_ray": plan.steps_per_ray,
+        "z_d_m": plan.medium.centre[2],
+        "pixel_pitch_m": plan.camera.pitch,
+    }
+    return Pair(
+        reference=ref_img, gradient=grad_img, target_xy_m=plan.target_xy, reference_px=ref_px,
+        gradient_px=grad_px, displacement_px=grad_px - ref_px, theory_px=theory,
+        valid=ref_ok & grad_ok, attrs=attrs,
+    )
