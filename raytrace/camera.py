@@ -88,9 +88,9 @@ def _thick_lens_focus(f, n, d, R, object_distance_to_front_vertex):
         return np.array([[1.0, 0.0], [-(n2 - n1) / radius, 1.0]])
 
     system = surface(-R, n, 1.0) @ gap(d, n) @ surface(R, 1.0, n) @ gap(object_distance_to_front_vertex, 1.0)
-    a, b = system[0]
-    # After a further gap s: B_total = a s + b = 0  ->  s = -b / a
-    s = -b / a
+    (_, b), (_, d_) = system
+    # After a further gap s in air: B_total = b + s D = 0 (all rays from the object point meet).
+    s = -b / d_
     total = gap(s, 1.0) @ system
     return s, total[0, 0]
 

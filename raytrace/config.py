@@ -23,7 +23,11 @@ Keys
   density_scale_kg_m3 (applied to normalised slices only); grid = [nx, ny, nz] nodes; plus the
   source's own keys.
 [rays]
-  per_dot; seed; step_mm = "grid" (the smallest node spacing) or a length; chunk (rays per launch).
+  per_dot; seed; step_mm = "grid" (the smallest node spacing) or a length; chunk (rays per launch);
+  aim_iterations = "auto" | n: re-aim each ray n times so that, refracted by the flow, it still
+  crosses the aperture stop at its sampled point ("auto": 1 for the thick lens, whose aberrations
+  make the landing point depend on where a ray crosses the stop; 0 for the ideal thin lens, which
+  images every ray from a point to one point).
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -54,7 +58,7 @@ DEFAULT_CONFIG = _default()
 # Keys allowed beyond the defaults, with their defaults.
 _OPTIONAL = {
     "target": {"min_spacing_px": None},
-    "rays": {"chunk": 4_194_304},
+    "rays": {"chunk": 4_194_304, "aim_iterations": "auto"},
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
 }
 
@@ -127,6 +131,8 @@ def _validate(cfg):
     rays["per_dot"] = _num("rays.per_dot", rays["per_dot"], positive=True, integer=True)
     rays["seed"] = _num("rays.seed", rays["seed"], nonneg=True, integer=True)
     rays["chunk"] = _num("rays.chunk", rays["chunk"], positive=True, integer=True)
+    if rays["aim_iterations"] != "auto":
+        rays["aim_iterations"] = _num("rays.aim_iterations", rays["aim_iterations"], nonneg=True, integer=True)
     if rays["step_mm"] != "grid":
         rays["step_mm"] = _num("rays.step_mm", rays["step_mm"], positive=True)
 

@@ -139,6 +139,26 @@ def trace_volume(m: Medium, active: int, x_global: wp.vec3, t: wp.vec3, step: fl
 
 
 @wp.func
+def aimed_ray(m: Medium, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.vec3, step: float, iterations: int):
+    """Trace a ray from ``origin`` through the volume so that it crosses the stop plane at ``stop_point``.
+
+    The first ray is aimed straight at the stop point; each iteration then re-aims it by the amount the
+    refracted ray missed (ray aiming, as in lens design), so the rays that pass the stop sample it
+    uniformly whatever the flow does to them. Returns the ray at the back face: position and tangent.
+    """
+    aim = stop_point
+    t = wp.normalize(aim - origin)
+    p, tt = trace_volume(m, active, origin, t, step)
+    for _ in range(iterations):
+        s = (cam.z_stop - p[2]) / tt[2]
+        miss = p + s * tt - stop_point
+        aim = aim - wp.vec3(miss[0], miss[1], 0.0)
+        t = wp.normalize(aim - origin)
+        p, tt = trace_volume(m, active, origin, t, step)
+    return p, tt
+
+
+@wp.func
 def refract(t: wp.vec3, normal: wp.vec3, eta: float):
     """Vector Snell's law: unit tangent t crossing a surface with unit normal (against t), eta = n1/n2.
 
@@ -254,6 +274,7 @@ def render_rays(
     nominal_px: wp.array(dtype=wp.vec2),
     dot_radius: float,
     step: float,
+    aim_iterations: int,
     seed: int,
     ray_start: int,
     image: wp.array2d(dtype=float),
@@ -277,8 +298,7 @@ def render_rays(
     e2 = dots[dot] + sample_disk(state, dot_radius)
     a2 = sample_disk(state, cam.aperture_radius)
     origin = wp.vec3(e2[0], e2[1], 0.0)
-    t = wp.normalize(wp.vec3(a2[0], a2[1], cam.z_stop) - origin)
-    p, t = trace_volume(medium, active, origin, t, step)
+    p, t = aimed_ray(medium, active, cam, origin, wp.vec3(a2[0], a2[1], cam.z_stop), step, aim_iterations)
     xs = wp.vec2(0.0)
     status = RAY_OK
     if cam.lens == LENS_THIN:

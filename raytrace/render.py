@@ -63,6 +63,8 @@ class RenderPlan:
         self.rays_per_dot = rays["per_dot"]
         # Each dot's energy is that of a point dot's spot of peak I0: I0 * 2 pi sigma^2.
         self.energy_per_ray = sen["peak_intensity"] * 2.0 * math.pi * self.sigma_px**2 / self.rays_per_dot
+        aim = rays["aim_iterations"]
+        self.aim_iterations = (1 if self.camera.lens == "thick" else 0) if aim == "auto" else int(aim)
         step = rays["step_mm"]
         self.step = min(self.medium.spacing) if step == "grid" else step * 1e-3
         if self.n_dots * self.rays_per_dot > _INT32_MAX:
@@ -168,7 +170,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
         wp.launch(
             kernels.render_rays, dim=count * n,
             inputs=[medium, int(active), cam, sen, dots, nominal, plan.dot_radius, plan.step,
-                    plan.cfg["rays"]["seed"], start],
+                    plan.aim_iterations, plan.cfg["rays"]["seed"], start],
             outputs=[image, sum_x, sum_y, hits, lost, tir], device=device,
         )
         if progress is not None:
