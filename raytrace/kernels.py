@@ -16,6 +16,12 @@ import warp as wp
 LENS_THIN = wp.constant(0)
 LENS_THICK = wp.constant(1)
 
+# Images and per-dot sums are accumulated in fixed point with integer atomics, so that the result does
+# not depend on the order in which threads add (float atomics would make GPU renders differ in the last
+# bits from run to run): intensities in units of 2^-40, positions in units of 2^-32 px.
+IMAGE_SCALE = wp.constant(1099511627776.0)  # 2^40
+POSITION_SCALE = wp.constant(4294967296.0)  # 2^32
+
 RAY_OK = wp.constant(0)
 RAY_MISSED_LENS = wp.constant(1)
 RAY_TIR = wp.constant(2)
@@ -238,9 +244,9 @@ def sensor_to_pixel(sen: Sensor, xs: wp.vec2):
 
 
 @wp.func
-def deposit_gaussian(image: wp.array2d(dtype=float), sen: Sensor, px: wp.vec2, energy: float):
+def deposit_gaussian(image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float):
     """Add a Gaussian spot of total ``energy`` centred at pixel coordinates px, integrated over each
-    pixel with erf, into ``image`` with atomics."""
+    pixel with erf, into the fixed-point ``image`` (units of 1 / IMAGE_SCALE) with atomics."""
     c0 = int(wp.round(px[0]))
     r0 = int(wp.round(px[1]))
     inv = 1.0 / (wp.sqrt(2.0) * sen.sigma_px)
@@ -253,7 +259,7 @@ def deposit_gaussian(image: wp.array2d(dtype=float), sen: Sensor, px: wp.vec2, e
                 col = c0 + dc
                 if col >= 0 and col < sen.width:
                     fx = 0.5 * (wp.erf((float(col) + 0.5 - px[0]) * inv) - wp.erf((float(col) - 0.5 - px[0]) * inv))
-                    wp.atomic_add(image, row, col, energy * fx * fy)
+                    wp.atomic_add(image, row, col, wp.int64(wp.floor(energy * fx * fy * IMAGE_SCALE + 0.5)))
 
 
 @wp.func
@@ -277,9 +283,9 @@ def render_rays(
     aim_iterations: int,
     seed: int,
     ray_start: int,
-    image: wp.array2d(dtype=float),
-    sum_x: wp.array(dtype=wp.float64),
-    sum_y: wp.array(dtype=wp.float64),
+    image: wp.array2d(dtype=wp.int64),
+    sum_x: wp.array(dtype=wp.int64),
+    sum_y: wp.array(dtype=wp.int64),
     hits: wp.array(dtype=wp.int32),
     lost: wp.array(dtype=wp.int32),
     tir: wp.array(dtype=wp.int32),
@@ -314,8 +320,8 @@ def render_rays(
     if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
         wp.atomic_add(lost, dot, 1)
     deposit_gaussian(image, sen, px, sen.energy)
-    wp.atomic_add(sum_x, dot, wp.float64(px[0] - nominal_px[dot][0]))
-    wp.atomic_add(sum_y, dot, wp.float64(px[1] - nominal_px[dot][1]))
+    wp.atomic_add(sum_x, dot, wp.int64(wp.floor((px[0] - nominal_px[dot][0]) * POSITION_SCALE + 0.5)))
+    wp.atomic_add(sum_y, dot, wp.int64(wp.floor((px[1] - nominal_px[dot][1]) * POSITION_SCALE + 0.5)))
     wp.atomic_add(hits, dot, 1)
 
 
@@ -365,7 +371,7 @@ def deposit_spots(
     sen: Sensor,
     px: wp.array(dtype=wp.vec2),
     energy: wp.array(dtype=float),
-    image: wp.array2d(dtype=float),
+    image: wp.array2d(dtype=wp.int64),
 ):
     """Deposit one Gaussian spot per entry (used by tests to compare against the NumPy reference)."""
     i = wp.tid()

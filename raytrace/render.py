@@ -158,9 +158,9 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     sen = _sensor_struct(plan)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     nominal = wp.array(plan.nominal_px.astype(np.float32), dtype=wp.vec2, device=device)
-    image = wp.zeros((H, W), dtype=float, device=device)
-    sum_x = wp.zeros(n, dtype=wp.float64, device=device)
-    sum_y = wp.zeros(n, dtype=wp.float64, device=device)
+    image = wp.zeros((H, W), dtype=wp.int64, device=device)
+    sum_x = wp.zeros(n, dtype=wp.int64, device=device)
+    sum_y = wp.zeros(n, dtype=wp.int64, device=device)
     hits = wp.zeros(n, dtype=wp.int32, device=device)
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
@@ -178,10 +178,16 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
             progress.update(count * n)
     hits_np = hits.numpy()
     safe = np.maximum(hits_np, 1)
-    mean = np.stack([sum_x.numpy() / safe, sum_y.numpy() / safe], axis=1) + plan.nominal_px
+    scale = float(kernels.POSITION_SCALE)
+    mean = np.stack([sum_x.numpy() / scale / safe, sum_y.numpy() / scale / safe], axis=1) + plan.nominal_px
     mean[hits_np == 0] = np.nan
     ok = (lost.numpy() == 0) & (hits_np == plan.rays_per_dot)
-    return image.numpy(), mean, ok, int(tir.numpy().sum())
+    return fixed_to_image(image.numpy()), mean, ok, int(tir.numpy().sum())
+
+
+def fixed_to_image(fixed):
+    """Fixed-point image accumulator (units 2^-40) to float32 intensities."""
+    return (fixed.astype(np.float64) / float(kernels.IMAGE_SCALE)).astype(np.float32)
 
 
 def theory_displacement(plan: RenderPlan, *, device=None, samples_per_step=1):

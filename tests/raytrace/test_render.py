@@ -99,10 +99,13 @@ def test_rk4_kernel_matches_float64_twin_and_shows_its_order(device):
         assert_allclose(xo.numpy(), twin_x, atol=3e-9)
         assert_allclose(to.numpy(), twin_t, atol=3e-7)
         errs.append(np.abs(xo.numpy() - exact)[:, :2].max())
-    # The two coarsest steps lie well above float32's floor (~5e-10 m): the kernel's own slope.
+    # The kernel follows its float64 twin (slope 3.8-4.2, test above) down to float32's floor, a few
+    # 1e-10 m in a 2 cm box, which the errors at the finer steps reach; the two coarsest steps lie
+    # above it, and there the kernel's own slope is that of a 4th-order method (float32 rounding,
+    # FMA contraction on CUDA, moves it by ~0.2; a 2nd-order method would show 2).
     slope = np.log(errs[0] / errs[1]) / np.log(_STEPS[0] / _STEPS[1])
     print(f"\nRK4 kernel on {device}: errors {[f'{e:.2e}' for e in errs]} m, coarse slope {slope:.3f}")
-    assert 3.8 <= slope <= 4.2
+    assert 3.5 <= slope <= 4.5
 
 
 def test_thin_lens_ray_mean_is_geometric_image(device):
@@ -135,14 +138,16 @@ def test_deposit_kernel_matches_numpy_twin(device):
     rng = np.random.default_rng(3)
     px = rng.uniform(-2, 98, size=(40, 2))
     energy = rng.uniform(0.5, 2.0, size=40)
-    img = wp.zeros((96, 96), dtype=float, device=device)
+    img = wp.zeros((96, 96), dtype=wp.int64, device=device)
     wp.launch(kernels.deposit_spots, dim=40,
               inputs=[sen, wp.array(px.astype(np.float32), dtype=wp.vec2, device=device),
                       wp.array(energy.astype(np.float32), dtype=float, device=device)],
               outputs=[img], device=device)
     twin = reference.deposit_gaussian((96, 96), px.astype(np.float32), energy.astype(np.float32),
                                       plan.sigma_px, plan.half_width)
-    assert_allclose(img.numpy(), twin, atol=2e-6 * energy.max())
+    from raytrace.render import fixed_to_image
+
+    assert_allclose(fixed_to_image(img.numpy()), twin, atol=2e-6 * energy.max())
 
 
 def test_medium_sampling_matches_numpy_twin(device):
@@ -185,3 +190,10 @@ def test_cpu_and_cuda_agree():
           f"{pos:.2e} px, max relative image difference {img:.2e}, over {cpu.n_dots} dots")
     np.testing.assert_array_equal(cpu.valid, gpu.valid)
     assert diff < 1e-4
+
+
+def test_render_is_deterministic(device):
+    cfg = _config(volume={"source": "gaussian", "sigma_mm": 3.0, "grid": [24, 24, 8]}, rays={"per_dot": 300})
+    a, b = render_pair(cfg, device=device), render_pair(cfg, device=device)
+    np.testing.assert_array_equal(a.gradient, b.gradient)
+    np.testing.assert_array_equal(a.displacement_px, b.displacement_px)
