@@ -48,7 +48,7 @@ def time_device(device: str, rays_per_dot: int, repeats: int) -> dict:
         render.trace_rays(plan, active=False, device=device)
         wp.synchronize_device(device)
         t1 = time.perf_counter()
-        img, _, ok, _ = render.trace_rays(plan, active=True, device=device)
+        _, _, ok, _ = render.trace_rays(plan, active=True, device=device)
         wp.synchronize_device(device)
         t2 = time.perf_counter()
         if best is None or t2 - t0 < best[0]:

@@ -111,7 +111,7 @@ def test_patterns_density_and_spacing():
         ({"rays": {"per_dot": 0}}, "rays.per_dot must be > 0"),
         ({"camera": {"fnumber": 8}}, "unknown configuration key camera.fnumber"),
         ({"optics": {"x": 1}}, "unknown configuration table [optics]"),
-        ({"volume": {"source": "gaussian", "gradient_kg_m4": [1, 1]}}, "unknown configuration key volume.gradient_kg_m4"),
+        ({"volume": {"source": "gaussian", "gradient_kg_m4": [1, 1]}}, "unknown configuration key volume.grad"),
         ({"volume": {"distance_from_target_mm": 1200}}, "behind the lens"),
         ({"volume": {"distance_from_target_mm": 3}}, "through the target plane"),
         ({"volume": {"offset_mm": [200.0, 0.0]}}, "misses the field of view"),
