@@ -23,15 +23,13 @@ dX = -(M Z_D / n0) * integral of grad n dz with M > 0.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from synthbos import SynthbosError
+from synthbos import SynthbosError, atomic_output
 
 __all__ = ["SIGN_CONVENTION", "Pair", "read_pair", "write_pair"]
 
@@ -64,29 +62,19 @@ class Pair:
 
 
 def write_pair(path, pair: Pair) -> Path:
-    """Write a pair file atomically: to a temporary name in the same folder, then rename."""
+    """Write a pair file atomically (see ``synthbos.atomic_output``)."""
     path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise SynthbosError(f"output folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            img = f.create_group("images")
-            img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
-            img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
-            dots = f.create_group("dots")
-            for name in _DOT_SETS:
-                dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
-            dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
-            for key, value in pair.attrs.items():
-                f.attrs[key] = value
-            f.attrs["sign_convention"] = SIGN_CONVENTION
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        img = f.create_group("images")
+        img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
+        img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
+        dots = f.create_group("dots")
+        for name in _DOT_SETS:
+            dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
+        dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
+        for key, value in pair.attrs.items():
+            f.attrs[key] = value
+        f.attrs["sign_convention"] = SIGN_CONVENTION
     return path
 
 

@@ -251,6 +251,7 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
         "steps_per_ray": plan.steps_per_ray,
         "z_d_m": plan.medium.centre[2],
         "pixel_pitch_m": plan.camera.pitch,
+        "peak_intensity": plan.cfg["sensor"]["peak_intensity"],
     }
     return Pair(
         reference=ref_img, gradient=grad_img, target_xy_m=plan.target_xy, reference_px=ref_px,

@@ -5,7 +5,11 @@ exception type raised for input a user can get wrong. The algorithms live in the
 packages ``raytrace``, ``correlation``, ``tracking`` and the harness in ``benchmarks``.
 """
 
+import contextlib
+import os
+import tempfile
 from importlib import metadata as _metadata
+from pathlib import Path
 
 try:
     __version__ = _metadata.version("synthbos")
@@ -21,4 +25,25 @@ class SynthbosError(ValueError):
     """
 
 
-__all__ = ["SynthbosError", "__version__"]
+@contextlib.contextmanager
+def atomic_output(path):
+    """Yield a temporary path beside ``path``; on success rename it to ``path``, on any error remove it.
+
+    Every output file of the project is written this way, so an interrupted or failed run never leaves
+    a partial file under the final name.
+    """
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        raise SynthbosError(f"output folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+__all__ = ["SynthbosError", "__version__", "atomic_output"]

@@ -1,0 +1,141 @@
+"""``synthbos process``: run a processing method on a pair file or on two camera images.
+
+The library functions ``correlation.correlate_pair`` and ``tracking.track_pair`` do the work; this
+module reads the inputs (pair files, 8/16-bit TIFF or PNG images, a CSV of predicted dot positions),
+calls them, and writes the result file atomically.
+
+Result files (HDF5)
+-------------------
+``--method correlation``: ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
+``/peak_ratio``; the settings as root attributes.
+``--method tracking`` / ``tracking-cc``: ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
+``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
+``/dots/status``, plus every other column of the tracking table under ``/dots/`` (the centroid-difference
+displacement as ``u_centroid``, ``v_centroid``); settings as attributes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from synthbos import SynthbosError, atomic_output
+
+__all__ = ["METHODS", "MethodResult", "load_image", "read_dots_csv", "run_method", "write_result"]
+
+METHODS = ("correlation", "tracking", "tracking-cc")
+
+
+@dataclass
+class MethodResult:
+    """What a method measured: points (px), displacements (px), and method-specific extras."""
+
+    method: str
+    xy: np.ndarray  # (N, 2) measurement points (window centres or reference dot positions)
+    uv: np.ndarray  # (N, 2) displacements, NaN where nothing was measured
+    grid_shape: tuple | None  # (ny, nx) for correlation, None for scattered dots
+    table: dict  # every array the method returned, for the result file
+    settings: dict
+
+
+def load_image(path) -> np.ndarray:
+    """Read one camera image (TIFF through tifffile, PNG and others through imageio) as float64."""
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"image {path} does not exist")
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            img = tifffile.imread(path)
+        else:
+            import imageio.v3 as iio
+
+            img = iio.imread(path)
+    except Exception as err:  # the readers raise many types for unreadable files
+        raise SynthbosError(f"cannot read image {path}: {err}") from None
+    img = np.asarray(img)
+    if img.ndim == 3 and img.shape[-1] in (3, 4):  # colour: luminance of the RGB channels
+        img = img[..., :3].astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    if img.ndim != 2:
+        raise SynthbosError(f"image {path} must be a single 2-D frame, got shape {img.shape}")
+    return img.astype(np.float64)
+
+
+def read_dots_csv(path) -> np.ndarray:
+    """Predicted reference-image dot positions from a CSV with a header line ``x,y`` (px)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"dots file {path} does not exist")
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or [c.strip().lower() for c in rows[0]] != ["x", "y"]:
+        raise SynthbosError(f"dots file {path} must start with the header line 'x,y'")
+    try:
+        xy = np.array([[float(a), float(b)] for a, b in (r for r in rows[1:] if r)], dtype=np.float64)
+    except ValueError as err:
+        raise SynthbosError(f"dots file {path}: {err}") from None
+    if xy.size == 0 or not np.isfinite(xy).all():
+        raise SynthbosError(f"dots file {path} has no dots or non-finite positions")
+    return xy.reshape(-1, 2)
+
+
+def run_method(method, reference, gradient, *, prior_xy=None, correlation_settings=None, tracking_settings=None):
+    """Run one processing method on an image pair and return its ``MethodResult``."""
+    if method not in METHODS:
+        raise SynthbosError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if method == "correlation":
+        from correlation import correlate_pair
+
+        res = correlate_pair(reference, gradient, settings=correlation_settings)
+        xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
+        uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
+        table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio}
+        return MethodResult(method, xy, uv, tuple(res.u.shape), table, _settings_dict(res.settings))
+    from tracking import track_pair
+
+    tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=tracking_settings)
+    xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
+    u, v = (tab["u_cc"], tab["v_cc"]) if method == "tracking-cc" else (tab["u"], tab["v"])
+    uv = np.stack([u, v], axis=1).astype(np.float64)
+    table = {name: tab[name] for name in tab.dtype.names}
+    settings = _settings_dict(tracking_settings) if tracking_settings is not None else {}
+    return MethodResult(method, xy, uv, None, table, settings)
+
+
+def _settings_dict(settings):
+    if settings is None:
+        return {}
+    if hasattr(settings, "as_dict"):
+        return settings.as_dict()
+    return dict(settings)
+
+
+def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
+    """Write a result file atomically (layout in the module docstring)."""
+    path = Path(path)
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        if result.method == "correlation":
+            for name in ("x", "y", "u", "v", "flags", "peak_ratio"):
+                f.create_dataset(name, data=np.asarray(result.table[name]))
+        else:
+            g = f.create_group("dots")
+            g.create_dataset("x", data=result.xy[:, 0])
+            g.create_dataset("y", data=result.xy[:, 1])
+            g.create_dataset("u", data=result.uv[:, 0])
+            g.create_dataset("v", data=result.uv[:, 1])
+            for name, values in result.table.items():
+                if name in ("u", "v"):  # the centroid-difference displacement, kept under its own name
+                    g.create_dataset(f"{name}_centroid", data=np.asarray(values))
+                elif name not in ("x", "y"):
+                    g.create_dataset(name, data=np.asarray(values))
+        f.attrs["method"] = result.method
+        f.attrs["settings"] = json.dumps(result.settings, default=str)
+        for key, value in (extra_attrs or {}).items():
+            f.attrs[key] = value
+    return path

@@ -1,0 +1,146 @@
+"""Scoring of BOS processing methods against the ray-traced ground truth.
+
+Pure functions, arrays in and arrays out. The conventions follow section 4 of Rajendran, Bane &
+Vlachos (2019): errors are magnitudes of the vector difference between a measured and the true
+displacement (px); error sets are split at a displacement threshold equal to half the standard
+deviation of the theoretical (Eq. 4) displacement magnitudes; distributions are reported as CDFs and
+percentiles.
+
+How the truth reaches each method's points
+------------------------------------------
+* Tracking measures at dots: its error at a dot is measured minus the dot's own ray-traced
+  displacement (no interpolation).
+* Correlation measures on a grid of window centres: the truth there is the dot displacements
+  interpolated linearly (barycentric interpolation on the Delaunay triangulation of the reference dot
+  positions) to the window centre. Window centres outside the convex hull of the valid dots are
+  not scored.
+* Displacement gradients: on the correlation grid, central differences of the measured and of the
+  interpolated true field on the same grid; at dots, a least-squares plane through each dot and its
+  nearest neighbours, fitted to the measured and to the true displacements alike. The error is the
+  Frobenius norm of the difference of the 2 x 2 gradient tensors (px / px).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "PERCENTILES",
+    "cramer_rao_displacement",
+    "empirical_cdf",
+    "error_percentiles",
+    "grid_gradient",
+    "interpolate_truth",
+    "scattered_gradient",
+    "split_threshold",
+    "vector_errors",
+]
+
+PERCENTILES = (50, 68, 90, 95, 99)
+
+
+def vector_errors(measured, truth):
+    """Magnitude of the difference of two (N, 2) displacement sets; NaN where either is missing."""
+    d = np.asarray(measured, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
+    return np.hypot(d[..., 0], d[..., 1])
+
+
+def split_threshold(theory_px):
+    """Half the standard deviation of the theoretical displacement magnitudes (Eq. 4), in px."""
+    mag = np.hypot(*np.asarray(theory_px, dtype=np.float64).reshape(-1, 2).T)
+    mag = mag[np.isfinite(mag)]
+    return 0.5 * float(np.std(mag)) if len(mag) else 0.0
+
+
+def empirical_cdf(errors):
+    """Sorted finite errors and their cumulative probabilities k / n (k = 1..n)."""
+    e = np.sort(np.asarray(errors, dtype=np.float64)[np.isfinite(errors)])
+    return e, np.arange(1, len(e) + 1) / max(len(e), 1)
+
+
+def error_percentiles(errors, percentiles=PERCENTILES):
+    """Percentiles of the finite errors (NaN when there are none), as a dict {p: value}."""
+    e = np.asarray(errors, dtype=np.float64)
+    e = e[np.isfinite(e)]
+    if len(e) == 0:
+        return {p: float("nan") for p in percentiles}
+    return {p: float(v) for p, v in zip(percentiles, np.percentile(e, percentiles), strict=True)}
+
+
+def interpolate_truth(dot_xy, dot_disp, points_xy):
+    """Linear (Delaunay barycentric) interpolation of dot displacements to points; NaN outside the hull."""
+    ok = np.all(np.isfinite(dot_xy), axis=1) & np.all(np.isfinite(dot_disp), axis=1)
+    interp = LinearNDInterpolator(np.asarray(dot_xy)[ok], np.asarray(dot_disp)[ok], fill_value=np.nan)
+    pts = np.asarray(points_xy, dtype=np.float64)
+    return interp(pts.reshape(-1, 2)).reshape(*pts.shape[:-1], 2)
+
+
+def grid_gradient(u, v, x, y):
+    """Displacement gradient on a regular grid by central differences.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    x, y : (ny, nx) grid coordinates (px); rows share y, columns share x.
+
+    Returns
+    -------
+    (ny, nx, 2, 2) array: [[du/dx, du/dy], [dv/dx, dv/dy]]; NaN where a neighbour is missing.
+    """
+    dx = float(np.median(np.diff(x[0]))) if x.shape[1] > 1 else 1.0
+    dy = float(np.median(np.diff(y[:, 0]))) if y.shape[0] > 1 else 1.0
+    out = np.full((*u.shape, 2, 2), np.nan)
+    for k, f in enumerate((u, v)):
+        if u.shape[1] > 2:
+            out[:, 1:-1, k, 0] = (f[:, 2:] - f[:, :-2]) / (2 * dx)
+        if u.shape[0] > 2:
+            out[1:-1, :, k, 1] = (f[2:, :] - f[:-2, :]) / (2 * dy)
+    return out
+
+
+def scattered_gradient(xy, disp, *, neighbours=8):
+    """Displacement gradient at scattered dots: least-squares plane through each dot and its neighbours.
+
+    Parameters
+    ----------
+    xy : (N, 2) dot positions (px); disp : (N, 2) displacements; rows with NaN are skipped.
+    neighbours : int
+        Neighbours used besides the dot itself.
+
+    Returns
+    -------
+    (N, 2, 2) array [[du/dx, du/dy], [dv/dx, dv/dy]]; NaN for skipped dots.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    disp = np.asarray(disp, dtype=np.float64)
+    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(disp), axis=1)
+    out = np.full((len(xy), 2, 2), np.nan)
+    idx_ok = np.flatnonzero(ok)
+    k = min(neighbours + 1, len(idx_ok))
+    if k < 3:
+        return out
+    pts = xy[idx_ok]
+    _, nn = cKDTree(pts).query(pts, k=k)
+    dx = pts[nn] - pts[:, None, :]  # (n, k, 2)
+    a = np.concatenate([np.ones((*dx.shape[:2], 1)), dx], axis=2)  # columns: 1, dx, dy
+    b = disp[idx_ok][nn]  # (n, k, 2)
+    ata = np.einsum("nki,nkj->nij", a, a)
+    atb = np.einsum("nki,nkj->nij", a, b)
+    good = np.abs(np.linalg.det(ata)) > 1e-9
+    coef = np.full((len(pts), 3, 2), np.nan)
+    coef[good] = np.linalg.solve(ata[good], atb[good])
+    # coef[:, 1, c] = d disp_c / dx, coef[:, 2, c] = d disp_c / dy
+    out[idx_ok] = np.transpose(coef[:, 1:, :], (0, 2, 1))
+    return out
+
+
+def cramer_rao_displacement(noise_percent, *, peak=1.0):
+    """Cramér-Rao bound of a displacement (px) for Gaussian dots of peak ``peak`` under pixel noise.
+
+    The position bound of a Gaussian dot of peak I0 under Gaussian noise sigma_n is about
+    0.8 sigma_n / I0; a displacement is the difference of two independent positions, so sqrt(2) times it.
+    """
+    sigma_n = noise_percent / 100.0 * peak
+    return np.sqrt(2.0) * 0.8 * sigma_n / peak
