@@ -53,6 +53,8 @@ class CampaignSpec:
     methods: tuple = METHODS
     config: dict = field(default_factory=lambda: copy.deepcopy(PAPER_CONFIG))
     seed: int = 2019
+    correlation: dict = field(default_factory=dict)  # CorrelationSettings overrides
+    tracking: dict = field(default_factory=dict)  # TrackingSettings overrides
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -132,7 +134,19 @@ def _nominal_positions(pair) -> np.ndarray:
     return cam.target_to_pixel(pair.target_xy_m)
 
 
-def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=None):
+def _settings(method: str, overrides: dict):
+    if not overrides:
+        return None
+    if method == "correlation":
+        from correlation import CorrelationSettings
+
+        return CorrelationSettings(**overrides)
+    from tracking import TrackingSettings
+
+    return TrackingSettings(**overrides)
+
+
+def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=None, settings=None):
     """Process one pair with one method at one noise level and return its error arrays.
 
     Returns
@@ -151,7 +165,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
     prior = _nominal_positions(pair) if method != "correlation" else None
-    res = run_method(method, ref, grad, prior_xy=prior)
+    res = run_method(method, ref, grad, prior_xy=prior, correlation_settings=settings, tracking_settings=settings)
     if method == "correlation":
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
         scored = np.all(np.isfinite(truth), axis=1)
@@ -183,10 +197,11 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
     }
 
 
-def _score_item(pair_path: str, method: str, noise: float, seeds, out: str):
+def _score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict):
     from raytrace import read_pair
 
-    scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds)
+    settings = _settings(method, overrides)
+    scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds, settings=settings)
     with atomic_output(out) as tmp, open(tmp, "wb") as f:
         np.savez(f, **scores)
     return out
@@ -277,7 +292,8 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
             for method in spec.methods:
                 out = folder / "scores" / f"s{s}_p{p:02d}_n{noise:g}_{method}.npz"
                 if not out.exists():
-                    scores.append((str(pair_path), method, noise, seeds, str(out)))
+                    overrides = spec.correlation if method == "correlation" else spec.tracking
+                    scores.append((str(pair_path), method, noise, seeds, str(out), overrides))
     _run_items(scores, _score_item, workers=workers, desc="process", progress=progress)
     rows = summarise(spec, folder)
     write_tables(rows, folder)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
+import tomllib
 from pathlib import Path
 
 import synthbos
@@ -16,23 +18,138 @@ from synthbos import SynthbosError
 __all__ = ["main"]
 
 
+def _out_path(path) -> Path:
+    out = Path(path)
+    if not out.parent.is_dir():
+        raise SynthbosError(f"output folder {out.parent} does not exist")
+    return out
+
+
 def _render(args):
     from raytrace import render_pair, write_pair
 
-    out = Path(args.output)
-    if not out.parent.is_dir():
-        raise SynthbosError(f"output folder {out.parent} does not exist")
+    out = _out_path(args.output)
     pair = render_pair(args.config, device=args.device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
     d = pair.displacement_px[v]
-    mag = lambda a: (a**2).sum(axis=1) ** 0.5  # noqa: E731
+    mag = (d**2).sum(axis=1) ** 0.5
     print(f"wrote {out}: {pair.n_dots} dots ({int(v.sum())} valid), {pair.attrs['rays_per_dot']} rays/dot, "
           f"M = {pair.attrs['magnification']:.4f}, device {pair.attrs['device']}, "
           f"{pair.attrs['render_seconds']:.2f} s")
     if len(d):
-        print(f"  |displacement| px: mean {mag(d).mean():.4f}, max {mag(d).max():.4f}; "
-              f"|theory (Eq. 4)| max {mag(pair.theory_px[v]).max():.4f}")
+        th = (pair.theory_px[v] ** 2).sum(axis=1) ** 0.5
+        print(f"  |displacement| px: mean {mag.mean():.4f}, max {mag.max():.4f}; |theory (Eq. 4)| max {th.max():.4f}")
+    return 0
+
+
+def _process(args):
+    from benchmarks.process import load_image, read_dots_csv, run_method, write_result
+
+    out = _out_path(args.output)
+    prior = None
+    attrs = {}
+    if args.pair:
+        if args.reference or args.gradient:
+            raise SynthbosError("give either a pair file or --reference and --gradient, not both")
+        from raytrace import read_pair
+
+        from .campaign import _nominal_positions
+
+        pair = read_pair(args.pair)
+        ref, grad = pair.reference, pair.gradient
+        if args.method != "correlation":
+            prior = read_dots_csv(args.dots) if args.dots else _nominal_positions(pair)
+        attrs["input"] = str(args.pair)
+    else:
+        if not (args.reference and args.gradient):
+            raise SynthbosError("give a pair file, or both --reference and --gradient images")
+        ref, grad = load_image(args.reference), load_image(args.gradient)
+        if args.method != "correlation" and args.dots:
+            prior = read_dots_csv(args.dots)
+        attrs["input"] = f"{args.reference} {args.gradient}"
+    t0 = time.perf_counter()
+    res = run_method(args.method, ref, grad, prior_xy=prior)
+    attrs["seconds"] = time.perf_counter() - t0
+    write_result(out, res, extra_attrs=attrs)
+    import numpy as np
+
+    ok = np.all(np.isfinite(res.uv), axis=1)
+    print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
+          f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
+          f"{attrs['seconds']:.2f} s")
+    return 0
+
+
+def _device_default(device):
+    if device is not None:
+        return device
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    return "cuda:0" if wp.is_cuda_available() else "cpu"
+
+
+def _paper(args):
+    from .campaign import FULL, QUICK, format_summary, run_campaign
+
+    device = _device_default(args.device)
+    full = args.full or (not args.quick and device.startswith("cuda"))
+    spec = FULL if full else QUICK
+    out = Path(args.out or f"runs/paper-{spec.name}")
+    print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
+          f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
+          f"on {device} -> {out}")
+    t0 = time.perf_counter()
+    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
+    print(format_summary(rows))
+    print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
+          f"{out / 'fig5.png'} ({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+def _regress(args):
+    from .regress import BASELINE, run_regress
+
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
+    if args.update:
+        print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
+        return 0
+    if problems:
+        print(f"synthbos regress: {len(problems)} result(s) worse than the baseline:", file=sys.stderr)
+        for p in problems:
+            print(f"  {p}", file=sys.stderr)
+        return 1
+    print(f"synthbos regress: all {len(rows)} rows within tolerance of {BASELINE.name}")
+    return 0
+
+
+def _sweep(args):
+    from .sweep import parse_parameter, run_sweep
+
+    base = {}
+    if args.config:
+        path = Path(args.config)
+        if not path.is_file():
+            raise SynthbosError(f"configuration file {path} does not exist")
+        try:
+            base = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as err:
+            raise SynthbosError(f"configuration file {path} is not valid TOML: {err}") from None
+    params = [parse_parameter(p) for p in args.param]
+    rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
+                     workers=args.workers, progress=not args.quiet)
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+    return 0
+
+
+def _show_density(args):
+    from .show_density import plot_snapshots
+
+    out = _out_path(args.output)
+    plot_snapshots(out, snapshots_file=args.snapshots)
+    print(f"wrote {out}")
     return 0
 
 
@@ -47,6 +164,50 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: Warp's default)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render)
+
+    p = sub.add_parser("process", help="measure displacements: correlation or dot tracking")
+    p.add_argument("pair", nargs="?", default=None, help="pair file from 'synthbos render'")
+    p.add_argument("--method", required=True, choices=("correlation", "tracking", "tracking-cc"))
+    p.add_argument("--reference", help="reference (no-flow) camera image, TIFF or PNG")
+    p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
+    p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
+    p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
+    p.set_defaults(func=_process)
+
+    for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
+        p = sub.add_parser(name, help=helptext)
+        g = p.add_mutually_exclusive_group()
+        g.add_argument("--quick", action="store_true", help="reduced campaign for two CPU cores (default without GPU)")
+        g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
+        p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
+        p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
+        p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        p.set_defaults(func=_paper)
+
+    p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
+    p.add_argument("--update", action="store_true", help="rewrite the baseline on purpose")
+    p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_regress)
+
+    p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
+    p.add_argument("config", nargs="?", default=None, help="TOML configuration (as for render) to start from")
+    p.add_argument("--param", action="append", required=True,
+                   help="name=v1,v2,... (table.key, or density, diameter, noise, f_number, z_d, magnification, "
+                        "rays, window); give it once or twice")
+    p.add_argument("--out", required=True, help="sweep folder")
+    p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
+    p.add_argument("--device", default=None)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_sweep)
+
+    p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
+    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write")
+    p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
+    p.set_defaults(func=_show_density)
     return parser
 
 
@@ -59,7 +220,7 @@ def main(argv=None) -> int:
         print(f"synthbos: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("synthbos: interrupted", file=sys.stderr)
+        print("synthbos: interrupted; finished items are kept, re-run to resume", file=sys.stderr)
         return 130
 
 

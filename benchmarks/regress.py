@@ -1,0 +1,72 @@
+"""``synthbos regress``: guard every method's accuracy with a small fixed campaign.
+
+The campaign ``REGRESS`` (two snapshots, one 256 x 256 pair each, noise 0 and 3 %, all methods) is
+run from scratch and its error percentiles are compared with the baseline in
+``data/baselines/regress.json``. A percentile is worse when it exceeds the baseline by more than
+``RTOL`` relative plus ``ATOL`` absolute; a yield is worse when it drops by more than
+``YIELD_DROP``. Everything is seeded, so an unchanged code base reproduces the baseline exactly;
+the tolerances only absorb library round-off across machines. ``--update`` rewrites the baseline on
+purpose.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+from pathlib import Path
+
+from synthbos import SynthbosError, atomic_output
+
+from .campaign import REGRESS, run_campaign
+
+__all__ = ["ATOL", "BASELINE", "RTOL", "YIELD_DROP", "compare_to_baseline", "run_regress"]
+
+BASELINE = Path(__file__).resolve().parent.parent / "data" / "baselines" / "regress.json"
+RTOL = 0.05
+ATOL = {"displacement": 2e-4, "gradient": 2e-5}
+YIELD_DROP = 0.005
+PCTS = ("p50", "p68", "p90", "p95", "p99")
+
+
+def _key(row):
+    return (row["method"], float(row["noise_percent"]), row["split"], row["quantity"])
+
+
+def compare_to_baseline(rows, baseline_rows):
+    """Every (method, noise, split, quantity, percentile or yield) that got worse, as readable lines."""
+    base = {_key(r): r for r in baseline_rows}
+    problems = []
+    for row in rows:
+        key = _key(row)
+        if key not in base:
+            problems.append(f"{key[0]} noise {key[1]:g}% {key[2]} {key[3]}: not in the baseline (run --update)")
+            continue
+        b = base[key]
+        name = f"{key[0]} noise {key[1]:g}% {key[2]} threshold {key[3]}"
+        for p in PCTS:
+            new, old = float(row[p]), float(b[p])
+            if math.isnan(new) and math.isnan(old):
+                continue
+            if math.isnan(new) or (not math.isnan(old) and new > old * (1 + RTOL) + ATOL[key[3]]):
+                problems.append(f"{name} {p}: {new:.6g} vs baseline {old:.6g}")
+        if float(row["yield"]) < float(b["yield"]) - YIELD_DROP:
+            problems.append(f"{name} yield: {row['yield']:.4f} vs baseline {b['yield']:.4f}")
+    return problems
+
+
+def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True):
+    """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead."""
+    baseline = Path(baseline)
+    if not update and not baseline.is_file():
+        raise SynthbosError(f"no regression baseline at {baseline}; create it with 'synthbos regress --update'")
+    with tempfile.TemporaryDirectory(prefix="synthbos-regress-") as tmp:
+        folder = Path(out) if out else Path(tmp)
+        rows = run_campaign(REGRESS, folder, device="cpu", workers=workers, progress=progress, figures=False)
+    if update:
+        baseline.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_output(baseline) as tmp_file:
+            tmp_file.write_text(json.dumps({"campaign": REGRESS.as_dict(), "rows": rows}, indent=1))
+        return rows, []
+    base = json.loads(baseline.read_text())
+    return rows, compare_to_baseline(rows, base["rows"])

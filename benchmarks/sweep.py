@@ -1,0 +1,117 @@
+"""``synthbos sweep``: experiment design by sweeping one or two set-up parameters.
+
+At every point of the sweep the campaign machinery renders, processes and scores a campaign (by
+default the small ``REGRESS`` size; ``--size quick`` or ``full`` for more), in its own resumable
+folder; the results are gathered into ``sweep.csv`` / ``sweep.json`` and plotted in ``sweep.png``
+(error percentiles and yield against the parameter, for every method), so a researcher can choose a
+set-up before building it.
+
+Parameters are named by a configuration key, ``table.key`` (e.g. ``target.dots_per_32px``,
+``camera.f_number``, ``volume.distance_from_target_mm``, ``rays.per_dot``), or by one of these:
+``density`` (dots per 32x32 px), ``diameter`` (dot diameter, px), ``noise`` (percent of the peak),
+``f_number``, ``z_d`` (mm), ``magnification`` (sets the target distance f (1 + 1/M)), ``rays``
+(per dot) and ``window`` (the final correlation window, px; the first pass is twice as large).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import replace
+from pathlib import Path
+
+from synthbos import SynthbosError, atomic_output
+
+from .campaign import FULL, QUICK, REGRESS, CampaignSpec, run_campaign
+
+__all__ = ["ALIASES", "apply_parameter", "parse_parameter", "run_sweep"]
+
+ALIASES = {
+    "density": "target.dots_per_32px",
+    "diameter": "target.dot_diameter_px",
+    "f_number": "camera.f_number",
+    "z_d": "volume.distance_from_target_mm",
+    "rays": "rays.per_dot",
+}
+SPECIAL = ("noise", "magnification", "window")
+SIZES = {"regress": REGRESS, "quick": QUICK, "full": FULL}
+
+
+def parse_parameter(text: str):
+    """``name=v1,v2,...`` -> (canonical name, [values]); raises SynthbosError on a malformed one."""
+    if "=" not in text:
+        raise SynthbosError(f"sweep parameter {text!r} must look like name=v1,v2,...")
+    name, _, values = text.partition("=")
+    name = ALIASES.get(name.strip(), name.strip())
+    if name not in SPECIAL and (name.count(".") != 1):
+        raise SynthbosError(f"unknown sweep parameter {name!r}: use table.key or one of "
+                            f"{sorted(ALIASES) + list(SPECIAL)}")
+    try:
+        vals = [float(v) for v in values.split(",") if v.strip()]
+    except ValueError:
+        raise SynthbosError(f"sweep parameter {name}: values must be numbers, got {values!r}") from None
+    if not vals:
+        raise SynthbosError(f"sweep parameter {name} has no values")
+    return name, vals
+
+
+def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec:
+    """The campaign spec with one parameter set to ``value``."""
+    if name == "noise":
+        return replace(spec, noise_percent=(value,))
+    if name == "window":
+        w = int(value)
+        return replace(spec, correlation={**spec.correlation, "window_sizes": (2 * w, w)})
+    if name == "magnification":
+        if value <= 0:
+            raise SynthbosError(f"magnification must be > 0, got {value:g}")
+        f = spec.config.get("camera", {}).get("focal_length_mm", 105.0)
+        return spec.with_config({"target": {"distance_mm": f * (1.0 + 1.0 / value)}})
+    table, key = name.split(".")
+    integer_keys = {"rays.per_dot", "target.seed", "rays.seed"}
+    return spec.with_config({table: {key: int(value) if name in integer_keys else value}})
+
+
+def _slug(name, value):
+    return f"{name.replace('.', '-')}={value:g}"
+
+
+def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True):
+    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows."""
+    from raytrace import load_config
+
+    from .campaign import write_tables
+    from .figures import sweep_figure
+
+    if not 1 <= len(params) <= 2:
+        raise SynthbosError("give one or two --param options")
+    if size not in SIZES:
+        raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
+    (name1, vals1), *rest = params
+    name2, vals2 = rest[0] if rest else (None, [None])
+    rows = []
+    for v2 in vals2:
+        for v1 in vals1:
+            spec = apply_parameter(spec0, name1, v1)
+            label = _slug(name1, v1)
+            if name2 is not None:
+                spec = apply_parameter(spec, name2, v2)
+                label += "_" + _slug(name2, v2)
+            spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
+            load_config(spec.pair_config(spec.snapshots[0], 0))  # a bad value fails before any work
+            if progress:
+                print(f"sweep point {label}")
+            point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
+                                      progress=progress, figures=False)
+            for r in point_rows:
+                rows.append({"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r})
+    write_tables(rows, folder)
+    for ext in ("csv", "json"):
+        (folder / f"results.{ext}").replace(folder / f"sweep.{ext}")
+    with atomic_output(folder / "sweep_params.json") as tmp:
+        tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
+    sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2)
+    return rows
