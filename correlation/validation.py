@@ -7,10 +7,30 @@ import numpy as np
 __all__ = ["neighbour_median", "normalized_median_test", "replace_outliers"]
 
 
-def _neighbours(field):
-    """(ny, nx, 8) stack of the eight neighbours of every node, NaN beyond the grid."""
-    padded = np.pad(np.asarray(field, dtype=np.float64), 1, constant_values=np.nan)
+def _extrapolated_pad(field):
+    """Pad a grid by one node on each side, continuing it linearly (``2 f[0] - f[1]``) where possible."""
+    f = np.asarray(field, dtype=np.float64)
+    for axis in (0, 1):
+        n = f.shape[axis]
+        first, last = np.take(f, [0], axis), np.take(f, [n - 1], axis)
+        if n >= 2:
+            first = 2.0 * first - np.take(f, [1], axis)
+            last = 2.0 * last - np.take(f, [n - 2], axis)
+        f = np.concatenate([first, f, last], axis=axis)
+    return f
+
+
+def _neighbours(field, *, extrapolate=False):
+    """(ny, nx, 8) stack of the eight neighbours of every node.
+
+    Beyond the grid: NaN, or with ``extrapolate`` the linear continuation of the grid, so that a node
+    on the edge of a field with a gradient sees the same neighbourhood as one inside.
+    """
     ny, nx = np.shape(field)
+    if extrapolate:
+        padded = _extrapolated_pad(field)
+    else:
+        padded = np.pad(np.asarray(field, dtype=np.float64), 1, constant_values=np.nan)
     return np.stack(
         [padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx],
         axis=-1,
@@ -74,8 +94,10 @@ def normalized_median_test(u, v, *, epsilon=0.1, threshold=2.0, valid=None):
     For each component, with ``U_m`` the median of the (valid) 3x3 neighbours and ``r_m`` the median of
     the neighbours' residuals ``|U_i - U_m|``, the normalised residual is
     ``r_0 = |U_0 - U_m| / (r_m + epsilon)`` (Westerweel and Scarano, Exp. Fluids 39 (2005) 1096,
-    eq. 2); the two components are combined as ``sqrt(r_0u^2 + r_0v^2)``. Nodes with fewer than two
-    valid neighbours are not flagged.
+    eq. 2); the two components are combined as ``sqrt(r_0u^2 + r_0v^2)``. Beyond the edges the field is
+    continued linearly, so that edge nodes of a field with a uniform gradient are not flagged (with
+    missing neighbours the median of a one-sided neighbourhood is off by the gradient). Nodes with
+    fewer than two valid neighbours are not flagged.
     """
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
@@ -84,7 +106,7 @@ def normalized_median_test(u, v, *, epsilon=0.1, threshold=2.0, valid=None):
     r2 = np.zeros(u.shape)
     enough = np.ones(u.shape, dtype=bool)
     for comp in (u, v):
-        nb = _neighbours(np.where(valid, comp, np.nan))
+        nb = _neighbours(np.where(valid, comp, np.nan), extrapolate=True)
         med, count = _nan_median_last(nb)
         resid_med, _ = _nan_median_last(np.abs(nb - med[..., None]))
         with np.errstate(invalid="ignore"):
