@@ -18,6 +18,7 @@ __all__ = ["INTERPOLATORS", "bspline3_coefficients", "deform_pair", "grid_to_pix
 
 INTERPOLATORS = ("cubic", "lanczos")
 
+
 def _warp():
     import warp as wp
 
@@ -43,7 +44,9 @@ def bspline3_coefficients(image):
         pixel: ``scipy.ndimage.spline_filter(image, order=3, mode="mirror")`` (recursive filtering
         with the pole ``sqrt(3) - 2``, Unser 1999, eqs. 5-8), computed once per image.
     """
-    return ndimage.spline_filter(np.asarray(image, dtype=np.float32), order=3, mode="mirror", output=np.float32)
+    return ndimage.spline_filter(
+        np.asarray(image, dtype=np.float32), order=3, mode="mirror", output=np.float32
+    )
 
 
 def _as_warp(wp, a, device):

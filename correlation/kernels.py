@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import warp as wp
 
+
 @wp.func
 def mirror_index(k: int, n: int) -> int:
     """Index ``k`` folded into ``[0, n)`` by whole-sample symmetric extension."""
@@ -48,7 +49,7 @@ def lanczos3_weights(t: float) -> vec6:
         sp * s3,
     )
     w = vec6()
-    total = float(0.0)
+    total = 0.0
     for k in range(6):
         d = t - float(k - 2)
         w[k] = 3.0 * n[k] / (wp.pi * wp.pi * d * d)
@@ -81,7 +82,7 @@ def sample_bspline3(coef: wp.array2d(dtype=wp.float32), y: float, x: float) -> f
     ix = int(fx)
     wy = bspline3_weights(y - fy)
     wx = bspline3_weights(x - fx)
-    total = float(0.0)
+    total = 0.0
     if iy >= 1 and iy + 2 < h and ix >= 1 and ix + 2 < w:
         for a in range(4):
             r = iy - 1 + a
@@ -95,7 +96,7 @@ def sample_bspline3(coef: wp.array2d(dtype=wp.float32), y: float, x: float) -> f
         return total
     for a in range(4):
         r = mirror_index(iy - 1 + a, h)
-        row = float(0.0)
+        row = 0.0
         for b in range(4):
             row += wx[b] * coef[r, mirror_index(ix - 1 + b, w)]
         total += wy[a] * row
@@ -113,18 +114,18 @@ def sample_lanczos3(image: wp.array2d(dtype=wp.float32), y: float, x: float) -> 
     ix = int(fx)
     wy = lanczos3_weights(y - fy)
     wx = lanczos3_weights(x - fx)
-    total = float(0.0)
+    total = 0.0
     if iy >= 2 and iy + 3 < h and ix >= 2 and ix + 3 < w:
         for a in range(6):
             r = iy - 2 + a
-            row = float(0.0)
+            row = 0.0
             for b in range(6):
                 row += wx[b] * image[r, ix - 2 + b]
             total += wy[a] * row
         return total
     for a in range(6):
         r = mirror_index(iy - 2 + a, h)
-        row = float(0.0)
+        row = 0.0
         for b in range(6):
             row += wx[b] * image[r, mirror_index(ix - 2 + b, w)]
         total += wy[a] * row
@@ -171,4 +172,3 @@ def deform_pair_lanczos3(
     hv = 0.5 * dv[i, j]
     out_first[i, j] = sample_lanczos3(first, y - hv, x - hu)
     out_second[i, j] = sample_lanczos3(second, y + hv, x + hu)
-

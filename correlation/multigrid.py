@@ -62,7 +62,9 @@ def _tuple_of(value, n, name):
     try:
         value = tuple(value)
     except TypeError:
-        raise SynthbosError(f"correlation setting {name} must be a number or a sequence, got {value!r}") from None
+        raise SynthbosError(
+            f"correlation setting {name} must be a number or a sequence, got {value!r}"
+        ) from None
     if len(value) != n:
         raise SynthbosError(f"correlation setting {name} has {len(value)} entries for {n} passes")
     return value
@@ -78,9 +80,13 @@ class CorrelationSettings:
         Square window size of each pass in pixels, e.g. ``(32, 16)``: 32x32 px then 16x16 px.
     overlaps : tuple of float, or float
         Overlap fraction of each pass, in ``[0, 1)``: 0, 0.5 and 0.75 are the usual ones.
+        Default (None): 0 for every pass, so ``(0.0, 0.0)`` for the default passes.
     iterations : tuple of int, or int
         Correlate-deform iterations per pass. The first iteration of the first pass is a plain
-        correlation; every other one deforms the images with the latest field.
+        correlation; every other one deforms the images with the latest field. Default (None): 2 for
+        every pass. Iterating the coarse pass matters most: its converged field is a smooth, accurate
+        predictor for the fine pass (6 uniform-shift pairs of the tests, rms error over 16 px
+        windows: 0.033 px for (1, 1), 0.020 for (1, 2), 0.015 for (2, 1), 0.011 for (2, 2)).
     subpixel : {"gaussian", "parabolic", "centroid"}
         Three-point peak estimator.
     interpolator : {"cubic", "lanczos"}
@@ -102,8 +108,8 @@ class CorrelationSettings:
     """
 
     window_sizes: tuple = (32, 16)
-    overlaps: tuple = (0.0, 0.0)
-    iterations: tuple = (1, 2)
+    overlaps: tuple | float | None = None
+    iterations: tuple | int | None = None
     subpixel: str = "gaussian"
     interpolator: str = "cubic"
     median_epsilon: float = 0.1
@@ -116,25 +122,27 @@ class CorrelationSettings:
 
     def __post_init__(self):
         sizes = _tuple_of(self.window_sizes, 1, "window_sizes") if np.ndim(self.window_sizes) == 0 else None
-        sizes = sizes or tuple(self.window_sizes)
+        sizes = sizes if sizes is not None else tuple(self.window_sizes)
         if not sizes:
             raise SynthbosError("correlation setting window_sizes is empty: give at least one pass")
         for s in sizes:
             if not isinstance(s, numbers.Integral) or isinstance(s, bool) or s < 4:
                 raise SynthbosError(f"window size {s!r} is not an integer of at least 4 pixels")
         n = len(sizes)
-        overlaps = _tuple_of(self.overlaps, n, "overlaps")
+        overlaps = _tuple_of(0.0 if self.overlaps is None else self.overlaps, n, "overlaps")
         for o in overlaps:
             if not isinstance(o, numbers.Real) or not 0.0 <= float(o) < 1.0:
                 raise SynthbosError(f"overlap {o!r} is not a fraction in [0, 1) (50% overlap is 0.5)")
-        iterations = _tuple_of(self.iterations, n, "iterations")
+        iterations = _tuple_of(2 if self.iterations is None else self.iterations, n, "iterations")
         for it in iterations:
             if not isinstance(it, numbers.Integral) or isinstance(it, bool) or it < 1:
                 raise SynthbosError(f"iterations per pass {it!r} is not an integer of at least 1")
         if self.subpixel not in PEAK_METHODS:
             raise SynthbosError(f"sub-pixel method {self.subpixel!r} is not one of {', '.join(PEAK_METHODS)}")
         if self.interpolator not in INTERPOLATORS:
-            raise SynthbosError(f"interpolator {self.interpolator!r} is not one of {', '.join(INTERPOLATORS)}")
+            raise SynthbosError(
+                f"interpolator {self.interpolator!r} is not one of {', '.join(INTERPOLATORS)}"
+            )
         for name in ("median_epsilon", "median_threshold", "peak_ratio_min", "rpc_diameter"):
             value = getattr(self, name)
             if not isinstance(value, numbers.Real) or not np.isfinite(value) or value < 0:
@@ -142,7 +150,9 @@ class CorrelationSettings:
         if self.median_threshold <= 0 or self.rpc_diameter <= 0:
             raise SynthbosError("correlation settings median_threshold and rpc_diameter must be positive")
         if not isinstance(self.workers, numbers.Integral) or self.workers == 0:
-            raise SynthbosError(f"correlation setting workers must be a non-zero integer, got {self.workers!r}")
+            raise SynthbosError(
+                f"correlation setting workers must be a non-zero integer, got {self.workers!r}"
+            )
         object.__setattr__(self, "window_sizes", tuple(int(s) for s in sizes))
         object.__setattr__(self, "overlaps", tuple(float(o) for o in overlaps))
         object.__setattr__(self, "iterations", tuple(int(i) for i in iterations))
@@ -265,7 +275,12 @@ def _edge_weights(du, dv, rows, cols, shape, margin):
     weights = np.ones(du.shape, dtype=np.float32)
 
     def inside(y, x, ahu, ahv):
-        return (y - ahv >= margin) & (y + ahv <= h - 1 - margin) & (x - ahu >= margin) & (x + ahu <= w - 1 - margin)
+        return (
+            (y - ahv >= margin)
+            & (y + ahv <= h - 1 - margin)
+            & (x - ahu >= margin)
+            & (x + ahu <= w - 1 - margin)
+        )
 
     ir, ic = np.flatnonzero(near_r), np.flatnonzero(near_c)
     weights[ir, :] *= inside(rows[ir, None], cols[None, :], 0.5 * np.abs(du[ir]), 0.5 * np.abs(dv[ir]))
@@ -324,7 +339,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
 
     coefs = None  # interpolant of each image, made at the first deformation
     prev = None  # (node_y, node_x, u, v) of the latest iteration
-    for size, overlap, n_iter in zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True):
+    for size, overlap, n_iter in zip(
+        settings.window_sizes, settings.overlaps, settings.iterations, strict=True
+    ):
         step = window_step(size, overlap)
         sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
         ny, nx = len(sy), len(sx)
@@ -356,7 +373,11 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
                 du, dv = grid_to_pixels((u_old, v_old), py, px, rows + q, cols + q)
                 pu, pv = grid_to_pixels((u_old, v_old), py, px, node_y, node_x).astype(np.float64)
                 img_a, img_b = deform_pair(
-                    *coefs, du, dv, origin=(r0 + q, c0 + q), interpolator=settings.interpolator,
+                    *coefs,
+                    du,
+                    dv,
+                    origin=(r0 + q, c0 + q),
+                    interpolator=settings.interpolator,
                     device=settings.device,
                 )
                 origin = (0, 0)

@@ -32,7 +32,12 @@ def _neighbours(field, *, extrapolate=False):
     else:
         padded = np.pad(np.asarray(field, dtype=np.float64), 1, constant_values=np.nan)
     return np.stack(
-        [padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx],
+        [
+            padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
+            for dy in (-1, 0, 1)
+            for dx in (-1, 0, 1)
+            if dy or dx
+        ],
         axis=-1,
     )
 
