@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PEAK_METHODS", "subpixel_peak", "three_point_offset"]
+__all__ = ["PEAK_METHODS", "peak_ratio", "subpixel_peak", "three_point_offset"]
 
 PEAK_METHODS = ("gaussian", "parabolic", "centroid")
 
@@ -73,7 +73,9 @@ def subpixel_peak(planes, *, method="gaussian"):
         True where the integer peak lies on the plane's edge; there the missing neighbour is
         taken equal to the peak sample's other neighbour, so the offset is 0 along that axis.
     """
-    planes = np.asarray(planes, dtype=np.float64)
+    planes = np.asarray(planes)
+    if not np.issubdtype(planes.dtype, np.floating):
+        planes = planes.astype(np.float64)
     h, w = planes.shape[-2:]
     flat = planes.reshape(-1, h, w)
     idx = np.argmax(flat.reshape(len(flat), -1), axis=1)
@@ -82,13 +84,57 @@ def subpixel_peak(planes, *, method="gaussian"):
     on_border = (r == 0) | (r == h - 1) | (c == 0) | (c == w - 1)
     rm, rp = np.clip(r - 1, 0, h - 1), np.clip(r + 1, 0, h - 1)
     cm, cp = np.clip(c - 1, 0, w - 1), np.clip(c + 1, 0, w - 1)
-    centre = flat[k, r, c]
+    # only the five samples per plane go to float64
+    centre = flat[k, r, c].astype(np.float64)
     # On the border there is no outer neighbour: a symmetric triple gives offset 0 on that axis.
-    up = np.where(r == 0, flat[k, rp, c], flat[k, rm, c])
-    down = np.where(r == h - 1, flat[k, rm, c], flat[k, rp, c])
-    lf = np.where(c == 0, flat[k, r, cp], flat[k, r, cm])
-    rt = np.where(c == w - 1, flat[k, r, cm], flat[k, r, cp])
+    up = np.where(r == 0, flat[k, rp, c], flat[k, rm, c]).astype(np.float64)
+    down = np.where(r == h - 1, flat[k, rm, c], flat[k, rp, c]).astype(np.float64)
+    lf = np.where(c == 0, flat[k, r, cp], flat[k, r, cm]).astype(np.float64)
+    rt = np.where(c == w - 1, flat[k, r, cm], flat[k, r, cp]).astype(np.float64)
     row = r + three_point_offset(up, centre, down, method=method)
     col = c + three_point_offset(lf, centre, rt, method=method)
     shape = planes.shape[:-2]
     return row.reshape(shape), col.reshape(shape), on_border.reshape(shape)
+
+
+def peak_ratio(planes, *, exclusion=2):
+    """Ratio of the highest correlation peak to the second highest, per plane.
+
+    Parameters
+    ----------
+    planes : (..., h, w) array
+        Correlation planes.
+    exclusion : int
+        Half-width of the square around the highest sample that belongs to the first peak.
+
+    Returns
+    -------
+    (...) float64 array
+        ``(C1 - Cmin) / (C2 - Cmin)`` with ``C1`` the plane maximum, ``C2`` the maximum outside the
+        ``(2 exclusion + 1)^2`` square around it and ``Cmin`` the plane minimum: at least 1, finite
+        (a flat plane gives 1). Shifting by the minimum keeps the ratio meaningful for mean-subtracted
+        planes whose second peak may be negative (Keane and Adrian's detectability, Raffel et al. 2018,
+        section 5.5.1).
+    """
+    planes = np.asarray(planes)
+    h, w = planes.shape[-2:]
+    flat = planes.reshape(-1, h * w)
+    k = np.arange(len(flat))
+    idx = np.argmax(flat, axis=1)
+    r, c = np.divmod(idx, w)
+    c1 = flat[k, idx].astype(np.float64)
+    cmin = flat.min(axis=1).astype(np.float64)
+    rest = flat.copy()
+    for dr in range(-exclusion, exclusion + 1):
+        rr = r + dr
+        inside_r = (rr >= 0) & (rr < h)
+        for dc in range(-exclusion, exclusion + 1):
+            cc = c + dc
+            inside = inside_r & (cc >= 0) & (cc < w)
+            rest[k[inside], (rr * w + cc)[inside]] = -np.inf
+    c2 = rest.max(axis=1).astype(np.float64)
+    c2 = np.where(np.isfinite(c2), c2, cmin)  # the first peak filled the plane
+    num, den = c1 - cmin, c2 - cmin
+    ratio = np.divide(num, den, out=np.ones_like(num), where=den > 0)
+    ratio = np.where((den <= 0) & (num > 0), np.finfo(np.float64).max, ratio)
+    return ratio.reshape(planes.shape[:-2])

@@ -1,0 +1,57 @@
+"""Interrogation-window grids and batched window extraction."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+__all__ = ["extract_windows", "window_starts", "window_step"]
+
+
+def window_step(size, overlap):
+    """Grid spacing in pixels of windows of ``size`` pixels overlapping by the fraction ``overlap``."""
+    return max(1, round(size * (1.0 - overlap)))
+
+
+def window_starts(length, size, step):
+    """First pixel of each window along one axis, the grid centred in the image.
+
+    Parameters
+    ----------
+    length : int
+        Image extent along the axis.
+    size, step : int
+        Window size and spacing.
+
+    Returns
+    -------
+    (n,) int array
+        ``margin + step * arange(n)`` with ``n = (length - size) // step + 1`` and the leftover
+        pixels split evenly between both ends. Window ``k`` covers pixels ``start[k] ...
+        start[k] + size - 1``; its centre is ``start[k] + (size - 1) / 2``.
+    """
+    n = (length - size) // step + 1
+    margin = (length - size - (n - 1) * step) // 2
+    return margin + step * np.arange(n)
+
+
+def extract_windows(image, size, step, row0, col0, ny, nx):
+    """All ``ny x nx`` windows of a regular grid, as a strided view.
+
+    Parameters
+    ----------
+    image : (H, W) array
+    size, step : int
+        Window size and grid spacing.
+    row0, col0 : int
+        First pixel of the first window.
+    ny, nx : int
+        Number of windows along rows and columns.
+
+    Returns
+    -------
+    (ny, nx, size, size) array
+        A read-only view into ``image`` (no copy).
+    """
+    view = sliding_window_view(image, (size, size))
+    return view[row0 : row0 + (ny - 1) * step + 1 : step, col0 : col0 + (nx - 1) * step + 1 : step]
