@@ -40,6 +40,7 @@ def measure_windows_kernel(
     use_min: int,
     sat: wp.float64,
     win: wp.array2d(dtype=wp.float64),
+    ring: wp.array2d(dtype=wp.float64),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
     out_int: wp.array2d(dtype=wp.int32),
@@ -69,16 +70,18 @@ def measure_windows_kernel(
     bg = vmin
     if use_min == 0:
         n = 4 * (w - 1)
+        for j in range(n):
+            ring[i, j] = win[i, ring_pixel(j, w)]
         s1 = n / 2 - 1
         s2 = n / 2
         m1 = wp.float64(0.0)
         m2 = wp.float64(0.0)
         for j in range(n):
-            vj = win[i, ring_pixel(j, w)]
+            vj = ring[i, j]
             less = int(0)  # noqa: UP018 (a dynamic Warp variable)
             leq = int(0)  # noqa: UP018 (a dynamic Warp variable)
             for k in range(n):
-                vk = win[i, ring_pixel(k, w)]
+                vk = ring[i, k]
                 if vk < vj:
                     less += 1
                 if vk <= vj:

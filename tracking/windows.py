@@ -148,6 +148,7 @@ def measure_windows(
     org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
     loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
     win = wp.empty((n, w * w), dtype=wp.float64, device=device)
+    ring = wp.empty((n, 4 * (w - 1)), dtype=wp.float64, device=device)
     lab = wp.empty((n, w * w), dtype=wp.int32, device=device)
     area = wp.empty((n, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
@@ -160,7 +161,7 @@ def measure_windows(
         inputs=[
             img, float(fill), org, loc, int(half), int(map_half), float(radius), float(threshold_fraction),
             float(noise_floor), wa, wi, wd, int(bool(use_minimum)), float(min(saturation, 1e300)),
-            win, lab, area, out_i, out_f, dotmap,
+            win, ring, lab, area, out_i, out_f, dotmap,
         ],
         device=device,
     )
