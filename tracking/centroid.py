@@ -121,7 +121,7 @@ def centroid_gaussian3(windows, *, peak_rc=None):
 
 
 def centroid_gaussian4(windows, *, peak_rc=None):
-    """Four-point Gaussian centroid: a round Gaussian through four pixels around the peak.
+    """Four-point Gaussian centroid: a round Gaussian through the peak pixel and three neighbours.
 
     Parameters
     ----------
@@ -139,40 +139,30 @@ def centroid_gaussian4(windows, *, peak_rc=None):
 
     Notes
     -----
-    Brady, Raben and Vlachos (2009), section 2.2: ``ln I = a + b X + c Y + e (X^2 + Y^2)`` solved exactly
-    through the peak pixel, its brighter horizontal and vertical neighbours and the diagonal pixel between
-    them; ``x = -b / 2e``, ``y = -c / 2e``, ``eta^2 = -1 / 2e``.
+    Brady, Raben and Vlachos (2009), section 2.2 (after Marxen et al. 2000):
+    ``ln I = a + b X + c Y + e (X^2 + Y^2)`` solved exactly through the peak pixel, both horizontal
+    neighbours and the brighter vertical neighbour (``s = +-1``): ``e = (ln I_l + ln I_r) / 2 - ln I_0``,
+    ``b = (ln I_r - ln I_l) / 2``, ``c = s (ln I_v - ln I_0 - e)``; then ``x = -b / 2e``, ``y = -c / 2e``,
+    ``eta^2 = -1 / 2e``. One width serves both axes, so the vertical offset needs only two samples.
     """
     windows = np.asarray(windows, dtype=np.float64)
-    n = len(windows)
     r, c = _peak_index(windows, peak_rc)
     cen, left, right, up, down = _neighbours(windows, r, c)
-    sx = np.where(right >= left, 1, -1)
-    sy = np.where(down >= up, 1, -1)
-    pad = np.zeros((n, windows.shape[1] + 2, windows.shape[2] + 2))
-    pad[:, 1:-1, 1:-1] = windows
-    k = np.arange(n)
-    hx = np.where(sx > 0, right, left)
-    vy = np.where(sy > 0, down, up)
-    dg = pad[k, r + 1 + sy, c + 1 + sx]
-    samples = np.stack([cen, hx, vy, dg], axis=1)
-    ok = np.all(samples > 0, axis=1)
-    lv = np.log(np.where(ok[:, None], samples, 1.0))
-    # Unknowns a, b, c, e at points (0,0), (sx,0), (0,sy), (sx,sy) relative to the peak pixel.
-    one = np.ones(n)
-    zero = np.zeros(n)
-    X = np.stack([zero, sx, zero, sx], axis=1).astype(np.float64)
-    Y = np.stack([zero, zero, sy, sy], axis=1).astype(np.float64)
-    A = np.stack([np.broadcast_to(one[:, None], X.shape), X, Y, X**2 + Y**2], axis=2)
-    coef = np.linalg.solve(A, lv[:, :, None])[:, :, 0]
-    e = coef[:, 3]
+    sy = np.where(down >= up, 1.0, -1.0)
+    vert = np.where(sy > 0, down, up)
+    ok = (cen > 0) & (left > 0) & (right > 0) & (vert > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l0, ll, lr, lv = (np.log(np.where(ok, a, 1.0)) for a in (cen, left, right, vert))
+    e = 0.5 * (ll + lr) - l0
     ok &= e < 0
     safe_e = np.where(ok, e, -1.0)
-    ox = -coef[:, 1] / (2 * safe_e)
-    oy = -coef[:, 2] / (2 * safe_e)
+    b = 0.5 * (lr - ll)
+    cc = sy * (lv - l0 - e)
+    ox = -b / (2 * safe_e)
+    oy = -cc / (2 * safe_e)
     ok &= (np.abs(ox) <= 1.0) & (np.abs(oy) <= 1.0)
     eta = np.sqrt(-1.0 / (2 * safe_e))
-    i0 = np.exp(coef[:, 0] - safe_e * (ox**2 + oy**2))
+    i0 = np.exp(l0 - safe_e * (ox**2 + oy**2))
     x3, y3, eta3, i03, _ = centroid_gaussian3(windows, peak_rc=(r, c))
     return (
         np.where(ok, c + ox, x3),

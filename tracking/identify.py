@@ -28,7 +28,7 @@ _EIGHT = np.ones((3, 3), dtype=bool)
 
 
 def estimate_noise(image):
-    """Standard deviation of the pixel noise, estimated robustly from the background.
+    """Standard deviation of the pixel noise, estimated robustly from neighbour differences.
 
     Parameters
     ----------
@@ -37,20 +37,19 @@ def estimate_noise(image):
     Returns
     -------
     float
-        ``1.4826 median(|I[i, j+1] - I[i, j]|) / sqrt(2)`` over horizontal neighbour pairs that both lie
-        below the image median (background pixels in a dot pattern), which is the noise sigma for
-        Gaussian noise on a slowly varying background. Images of more than 256 rows use every
-        ``rows // 256``-th row.
+        ``q25(|I[i, j+1] - I[i, j]|) / (0.3186 sqrt(2))``: the lower quartile of the absolute horizontal
+        differences, scaled so that it is the noise sigma for Gaussian noise (a difference of two pixels
+        has sigma ``sqrt(2) sigma_n``, and 0.3186 is the lower quartile of a unit half-normal). The dots
+        produce the large differences, so the lower quartile mostly sees the background; in dense
+        patterns the dots' tails still lift it (by ~30-60 % at 20 dots of 3 px per 32x32 px), which is
+        harmless for its use as a detection floor. Images of more than 256 rows use every ``rows // 256``-th row.
     """
     image = np.asarray(image, dtype=np.float64)
     image = image[:: max(1, image.shape[0] // 256)]
-    a, b = image[:, :-1], image[:, 1:]
-    med = np.median(image)
-    keep = (a < med) & (b < med)
-    d = (b - a)[keep]
-    if d.size < 16:
-        d = (b - a).ravel()
-    return float(1.4826 * np.median(np.abs(d)) / np.sqrt(2.0))
+    d = np.abs(np.diff(image, axis=1)).ravel()
+    if d.size == 0:
+        return 0.0
+    return float(np.percentile(d, 25) / (0.31864 * np.sqrt(2.0)))
 
 
 def static_threshold_identification(image, *, threshold):
