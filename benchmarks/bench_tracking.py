@@ -28,7 +28,7 @@ from tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=2.0):
     """Random dot centres with a minimum distance (later points of close pairs dropped)."""
     h, w = shape
-    n = int(round(per_32x32 * h * w / 1024.0))
+    n = round(per_32x32 * h * w / 1024.0)
     xy = rng.uniform([margin, margin], [w - 1 - margin, h - 1 - margin], size=(int(n * 1.6) + 16, 2))
     pairs = cKDTree(xy).query_pairs(min_distance, output_type="ndarray")
     drop = np.zeros(len(xy), dtype=bool)
@@ -102,8 +102,14 @@ def main(argv=None):
     crlb = 0.8 * args.noise  # per position component, for a dot of peak 1
 
     rows = [
-        ("synthbos tracking (prior, iterations, u and u_cc)", n / t_track, ok.mean(),
-         float(np.sqrt(np.mean(ex**2))), float(np.sqrt(np.mean(eu**2))), float(np.sqrt(np.mean(ec**2)))),
+        (
+            "synthbos tracking (prior, iterations, u and u_cc)",
+            n / t_track,
+            ok.mean(),
+            float(np.sqrt(np.mean(ex**2))),
+            float(np.sqrt(np.mean(eu**2))),
+            float(np.sqrt(np.mean(ec**2))),
+        ),
     ]
     try:
         import trackpy as tp
@@ -117,19 +123,25 @@ def main(argv=None):
     except ImportError:
         print("trackpy not installed (pip install trackpy pandas): its row is left out")
 
-    print(f"{args.size}x{args.size} pair, {n} dots of {args.diameter:g} px, noise {args.noise:g} of the peak, "
-          f"displacement up to {args.amplitude:g} px, one CPU core, best of {args.repeat}")
-    print(f"position CRLB ~ 0.8 sigma_n / I0 = {crlb:.4f} px per component ({crlb * np.sqrt(2):.4f} px as a "
-          f"2-D distance); displacement CRLB {crlb * np.sqrt(2):.4f} px per component")
+    print(
+        f"{args.size}x{args.size} pair, {n} dots of {args.diameter:g} px, noise {args.noise:g} of the peak, "
+        f"displacement up to {args.amplitude:g} px, one CPU core, best of {args.repeat}"
+    )
+    print(
+        f"position CRLB ~ 0.8 sigma_n / I0 = {crlb:.4f} px per component ({crlb * np.sqrt(2):.4f} px as a "
+        f"2-D distance); displacement CRLB {crlb * np.sqrt(2):.4f} px per component"
+    )
     head = f"{'method':52s} {'dots/s':>10s} {'yield':>7s} {'pos rms':>8s} {'u rms':>8s} {'u_cc rms':>8s}"
     print(head)
     print("-" * len(head))
     for name, rate, y, e, u, c in rows:
         print(f"{name:52s} {rate:10.0f} {y:7.4f} {e:8.4f} {u:8.4f} {c:8.4f}")
     if len(rows) == 2:
-        print(f"speed ratio synthbos / trackpy: {rows[0][1] / rows[1][1]:.2f}; position error ratio "
-              f"synthbos / trackpy: {rows[0][3] / rows[1][3]:.3f}; target 1e5 dots/s: "
-              f"{'met' if rows[0][1] >= 1e5 else 'NOT met'}")
+        print(
+            f"speed ratio synthbos / trackpy: {rows[0][1] / rows[1][1]:.2f}; position error ratio "
+            f"synthbos / trackpy: {rows[0][3] / rows[1][3]:.3f}; target 1e5 dots/s: "
+            f"{'met' if rows[0][1] >= 1e5 else 'NOT met'}"
+        )
     print("pos rms: 2-D distance to the true reference position; u rms, u_cc rms: per component.")
 
 

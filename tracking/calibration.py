@@ -75,12 +75,16 @@ def fit_soloff(target_xy, image_xy, order=3):
     t = np.asarray(target_xy, dtype=np.float64)
     p = np.asarray(image_xy, dtype=np.float64)
     if t.ndim != 2 or t.shape[1] != 2 or p.shape != t.shape:
-        raise SynthbosError(f"calibration needs two Nx2 position arrays of one shape, got {t.shape} and {p.shape}")
+        raise SynthbosError(
+            f"calibration needs two Nx2 position arrays of one shape, got {t.shape} and {p.shape}"
+        )
     if not (np.isfinite(t).all() and np.isfinite(p).all()):
         raise SynthbosError("calibration correspondences contain non-finite values")
     n_terms = len(_terms(order))
     if len(t) < n_terms:
-        raise SynthbosError(f"an order-{order} calibration needs at least {n_terms} correspondences, got {len(t)}")
+        raise SynthbosError(
+            f"an order-{order} calibration needs at least {n_terms} correspondences, got {len(t)}"
+        )
     centre = 0.5 * (t.min(axis=0) + t.max(axis=0))
     scale = 0.5 * (t.max(axis=0) - t.min(axis=0))
     scale = np.where(scale > 0, scale, 1.0)

@@ -27,7 +27,7 @@ CENTROID_METHODS = ("gaussian3", "centroid", "gaussian4", "lsq")
 
 
 def _peak_index(windows, peak_rc):
-    n, h, w = windows.shape
+    n, _, w = windows.shape
     if peak_rc is None:
         r, c = np.divmod(np.argmax(windows.reshape(n, -1), axis=1), w)
     else:
@@ -64,7 +64,7 @@ def centroid_intensity_weighted(windows):
     ``x = sum I_ij j / sum I_ij`` (Brady, Raben and Vlachos 2009, Eq. 1).
     """
     windows = np.clip(np.asarray(windows, dtype=np.float64), 0.0, None)
-    n, h, w = windows.shape
+    _, h, w = windows.shape
     total = windows.sum(axis=(1, 2))
     ok = total > 0
     safe = np.where(ok, total, 1.0)

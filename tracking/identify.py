@@ -42,7 +42,8 @@ def estimate_noise(image):
         has sigma ``sqrt(2) sigma_n``, and 0.3186 is the lower quartile of a unit half-normal). The dots
         produce the large differences, so the lower quartile mostly sees the background; in dense
         patterns the dots' tails still lift it (by ~30-60 % at 20 dots of 3 px per 32x32 px), which is
-        harmless for its use as a detection floor. Images of more than 256 rows use every ``rows // 256``-th row.
+        harmless for its use as a detection floor. Images of more than 256 rows use every
+        ``rows // 256``-th row.
     """
     image = np.asarray(image, dtype=np.float64)
     image = image[:: max(1, image.shape[0] // 256)]

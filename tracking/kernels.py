@@ -1,3 +1,5 @@
+# ruff: noqa: UP018, RUF046
+# (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of dot tracking: one thread measures the window around one predicted dot position.
 
 Kernels only; the host code that allocates and launches is :mod:`tracking.windows`, whose NumPy
@@ -78,8 +80,8 @@ def measure_windows_kernel(
         m2 = wp.float64(0.0)
         for j in range(n):
             vj = ring[i, j]
-            less = int(0)  # noqa: UP018 (a dynamic Warp variable)
-            leq = int(0)  # noqa: UP018 (a dynamic Warp variable)
+            less = int(0)  # a dynamic Warp variable
+            leq = int(0)  # a dynamic Warp variable
             for k in range(n):
                 vk = ring[i, k]
                 if vk < vj:
@@ -125,7 +127,7 @@ def measure_windows_kernel(
     ma = wp.float64(-1.0e300)
     mi = wp.float64(-1.0e300)
     md = wp.float64(-1.0e300)
-    nblobs = int(0)  # noqa: UP018 (a dynamic Warp variable)
+    nblobs = int(0)  # a dynamic Warp variable
     for p in range(ww):
         if lab[i, p] == p:
             nblobs += 1
@@ -137,7 +139,7 @@ def measure_windows_kernel(
                 mi = wp.max(mi, win[i, p] - bg)
                 md = wp.max(md, dist)
     # Eq. 1 of Rajendran, Bane and Vlachos (2019) over the candidate blobs; the first best wins.
-    chosen = int(-1)  # noqa: UP018 (a dynamic Warp variable)
+    chosen = int(-1)  # a dynamic Warp variable
     best_score = wp.float64(-1.0e300)
     best_dist = wp.float64(0.0)
     for p in range(ww):
@@ -174,7 +176,7 @@ def measure_windows_kernel(
         return
     out_float[i, 1] = win[i, chosen] - bg
     out_float[i, 2] = best_dist
-    nsat = int(0)  # noqa: UP018 (a dynamic Warp variable)
+    nsat = int(0)  # a dynamic Warp variable
     for p in range(ww):
         if lab[i, p] == chosen and win[i, p] >= sat:
             nsat += 1

@@ -185,13 +185,17 @@ class TrackingSettings:
 
     def __post_init__(self):
         if self.centroid not in CENTROID_METHODS:
-            raise SynthbosError(f"unknown centroid method {self.centroid!r}; choose one of {CENTROID_METHODS}")
+            raise SynthbosError(
+                f"unknown centroid method {self.centroid!r}; choose one of {CENTROID_METHODS}"
+            )
         if self.matching not in MATCH_METHODS:
             raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
         if self.background not in ("ring-median", "minimum"):
             raise SynthbosError(f"unknown background {self.background!r}; choose 'ring-median' or 'minimum'")
         if self.identification not in ("dynamic", "static"):
-            raise SynthbosError(f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'")
+            raise SynthbosError(
+                f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'"
+            )
         if self.diameter is not None and not (np.isfinite(self.diameter) and self.diameter > 0):
             raise SynthbosError(f"dot diameter must be a positive number, got {self.diameter!r}")
         if self.predictor not in ("correlation", "none"):
@@ -233,7 +237,9 @@ def _saturation_level(image, level):
     return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
 
 
-def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
+def _identify(
+    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
+):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
@@ -275,10 +281,19 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             break
         origin = origin_all[sel]
         m = measure(
-            residual, origin, pred[sel] - origin, half=half, map_half=map_half, radius=radius,
-            threshold_fraction=settings.threshold_fraction, noise_floor=settings.noise_threshold * noise,
-            weights=settings.weights, use_minimum=settings.background == "minimum", saturation=sat_level,
-            fill=fill, **extra,
+            residual,
+            origin,
+            pred[sel] - origin,
+            half=half,
+            map_half=map_half,
+            radius=radius,
+            threshold_fraction=settings.threshold_fraction,
+            noise_floor=settings.noise_threshold * noise,
+            weights=settings.weights,
+            use_minimum=settings.background == "minimum",
+            saturation=sat_level,
+            fill=fill,
+            **extra,
         )
         has = m["chosen"] >= 0
         cpeak = m["peak"]
@@ -305,7 +320,11 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             dotmap, method=settings.centroid, peak_rc=(hc, hc), mask=dotmap != 0
         )
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
+        wild = (
+            ~(np.isfinite(xw) & np.isfinite(yw))
+            | (np.abs(xw - map_half) > 1.0)
+            | (np.abs(yw - map_half) > 1.0)
+        )
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
@@ -333,15 +352,37 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
                 fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
                 reach = half * np.sqrt(2.0) + 4.5 * eta0 + 1.0
                 near = cKDTree(fxy).query_ball_point(pred[todo], reach)
-                near = np.unique(np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)]))
+                near = np.unique(
+                    np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)])
+                )
                 if near.size:
                     idx = found[near]
                     residual = subtract_gaussians(
-                        residual, fxy[near], out["i0"][idx], np.clip(out["eta"][idx], 0.5 * eta0, 1.5 * eta0),
+                        residual,
+                        fxy[near],
+                        out["i0"][idx],
+                        np.clip(out["eta"][idx], 0.5 * eta0, 1.5 * eta0),
                         radius=int(np.ceil(4.5 * eta0)),
                     )
                     subtracted[idx] = True
     return out
+
+
+def _drop_shared_blobs(found, pred):
+    """Where two dots ended up on one blob (peak pixel), keep the one nearer its prediction."""
+    ok = np.flatnonzero(np.isfinite(found["x"]))
+    if ok.size < 2:
+        return
+    key = found["root"][ok, 1] * (found["root"][ok, 0].max() + 1) + found["root"][ok, 0]
+    dist = np.hypot(found["x"][ok] - pred[ok, 0], found["y"][ok] - pred[ok, 1])
+    order = np.lexsort((dist, key))
+    dup = np.zeros(len(ok), dtype=bool)
+    dup[order[1:]] = key[order][1:] == key[order][:-1]
+    lose = ok[dup]
+    for name in ("x", "y", "eta", "i0"):
+        found[name][lose] = np.nan
+    found["iteration"][lose] = 0
+    found["flags"][lose] |= DotStatus.AMBIGUOUS
 
 
 def _auto_threshold(image, settings, noise):
@@ -437,7 +478,9 @@ def track_pair(
     if d is None:
         d = estimate_dot_diameter(ref)
         if not (np.isfinite(d) and d > 0):
-            raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
+            raise SynthbosError(
+                "cannot estimate the dot diameter from the reference image; give it in settings"
+            )
     eta0 = d / 4.0
     half_r = int(np.ceil(d / 2.0 + settings.window_margin))
     half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
@@ -450,40 +493,69 @@ def track_pair(
 
     if prior_xy is not None:
         r = _identify(
-            ref, prior, half=half_r, radius=settings.prior_radius, max_iterations=settings.max_iterations,
-            noise=noise_r, sat_level=sat_r, **common,
+            ref,
+            prior,
+            half=half_r,
+            radius=settings.prior_radius,
+            max_iterations=settings.max_iterations,
+            noise=noise_r,
+            sat_level=sat_r,
+            **common,
         )
         found_r = np.isfinite(r["x"])
         base = np.where(found_r[:, None], np.stack([r["x"], r["y"]], axis=1), prior)
         if settings.predictor == "correlation":
             pred_g = base + predict_displacement(ref, grad, base, max_displacement=settings.max_displacement)
             g = _identify(
-                grad, pred_g, half=half_r, radius=settings.prior_radius,
-                max_iterations=settings.max_iterations, noise=noise_g, sat_level=sat_g, **common,
+                grad,
+                pred_g,
+                half=half_r,
+                radius=settings.prior_radius,
+                max_iterations=settings.max_iterations,
+                noise=noise_g,
+                sat_level=sat_g,
+                **common,
             )
             # Dots the prediction missed get the paper's wide window around the reference position.
             miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
             if miss.size:
                 g2 = _identify(
-                    grad, base[miss], half=half_g, radius=search, max_iterations=settings.max_iterations,
-                    noise=noise_g, sat_level=sat_g, **common,
+                    grad,
+                    base[miss],
+                    half=half_g,
+                    radius=search,
+                    max_iterations=settings.max_iterations,
+                    noise=noise_g,
+                    sat_level=sat_g,
+                    **common,
                 )
                 for key in g:
                     if key == "flags":
                         g[key][miss] |= g2[key]
                     else:
                         g[key][miss] = g2[key]
+                _drop_shared_blobs(g, pred_g)
         else:
             g = _identify(
-                grad, base, half=half_g, radius=search, max_iterations=settings.max_iterations,
-                noise=noise_g, sat_level=sat_g, **common,
+                grad,
+                base,
+                half=half_g,
+                radius=search,
+                max_iterations=settings.max_iterations,
+                noise=noise_g,
+                sat_level=sat_g,
+                **common,
             )
         partner = np.arange(len(prior))
     else:
         cand_r = _standard_candidates(ref, settings, noise_r)
         cand_g = _standard_candidates(grad, settings, noise_g)
-        r = _identify(ref, cand_r, half=half_r, radius=1.0, max_iterations=1, noise=noise_r, sat_level=sat_r, **common)
-        g = _identify(grad, cand_g, half=half_r, radius=1.0, max_iterations=1, noise=noise_g, sat_level=sat_g, **common)
+        r = _identify(
+            ref, cand_r, half=half_r, radius=1.0, max_iterations=1, noise=noise_r, sat_level=sat_r, **common
+        )
+        g = _identify(
+            grad, cand_g, half=half_r, radius=1.0, max_iterations=1, noise=noise_g, sat_level=sat_g, **common
+        )
         r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
         g = {k: v[np.isfinite(g["x"])] for k, v in g.items()}
         rxy = np.stack([r["x"], r["y"]], axis=1)
@@ -492,7 +564,13 @@ def track_pair(
             partner = match_nearest(rxy, gxy, radius=search)
         else:
             partner = match_multiparametric(
-                rxy, gxy, r["i0"], g["i0"], 4 * r["eta"], 4 * g["eta"], radius=search,
+                rxy,
+                gxy,
+                r["i0"],
+                g["i0"],
+                4 * r["eta"],
+                4 * g["eta"],
+                radius=search,
                 weights=settings.match_weights,
             )
 

@@ -37,8 +37,19 @@ def _dilate(mask):
 
 
 def measure_windows_numpy(
-    image, origin, local, *, half, map_half, radius, threshold_fraction, noise_floor, weights,
-    use_minimum=False, saturation=np.inf, fill=0.0,
+    image,
+    origin,
+    local,
+    *,
+    half,
+    map_half,
+    radius,
+    threshold_fraction,
+    noise_floor,
+    weights,
+    use_minimum=False,
+    saturation=np.inf,
+    fill=0.0,
 ):
     """Segment the window of each dot, choose its blob with Eq. 1 and cut out its dot map (NumPy).
 
@@ -93,7 +104,10 @@ def measure_windows_numpy(
     cand = roots & (dist <= radius)
     peakv = flat - bg[:, None]
     score = blob_score(
-        np.where(cand, area, np.nan), np.where(cand, peakv, np.nan), np.where(cand, dist, np.nan), weights=weights
+        np.where(cand, area, np.nan),
+        np.where(cand, peakv, np.nan),
+        np.where(cand, dist, np.nan),
+        weights=weights,
     )
     has = cand.any(axis=1)
     chosen = np.where(has, np.argmax(np.where(cand, score, -np.inf), axis=1), -1)
@@ -119,8 +133,20 @@ def measure_windows_numpy(
 
 
 def measure_windows(
-    image, origin, local, *, half, map_half, radius, threshold_fraction, noise_floor, weights,
-    use_minimum=False, saturation=np.inf, fill=0.0, device=None,
+    image,
+    origin,
+    local,
+    *,
+    half,
+    map_half,
+    radius,
+    threshold_fraction,
+    noise_floor,
+    weights,
+    use_minimum=False,
+    saturation=np.inf,
+    fill=0.0,
+    device=None,
 ):
     """Same as :func:`measure_windows_numpy`, as a Warp kernel with one thread per dot.
 
@@ -140,9 +166,18 @@ def measure_windows(
     c = 2 * map_half + 1
     if n == 0:
         return measure_windows_numpy(
-            image, origin, local, half=half, map_half=map_half, radius=radius,
-            threshold_fraction=threshold_fraction, noise_floor=noise_floor, weights=weights,
-            use_minimum=use_minimum, saturation=saturation, fill=fill,
+            image,
+            origin,
+            local,
+            half=half,
+            map_half=map_half,
+            radius=radius,
+            threshold_fraction=threshold_fraction,
+            noise_floor=noise_floor,
+            weights=weights,
+            use_minimum=use_minimum,
+            saturation=saturation,
+            fill=fill,
         )
     img = wp.array(np.ascontiguousarray(image, dtype=np.float64), dtype=wp.float64, device=device)
     org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
@@ -159,9 +194,27 @@ def measure_windows(
         measure_windows_kernel,
         dim=n,
         inputs=[
-            img, float(fill), org, loc, int(half), int(map_half), float(radius), float(threshold_fraction),
-            float(noise_floor), wa, wi, wd, int(bool(use_minimum)), float(min(saturation, 1e300)),
-            win, ring, lab, area, out_i, out_f, dotmap,
+            img,
+            float(fill),
+            org,
+            loc,
+            int(half),
+            int(map_half),
+            float(radius),
+            float(threshold_fraction),
+            float(noise_floor),
+            wa,
+            wi,
+            wd,
+            int(bool(use_minimum)),
+            float(min(saturation, 1e300)),
+            win,
+            ring,
+            lab,
+            area,
+            out_i,
+            out_f,
+            dotmap,
         ],
         device=device,
     )

@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=3.0):
     """Random dot centres with a minimum centre distance, ``per_32x32`` dots per 32x32 px."""
     h, w = shape
-    n = int(round(per_32x32 * h * w / 1024.0))
+    n = round(per_32x32 * h * w / 1024.0)
     xy = rng.uniform([margin, margin], [w - 1 - margin, h - 1 - margin], size=(int(n * 1.6) + 16, 2))
     pairs = cKDTree(xy).query_pairs(min_distance, output_type="ndarray")
     drop = np.zeros(len(xy), dtype=bool)

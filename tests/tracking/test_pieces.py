@@ -6,6 +6,7 @@ from _synth import dot_pattern
 from numpy.testing import assert_allclose
 
 from raytrace.dots import draw_dots
+from synthbos import SynthbosError
 from tracking import (
     blob_properties,
     blob_score,
@@ -26,7 +27,6 @@ from tracking import (
     subtract_gaussians,
 )
 from tracking.windows import measure_windows, measure_windows_numpy
-from synthbos import SynthbosError
 
 
 def _isolated_windows(rng, n, d, *, half=3, spacing=8):
@@ -77,7 +77,7 @@ def test_blob_score_is_eq1():
 def test_gaussian_centroids_are_accurate_on_3px_dots(fn, bound):
     rng = np.random.default_rng(1)
     win, truth = _isolated_windows(rng, 400, 3.0)
-    x, y, eta, i0, ok = fn(win)
+    x, y, eta, _, ok = fn(win)
     err = np.hypot(x - truth[:, 0], y - truth[:, 1])
     print(f"{fn.__name__}: rms error {np.sqrt(np.mean(err**2)):.5f} px (bound {bound})")
     assert ok.all()
@@ -109,8 +109,11 @@ def test_gaussian3_has_no_peak_locking_at_3px():
     flatness = (h_est.max() - h_est.min()) / expected
     shift = np.abs(h_est - h_true).max() / expected
     chi2 = np.sum((h_est - expected) ** 2 / expected)
-    print(f"gaussian3 peak-locking: (max-min)/mean of 10 bins {flatness:.4f} (truth {np.ptp(h_true) / expected:.4f}),"
-          f" max bin change vs truth {shift:.4f}, chi2 {chi2:.1f} (9 dof)")
+    print(
+        f"gaussian3 peak-locking: (max-min)/mean of 10 bins {flatness:.4f} "
+        f"(truth {np.ptp(h_true) / expected:.4f}), max bin change vs truth {shift:.4f}, "
+        f"chi2 {chi2:.1f} (9 dof)"
+    )
     # Poisson spread of 8000 per bin is ~1.1%; peak-locking would pile estimates up near 0 and 1.
     assert shift < 0.01, f"bins moved by up to {shift:.4f} of their mean"
     assert flatness < 0.06, f"histogram flatness {flatness:.4f}"
@@ -121,7 +124,9 @@ def test_soloff_fits_cubic_distortion():
     rng = np.random.default_rng(4)
     t = rng.uniform(-50, 50, (200, 2))
     u, v = t[:, 0] / 50, t[:, 1] / 50
-    img = np.stack([300 + 4 * t[:, 0] + 2 * u**2 - 3 * u * v**2, 200 + 4 * t[:, 1] + 1.5 * u**3 + v * u], axis=1)
+    img = np.stack(
+        [300 + 4 * t[:, 0] + 2 * u**2 - 3 * u * v**2, 200 + 4 * t[:, 1] + 1.5 * u**3 + v * u], axis=1
+    )
     m = fit_soloff(t, img, order=3)
     assert m.rms < 1e-8
     assert_allclose(m(t[:5]), img[:5], atol=1e-8)
@@ -198,8 +203,17 @@ def test_window_kernel_matches_numpy_reference(device):
     pred = np.vstack([xy + rng.normal(0, 0.3, xy.shape), [[1.0, 1.0], [126.6, 0.2]]])  # two at the edge
     for half, use_min in ((3, False), (5, True)):
         origin = np.rint(pred).astype(np.int64) - half
-        kw = dict(half=half, map_half=2, radius=2.5, threshold_fraction=0.1, noise_floor=0.06,
-                  weights=(0.5, 0.3, 0.2), use_minimum=use_min, saturation=0.7, fill=0.01)
+        kw = dict(
+            half=half,
+            map_half=2,
+            radius=2.5,
+            threshold_fraction=0.1,
+            noise_floor=0.06,
+            weights=(0.5, 0.3, 0.2),
+            use_minimum=use_min,
+            saturation=0.7,
+            fill=0.01,
+        )
         a = measure_windows_numpy(img, origin, pred - origin, **kw)
         b = measure_windows(img, origin, pred - origin, device=device, **kw)
         for key in a:
