@@ -77,6 +77,7 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--backend", choices=("warp", "numpy"), default="warp")
     p.add_argument("--trackpy-diameter", type=int, default=5, help="odd feature size for trackpy.locate")
+    p.add_argument("--trackpy-separation", type=float, default=3.0, help="trackpy.locate minimum separation")
     args = p.parse_args(argv)
 
     import warp as wp
@@ -115,7 +116,9 @@ def main(argv=None):
         import trackpy as tp
 
         tp.quiet()
-        feats_fn = lambda: tp.locate(ref, args.trackpy_diameter, minmass=0, preprocess=True)  # noqa: E731
+        feats_fn = lambda: tp.locate(  # noqa: E731
+            ref, args.trackpy_diameter, minmass=0, separation=args.trackpy_separation, preprocess=True
+        )
         t_tp, feats = best_time(feats_fn, args.repeat)
         fxy = np.stack([feats["x"].to_numpy(), feats["y"].to_numpy()], axis=1)
         err_tp, found_tp = position_error(fxy, xy)

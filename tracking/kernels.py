@@ -74,24 +74,16 @@ def measure_windows_kernel(
         n = 4 * (w - 1)
         for j in range(n):
             ring[i, j] = win[i, ring_pixel(j, w)]
-        s1 = n / 2 - 1
-        s2 = n / 2
-        m1 = wp.float64(0.0)
-        m2 = wp.float64(0.0)
-        for j in range(n):
-            vj = ring[i, j]
-            less = int(0)  # a dynamic Warp variable
-            leq = int(0)  # a dynamic Warp variable
-            for k in range(n):
-                vk = ring[i, k]
-                if vk < vj:
-                    less += 1
-                if vk <= vj:
-                    leq += 1
-            if less <= s1 and s1 < leq:
-                m1 = vj
-            if less <= s2 and s2 < leq:
-                m2 = vj
+        # Insertion sort of the edge pixels (n <= 4 (w - 1) is small), then the two middle values.
+        for j in range(1, n):
+            v = ring[i, j]
+            k = j - 1
+            while k >= 0 and ring[i, k] > v:
+                ring[i, k + 1] = ring[i, k]
+                k -= 1
+            ring[i, k + 1] = v
+        m1 = ring[i, n / 2 - 1]
+        m2 = ring[i, n / 2]
         bg = (m1 + m2) / wp.float64(2.0)
     thr = bg + wp.max(frac * (vmax - bg), floor)
     # Steepest ascent: each foreground pixel points to its brightest 8-neighbour (ties: higher index).
