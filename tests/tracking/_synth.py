@@ -1,0 +1,34 @@
+"""Synthetic dot patterns for the tracking tests (imported by the test modules)."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=3.0):
+    """Random dot centres with a minimum centre distance, ``per_32x32`` dots per 32x32 px."""
+    h, w = shape
+    n = round(per_32x32 * h * w / 1024.0)
+    xy = rng.uniform([margin, margin], [w - 1 - margin, h - 1 - margin], size=(int(n * 1.6) + 16, 2))
+    pairs = cKDTree(xy).query_pairs(min_distance, output_type="ndarray")
+    drop = np.zeros(len(xy), dtype=bool)
+    drop[pairs.max(axis=1)] = True
+    xy = xy[~drop]
+    assert len(xy) >= n
+    return xy[:n]
+
+
+def jittered_grid(rng, shape, *, spacing=10.0, margin=6.0):
+    """Isolated dots: a square grid with uniform sub-pixel jitter."""
+    h, w = shape
+    gx, gy = np.meshgrid(np.arange(margin, w - margin, spacing), np.arange(margin, h - margin, spacing))
+    xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    return xy + rng.uniform(-0.5, 0.5, xy.shape)
+
+
+def smooth_displacement(xy, shape, amplitude=1.5):
+    """One-period vortex-like displacement field of peak ``amplitude`` px."""
+    h, w = shape
+    x, y = xy[:, 0], xy[:, 1]
+    u = amplitude * np.sin(2 * np.pi * y / h) * np.cos(2 * np.pi * x / w)
+    v = amplitude * np.cos(2 * np.pi * x / w) * np.sin(2 * np.pi * y / h)
+    return np.stack([u, v], axis=1)

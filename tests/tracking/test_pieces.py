@@ -1,0 +1,220 @@
+"""The pieces of the tracker one by one: identification, Eq. 1, centroids, calibration, diameter, matching."""
+
+import numpy as np
+import pytest
+from _synth import dot_pattern
+from numpy.testing import assert_allclose
+
+from raytrace.dots import draw_dots
+from synthbos import SynthbosError
+from tracking import (
+    blob_properties,
+    blob_score,
+    centroid_gaussian3,
+    centroid_gaussian4,
+    centroid_intensity_weighted,
+    centroid_lsq_gaussian,
+    correlation_correction,
+    dynamic_threshold_identification,
+    estimate_dot_diameter,
+    estimate_noise,
+    fit_soloff,
+    match_multiparametric,
+    match_nearest,
+    render_gaussians,
+    segment_windows,
+    static_threshold_identification,
+    subtract_gaussians,
+)
+from tracking.windows import measure_windows, measure_windows_numpy
+
+
+def _isolated_windows(rng, n, d, *, half=3, spacing=8):
+    """n dots in their own (2 half + 1)^2 windows; true positions in window coordinates."""
+    side = int(np.ceil(np.sqrt(n)))
+    centres = spacing * (np.stack(np.divmod(np.arange(n), side), axis=1)[:, ::-1] + 1.0)
+    xy = centres + rng.uniform(-0.5, 0.5, (n, 2))
+    img = draw_dots((spacing * (side + 2),) * 2, xy, d)
+    c = centres.astype(int)
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    w = 2 * half + 1
+    win = sliding_window_view(img, (w, w))[c[:, 1] - half, c[:, 0] - half]
+    return win, xy - (c - half)
+
+
+def test_dynamic_threshold_splits_overlapping_dots_static_does_not():
+    img = draw_dots((40, 40), [[18.0, 20.0], [20.6, 20.0]], 3.0)
+    _, n_static = static_threshold_identification(img, threshold=0.1)
+    labels, n_dyn = dynamic_threshold_identification(img, threshold=0.1, n_levels=16)
+    props = blob_properties(img, labels)
+    assert n_static == 1
+    assert n_dyn == 2
+    assert_allclose(np.sort(props["x"]), [18, 21], atol=1)
+
+
+def test_segment_windows_splits_overlap_and_labels_by_peak():
+    img = draw_dots((9, 9), [[3.0, 4.0], [5.6, 4.2]], 3.0)
+    lab = segment_windows(img[None], np.array([0.05]))[0].reshape(9, 9)
+    roots = np.unique(lab[lab >= 0])
+    assert len(roots) == 2
+    assert set(roots) == {4 * 9 + 3, 4 * 9 + 6}
+
+
+def test_blob_score_is_eq1():
+    area = np.array([[9.0, 3.0, np.nan]])
+    peak = np.array([[0.8, 0.4, np.nan]])
+    dist = np.array([[0.5, 2.0, np.nan]])
+    s = blob_score(area, peak, dist)
+    assert_allclose(s[0, :2], [(1 + 1 + (1 - 0.25)) / 3, (3 / 9 + 0.5 + 0) / 3])
+    assert np.isnan(s[0, 2])
+
+
+@pytest.mark.parametrize(
+    ("fn", "bound"),
+    [(centroid_gaussian3, 0.005), (centroid_gaussian4, 0.02), (centroid_lsq_gaussian, 0.005)],
+)
+def test_gaussian_centroids_are_accurate_on_3px_dots(fn, bound):
+    rng = np.random.default_rng(1)
+    win, truth = _isolated_windows(rng, 400, 3.0)
+    x, y, eta, _, ok = fn(win)
+    err = np.hypot(x - truth[:, 0], y - truth[:, 1])
+    print(f"{fn.__name__}: rms error {np.sqrt(np.mean(err**2)):.5f} px (bound {bound})")
+    assert ok.all()
+    assert np.sqrt(np.mean(err**2)) < bound, f"{fn.__name__} rms error {np.sqrt(np.mean(err**2)):.5f} px"
+    assert_allclose(np.median(4 * eta), 3.2, atol=0.25)  # pixel-integrated 3 px dots look ~3.2 px wide
+
+
+def test_intensity_weighted_centroid_is_close():
+    rng = np.random.default_rng(2)
+    win, truth = _isolated_windows(rng, 400, 3.0)
+    x, y, ok = centroid_intensity_weighted(win)
+    err = np.hypot(x - truth[:, 0], y - truth[:, 1])
+    assert ok.all()
+    assert np.sqrt(np.mean(err**2)) < 0.02
+
+
+def test_gaussian3_has_no_peak_locking_at_3px():
+    """Histogram of fractional positions of the estimates vs. that of the true (uniform) positions."""
+    rng = np.random.default_rng(3)
+    n = 40000
+    win, truth = _isolated_windows(rng, n, 3.0)
+    x, y, *_ = centroid_gaussian3(win)
+    bins = np.linspace(0, 1, 11)
+    frac_est = np.concatenate([x - np.floor(x), y - np.floor(y)])
+    frac_true = np.concatenate([truth[:, 0] - np.floor(truth[:, 0]), truth[:, 1] - np.floor(truth[:, 1])])
+    h_est, _ = np.histogram(frac_est, bins)
+    h_true, _ = np.histogram(frac_true, bins)
+    expected = 2 * n / 10
+    flatness = (h_est.max() - h_est.min()) / expected
+    shift = np.abs(h_est - h_true).max() / expected
+    chi2 = np.sum((h_est - expected) ** 2 / expected)
+    print(
+        f"gaussian3 peak-locking: (max-min)/mean of 10 bins {flatness:.4f} "
+        f"(truth {np.ptp(h_true) / expected:.4f}), max bin change vs truth {shift:.4f}, "
+        f"chi2 {chi2:.1f} (9 dof)"
+    )
+    # Poisson spread of 8000 per bin is ~1.1%; peak-locking would pile estimates up near 0 and 1.
+    assert shift < 0.01, f"bins moved by up to {shift:.4f} of their mean"
+    assert flatness < 0.06, f"histogram flatness {flatness:.4f}"
+    assert chi2 < 30.0, f"chi2 {chi2:.1f} with 9 dof"
+
+
+def test_soloff_fits_cubic_distortion():
+    rng = np.random.default_rng(4)
+    t = rng.uniform(-50, 50, (200, 2))
+    u, v = t[:, 0] / 50, t[:, 1] / 50
+    img = np.stack(
+        [300 + 4 * t[:, 0] + 2 * u**2 - 3 * u * v**2, 200 + 4 * t[:, 1] + 1.5 * u**3 + v * u], axis=1
+    )
+    m = fit_soloff(t, img, order=3)
+    assert m.rms < 1e-8
+    assert_allclose(m(t[:5]), img[:5], atol=1e-8)
+    with pytest.raises(SynthbosError):
+        fit_soloff(t[:5], img[:5])
+    with pytest.raises(SynthbosError):
+        fit_soloff(t, img[:, :1])
+
+
+def test_dot_diameter_from_autocorrelation():
+    rng = np.random.default_rng(5)
+    for d in (3.0, 5.0):
+        xy = dot_pattern(rng, (256, 256), per_32x32=8, min_distance=d)
+        img = draw_dots((256, 256), xy, d) + 0.02 * rng.standard_normal((256, 256))
+        est = estimate_dot_diameter(img)
+        expect = 4 * np.sqrt((d / 4) ** 2 + 1 / 12)  # the pixel's own width adds in quadrature
+        print(f"d = {d}: estimated {est:.3f}, expected {expect:.3f}")
+        # Pixel integration widens the dots, the random pattern's own correlation narrows the peak: the
+        # estimate (used to size the windows) lands within 10 % of the drawn diameter.
+        assert abs(est / d - 1) < 0.1, f"estimated {est:.3f} for d = {d}"
+
+
+def test_noise_estimate():
+    rng = np.random.default_rng(6)
+    xy = dot_pattern(rng, (256, 256))
+    for sigma in (0.01, 0.03, 0.05):
+        img = draw_dots((256, 256), xy, 3.0) + sigma * rng.standard_normal((256, 256))
+        est = estimate_noise(img)
+        print(f"noise {sigma}: estimated {est:.4f}")
+        # Dense 3 px dots (tails on over half the pixels) bias it up; it only sets detection floors.
+        assert 0.9 * sigma < est < 1.7 * sigma, f"noise {sigma}: estimated {est:.4f}"
+
+
+def test_residual_removes_dots():
+    xy = np.array([[10.3, 12.7], [20.0, 20.5]])
+    model = render_gaussians((32, 32), xy, [1.0, 0.5], [0.75, 0.75])
+    res = subtract_gaussians(model, xy, [1.0, 0.5], [0.75, 0.75])
+    assert np.abs(res).max() < 1e-12
+    assert_allclose(model[13, 10], np.exp(-(0.3**2 + 0.3**2) / (2 * 0.75**2)), rtol=1e-12)
+
+
+def test_correlation_correction_recovers_shift():
+    rng = np.random.default_rng(7)
+    n = 200
+    shift = rng.uniform(-0.5, 0.5, (n, 2))
+    a = np.stack([draw_dots((5, 5), [[2.0, 2.0]], 3.0)] * n)
+    b = np.stack([draw_dots((5, 5), [[2.0 + s[0], 2.0 + s[1]]], 3.0) for s in shift])
+    u, v, ok = correlation_correction(a, b, max_shift=2)
+    assert ok.all()
+    assert_allclose(u, shift[:, 0], atol=0.03)
+    assert_allclose(v, shift[:, 1], atol=0.03)
+
+
+def test_matching_nearest_and_multiparametric():
+    rng = np.random.default_rng(8)
+    ref = rng.uniform(0, 100, (50, 2))
+    perm = rng.permutation(50)
+    grad = ref[perm] + rng.normal(0, 0.2, (50, 2))
+    idx = match_nearest(ref, grad, radius=1.0)
+    assert_allclose(perm[idx], np.arange(50))
+    # A decoy brighter-and-larger dot closer than the true partner: the multi-parametric match avoids it.
+    r = np.array([[10.0, 10.0]])
+    g = np.array([[10.9, 10.0], [10.5, 10.0]])
+    assert match_nearest(r, g, radius=2.0)[0] == 1
+    j = match_multiparametric(r, g, [1.0], [1.0, 3.0], [3.0], [3.0, 8.0], radius=2.0)
+    assert j[0] == 0
+    assert match_nearest(r, np.array([[15.0, 10.0]]), radius=2.0)[0] == -1
+
+
+def test_window_kernel_matches_numpy_reference(device):
+    rng = np.random.default_rng(9)
+    xy = dot_pattern(rng, (128, 128), per_32x32=15)
+    img = draw_dots((128, 128), xy, 3.0) + 0.03 * rng.standard_normal((128, 128))
+    pred = np.vstack([xy + rng.normal(0, 0.3, xy.shape), [[1.0, 1.0], [126.6, 0.2]]])  # two at the edge
+    for half, use_min in ((3, False), (5, True)):
+        origin = np.rint(pred).astype(np.int64) - half
+        kw = dict(
+            half=half,
+            map_half=2,
+            radius=2.5,
+            threshold_fraction=0.1,
+            noise_floor=0.06,
+            weights=(0.5, 0.3, 0.2),
+            use_minimum=use_min,
+            saturation=0.7,
+            fill=0.01,
+        )
+        a = measure_windows_numpy(img, origin, pred - origin, **kw)
+        b = measure_windows(img, origin, pred - origin, device=device, **kw)
+        for key in a:
+            assert_allclose(b[key], a[key], rtol=0, atol=1e-12, err_msg=key)

@@ -1,0 +1,620 @@
+"""Dot tracking with prior information and correlation correction (Rajendran, Bane and Vlachos 2019).
+
+:func:`track_pair` takes a reference and a gradient image and returns one row per dot. With a prior
+(predicted reference-image positions of the manufactured dots) every dot is looked for in a small window
+around its prediction, iterating on a residual image from which the dots found so far are removed;
+without one, dots are identified in each image by dynamic thresholding and paired (standard tracking).
+Displacements come both from the difference of the two centroids and from the correlation correction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from synthbos import SynthbosError
+
+from .centroid import CENTROID_METHODS, fit_centroids
+from .correction import correlation_correction
+from .diameter import estimate_dot_diameter
+from .identify import (
+    blob_properties,
+    dynamic_threshold_identification,
+    estimate_noise,
+    static_threshold_identification,
+)
+from .match import MATCH_METHODS, match_multiparametric, match_nearest
+from .predict import predict_displacement
+from .residual import subtract_gaussians
+from .windows import measure_windows, measure_windows_numpy
+
+__all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
+
+
+class DotStatus(enum.IntFlag):
+    """Bit flags of the ``status`` field of :func:`track_pair`'s table.
+
+    FOUND_REFERENCE, FOUND_GRADIENT
+        The dot was identified in that image (``x, y`` resp. ``x_gradient, y_gradient`` are finite).
+    MATCHED
+        Found in both and paired: ``u, v`` are finite. This is the "valid" bit.
+    CC_VALID
+        The correlation correction gave ``u_cc, v_cc`` (always set with MATCHED unless the correlation
+        peak fell on its plane's edge; ``u_cc, v_cc`` are finite whenever MATCHED is set).
+    CC_FLAGGED
+        The correlation correction disagrees with the centroid difference by more than
+        ``TrackingSettings.cc_threshold`` pixels.
+    OUTSIDE_IMAGE
+        The prior position lies outside the image (or is not finite); nothing was measured.
+    NEAR_BORDER
+        The dot's window reaches past the image edge.
+    SATURATED
+        Two or more of the dot's pixels sit at the saturation level; its position is less reliable.
+    OVERLAPPED
+        The dot's window held more than one blob; Eq. 1 chose among them.
+    AMBIGUOUS
+        A closer prior dot claimed the same blob in every iteration (only with NOT found).
+    FIT_FALLBACK
+        The centroid fit fell back to a simpler estimate (e.g. a non-positive neighbour sample).
+    """
+
+    FOUND_REFERENCE = 1
+    FOUND_GRADIENT = 2
+    MATCHED = 4
+    CC_VALID = 8
+    CC_FLAGGED = 16
+    OUTSIDE_IMAGE = 32
+    NEAR_BORDER = 64
+    SATURATED = 128
+    OVERLAPPED = 256
+    AMBIGUOUS = 512
+    FIT_FALLBACK = 1024
+
+
+TRACK_DTYPE = np.dtype(
+    [
+        ("x", "f8"),
+        ("y", "f8"),
+        ("u", "f8"),
+        ("v", "f8"),
+        ("u_cc", "f8"),
+        ("v_cc", "f8"),
+        ("x_gradient", "f8"),
+        ("y_gradient", "f8"),
+        ("diameter", "f8"),
+        ("peak", "f8"),
+        ("status", "i4"),
+        ("iteration", "i2"),
+        ("iteration_gradient", "i2"),
+    ]
+)
+
+
+def is_valid(status):
+    """True where a row's displacement is valid (the MATCHED bit)."""
+    return (np.asarray(status) & DotStatus.MATCHED) != 0
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """Settings of the whole tracking pipeline; the defaults are those of Rajendran, Bane and Vlachos (2019).
+
+    Attributes
+    ----------
+    centroid : {"gaussian3", "centroid", "gaussian4", "lsq"}
+        Sub-pixel estimator (Brady, Raben and Vlachos 2009).
+    weights : (W_A, W_I, W_dx)
+        Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
+    diameter : float or None
+        Dot e^-2 diameter in pixels; None estimates it from the reference image's auto-correlation,
+        ``d_p = d_cc / sqrt(2)``.
+    window_margin : float
+        Pixels added to the dot radius for the identification window (half-width
+        ``ceil(d / 2 + window_margin)``).
+    max_iterations : int
+        Iterations on the residual image (Eq. 2); identification stops earlier when every dot is found or
+        an iteration finds no new one.
+    max_displacement : float
+        Largest expected displacement in pixels: the gradient window grows by it, and it bounds the search.
+    prior_radius : float
+        Largest distance in pixels between a dot's peak pixel and its prior position.
+    cc_threshold : float
+        A correlation correction differing from the centroid difference by more than this (pixels) is
+        flagged CC_FLAGGED.
+    background : {"ring-median", "minimum"}
+        Background of a window, subtracted before fitting and correlating: the median of the window's edge
+        pixels (robust to noise and to neighbouring dots) or the window minimum.
+    threshold_fraction : float
+        Segmentation threshold above the background, as a fraction of the window's peak.
+    noise_threshold : float
+        The segmentation threshold is at least this many noise standard deviations.
+    detection_snr : float
+        A blob is a dot only if its peak exceeds the background by this many noise standard deviations ...
+    min_relative_peak : float
+        ... and by this fraction of the median dot peak of the image.
+    matching : {"nearest", "multiparametric"}
+        Pairing of standard tracking (no prior).
+    match_weights : (w_distance, w_intensity, w_diameter)
+        Weights of the multi-parametric match.
+    search_radius : float or None
+        Pairing radius of standard tracking; ``max_displacement + 1`` by default.
+    identification : {"dynamic", "static"}
+        Whole-image identification of standard tracking.
+    threshold : float or None
+        Intensity threshold of standard identification; None: median + ``threshold_fraction`` times the
+        range to the 99.9th percentile (at least ``noise_threshold`` sigmas).
+    n_levels : int
+        Threshold levels of the dynamic segmentation.
+    saturation_level : float or None
+        Intensity at which pixels saturate; None: the image maximum when five or more pixels share it.
+    predictor : {"correlation", "none"}
+        Prediction of the gradient-image positions. "none" is the paper's: the reference position, with the
+        window widened by ``max_displacement``. "correlation" (default, an addition) adds the displacement
+        of a coarse 16-pixel-window correlation, so the gradient window stays as small as the reference
+        one; dots it misses are looked for again the paper's way.
+    backend : {"warp", "numpy"}
+        The per-dot window step as a Warp kernel or as the NumPy reference (same results).
+    """
+
+    centroid: str = "gaussian3"
+    weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
+    diameter: float | None = None
+    window_margin: float = 1.0
+    max_iterations: int = 5
+    max_displacement: float = 2.0
+    prior_radius: float = 1.5
+    cc_threshold: float = 0.5
+    background: str = "ring-median"
+    threshold_fraction: float = 0.1
+    noise_threshold: float = 2.0
+    detection_snr: float = 6.0
+    min_relative_peak: float = 0.3
+    matching: str = "nearest"
+    match_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    search_radius: float | None = None
+    identification: str = "dynamic"
+    threshold: float | None = None
+    n_levels: int = 8
+    saturation_level: float | None = None
+    predictor: str = "correlation"
+    backend: str = "warp"
+
+    def __post_init__(self):
+        if self.centroid not in CENTROID_METHODS:
+            raise SynthbosError(
+                f"unknown centroid method {self.centroid!r}; choose one of {CENTROID_METHODS}"
+            )
+        if self.matching not in MATCH_METHODS:
+            raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
+        if self.background not in ("ring-median", "minimum"):
+            raise SynthbosError(f"unknown background {self.background!r}; choose 'ring-median' or 'minimum'")
+        if self.identification not in ("dynamic", "static"):
+            raise SynthbosError(
+                f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'"
+            )
+        if self.diameter is not None and not (np.isfinite(self.diameter) and self.diameter > 0):
+            raise SynthbosError(f"dot diameter must be a positive number, got {self.diameter!r}")
+        if self.predictor not in ("correlation", "none"):
+            raise SynthbosError(f"unknown predictor {self.predictor!r}; choose 'correlation' or 'none'")
+        if self.backend not in ("warp", "numpy"):
+            raise SynthbosError(f"unknown backend {self.backend!r}; choose 'warp' or 'numpy'")
+        if self.max_iterations < 1:
+            raise SynthbosError(f"max_iterations must be at least 1, got {self.max_iterations}")
+
+    def as_dict(self):
+        """Plain ``{name: value}`` (tuples as lists, None as the string "auto") for file attributes."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = "auto" if v is None else (list(v) if isinstance(v, tuple) else v)
+        return out
+
+
+def _check_image(name, image):
+    a = np.asarray(image)
+    if a.ndim != 2:
+        raise SynthbosError(f"{name} image must be 2-D, got shape {a.shape}")
+    if min(a.shape) < 8:
+        raise SynthbosError(f"{name} image is too small ({a.shape[0]}x{a.shape[1]}), need at least 8x8")
+    if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        raise SynthbosError(f"{name} image must hold real numbers, got dtype {a.dtype}")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise SynthbosError(f"{name} image contains non-finite pixels (NaN or inf)")
+    if not a.any():
+        raise SynthbosError(f"{name} image is all zero")
+    return a
+
+
+def _saturation_level(image, level):
+    if level is not None:
+        return float(level)
+    top = image.max()
+    return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
+
+
+def _identify(
+    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
+):
+    """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
+
+    Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
+    dot's peak pixel, and dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
+    """
+    h_img, w_img = image.shape
+    n = len(pred)
+    c = 2 * map_half + 1
+    out = {
+        "x": np.full(n, np.nan),
+        "y": np.full(n, np.nan),
+        "eta": np.full(n, np.nan),
+        "i0": np.full(n, np.nan),
+        "iteration": np.zeros(n, dtype=np.int16),
+        "flags": np.zeros(n, dtype=np.int32),
+        "root": np.zeros((n, 2), dtype=np.int64),
+        "dotmap": np.zeros((n, c, c)),
+    }
+    finite = np.isfinite(pred).all(axis=1)
+    safe = np.where(finite[:, None], pred, -1e9)
+    inside = finite & (safe[:, 0] > -0.5) & (safe[:, 0] < w_img - 0.5)
+    inside &= (safe[:, 1] > -0.5) & (safe[:, 1] < h_img - 0.5)
+    out["flags"][~inside] |= DotStatus.OUTSIDE_IMAGE
+    safe = np.where(inside[:, None], safe, 0.0)
+    origin_all = np.rint(safe).astype(np.int64) - half
+    border = (origin_all < 0).any(axis=1) | (origin_all[:, 0] + 2 * half >= w_img)
+    border |= origin_all[:, 1] + 2 * half >= h_img
+    out["flags"][inside & border] |= DotStatus.NEAR_BORDER
+    todo = inside.copy()
+    subtracted = np.zeros(n, dtype=bool)
+    fill = float(np.median(image[::4, ::4]))
+    residual = image
+    ref_peak = None
+    measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
+    extra = {"device": device} if settings.backend == "warp" else {}
+    for it in range(1, max_iterations + 1):
+        sel = np.flatnonzero(todo)
+        if sel.size == 0:
+            break
+        origin = origin_all[sel]
+        m = measure(
+            residual,
+            origin,
+            pred[sel] - origin,
+            half=half,
+            map_half=map_half,
+            radius=radius,
+            threshold_fraction=settings.threshold_fraction,
+            noise_floor=settings.noise_threshold * noise,
+            weights=settings.weights,
+            use_minimum=settings.background == "minimum",
+            saturation=sat_level,
+            fill=fill,
+            **extra,
+        )
+        has = m["chosen"] >= 0
+        cpeak = m["peak"]
+        if ref_peak is None:
+            ref_peak = float(np.median(cpeak[has])) if has.any() else 0.0
+        ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
+        ok &= cpeak > 0
+        w = 2 * half + 1
+        root_c = origin[:, 0] + np.maximum(m["chosen"], 0) % w
+        root_r = origin[:, 1] + np.maximum(m["chosen"], 0) // w
+        # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
+        absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
+        cidx = np.flatnonzero(ok)
+        order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = absroot[order][1:] != absroot[order][:-1]
+        win_idx = order[first]
+        out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
+        if win_idx.size == 0:
+            break
+        dotmap = m["dotmap"][win_idx]
+        hc = np.full(len(win_idx), map_half)
+        xw, yw, eta, i0, fit_ok = fit_centroids(
+            dotmap, method=settings.centroid, peak_rc=(hc, hc), mask=dotmap != 0
+        )
+        # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
+        wild = (
+            ~(np.isfinite(xw) & np.isfinite(yw))
+            | (np.abs(xw - map_half) > 1.0)
+            | (np.abs(yw - map_half) > 1.0)
+        )
+        xw = np.where(wild, map_half, xw)
+        yw = np.where(wild, map_half, yw)
+        fit_ok &= ~wild
+        eta_ok = np.isfinite(eta) & (eta > 0.3 * eta0) & (eta < 3.0 * eta0)
+        eta = np.where(eta_ok, eta, eta0)
+        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak[win_idx])
+        g = sel[win_idx]
+        out["x"][g] = root_c[win_idx] + (xw - map_half)
+        out["y"][g] = root_r[win_idx] + (yw - map_half)
+        out["eta"][g] = eta
+        out["i0"][g] = i0
+        out["iteration"][g] = it
+        out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
+        out["dotmap"][g] = dotmap
+        flags = np.zeros(len(g), dtype=np.int32)
+        flags[m["nblobs"][win_idx] > 1] |= DotStatus.OVERLAPPED
+        flags[~fit_ok] |= DotStatus.FIT_FALLBACK
+        flags[m["nsat"][win_idx] >= 2] |= DotStatus.SATURATED
+        out["flags"][g] = (out["flags"][g] & ~np.int32(DotStatus.AMBIGUOUS)) | flags
+        todo[g] = False
+        if todo.any() and it < max_iterations:
+            # Eq. 2, applied where it matters: found dots near a dot still missing leave the image.
+            found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
+            if found.size:
+                fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
+                reach = half * np.sqrt(2.0) + 4.5 * eta0 + 1.0
+                near = cKDTree(fxy).query_ball_point(pred[todo], reach)
+                near = np.unique(
+                    np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)])
+                )
+                if near.size:
+                    idx = found[near]
+                    residual = subtract_gaussians(
+                        residual,
+                        fxy[near],
+                        out["i0"][idx],
+                        np.clip(out["eta"][idx], 0.5 * eta0, 1.5 * eta0),
+                        radius=int(np.ceil(4.5 * eta0)),
+                    )
+                    subtracted[idx] = True
+    return out
+
+
+def _drop_shared_blobs(found, pred):
+    """Where two dots ended up on one blob (peak pixel), keep the one nearer its prediction."""
+    ok = np.flatnonzero(np.isfinite(found["x"]))
+    if ok.size < 2:
+        return
+    key = found["root"][ok, 1] * (found["root"][ok, 0].max() + 1) + found["root"][ok, 0]
+    dist = np.hypot(found["x"][ok] - pred[ok, 0], found["y"][ok] - pred[ok, 1])
+    order = np.lexsort((dist, key))
+    dup = np.zeros(len(ok), dtype=bool)
+    dup[order[1:]] = key[order][1:] == key[order][:-1]
+    lose = ok[dup]
+    for name in ("x", "y", "eta", "i0"):
+        found[name][lose] = np.nan
+    found["iteration"][lose] = 0
+    found["flags"][lose] |= DotStatus.AMBIGUOUS
+
+
+def _auto_threshold(image, settings, noise):
+    if settings.threshold is not None:
+        return float(settings.threshold)
+    med = float(np.median(image))
+    top = float(np.percentile(image, 99.9))
+    return med + max(settings.threshold_fraction * (top - med), settings.noise_threshold * noise)
+
+
+def _standard_candidates(image, settings, noise):
+    thr = _auto_threshold(image, settings, noise)
+    if settings.identification == "dynamic":
+        labels, _ = dynamic_threshold_identification(image, threshold=thr, n_levels=settings.n_levels)
+    else:
+        labels, _ = static_threshold_identification(image, threshold=thr)
+    props = blob_properties(image, labels)
+    return np.stack([props["x"], props["y"]], axis=1)
+
+
+def track_pair(
+    reference, gradient, *, prior_xy=None, mapping=None, settings: TrackingSettings | None = None, device=None
+):
+    """Track every dot from the reference to the gradient image.
+
+    Parameters
+    ----------
+    reference, gradient : (H, W) arrays
+        The image pair (any real dtype).
+    prior_xy : (N, 2) array, optional
+        Predicted reference-image positions of the pattern's dots (x = column, y = row, pixel centres at
+        integers), or target positions when ``mapping`` is given. Without it, standard tracking:
+        dots are identified in both images and paired.
+    mapping : callable, optional
+        Calibration mapping target -> image (e.g. :func:`tracking.calibration.fit_soloff`'s result),
+        applied to ``prior_xy``.
+    settings : TrackingSettings, optional
+        Defaults to ``TrackingSettings()``.
+    device : str or None, optional
+        Warp device of the window kernel ("cpu", "cuda:0"); Warp's default when None.
+
+    Returns
+    -------
+    numpy structured array of dtype :data:`TRACK_DTYPE`, one row per prior dot in the prior's order (row i
+    is prior dot i), or per dot identified in the reference image without a prior. Fields:
+
+    ``x, y`` (f8)
+        Reference-image position, px (x = column, y = row, pixel centres at integers).
+    ``u, v`` (f8)
+        Displacement by centroid difference, px.
+    ``u_cc, v_cc`` (f8)
+        Displacement by correlation correction, px.
+    ``x_gradient, y_gradient`` (f8)
+        Gradient-image position, px.
+    ``diameter`` (f8)
+        e^-2 diameter ``4 eta`` of the Gaussian fitted to the reference dot, px.
+    ``peak`` (f8)
+        Its peak intensity ``I0`` above the background.
+    ``status`` (i4)
+        :class:`DotStatus` bit flags; MATCHED marks a valid row.
+    ``iteration, iteration_gradient`` (i2)
+        Iteration of the residual scheme in which the dot was found in each image (1 = first; 0 = not found).
+
+    Values that could not be measured are NaN, and the status says why; a MATCHED row has finite
+    ``x, y, u, v, u_cc, v_cc, x_gradient, y_gradient, diameter, peak``.
+
+    Raises
+    ------
+    synthbos.SynthbosError
+        Images of different shapes, not 2-D, all zero or with non-finite pixels; a prior that is not Nx2 or
+        lies entirely outside the image; a diameter that cannot be estimated.
+    """
+    settings = TrackingSettings() if settings is None else settings
+    ref = _check_image("reference", reference)
+    grad = _check_image("gradient", gradient)
+    if ref.shape != grad.shape:
+        raise SynthbosError(f"reference and gradient images differ in shape: {ref.shape} and {grad.shape}")
+    h_img, w_img = ref.shape
+
+    if prior_xy is not None:
+        prior = np.asarray(prior_xy, dtype=np.float64)
+        if prior.ndim != 2 or prior.shape[1] != 2:
+            raise SynthbosError(f"prior positions must be an Nx2 array, got shape {prior.shape}")
+        if mapping is not None:
+            prior = np.asarray(mapping(prior), dtype=np.float64).reshape(-1, 2)
+        fin = np.isfinite(prior).all(axis=1)
+        p = np.where(fin[:, None], prior, -1e9)
+        inside = fin & (p[:, 0] > -0.5) & (p[:, 0] < w_img - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h_img - 0.5)
+        if not inside.any():
+            raise SynthbosError(f"no prior dot lies inside the {h_img}x{w_img} image")
+
+    d = settings.diameter
+    if d is None:
+        d = estimate_dot_diameter(ref)
+        if not (np.isfinite(d) and d > 0):
+            raise SynthbosError(
+                "cannot estimate the dot diameter from the reference image; give it in settings"
+            )
+    eta0 = d / 4.0
+    half_r = int(np.ceil(d / 2.0 + settings.window_margin))
+    half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
+    map_half = int(np.ceil(d / 2.0 + 0.5))
+    noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
+    sat_r = _saturation_level(ref, settings.saturation_level)
+    sat_g = _saturation_level(grad, settings.saturation_level)
+    search = settings.max_displacement + 1.0 if settings.search_radius is None else settings.search_radius
+    common = {"map_half": map_half, "settings": settings, "eta0": eta0, "device": device}
+
+    if prior_xy is not None:
+        r = _identify(
+            ref,
+            prior,
+            half=half_r,
+            radius=settings.prior_radius,
+            max_iterations=settings.max_iterations,
+            noise=noise_r,
+            sat_level=sat_r,
+            **common,
+        )
+        found_r = np.isfinite(r["x"])
+        base = np.where(found_r[:, None], np.stack([r["x"], r["y"]], axis=1), prior)
+        if settings.predictor == "correlation":
+            pred_g = base + predict_displacement(ref, grad, base, max_displacement=settings.max_displacement)
+            g = _identify(
+                grad,
+                pred_g,
+                half=half_r,
+                radius=settings.prior_radius,
+                max_iterations=settings.max_iterations,
+                noise=noise_g,
+                sat_level=sat_g,
+                **common,
+            )
+            # Dots the prediction missed get the paper's wide window around the reference position.
+            miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
+            if miss.size:
+                g2 = _identify(
+                    grad,
+                    base[miss],
+                    half=half_g,
+                    radius=search,
+                    max_iterations=settings.max_iterations,
+                    noise=noise_g,
+                    sat_level=sat_g,
+                    **common,
+                )
+                for key in g:
+                    if key == "flags":
+                        g[key][miss] |= g2[key]
+                    else:
+                        g[key][miss] = g2[key]
+                _drop_shared_blobs(g, pred_g)
+        else:
+            g = _identify(
+                grad,
+                base,
+                half=half_g,
+                radius=search,
+                max_iterations=settings.max_iterations,
+                noise=noise_g,
+                sat_level=sat_g,
+                **common,
+            )
+        partner = np.arange(len(prior))
+    else:
+        cand_r = _standard_candidates(ref, settings, noise_r)
+        cand_g = _standard_candidates(grad, settings, noise_g)
+        r = _identify(
+            ref, cand_r, half=half_r, radius=1.0, max_iterations=1, noise=noise_r, sat_level=sat_r, **common
+        )
+        g = _identify(
+            grad, cand_g, half=half_r, radius=1.0, max_iterations=1, noise=noise_g, sat_level=sat_g, **common
+        )
+        r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
+        g = {k: v[np.isfinite(g["x"])] for k, v in g.items()}
+        rxy = np.stack([r["x"], r["y"]], axis=1)
+        gxy = np.stack([g["x"], g["y"]], axis=1)
+        if settings.matching == "nearest":
+            partner = match_nearest(rxy, gxy, radius=search)
+        else:
+            partner = match_multiparametric(
+                rxy,
+                gxy,
+                r["i0"],
+                g["i0"],
+                4 * r["eta"],
+                4 * g["eta"],
+                radius=search,
+                weights=settings.match_weights,
+            )
+
+    n = len(r["x"])
+    out = np.zeros(n, dtype=TRACK_DTYPE)
+    for name in ("u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
+        out[name] = np.nan
+    out["x"], out["y"] = r["x"], r["y"]
+    out["diameter"] = 4.0 * r["eta"]
+    out["peak"] = r["i0"]
+    out["iteration"] = r["iteration"]
+    status = r["flags"].astype(np.int32)
+    found_r = np.isfinite(r["x"])
+    status[found_r] |= DotStatus.FOUND_REFERENCE
+    ng = len(g["x"])
+    has_p = partner >= 0
+    pi = np.where(has_p, partner, 0)
+    gx = g["x"][pi] if ng else np.full(n, np.nan)
+    gy = g["y"][pi] if ng else np.full(n, np.nan)
+    found_g = has_p & np.isfinite(gx)
+    out["x_gradient"] = np.where(found_g, gx, np.nan)
+    out["y_gradient"] = np.where(found_g, gy, np.nan)
+    out["iteration_gradient"] = np.where(found_g, g["iteration"][pi] if ng else 0, 0)
+    if prior_xy is not None:
+        status |= g["flags"].astype(np.int32) & ~np.int32(DotStatus.OUTSIDE_IMAGE)
+    status[found_g] |= DotStatus.FOUND_GRADIENT
+    matched = found_r & found_g
+    status[matched] |= DotStatus.MATCHED
+    out["u"] = np.where(matched, out["x_gradient"] - out["x"], np.nan)
+    out["v"] = np.where(matched, out["y_gradient"] - out["y"], np.nan)
+
+    m = np.flatnonzero(matched)
+    if m.size:
+        gi = pi[m]
+        # Correlation correction: both dot maps are centred on their peak pixels, so the displacement is
+        # the peak pixels' offset plus the correlation peak's.
+        du, dv, cc_ok = correlation_correction(r["dotmap"][m], g["dotmap"][gi], max_shift=2)
+        ucc = g["root"][gi, 0] - r["root"][m, 0] + du
+        vcc = g["root"][gi, 1] - r["root"][m, 1] + dv
+        out["u_cc"][m], out["v_cc"][m] = ucc, vcc
+        st = status[m]
+        st[cc_ok] |= DotStatus.CC_VALID
+        off = np.hypot(ucc - out["u"][m], vcc - out["v"][m]) > settings.cc_threshold
+        st[off] |= DotStatus.CC_FLAGGED
+        status[m] = st
+    out["status"] = status
+    return out

@@ -1,0 +1,230 @@
+"""Measuring the window around each predicted dot position: segmentation, Eq. 1, dot map.
+
+One step of identification with prior information (Rajendran, Bane and Vlachos 2019, section 2.2), for
+a whole set of predictions at once. :func:`measure_windows` runs it as a Warp kernel (one thread per dot;
+on the CPU Warp compiles it to native code); :func:`measure_windows_numpy` is the array-program
+reference that defines the result and that the tests compare the kernel with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from .identify import blob_score, segment_windows
+
+__all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy"]
+
+WINDOW_FIELDS = ("chosen", "nblobs", "nsat", "bg", "peak", "dist")
+
+
+def _ring(w):
+    idx = list(range(w)) + [(w - 1) * w + k for k in range(w)]
+    for row in range(1, w - 1):
+        idx += [row * w, row * w + w - 1]
+    return np.array(idx)
+
+
+def _dilate(mask):
+    """3x3 dilation of a stack of boolean windows."""
+    out = mask.copy()
+    out[:, :, 1:] |= mask[:, :, :-1]
+    out[:, :, :-1] |= mask[:, :, 1:]
+    row = out.copy()
+    out[:, 1:, :] |= row[:, :-1, :]
+    out[:, :-1, :] |= row[:, 1:, :]
+    return out
+
+
+def measure_windows_numpy(
+    image,
+    origin,
+    local,
+    *,
+    half,
+    map_half,
+    radius,
+    threshold_fraction,
+    noise_floor,
+    weights,
+    use_minimum=False,
+    saturation=np.inf,
+    fill=0.0,
+):
+    """Segment the window of each dot, choose its blob with Eq. 1 and cut out its dot map (NumPy).
+
+    Parameters
+    ----------
+    image : (H, W) float array
+        The (residual) image.
+    origin : (N, 2) int array
+        Column and row of each window's first pixel; windows are ``2 half + 1`` pixels square.
+    local : (N, 2) array
+        Predicted position in window coordinates (x, y).
+    half, map_half : int, keyword-only
+        Window and dot-map half-widths.
+    radius : float, keyword-only
+        Blobs whose peak lies farther than this from the prediction are not candidates.
+    threshold_fraction, noise_floor : float, keyword-only
+        Segmentation threshold ``bg + max(threshold_fraction (max - bg), noise_floor)``.
+    weights : (W_A, W_I, W_dx), keyword-only
+        Eq. 1 weights.
+    use_minimum : bool, keyword-only
+        Background = window minimum instead of the median of the window's edge pixels.
+    saturation : float, keyword-only
+        Pixels at or above it count as saturated.
+    fill : float, keyword-only
+        Value of pixels outside the image.
+
+    Returns
+    -------
+    dict
+        ``chosen`` (N,) flat window index of the chosen blob's peak pixel (-1: no candidate), ``nblobs``
+        (blobs in the window), ``nsat`` (saturated pixels of the chosen blob), ``bg`` (background),
+        ``peak`` (chosen peak minus background), ``dist`` (its distance from the prediction) and ``dotmap``
+        (N, 2 map_half + 1, 2 map_half + 1): the chosen blob and its one-pixel rim minus background, other
+        pixels zero, centred on the peak pixel.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    n = len(origin)
+    w = 2 * half + 1
+    c = 2 * map_half + 1
+    pad = w
+    padded = np.pad(image, pad, constant_values=fill)
+    win = sliding_window_view(padded, (w, w))[origin[:, 1] + pad, origin[:, 0] + pad]
+    flat = win.reshape(n, w * w)
+    bg = flat.min(axis=1) if use_minimum else np.median(flat[:, _ring(w)], axis=1)
+    thr = bg + np.maximum(threshold_fraction * (flat.max(axis=1) - bg), noise_floor)
+    lab = segment_windows(win, thr)
+    pix = np.arange(w * w)
+    roots = lab == pix
+    fg = lab >= 0
+    area = np.bincount((np.arange(n)[:, None] * (w * w) + lab)[fg], minlength=n * w * w).reshape(n, -1)
+    dist = np.sqrt(((pix % w) - local[:, 0:1]) ** 2 + ((pix // w) - local[:, 1:2]) ** 2)
+    cand = roots & (dist <= radius)
+    peakv = flat - bg[:, None]
+    score = blob_score(
+        np.where(cand, area, np.nan),
+        np.where(cand, peakv, np.nan),
+        np.where(cand, dist, np.nan),
+        weights=weights,
+    )
+    has = cand.any(axis=1)
+    chosen = np.where(has, np.argmax(np.where(cand, score, -np.inf), axis=1), -1)
+    rows = np.arange(n)
+    ch = np.maximum(chosen, 0)
+    chosen_mask = (lab == ch[:, None]) & has[:, None]
+    other = fg & ~chosen_mask
+    keep = _dilate(chosen_mask.reshape(n, w, w)) & ~other.reshape(n, w, w)
+    maps = np.where(keep, win - bg[:, None, None], 0.0)
+    mp = np.zeros((n, w + 2 * map_half, w + 2 * map_half))
+    mp[:, map_half:-map_half, map_half:-map_half] = maps
+    rr, rc = np.divmod(ch, w)
+    dotmap = sliding_window_view(mp, (c, c), axis=(1, 2))[rows, rr, rc]
+    return {
+        "chosen": chosen,
+        "nblobs": roots.sum(axis=1),
+        "nsat": np.where(has, ((flat >= saturation) & chosen_mask).sum(axis=1), 0),
+        "bg": bg,
+        "peak": np.where(has, peakv[rows, ch], 0.0),
+        "dist": np.where(has, dist[rows, ch], 0.0),
+        "dotmap": np.where(has[:, None, None], dotmap, 0.0),
+    }
+
+
+def measure_windows(
+    image,
+    origin,
+    local,
+    *,
+    half,
+    map_half,
+    radius,
+    threshold_fraction,
+    noise_floor,
+    weights,
+    use_minimum=False,
+    saturation=np.inf,
+    fill=0.0,
+    device=None,
+):
+    """Same as :func:`measure_windows_numpy`, as a Warp kernel with one thread per dot.
+
+    Parameters
+    ----------
+    device : str or None, keyword-only
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
+    Other parameters and the result are those of :func:`measure_windows_numpy`.
+    """
+    import warp as wp
+
+    from .kernels import measure_windows_kernel
+
+    n = len(origin)
+    w = 2 * half + 1
+    c = 2 * map_half + 1
+    if n == 0:
+        return measure_windows_numpy(
+            image,
+            origin,
+            local,
+            half=half,
+            map_half=map_half,
+            radius=radius,
+            threshold_fraction=threshold_fraction,
+            noise_floor=noise_floor,
+            weights=weights,
+            use_minimum=use_minimum,
+            saturation=saturation,
+            fill=fill,
+        )
+    img = wp.array(np.ascontiguousarray(image, dtype=np.float64), dtype=wp.float64, device=device)
+    org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
+    loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
+    win = wp.empty((n, w * w), dtype=wp.float64, device=device)
+    ring = wp.empty((n, 4 * (w - 1)), dtype=wp.float64, device=device)
+    lab = wp.empty((n, w * w), dtype=wp.int32, device=device)
+    area = wp.empty((n, w * w), dtype=wp.int32, device=device)
+    out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
+    out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
+    dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
+    wa, wi, wd = (float(x) for x in weights)
+    wp.launch(
+        measure_windows_kernel,
+        dim=n,
+        inputs=[
+            img,
+            float(fill),
+            org,
+            loc,
+            int(half),
+            int(map_half),
+            float(radius),
+            float(threshold_fraction),
+            float(noise_floor),
+            wa,
+            wi,
+            wd,
+            int(bool(use_minimum)),
+            float(min(saturation, 1e300)),
+            win,
+            ring,
+            lab,
+            area,
+            out_i,
+            out_f,
+            dotmap,
+        ],
+        device=device,
+    )
+    oi, of = out_i.numpy(), out_f.numpy()
+    return {
+        "chosen": oi[:, 0].astype(np.int64),
+        "nblobs": oi[:, 1].astype(np.int64),
+        "nsat": oi[:, 2].astype(np.int64),
+        "bg": of[:, 0],
+        "peak": of[:, 1],
+        "dist": of[:, 2],
+        "dotmap": dotmap.numpy(),
+    }
