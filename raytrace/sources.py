@@ -18,7 +18,8 @@ Analytic sources (physical units, never rescaled by ``density_scale_kg_m3``; sam
 
 ``uniform``     rho = rho0.
 ``linear``      rho = rho0 + g . x, ``gradient_kg_m4 = [gx, gy]`` (or [gx, gy, gz]); rho0 at the centre.
-``gaussian``    rho = rho0 + a exp(-|x - c|^2 / (2 s^2)), ``amplitude_kg_m3``, ``sigma_mm`` s, ``centre_mm`` c.
+``gaussian``    rho = rho0 + a exp(-|x - c|^2 / (2 s^2)), ``amplitude_kg_m3`` a, ``sigma_mm`` s,
+                ``centre_mm`` c.
 ``step``        a smoothed step (an interface or weak shock): rho = rho0 + (J/2) (1 + tanh(2 s / delta)),
                 s = (x - p) . n / |n|, ``jump_kg_m3`` J, ``position_mm`` p (a point of the interface),
                 ``normal`` n (2 or 3 components, pointing to the side of density rho0 + J) and
