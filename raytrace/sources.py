@@ -42,8 +42,9 @@ Data sources (the grid comes from the data; ``grid`` must be left unset):
                 the resulting field.
 
 Physical size of data sources: with ``spacing_mm = "auto"`` (default) the data are mapped onto
-``size_mm`` (first and last nodes on the faces; a file's own coordinates only set nothing but the
-reported ``LoadedDensity.spacing``, as JHTDB coordinates are in database units). With ``spacing_mm``
+``size_mm`` (first and last nodes on the faces). A file's own coordinates (JHTDB, NRRD) are not used
+for the size: they are in the file's units (database units for JHTDB: a 2 pi box), and are only
+reported as ``LoadedDensity.spacing`` for the user to turn into ``spacing_mm``. With ``spacing_mm``
 given (one number, or [dx, dy] / [dx, dy, dz]) the extent along each data axis is spacing x (n - 1)
 and ``size_mm`` is ignored along those axes; an extruded slice keeps ``size_mm[2]`` as its depth.
 ``DensityField.size_m`` always holds the extent actually used.
