@@ -66,9 +66,11 @@ class LoadedDensity:
     data : float64 array, ``(nz, ny, nx)`` or ``(ny, nx)``
         The values as stored (not rescaled), validated finite and > 0.
     spacing : tuple of float or None
-        Node spacing ``(dx, dy[, dz])`` in the file's own length unit where the format carries
-        coordinates (JHTDB, NRRD), None otherwise. A 2-D result has two entries, ordered like its axes
-        reversed (first the in-plane horizontal axis, then the vertical one).
+        Node spacing ``(dx, dy[, dz])``: the ``spacing_mm`` asked for, else the file's own where the
+        format carries coordinates (JHTDB, NRRD), else None. A 2-D result has two entries, ordered like
+        its axes reversed (first the in-plane horizontal axis, then the vertical one).
+    spacing_units : {"mm", "file", None}
+        "mm" when ``spacing_mm`` was given, "file" for the file's own units.
     path : str
         The file.
     dataset : str or None
@@ -79,6 +81,7 @@ class LoadedDensity:
 
     data: np.ndarray
     spacing: tuple | None
+    spacing_units: str | None
     path: str
     dataset: str | None = None
     attrs: dict = field(default_factory=dict)
@@ -285,19 +288,22 @@ def _load_npz(path, dataset):
 
 def _load_hdf5(path, dataset):
     with _h5py_open(path) as h5:
-        if dataset is None:
-            if _is_jhtdb(h5):
-                h5.close()
-                return _load_jhtdb(path, None)
+        jhtdb = dataset is None and _is_jhtdb(h5)
+        if dataset is None and not jhtdb:
             names = _datasets(h5)
             if len(names) != 1:
                 raise SynthbosError(f"{path}: holds datasets {names[:8]}; choose one with dataset")
             dataset = names[0]
-        data, attrs = _read_h5_array(h5, dataset, path)
+        if not jhtdb:
+            data, attrs = _read_h5_array(h5, dataset, path)
+    if jhtdb:
+        return _load_jhtdb(path, None)
     return data, None, dataset, attrs
 
 
-def load_density(path, *, format=None, dataset=None, slice_index=None, axis="z", index_range=None):
+def load_density(
+    path, *, format=None, dataset=None, slice_index=None, axis=None, index_range=None, spacing_mm=None
+):
     """Read density data from a file, optionally one 2-D slice or a sub-volume of it.
 
     Parameters
@@ -311,11 +317,15 @@ def load_density(path, *, format=None, dataset=None, slice_index=None, axis="z",
         Pick the 2-D slice at this (absolute, file) index along ``axis`` of a 3-D array. The slice keeps
         the other two axes in order: ``axis="z"`` -> ``(ny, nx)``, ``"y"`` -> ``(nz, nx)``,
         ``"x"`` -> ``(nz, ny)``. Negative indices count from the end.
-    axis : {"x", "y", "z"}
+    axis : {"x", "y", "z"}, optional
+        Axis of ``slice_index``; "z" when omitted.
     index_range : sequence of three [start, stop) pairs or None, optional
         Sub-volume in absolute file indices, ordered ``[[x0, x1], [y0, y1], [z0, z1]]`` (None for a
         whole axis). With ``slice_index`` the pair of the sliced axis is ignored. For 2-D data give
         ``[[x0, x1], [y0, y1]]``.
+    spacing_mm : float or sequence of float, optional
+        Node spacing of the file's grid in mm, one number or ``[dx, dy]`` / ``[dx, dy, dz]`` along the
+        file's axes (before slicing). Replaces the file's own spacing; ``spacing_units`` becomes "mm".
 
     Returns
     -------
@@ -353,6 +363,11 @@ def load_density(path, *, format=None, dataset=None, slice_index=None, axis="z",
             f"{what}: density must be 2-D (ny, nx) or 3-D (nz, ny, nx), got shape {data.shape}"
         )
     spacing = None if spacing is None else tuple(spacing)  # (dx, dy[, dz])
+    units = None if spacing is None else "file"
+    if spacing_mm is not None:
+        spacing, units = _spacing_arg(spacing_mm, data.ndim, what), "mm"
+    if axis is None:
+        axis = "z"
     if index_range is not None:
         data, spacing = _crop(
             data, spacing, index_range, slice_axis=axis if slice_index is not None else None, what=what
@@ -363,8 +378,28 @@ def load_density(path, *, format=None, dataset=None, slice_index=None, axis="z",
         raise SynthbosError(f"{what}: need at least 2 nodes along every axis, got shape {data.shape}")
     data = validate_density(data, where=what)
     return LoadedDensity(
-        data=np.ascontiguousarray(data), spacing=spacing, path=path, dataset=dataset, attrs=attrs
+        data=np.ascontiguousarray(data),
+        spacing=spacing,
+        spacing_units=units,
+        path=path,
+        dataset=dataset,
+        attrs=attrs,
     )
+
+
+def _spacing_arg(spacing_mm, ndim, what):
+    vals = [spacing_mm] * ndim if np.ndim(spacing_mm) == 0 else list(spacing_mm)
+    if len(vals) != ndim:
+        raise SynthbosError(
+            f"{what}: spacing_mm needs 1 or {ndim} values for {ndim}-D data, got {spacing_mm!r}"
+        )
+    try:
+        vals = [float(v) for v in vals]
+    except (TypeError, ValueError):
+        raise SynthbosError(f"{what}: spacing_mm must be numbers, got {spacing_mm!r}") from None
+    if not all(np.isfinite(v) and v > 0 for v in vals):
+        raise SynthbosError(f"{what}: spacing_mm must be finite and > 0, got {spacing_mm!r}")
+    return tuple(vals)
 
 
 def _crop(data, spacing, index_range, *, slice_axis, what):

@@ -45,9 +45,11 @@ Physical size of data sources: with ``spacing_mm = "auto"`` (default) the data a
 ``size_mm`` (first and last nodes on the faces). A file's own coordinates (JHTDB, NRRD) are not used
 for the size: they are in the file's units (database units for JHTDB: a 2 pi box), and are only
 reported as ``LoadedDensity.spacing`` for the user to turn into ``spacing_mm``. With ``spacing_mm``
-given (one number, or [dx, dy] / [dx, dy, dz]) the extent along each data axis is spacing x (n - 1)
-and ``size_mm`` is ignored along those axes; an extruded slice keeps ``size_mm[2]`` as its depth.
-``DensityField.size_m`` always holds the extent actually used.
+given (one number, or [dx, dy, dz] along the file's x, y, z axes before any slice is taken; [dx, dy]
+for a 2-D file) the extent along each data axis is spacing x (n - 1) and ``size_mm`` is ignored along
+those axes; an extruded slice keeps ``size_mm[2]`` as its depth (e.g. a y-slice of a volume spans
+dx (nx - 1) by dz (nz - 1)). ``DensityField.size_m`` always holds the extent actually used; for a
+3-D file with ``spacing_mm`` the depth is dz (nz - 1), not ``size_mm[2]``.
 """
 
 from __future__ import annotations
@@ -304,9 +306,21 @@ def _file_source(p, volume, size_m):
     elif not isinstance(norm, bool):
         raise SynthbosError(f'volume.normalised must be true, false or "auto", got {norm!r}')
     spacing = _optional(p, "spacing_mm", "auto")
+    if spacing is not None:
+        vals = spacing if isinstance(spacing, list | tuple) else [spacing]
+        if not 1 <= len(vals) <= 3:
+            raise SynthbosError(f'volume.spacing_mm must be "auto", a number or a list, got {spacing!r}')
+        for i, v in enumerate(vals):
+            _number(f"spacing_mm[{i}]", v, positive=True)
 
     loaded = load_density(
-        path, format=fmt, dataset=dataset or None, slice_index=sl, axis=axis, index_range=rng
+        path,
+        format=fmt,
+        dataset=dataset or None,
+        slice_index=sl,
+        axis=axis,
+        index_range=rng,
+        spacing_mm=spacing,
     )
     fmt = fmt or _inferred(path)
     if norm is None:
@@ -314,16 +328,10 @@ def _file_source(p, volume, size_m):
     data = loaded.data * (float(volume["density_scale_kg_m3"]) if norm else 1.0)
     vol = _extrude(data) if data.ndim == 2 else data
     if spacing is not None:
-        ndim = data.ndim
-        if isinstance(spacing, bool) or not isinstance(spacing, int | float | list | tuple):
-            raise SynthbosError(f'volume.spacing_mm must be "auto", a number or a list, got {spacing!r}')
-        sp = [spacing] * ndim if isinstance(spacing, int | float) else list(spacing)
-        if len(sp) not in (ndim, 3):
-            raise SynthbosError(f"volume.spacing_mm needs {ndim} entries for {ndim}-D data, got {spacing!r}")
-        sp = [_number(f"spacing_mm[{i}]", s, positive=True) * 1e-3 for i, s in enumerate(sp[:ndim])]
-        nzyx = vol.shape
-        ext = [sp[0] * (nzyx[2] - 1), sp[1] * (nzyx[1] - 1)]
-        ext.append(sp[2] * (nzyx[0] - 1) if ndim == 3 else size_m[2])
+        sp = [s * 1e-3 for s in loaded.spacing]
+        nz, ny, nx = vol.shape
+        ext = [sp[0] * (nx - 1), sp[1] * (ny - 1)]
+        ext.append(sp[2] * (nz - 1) if data.ndim == 3 else size_m[2])
         size_m = tuple(ext)
     return vol, size_m, float(vol.mean())
 

@@ -106,6 +106,13 @@ def test_nrrd_with_spacing(tmp_path):
     got = load_density(path2, slice_index=1, axis="x")
     assert_array_equal(got.data, data[:, :, 1])
     assert_allclose(got.spacing, [0.25, 2.0])  # (dy, dz) of an x-slice
+    assert got.spacing_units == "file"
+    mm = load_density(path2, slice_index=1, axis="y", spacing_mm=[1.0, 2.0, 3.0])
+    assert mm.spacing == (1.0, 3.0) and mm.spacing_units == "mm"  # (dx, dz) of a y-slice
+    with pytest.raises(SynthbosError, match=r"dirs\.nrrd: spacing_mm needs 1 or 3 values"):
+        load_density(path2, spacing_mm=[1.0, 2.0])
+    with pytest.raises(SynthbosError, match="spacing_mm must be finite and > 0"):
+        load_density(path2, spacing_mm=0.0)
 
 
 def test_npy_npz_hdf5(tmp_path):

@@ -124,6 +124,7 @@ def test_sinusoidal_formula():
         ({"source": "file", "path": "x.npy", "axis": "w"}, r"volume\.axis must be"),
         ({"source": "file", "path": "x.npy", "normalised": "yes"}, r"volume\.normalised must be"),
         ({"source": "file", "path": "x.npy", "format": "csv"}, r"volume\.format must be"),
+        ({"source": "file", "path": "x.npy", "spacing_mm": -1.0}, r"volume\.spacing_mm\[0\] must be > 0"),
     ],
 )
 def test_bad_keys_name_the_key(keys, message):
@@ -185,6 +186,9 @@ def test_file_source_slice_volume_spacing_and_scale(tmp_path):
     # spacing given: the extent follows from it along the data axes
     h = density_from_config(dict(base, spacing_mm=[0.5, 0.25, 2.0]))
     assert_allclose(h.size_m, (0.5e-3 * 5, 0.25e-3 * 4, 2e-3 * 3))
+    ys = density_from_config(dict(base, slice_index=2, axis="y", spacing_mm=[0.5, 0.25, 2.0]))
+    assert_allclose(ys.size_m, (0.5e-3 * 5, 2e-3 * 3, 0.010))  # a y-slice spans x by z
+    assert_array_equal(ys.rho[0], vol[:, 2, :])
     s = density_from_config(dict(base, slice_index=0, spacing_mm=0.1))
     assert_allclose(s.size_m, (0.1e-3 * 5, 0.1e-3 * 4, 0.010))  # the extruded slice keeps size_mm[2]
     sub = density_from_config(dict(base, index_range=[[1, 4], [0, 2], "all"]))
