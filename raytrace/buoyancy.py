@@ -23,7 +23,17 @@ the step), a CFL-based step that lands exactly on the snapshot times. The k = 0 
 is never touched by the nonlinear term (set to zero explicitly) and the integrating factor is 1
 there, so the mean density is conserved to round-off.
 
-``python3 -m raytrace.buoyancy -o data/buoyancy_snapshots.h5`` regenerates the embedded file.
+Defaults (``DEFAULT_PARAMS``) and why: 256^2 nodes, ``A = 0.05``, ``g = 20`` (``g A = 1``), blobs at
+``k0 = 3`` with interfaces smoothed over ``0.04`` (1.6 cells), ``nu = kappa = 2e-3`` (Schmidt 1). With
+these the run is resolved: at most ~1e-4 of the density variance sits in the last sixth of the
+retained wavenumbers, and the density stays within ``1 +/- A`` to better than 1 % of ``A``
+(``nu = kappa = 4e-4`` piled up ~3 % there and overshot by 15 %). The five snapshots, t = 1, 2, 3, 5
+and 10, span the mixing: mixedness 0.23 (blobs starting to roll up), 0.39, 0.62 (turbulent stirring),
+0.88 and 0.98 (nearly mixed, fine filaments). The flatness of ``|grad rho|`` is 3.6 to 6.3, against
+2.0 for a Gaussian field of the same spectrum (``phase_randomised``).
+
+``python3 -m raytrace.buoyancy -o data/buoyancy_snapshots.h5`` regenerates the embedded file
+(about 2,000 steps, ~1 minute on two cores).
 """
 
 from __future__ import annotations
