@@ -4,19 +4,64 @@ density field on a regular grid.
 Contract (relied on by ``raytrace.config`` and ``raytrace.medium``):
 
 ``density_from_config(volume) -> DensityField`` takes the validated ``[volume]`` table, whose common
-keys (``COMMON_KEYS``) already carry defaults, and reads the source's own keys from the same table;
-an unknown or bad source key raises ``SynthbosError`` naming ``volume.<key>``.
+keys (``COMMON_KEYS``) already carry defaults, and reads the source's own keys from the same table
+(``SOURCE_KEYS``: defaults, None = required); an unknown or bad source key raises ``SynthbosError``
+naming ``volume.<key>``. The field never holds NaN/inf or a density <= 0.
+
+Coordinates: the volume's own frame, centred on its mid-point, x and y transverse (y up in the images),
+z along the optical axis; node ``(k, j, i)`` sits at ``x = -Lx/2 + i Lx/(nx-1)`` (likewise y, z).
+
+Sources
+-------
+Analytic sources (physical units, never rescaled by ``density_scale_kg_m3``; sampled on ``grid``
+= [nx, ny, nz] nodes, default [64, 64, 16]; ``ambient`` = ``density_kg_m3``):
+
+``uniform``     rho = rho0.
+``linear``      rho = rho0 + g . x, ``gradient_kg_m4 = [gx, gy]`` (or [gx, gy, gz]); rho0 at the centre.
+``gaussian``    rho = rho0 + a exp(-|x - c|^2 / (2 s^2)), ``amplitude_kg_m3`` a, ``sigma_mm`` s,
+                ``centre_mm`` c.
+``step``        a smoothed step (an interface or weak shock): rho = rho0 + (J/2) (1 + tanh(2 s / delta)),
+                s = (x - p) . n / |n|, ``jump_kg_m3`` J, ``position_mm`` p (a point of the interface),
+                ``normal`` n (2 or 3 components, pointing to the side of density rho0 + J) and
+                ``thickness_mm`` delta, the maximum-slope thickness J / max|d rho/ds|.
+``sinusoidal``  rho = rho0 + a sin(2 pi s / lambda + phi), s = x . d / |d|, ``amplitude_kg_m3`` a,
+                ``wavelength_mm`` lambda, ``direction`` d (2 or 3 components), ``phase_deg`` phi.
+
+Data sources (the grid comes from the data; ``grid`` must be left unset):
+
+``slice``       snapshot ``snapshot`` (0..4) of the embedded buoyancy-driven mixing file
+                (``data/buoyancy_snapshots.h5``, or ``path``), a normalised (mean 1) 2-D field
+                multiplied by ``density_scale_kg_m3``, spanning ``size_mm[0]`` x ``size_mm[1]`` and
+                extruded along z on nz = 2 nodes (so d rho/dz = 0 exactly); ambient = scale x mean.
+``file``        density read by :func:`raytrace.loaders.load_density` from ``path`` (``format`` "auto"
+                = from the extension, or jhtdb | nrrd | npy | npz | hdf5; ``dataset``; ``slice_index``
+                along ``axis``; ``index_range`` = [[x0, x1], [y0, y1], [z0, z1]]). A 2-D result (a 2-D
+                array or a picked slice) is extruded along z like ``slice``; a 3-D result is used as the
+                volume. ``normalised``: "auto" (true for jhtdb, false otherwise), true (the data are
+                multiplied by ``density_scale_kg_m3``) or false (the data are kg/m^3). Ambient = mean of
+                the resulting field.
+
+Physical size of data sources: with ``spacing_mm = "auto"`` (default) the data are mapped onto
+``size_mm`` (first and last nodes on the faces). A file's own coordinates (JHTDB, NRRD) are not used
+for the size: they are in the file's units (database units for JHTDB: a 2 pi box), and are only
+reported as ``LoadedDensity.spacing`` for the user to turn into ``spacing_mm``. With ``spacing_mm``
+given (one number, or [dx, dy, dz] along the file's x, y, z axes before any slice is taken; [dx, dy]
+for a 2-D file) the extent along each data axis is spacing x (n - 1) and ``size_mm`` is ignored along
+those axes; an extruded slice keeps ``size_mm[2]`` as its depth (e.g. a y-slice of a volume spans
+dx (nx - 1) by dz (nz - 1)). ``DensityField.size_m`` always holds the extent actually used; for a
+3-D file with ``spacing_mm`` the depth is dz (nz - 1), not ``size_mm[2]``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from synthbos import SynthbosError
 
-__all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config"]
+__all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
 
 # Keys every source shares, with defaults. ``grid`` is [nx, ny, nz] nodes; None lets the source choose.
 COMMON_KEYS = {
@@ -28,14 +73,46 @@ COMMON_KEYS = {
     "grid": None,
 }
 
-# Each source's own keys with defaults (None means required).
+# Each source's own keys with defaults (None means required). Optional settings that are "off" by
+# default use TOML-representable markers ("auto", "none", "all", "") since TOML has no null.
 SOURCE_KEYS: dict[str, dict[str, object]] = {
     "uniform": {"density_kg_m3": 1.225},
     "linear": {"density_kg_m3": 1.225, "gradient_kg_m4": [0.0, 0.0]},
-    "gaussian": {"density_kg_m3": 1.225, "amplitude_kg_m3": 0.05, "sigma_mm": 4.0, "centre_mm": [0.0, 0.0, 0.0]},
+    "gaussian": {
+        "density_kg_m3": 1.225,
+        "amplitude_kg_m3": 0.05,
+        "sigma_mm": 4.0,
+        "centre_mm": [0.0, 0.0, 0.0],
+    },
+    "step": {
+        "density_kg_m3": 1.225,
+        "jump_kg_m3": 0.05,
+        "position_mm": [0.0, 0.0, 0.0],
+        "normal": [1.0, 0.0],
+        "thickness_mm": 1.0,
+    },
+    "sinusoidal": {
+        "density_kg_m3": 1.225,
+        "amplitude_kg_m3": 0.01,
+        "wavelength_mm": 8.0,
+        "direction": [1.0, 0.0],
+        "phase_deg": 0.0,
+    },
+    "slice": {"snapshot": 0, "path": ""},
+    "file": {
+        "path": None,
+        "format": "auto",
+        "dataset": "",
+        "slice_index": "none",
+        "axis": "z",
+        "index_range": "all",
+        "spacing_mm": "auto",
+        "normalised": "auto",
+    },
 }
 
 _DEFAULT_GRID = [64, 64, 16]
+_ANALYTIC = ("uniform", "linear", "gaussian", "step", "sinusoidal")
 
 
 @dataclass(frozen=True)
@@ -64,9 +141,16 @@ def node_coordinates(shape_zyx, size_m):
     return tuple(np.linspace(-L / 2.0, L / 2.0, n) for n, L in zip((nx, ny, nz), size_m, strict=True))
 
 
+# ------------------------------------------------------------------ parameter checking
+
+
 def _grid(volume):
     grid = volume.get("grid") or _DEFAULT_GRID
-    if len(grid) != 3 or any(int(g) != g or g < 2 for g in grid):
+    if (
+        not isinstance(grid, list | tuple)
+        or len(grid) != 3
+        or any(isinstance(g, bool) or not isinstance(g, int | float) or int(g) != g or g < 2 for g in grid)
+    ):
         raise SynthbosError(f"volume.grid must be three whole numbers >= 2 (nx, ny, nz), got {grid!r}")
     return tuple(int(g) for g in grid)
 
@@ -79,28 +163,230 @@ def _params(volume, source):
             f"unknown key volume.{sorted(extra)[0]} for source {source!r}; "
             f"its keys are {sorted(known)} besides the common ones"
         )
-    return {k: volume.get(k, v) for k, v in known.items()}
+    p = {k: volume.get(k, v) for k, v in known.items()}
+    for k, v in p.items():
+        if v is None:
+            raise SynthbosError(f"volume.{k} is required for source {source!r}")
+    return p
+
+
+def _number(key, value, *, positive=False):
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise SynthbosError(f"volume.{key} must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise SynthbosError(f"volume.{key} must be > 0, got {value!r}")
+    return float(value)
+
+
+def _vector(key, value, sizes, *, nonzero=False):
+    if not isinstance(value, list | tuple) or len(value) not in sizes:
+        raise SynthbosError(
+            f"volume.{key} must be a list of {' or '.join(map(str, sizes))} numbers, got {value!r}"
+        )
+    v = [_number(f"{key}[{i}]", x) for i, x in enumerate(value)]
+    v = v + [0.0] * (3 - len(v))
+    if nonzero and not any(v):
+        raise SynthbosError(f"volume.{key} must not be the zero vector")
+    return np.array(v)
+
+
+def _integer(key, value, *, low=None, high=None):
+    if isinstance(value, bool) or not isinstance(value, int | float) or int(value) != value:
+        raise SynthbosError(f"volume.{key} must be a whole number, got {value!r}")
+    value = int(value)
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise SynthbosError(f"volume.{key} must be in {low}..{high}, got {value}")
+    return value
+
+
+def _positive_field(rho, source):
+    low = float(rho.min())
+    if not np.isfinite(rho).all():
+        raise SynthbosError(f"volume: source {source!r} gives NaN/inf density; check its parameters")
+    if low <= 0:
+        raise SynthbosError(
+            f"volume: source {source!r} gives density down to {low:.4g} kg/m^3 inside the volume; "
+            "density must stay > 0 (reduce the gradient/amplitude/jump or raise volume.density_kg_m3)"
+        )
+    return rho
+
+
+# ------------------------------------------------------------------ sources
+
+
+def _analytic(source, p, size_m, grid):
+    nx, ny, nz = grid
+    x, y, z = node_coordinates((nz, ny, nx), size_m)
+    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
+    rho0 = _number("density_kg_m3", p["density_kg_m3"], positive=True)
+    if source == "uniform":
+        rho = np.full((nz, ny, nx), rho0)
+    elif source == "linear":
+        gx, gy, gz = _vector("gradient_kg_m4", p["gradient_kg_m4"], (2, 3))
+        rho = rho0 + gx * X + gy * Y + gz * Z
+    elif source == "gaussian":
+        cx, cy, cz = _vector("centre_mm", p["centre_mm"], (2, 3)) * 1e-3
+        s = _number("sigma_mm", p["sigma_mm"], positive=True) * 1e-3
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
+        rho = rho0 + a * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) / (2 * s * s))
+    elif source == "step":
+        px, py, pz = _vector("position_mm", p["position_mm"], (2, 3)) * 1e-3
+        n = _vector("normal", p["normal"], (2, 3), nonzero=True)
+        n = n / np.linalg.norm(n)
+        jump = _number("jump_kg_m3", p["jump_kg_m3"])
+        delta = _number("thickness_mm", p["thickness_mm"], positive=True) * 1e-3
+        s = (X - px) * n[0] + (Y - py) * n[1] + (Z - pz) * n[2]
+        rho = rho0 + 0.5 * jump * (1.0 + np.tanh(2.0 * s / delta))
+    else:  # sinusoidal
+        d = _vector("direction", p["direction"], (2, 3), nonzero=True)
+        d = d / np.linalg.norm(d)
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
+        lam = _number("wavelength_mm", p["wavelength_mm"], positive=True) * 1e-3
+        phase = math.radians(_number("phase_deg", p["phase_deg"]))
+        s = X * d[0] + Y * d[1] + Z * d[2]
+        rho = rho0 + a * np.sin(2.0 * np.pi * s / lam + phase)
+    return _positive_field(rho, source), rho0
+
+
+def _extrude(plane):
+    """A (ny, nx) slice as a (2, ny, nx) volume: identical planes, d rho/dz = 0 exactly."""
+    return np.ascontiguousarray(np.broadcast_to(plane, (2, *plane.shape)))
+
+
+def _slice_source(p, volume, size_m):
+    from raytrace.loaders import read_snapshots
+
+    path = p["path"]
+    if not isinstance(path, str):
+        raise SynthbosError(f'volume.path must be a file name (or "" for the embedded file), got {path!r}')
+    dens, _, _ = read_snapshots(path or None)
+    k = _integer("snapshot", p["snapshot"], low=0, high=len(dens) - 1)
+    scale = float(volume["density_scale_kg_m3"])
+    plane = dens[k] * scale
+    return _extrude(plane), size_m, float(plane.mean())
+
+
+def _optional(p, key, off):
+    v = p[key]
+    return None if (isinstance(v, str) and v.lower() == off) else v
+
+
+def _file_source(p, volume, size_m):
+    from raytrace.loaders import FORMATS, load_density
+
+    path = p["path"]
+    if not isinstance(path, str) or not path:
+        raise SynthbosError(f"volume.path must name a density file, got {path!r}")
+    fmt = _optional(p, "format", "auto")
+    if fmt is not None and fmt not in FORMATS:
+        raise SynthbosError(f'volume.format must be "auto" or one of {list(FORMATS)}, got {fmt!r}')
+    dataset = p["dataset"]
+    if not isinstance(dataset, str):
+        raise SynthbosError(f'volume.dataset must be a name (or ""), got {dataset!r}')
+    sl = _optional(p, "slice_index", "none")
+    if sl is not None:
+        sl = _integer("slice_index", sl)
+    axis = p["axis"]
+    if axis not in ("x", "y", "z"):
+        raise SynthbosError(f'volume.axis must be "x", "y" or "z", got {axis!r}')
+    rng = _optional(p, "index_range", "all")
+    if rng is not None:
+        ok = isinstance(rng, list | tuple) and all(
+            (isinstance(r, list | tuple) and len(r) == 2) or r == "all" for r in rng
+        )
+        if not ok:
+            raise SynthbosError(
+                f'volume.index_range must be "all" or [[x0, x1], [y0, y1], [z0, z1]] (a pair may be "all"), '
+                f"got {rng!r}"
+            )
+        rng = [None if r == "all" else r for r in rng]
+    norm = p["normalised"]
+    if isinstance(norm, str) and norm.lower() == "auto":
+        norm = None
+    elif not isinstance(norm, bool):
+        raise SynthbosError(f'volume.normalised must be true, false or "auto", got {norm!r}')
+    spacing = _optional(p, "spacing_mm", "auto")
+    if spacing is not None:
+        vals = spacing if isinstance(spacing, list | tuple) else [spacing]
+        if not 1 <= len(vals) <= 3:
+            raise SynthbosError(f'volume.spacing_mm must be "auto", a number or a list, got {spacing!r}')
+        for i, v in enumerate(vals):
+            _number(f"spacing_mm[{i}]", v, positive=True)
+
+    loaded = load_density(
+        path,
+        format=fmt,
+        dataset=dataset or None,
+        slice_index=sl,
+        axis=axis,
+        index_range=rng,
+        spacing_mm=spacing,
+    )
+    fmt = fmt or _inferred(path)
+    if norm is None:
+        norm = fmt == "jhtdb"
+    data = loaded.data * (float(volume["density_scale_kg_m3"]) if norm else 1.0)
+    vol = _extrude(data) if data.ndim == 2 else data
+    if spacing is not None:
+        sp = [s * 1e-3 for s in loaded.spacing]
+        nz, ny, nx = vol.shape
+        ext = [sp[0] * (nx - 1), sp[1] * (ny - 1)]
+        ext.append(sp[2] * (nz - 1) if data.ndim == 3 else size_m[2])
+        size_m = tuple(ext)
+    return vol, size_m, float(vol.mean())
+
+
+def _inferred(path):
+    from raytrace.loaders import infer_format
+
+    return infer_format(path)
 
 
 def density_from_config(volume: dict) -> DensityField:
-    """Build the density field described by a ``[volume]`` table."""
+    """Build the density field described by a ``[volume]`` table.
+
+    Parameters
+    ----------
+    volume : dict
+        The ``[volume]`` table: the common keys (``COMMON_KEYS``) and the source's own keys
+        (``SOURCE_KEYS[source]``); missing source keys take their defaults.
+
+    Returns
+    -------
+    DensityField
+        ``rho`` (nz, ny, nx) float64 in kg/m^3, finite and > 0; ``size_m``; ``ambient``.
+
+    Raises
+    ------
+    SynthbosError
+        Unknown or bad key (named ``volume.<key>``), unreadable or invalid data file (named), or a
+        density that is not finite and positive everywhere.
+    """
     source = volume.get("source", COMMON_KEYS["source"])
     if source not in SOURCE_KEYS:
         raise SynthbosError(f"volume.source must be one of {sorted(SOURCE_KEYS)}, got {source!r}")
     p = _params(volume, source)
-    size_m = tuple(float(s) * 1e-3 for s in volume["size_mm"])
-    nx, ny, nz = _grid(volume)
-    x, y, z = node_coordinates((nz, ny, nx), size_m)
-    Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    rho0 = float(p["density_kg_m3"])
-    if source == "uniform":
-        rho = np.full((nz, ny, nx), rho0)
-    elif source == "linear":
-        gx, gy = (float(g) for g in p["gradient_kg_m4"])
-        rho = rho0 + gx * X + gy * Y
-    else:  # gaussian
-        cx, cy, cz = (float(c) * 1e-3 for c in p["centre_mm"])
-        s = float(p["sigma_mm"]) * 1e-3
-        r2 = (X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2
-        rho = rho0 + float(p["amplitude_kg_m3"]) * np.exp(-r2 / (2 * s * s))
-    return DensityField(rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=size_m, ambient=rho0)
+    size = volume.get("size_mm", COMMON_KEYS["size_mm"])
+    if not isinstance(size, list | tuple) or len(size) != 3:
+        raise SynthbosError(f"volume.size_mm must be a list of three numbers, got {size!r}")
+    size_m = tuple(_number(f"size_mm[{i}]", s, positive=True) * 1e-3 for i, s in enumerate(size))
+    if source in _ANALYTIC:
+        rho, ambient = _analytic(source, p, size_m, _grid(volume))
+    else:
+        if volume.get("grid") is not None:
+            raise SynthbosError(
+                f"volume.grid does not apply to source {source!r}: its grid comes from the data"
+            )
+        _number(
+            "density_scale_kg_m3",
+            volume.get("density_scale_kg_m3", COMMON_KEYS["density_scale_kg_m3"]),
+            positive=True,
+        )
+        volume = {"density_scale_kg_m3": COMMON_KEYS["density_scale_kg_m3"], **volume}
+        if source == "slice":
+            rho, size_m, ambient = _slice_source(p, volume, size_m)
+        else:
+            rho, size_m, ambient = _file_source(p, volume, size_m)
+    return DensityField(
+        rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient
+    )
