@@ -115,7 +115,7 @@ def test_patterns_density_and_spacing():
         ({"volume": {"distance_from_target_mm": 1200}}, "behind the lens"),
         ({"volume": {"distance_from_target_mm": 3}}, "through the target plane"),
         ({"volume": {"offset_mm": [200.0, 0.0]}}, "misses the field of view"),
-        ({"volume": {"source": "linear", "gradient_kg_m4": [200.0, 0.0]}}, "must be positive everywhere"),
+        ({"volume": {"source": "linear", "gradient_kg_m4": [200.0, 0.0]}}, "density must stay > 0"),
         ({"target": {"pattern": "hexagonal"}}, "target.pattern must be one of"),
     ],
 )
