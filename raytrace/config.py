@@ -204,9 +204,10 @@ def load_config(config=None) -> dict:
         where = f" in {path}"
     # A new source brings its own keys: drop the default source's keys not shared with it.
     if "volume" in user and "source" in user["volume"]:
-        for key in list(cfg["volume"]):
-            if key not in sources.COMMON_KEYS and key not in DEFAULT_CONFIG["volume"]:
-                del cfg["volume"][key]
+        new = sources.SOURCE_KEYS.get(user["volume"]["source"], {})
+        for key in sources.SOURCE_KEYS.get(DEFAULT_CONFIG["volume"]["source"], {}):
+            if key not in new:
+                cfg["volume"].pop(key, None)
     _merge(cfg, user, where)
     return _validate(cfg)
 

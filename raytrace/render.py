@@ -50,6 +50,12 @@ class RenderPlan:
             spacing = tgt["min_spacing_px"] if tgt["min_spacing_px"] is not None else tgt["dot_diameter_px"]
             px = random_pattern(W, H, tgt["dots_per_32px"], min_spacing=spacing, seed=tgt["seed"])
         self.nominal_px = px
+        depth, z_mid = self.medium.size[2], self.medium.centre[2]
+        if z_mid - depth / 2.0 <= 0.0 or z_mid + depth / 2.0 >= self.camera.z_stop:
+            raise SynthbosError(
+                f"the volume's depth from its data ({depth * 1e3:.2f} mm) around "
+                f"volume.distance_from_target_mm={z_mid * 1e3:g} reaches the target or the lens"
+            )
         self.target_xy = self.camera.pixel_to_target(px)
         self.dot_radius = 0.0 if tgt["dot_model"] == "point" else 0.5 * tgt["dot_diameter_px"] * pitch / M
         spot = sen["spot_diameter_px"]
