@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+
 
 @wp.func
 def mirror_index(k: int, n: int) -> int:

@@ -13,6 +13,9 @@ reference trace, whatever its density.
 
 import warp as wp
 
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+
 LENS_THIN = wp.constant(0)
 LENS_THICK = wp.constant(1)
 

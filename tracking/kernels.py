@@ -8,6 +8,9 @@ reference (``measure_windows_numpy``) defines what the kernel computes.
 
 import warp as wp
 
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+
 wp.config.quiet = True
 
 
