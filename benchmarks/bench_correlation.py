@@ -124,6 +124,7 @@ def main(argv=None):
         "synthbos (default)": CorrelationSettings(),
         "synthbos iter (2,1)": CorrelationSettings(iterations=(2, 1)),
         "synthbos iter (1,1)": CorrelationSettings(iterations=(1, 1)),
+        "synthbos (1,1) keys": CorrelationSettings(iterations=(1, 1), interpolator="keys"),
     }
     op = openpiv_settings()
     print("synthbos default settings:", CorrelationSettings().as_dict())

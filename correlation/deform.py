@@ -16,7 +16,7 @@ from scipy.interpolate import CubicSpline
 
 __all__ = ["INTERPOLATORS", "bspline3_coefficients", "deform_pair", "grid_to_pixels", "spline_weights"]
 
-INTERPOLATORS = ("cubic", "lanczos")
+INTERPOLATORS = ("cubic", "keys", "lanczos")
 
 
 def _warp():
@@ -44,9 +44,15 @@ def bspline3_coefficients(image):
         pixel: ``scipy.ndimage.spline_filter(image, order=3, mode="mirror")`` (recursive filtering
         with the pole ``sqrt(3) - 2``, Unser 1999, eqs. 5-8), computed once per image.
     """
-    return ndimage.spline_filter(
-        np.asarray(image, dtype=np.float32), order=3, mode="mirror", output=np.float32
+    # the recursive filter runs along contiguous rows (about 2.5x faster than down columns): filter
+    # the rows, transpose, filter the rows again, transpose back
+    rows = ndimage.spline_filter1d(
+        np.asarray(image, dtype=np.float32), order=3, axis=1, mode="mirror", output=np.float32
     )
+    cols = ndimage.spline_filter1d(
+        np.ascontiguousarray(rows.T), order=3, axis=1, mode="mirror", output=np.float32
+    )
+    return np.ascontiguousarray(cols.T)
 
 
 def _as_warp(wp, a, device):
@@ -62,13 +68,14 @@ def deform_pair(first, second, du, dv, *, origin=(0, 0), interpolator="cubic", d
     ----------
     first, second : (H, W) arrays
         For ``interpolator="cubic"`` the images' B-spline coefficients
-        (:func:`bspline3_coefficients`); for ``"lanczos"`` the images themselves.
+        (:func:`bspline3_coefficients`); for ``"keys"`` and ``"lanczos"`` the images themselves.
     du, dv : (h, w) arrays
         Displacement (x = column, y = row) at the points ``origin + (i, j)`` of the output,
         ``0 <= i < h``, ``0 <= j < w``.
     origin : (row, col) floats
         Position of the first output point (need not be a pixel centre).
-    interpolator : {"cubic", "lanczos"}
+    interpolator : {"cubic", "keys", "lanczos"}
+        4x4-tap B-spline or Keys cubic convolution (one Warp thread per output row), or Lanczos-3.
     device : str, optional
         Warp device.
 
@@ -80,12 +87,20 @@ def deform_pair(first, second, du, dv, *, origin=(0, 0), interpolator="cubic", d
     if interpolator not in INTERPOLATORS:
         raise ValueError(f"unknown interpolator {interpolator!r}; choose one of {INTERPOLATORS}")
     wp, k = _warp()
-    kernel = k.deform_pair_bspline3 if interpolator == "cubic" else k.deform_pair_lanczos3
     shape = np.shape(du)
     args = [*(_as_warp(wp, a, device) for a in (first, second, du, dv)), float(origin[0]), float(origin[1])]
     out_first = wp.empty(shape, dtype=wp.float32, device=device)
     out_second = wp.empty(shape, dtype=wp.float32, device=device)
-    wp.launch(kernel, dim=shape, inputs=args, outputs=[out_first, out_second], device=device)
+    if interpolator == "lanczos":
+        wp.launch(k.deform_pair_lanczos3, dim=shape, inputs=args, outputs=[out_first, out_second], device=device)
+    else:
+        wp.launch(
+            k.deform_rows_cubic,
+            dim=shape[0],
+            inputs=[*args, int(interpolator == "keys")],
+            outputs=[out_first, out_second],
+            device=device,
+        )
     return out_first.numpy(), out_second.numpy()
 
 

@@ -75,38 +75,6 @@ def bspline3_weights(t: float) -> wp.vec4:
 
 
 @wp.func
-def sample_bspline3(coef: wp.array2d(dtype=wp.float32), y: float, x: float) -> float:
-    """Value at (y, x) of the cubic spline whose B-spline coefficients are ``coef``."""
-    h = coef.shape[0]
-    w = coef.shape[1]
-    fy = wp.floor(y)
-    fx = wp.floor(x)
-    iy = int(fy)
-    ix = int(fx)
-    wy = bspline3_weights(y - fy)
-    wx = bspline3_weights(x - fx)
-    total = 0.0
-    if iy >= 1 and iy + 2 < h and ix >= 1 and ix + 2 < w:
-        for a in range(4):
-            r = iy - 1 + a
-            row = (
-                wx[0] * coef[r, ix - 1]
-                + wx[1] * coef[r, ix]
-                + wx[2] * coef[r, ix + 1]
-                + wx[3] * coef[r, ix + 2]
-            )
-            total += wy[a] * row
-        return total
-    for a in range(4):
-        r = mirror_index(iy - 1 + a, h)
-        row = 0.0
-        for b in range(4):
-            row += wx[b] * coef[r, mirror_index(ix - 1 + b, w)]
-        total += wy[a] * row
-    return total
-
-
-@wp.func
 def sample_lanczos3(image: wp.array2d(dtype=wp.float32), y: float, x: float) -> float:
     """Lanczos-3 interpolation of ``image`` at (y, x), weights normalised to sum 1 per axis."""
     h = image.shape[0]
@@ -136,27 +104,6 @@ def sample_lanczos3(image: wp.array2d(dtype=wp.float32), y: float, x: float) -> 
 
 
 @wp.kernel
-def deform_pair_bspline3(
-    coef_first: wp.array2d(dtype=wp.float32),
-    coef_second: wp.array2d(dtype=wp.float32),
-    du: wp.array2d(dtype=wp.float32),
-    dv: wp.array2d(dtype=wp.float32),
-    row0: float,
-    col0: float,
-    out_first: wp.array2d(dtype=wp.float32),
-    out_second: wp.array2d(dtype=wp.float32),
-):
-    """Symmetric deformation: first image sampled at x - d/2, second at x + d/2 (cubic B-spline)."""
-    i, j = wp.tid()
-    y = row0 + float(i)
-    x = col0 + float(j)
-    hu = 0.5 * du[i, j]
-    hv = 0.5 * dv[i, j]
-    out_first[i, j] = sample_bspline3(coef_first, y - hv, x - hu)
-    out_second[i, j] = sample_bspline3(coef_second, y + hv, x + hu)
-
-
-@wp.kernel
 def deform_pair_lanczos3(
     first: wp.array2d(dtype=wp.float32),
     second: wp.array2d(dtype=wp.float32),
@@ -175,3 +122,83 @@ def deform_pair_lanczos3(
     hv = 0.5 * dv[i, j]
     out_first[i, j] = sample_lanczos3(first, y - hv, x - hu)
     out_second[i, j] = sample_lanczos3(second, y + hv, x + hu)
+
+
+@wp.func
+def keys_weights(t: float) -> wp.vec4:
+    """Cubic convolution (Keys 1981, a = -1/2) weights of the taps floor(u) - 1 ... floor(u) + 2."""
+    t2 = t * t
+    t3 = t2 * t
+    return wp.vec4(
+        -0.5 * t3 + t2 - 0.5 * t,
+        1.5 * t3 - 2.5 * t2 + 1.0,
+        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+        0.5 * t3 - 0.5 * t2,
+    )
+
+
+@wp.func
+def sample_taps4(image: wp.array2d(dtype=wp.float32), iy: int, ix: int, wy: wp.vec4, wx: wp.vec4) -> float:
+    """``sum_ab wy[a] wx[b] image[iy - 1 + a, ix - 1 + b]``, mirrored outside the image."""
+    h = image.shape[0]
+    w = image.shape[1]
+    total = 0.0
+    if iy >= 1 and iy + 2 < h and ix >= 1 and ix + 2 < w:
+        for a in range(4):
+            r = iy - 1 + a
+            row = (
+                wx[0] * image[r, ix - 1]
+                + wx[1] * image[r, ix]
+                + wx[2] * image[r, ix + 1]
+                + wx[3] * image[r, ix + 2]
+            )
+            total += wy[a] * row
+        return total
+    for a in range(4):
+        r = mirror_index(iy - 1 + a, h)
+        row = 0.0
+        for b in range(4):
+            row += wx[b] * image[r, mirror_index(ix - 1 + b, w)]
+        total += wy[a] * row
+    return total
+
+
+@wp.kernel
+def deform_rows_cubic(
+    first: wp.array2d(dtype=wp.float32),
+    second: wp.array2d(dtype=wp.float32),
+    du: wp.array2d(dtype=wp.float32),
+    dv: wp.array2d(dtype=wp.float32),
+    row0: float,
+    col0: float,
+    keys: int,
+    out_first: wp.array2d(dtype=wp.float32),
+    out_second: wp.array2d(dtype=wp.float32),
+):
+    """Symmetric 4x4-tap deformation, one thread per output row: B-spline (keys = 0) or Keys taps."""
+    i = wp.tid()
+    y = row0 + float(i)
+    for j in range(du.shape[1]):
+        x = col0 + float(j)
+        hu = 0.5 * du[i, j]
+        hv = 0.5 * dv[i, j]
+        ya = y - hv
+        xa = x - hu
+        yb = y + hv
+        xb = x + hu
+        fya = wp.floor(ya)
+        fxa = wp.floor(xa)
+        fyb = wp.floor(yb)
+        fxb = wp.floor(xb)
+        if keys == 0:
+            out_first[i, j] = sample_taps4(
+                first, int(fya), int(fxa), bspline3_weights(ya - fya), bspline3_weights(xa - fxa)
+            )
+            out_second[i, j] = sample_taps4(
+                second, int(fyb), int(fxb), bspline3_weights(yb - fyb), bspline3_weights(xb - fxb)
+            )
+        else:
+            out_first[i, j] = sample_taps4(first, int(fya), int(fxa), keys_weights(ya - fya), keys_weights(xa - fxa))
+            out_second[i, j] = sample_taps4(
+                second, int(fyb), int(fxb), keys_weights(yb - fyb), keys_weights(xb - fxb)
+            )

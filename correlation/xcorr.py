@@ -40,18 +40,43 @@ def cross_correlate(a, b, *, subtract_mean=True, normalize=False, workers=1):
         ``(h // 2 + dy, w // 2 + dx)`` means ``b`` is ``a`` moved by ``(dx, dy)``.
     """
     a, b = _real_stacks(a, b)
-    if subtract_mean:
-        a = a - a.mean(axis=(-2, -1), keepdims=True)
-        b = b - b.mean(axis=(-2, -1), keepdims=True)
     h, w = a.shape[-2:]
     fa = sfft.rfft2(a, axes=(-2, -1), workers=workers)
     fb = sfft.rfft2(b, axes=(-2, -1), workers=workers)
-    corr = sfft.irfft2(np.conj(fa) * fb, s=(h, w), axes=(-2, -1), workers=workers)
-    corr = np.fft.fftshift(corr, axes=(-2, -1))
+    spec = np.conj(fa, out=fa)
+    spec *= fb
+    if subtract_mean:
+        # a window's mean lives in its DC bin only: zeroing the cross spectrum's DC bin correlates the
+        # mean-subtracted windows (the correlation sum of two zero-mean windows is unchanged)
+        spec[..., 0, 0] = 0.0
+    corr = _shifted_inverse(spec, (h, w), workers)
     if normalize:
+        if subtract_mean:
+            a = a - a.mean(axis=(-2, -1), keepdims=True)
+            b = b - b.mean(axis=(-2, -1), keepdims=True)
         norm = np.sqrt((a * a).sum(axis=(-2, -1)) * (b * b).sum(axis=(-2, -1)))
         corr = corr / np.where(norm > 0, norm, 1.0)[..., None, None]
     return corr
+
+
+def _shift_signs(shape, dtype):
+    """``(-1)^(ky + kx)`` on a half spectrum: multiplying by it moves the inverse by (h/2, w/2)."""
+    h, w = shape
+    return np.where((np.arange(h)[:, None] + np.arange(w // 2 + 1)[None, :]) % 2 == 0, 1, -1).astype(dtype)
+
+
+def _shifted_inverse(spec, shape, workers):
+    """Inverse real FFT of a half spectrum, laid out with zero displacement at ``(h // 2, w // 2)``.
+
+    For even sizes the half-size circular shift (``fftshift``) is folded into the spectrum as a sign
+    pattern, which costs one multiplication instead of a copy of the planes.
+    """
+    h, w = shape
+    if h % 2 == 0 and w % 2 == 0:
+        spec *= _shift_signs(shape, spec.real.dtype)
+        return sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers)
+    corr = sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers)
+    return np.fft.fftshift(corr, axes=(-2, -1))
 
 
 def rpc_spectral_filter(shape, diameter):
@@ -113,5 +138,4 @@ def robust_phase_correlate(a, b, *, diameter=2.8, subtract_mean=True, workers=1)
     mag = np.abs(spec)
     tiny = np.finfo(mag.dtype).tiny
     spec = spec / np.maximum(mag, tiny) * rpc_spectral_filter((h, w), diameter).astype(mag.dtype)
-    corr = sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers)
-    return np.fft.fftshift(corr, axes=(-2, -1))
+    return _shifted_inverse(spec, (h, w), workers)

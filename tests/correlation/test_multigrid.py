@@ -147,10 +147,10 @@ def test_no_peak_locking_in_shift_sweep():
     0.02 px: the check can see peak locking.
     """
     amp, worst = _sweep_bias_amplitude(CorrelationSettings(), 3.0)
-    locked_amp, _ = _sweep_bias_amplitude(CorrelationSettings(window_sizes=(16,), iterations=1), 1.5)
+    locked_amp, _ = _sweep_bias_amplitude(CorrelationSettings(window_sizes=(16,), iterations=1), 1.2)
     print(
         f"bias harmonic amplitude: ours {amp:.4f} px (max |bias| {worst:.4f}), "
-        f"plain 1-pass 1.5 px dots {locked_amp:.4f} px"
+        f"plain 1-pass 1.2 px dots {locked_amp:.4f} px"
     )
     assert amp < 0.004, f"bias amplitude {amp:.4f} px"
     assert locked_amp > 0.02
@@ -205,10 +205,11 @@ def test_fractional_part_histogram_is_flat():
         CorrelationSettings(subpixel="parabolic"),
         CorrelationSettings(subpixel="centroid", iterations=(1, 3)),
         CorrelationSettings(interpolator="lanczos"),
+        CorrelationSettings(interpolator="keys", iterations=(1, 1)),
         CorrelationSettings(rpc=True, rpc_diameter=3.0),
         CorrelationSettings(window_sizes=(64, 32, 16), overlaps=(0.5, 0.5, 0.75), iterations=(1, 1, 2)),
     ],
-    ids=["parabolic", "centroid", "lanczos", "rpc", "overlap"],
+    ids=["parabolic", "centroid", "lanczos", "fast-keys", "rpc", "overlap"],
 )
 def test_options_measure_a_uniform_shift(settings):
     field = uniform(1.35, -0.6)
