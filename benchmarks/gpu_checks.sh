@@ -1,14 +1,33 @@
 #!/usr/bin/env bash
-# The GPU evidence behind the README: the test suite on every Warp device (CPU and cuda:0: the
-# device-parametrised tests and those marked `gpu`, such as CPU/CUDA agreement), then the renderer
-# speed benchmark on both devices. Logs and JSON go to ${OUT:-gpu-out}.
-#   usage: bash benchmarks/gpu_checks.sh [pytest selection...]
+# The GPU evidence behind the README, in two parts that each fit one device call:
+#   bash benchmarks/gpu_checks.sh tests      the test suite's CUDA cases (every device-parametrised test
+#                                            on cuda:0, CPU/CUDA agreement) and the renderer speed benchmark
+#   bash benchmarks/gpu_checks.sh campaign   `synthbos paper --full` on cuda:0 and an f-number sweep
+# Logs, tables and figures are packed into ${OUT:-gpu-out}/gpu-<part>.tar.gz.
 set -uo pipefail
+part=${1:-tests}
 out=${OUT:-gpu-out}
+work=$(mktemp -d)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/gpu.txt"
-python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_devices())" | tee -a "$out/gpu.txt"
-python3 -m pytest -q -rA -p no:cacheprovider -k "cuda or gpu or cpu_and_cuda" "${@:-tests}" 2>&1 | tee "$out/pytest_gpu.log" | tail -40
-python3 -m benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$out/bench_render.json" \
-  2>&1 | tee "$out/bench_render.log" | tail -8
+{ date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv;
+  python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_devices())"; } > "$work/gpu.txt" 2>&1
+cat "$work/gpu.txt"
+if [ "$part" = tests ]; then
+  python3 -m pytest -q -rA -p no:cacheprovider -k "cuda or gpu" tests > "$work/pytest_gpu.log" 2>&1
+  grep -E "passed|failed|CPU vs CUDA|^FAILED" "$work/pytest_gpu.log" | tail -12
+  python3 -m benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
+    > "$work/bench_render.log" 2>&1
+  tail -5 "$work/bench_render.log"
+else
+  synthbos paper --full --device cuda:0 --out "$work/paper-full" --workers 14 -q > "$work/paper_full.log" 2>&1
+  tail -16 "$work/paper_full.log"
+  printf '[rays]\nper_dot = 1000\n' > "$work/sweep.toml"
+  synthbos sweep "$work/sweep.toml" --param f_number=4,8,11,22,32 --size quick --device cuda:0 --workers 14 -q \
+    --out "$work/sweep-fnumber" > "$work/sweep.log" 2>&1
+  tail -3 "$work/sweep.log"
+  mkdir -p "$work/keep"
+  cp "$work"/paper-full/{results.csv,results.json,fig4.png,fig5.png,campaign.json} "$work/keep/" 2>/dev/null
+  cp "$work"/sweep-fnumber/{sweep.csv,sweep.json,sweep.png} "$work/keep/" 2>/dev/null
+fi
+tar -czf "$out/gpu-$part.tar.gz" -C "$work" --exclude=paper-full --exclude=sweep-fnumber .
