@@ -10,6 +10,7 @@ out=${OUT:-gpu-out}
 work=$(mktemp -d)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
+command -v synthbos >/dev/null || synthbos() { python3 -m benchmarks.cli "$@"; }
 { date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv;
   python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_devices())"; } > "$work/gpu.txt" 2>&1
 cat "$work/gpu.txt"
