@@ -123,7 +123,7 @@ def _render_item(config: dict, out: str, device):
     return out
 
 
-def _nominal_positions(pair) -> np.ndarray:
+def nominal_positions(pair) -> np.ndarray:
     """The prior a tracking user has: the camera model's image of the known target dot positions."""
     import tomllib
 
@@ -164,7 +164,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
     grad = add_noise(pair.gradient, percent=noise_percent, seed=seeds[1], peak=peak)
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
-    prior = _nominal_positions(pair) if method != "correlation" else None
+    prior = nominal_positions(pair) if method != "correlation" else None
     res = run_method(method, ref, grad, prior_xy=prior, correlation_settings=settings, tracking_settings=settings)
     if method == "correlation":
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)

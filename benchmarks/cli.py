@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import synthbos
@@ -54,12 +53,12 @@ def _process(args):
             raise SynthbosError("give either a pair file or --reference and --gradient, not both")
         from raytrace import read_pair
 
-        from .campaign import _nominal_positions
+        from .campaign import nominal_positions
 
         pair = read_pair(args.pair)
         ref, grad = pair.reference, pair.gradient
         if args.method != "correlation":
-            prior = read_dots_csv(args.dots) if args.dots else _nominal_positions(pair)
+            prior = read_dots_csv(args.dots) if args.dots else nominal_positions(pair)
         attrs["input"] = str(args.pair)
     else:
         if not (args.reference and args.gradient):
@@ -126,17 +125,11 @@ def _regress(args):
 
 
 def _sweep(args):
+    from raytrace.config import read_toml
+
     from .sweep import parse_parameter, run_sweep
 
-    base = {}
-    if args.config:
-        path = Path(args.config)
-        if not path.is_file():
-            raise SynthbosError(f"configuration file {path} does not exist")
-        try:
-            base = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as err:
-            raise SynthbosError(f"configuration file {path} is not valid TOML: {err}") from None
+    base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
     rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
                      workers=args.workers, progress=not args.quiet)

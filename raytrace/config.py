@@ -45,7 +45,7 @@ from synthbos import SynthbosError
 
 from . import sources
 
-__all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config"]
+__all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 
 
 def _default():
@@ -171,6 +171,17 @@ def _merge(base, user, where=""):
     return base
 
 
+def read_toml(path) -> dict:
+    """Parse a TOML configuration file; a missing or malformed file raises SynthbosError."""
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"configuration file {path} does not exist")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise SynthbosError(f"configuration file {path} is not valid TOML: {err}") from None
+
+
 def load_config(config=None) -> dict:
     """Read, merge over the defaults and validate a render configuration.
 
@@ -195,12 +206,7 @@ def load_config(config=None) -> dict:
         user = copy.deepcopy(config)
     else:
         path = Path(config)
-        if not path.is_file():
-            raise SynthbosError(f"configuration file {path} does not exist")
-        try:
-            user = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as err:
-            raise SynthbosError(f"configuration file {path} is not valid TOML: {err}") from None
+        user = read_toml(path)
         where = f" in {path}"
     # A new source brings its own keys: drop the default source's keys not shared with it.
     if "volume" in user and "source" in user["volume"]:

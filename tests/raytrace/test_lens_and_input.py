@@ -4,6 +4,7 @@ import h5py
 import numpy as np
 import pytest
 import warp as wp
+from _small import small_config as _config
 from numpy.testing import assert_allclose
 
 from benchmarks.cli import main
@@ -13,15 +14,6 @@ from raytrace.medium import check_density
 from raytrace.pattern import grid_pattern, random_pattern
 from raytrace.render import plan_render
 from synthbos import SynthbosError
-
-SMALL = {"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 200}, "target": {"dots_per_32px": 8}}
-
-
-def _config(**tables):
-    cfg = {k: dict(v) for k, v in SMALL.items()}
-    for table, values in tables.items():
-        cfg.setdefault(table, {}).update(values)
-    return cfg
 
 
 def test_thick_lens_focus_and_magnification_close_to_thin_lens():

@@ -3,21 +3,13 @@
 import numpy as np
 import pytest
 import warp as wp
+from _small import small_config as _config
 from numpy.testing import assert_allclose
 
 from raytrace import kernels, reference
 from raytrace.medium import medium_from_density, to_warp
 from raytrace.render import plan_render, render_pair
 from raytrace.sources import DensityField, node_coordinates
-
-SMALL = {"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 200}, "target": {"dots_per_32px": 8}}
-
-
-def _config(**tables):
-    cfg = {k: dict(v) for k, v in SMALL.items()}
-    for table, values in tables.items():
-        cfg.setdefault(table, {}).update(values)
-    return cfg
 
 
 def test_uniform_medium_gives_identical_images_and_zero_displacement(device):
