@@ -19,10 +19,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import io  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from benchmarks.timing import best_time  # noqa: E402
 from correlation import CorrelationSettings, correlate_pair  # noqa: E402
 from raytrace.dots import draw_dots  # noqa: E402
 
@@ -103,14 +103,6 @@ def run_openpiv(a, b, settings):
     return x - 0.5, y[::-1, :] - 0.5, u, -v
 
 
-def best_time(fn, repeat):
-    fn()  # warm-up (kernel compilation, FFT plans)
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
 
 
 def main(argv=None):
@@ -149,12 +141,12 @@ def main(argv=None):
     for n in args.sizes:
         for name, field in (("uniform", uniform_field()), ("bump", bump_field((n, n)))):
             a, b = synthetic_pair((n, n), field, seed=args.seed + n)
-            t_op, res_op = best_time(lambda a=a, b=b: run_openpiv(a, b, op), args.repeat)
+            t_op, res_op = best_time(lambda a=a, b=b: run_openpiv(a, b, op), args.repeat, warmup=True)
             e_op = rms_error(*res_op, field)
             row = f"{n:>4}x{n:<4}  {name:<8} {'OpenPIV windef':<20} {e_op:9.4f} {t_op * 1e3:9.0f}"
             print(f"{row} {1:9.2f} {1:7.1f}x")
             for label, settings in ours.items():
-                t, res = best_time(lambda a=a, b=b, s=settings: run_synthbos(a, b, s), args.repeat)
+                t, res = best_time(lambda a=a, b=b, s=settings: run_synthbos(a, b, s), args.repeat, warmup=True)
                 e = rms_error(*res, field)
                 print(
                     f"{'':>9}  {'':<8} {label:<20} {e:9.4f} {t * 1e3:9.0f} {e / e_op:9.2f} {t_op / t:7.1f}x"

@@ -16,11 +16,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
+from benchmarks.timing import best_time  # noqa: E402
 from raytrace.dots import draw_dots  # noqa: E402
 from tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 
@@ -56,14 +56,6 @@ def position_error(found_xy, true_xy, radius=1.0):
     return float(np.sqrt(np.mean(dist[ok] ** 2))), float(ok.mean())
 
 
-def best_time(fn, repeat):
-    times = []
-    out = None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
 
 
 def main(argv=None):
