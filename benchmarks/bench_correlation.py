@@ -6,7 +6,7 @@ deformation with cubic B-spline interpolation, three-point Gaussian peak fit. Th
 over every vector of each one's own final grid against the exact field, and the wall time of a whole
 call (after a warm-up call) is the best of ``--repeat`` runs. Run::
 
-    python3 -m benchmarks.bench_correlation [--sizes 512 1024] [--repeat 3]
+    python3 -m synthbos.benchmarks.bench_correlation [--sizes 512 1024] [--repeat 3]
 
 OpenPIV (``pip install openpiv``, the ``bench`` extra) is only imported here.
 """
@@ -22,9 +22,9 @@ import io  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from benchmarks.timing import best_time  # noqa: E402
-from correlation import CorrelationSettings, correlate_pair  # noqa: E402
-from raytrace.dots import draw_dots  # noqa: E402
+from synthbos.benchmarks.timing import best_time  # noqa: E402
+from synthbos.correlation import CorrelationSettings, correlate_pair  # noqa: E402
+from synthbos.raytrace.dots import draw_dots  # noqa: E402
 
 DOT_DIAMETER = 3.0
 DOTS_PER_PX = 20 / 32**2

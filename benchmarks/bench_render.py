@@ -6,7 +6,7 @@ Z_D = 250 mm, a 32 x 32 x 10 mm volume on a 256 x 256 grid, 20 dots per 32 x 32 
 compiles and loads the kernels; the table ends with each device's ratio to the first one and to the
 published CUDA predecessor (about 2e6 rays/s).
 
-    python -m benchmarks.bench_render --devices cpu cuda:0 --rays 10000 --cpu-rays 100
+    python -m synthbos.benchmarks.bench_render --devices cpu cuda:0 --rays 10000 --cpu-rays 100
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import time
 import numpy as np
 import warp as wp
 
-from raytrace import render
-from raytrace.sources import SOURCE_KEYS
+from synthbos.raytrace import render
+from synthbos.raytrace.sources import SOURCE_KEYS
 
 PREDECESSOR_RAYS_PER_S = 2e6
 

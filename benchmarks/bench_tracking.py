@@ -1,6 +1,6 @@
 """Speed and accuracy of dot tracking with prior information, next to trackpy's ``locate``.
 
-Run ``python3 -m benchmarks.bench_tracking`` (trackpy and pandas come with the ``bench`` extra). It draws a
+Run ``python3 -m synthbos.benchmarks.bench_tracking`` (trackpy and pandas come with the ``bench`` extra). It draws a
 1024x1024 pair of 3 px dots at 20 dots per 32x32 px (random positions with a minimum centre distance of
 one diameter, as a manufactured pattern has), displaced by a smooth field, with Gaussian noise; runs the
 full method (prior identification with its iterations, centroid difference and correlation correction)
@@ -20,9 +20,9 @@ import argparse  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from benchmarks.timing import best_time  # noqa: E402
-from raytrace.dots import draw_dots  # noqa: E402
-from tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
+from synthbos.benchmarks.timing import best_time  # noqa: E402
+from synthbos.raytrace.dots import draw_dots  # noqa: E402
+from synthbos.tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 
 
 def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=2.0):

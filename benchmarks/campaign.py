@@ -117,7 +117,7 @@ REGRESS = CampaignSpec(name="regress", snapshots=(1, 3), pairs_per_snapshot=1, n
 
 
 def _render_item(config: dict, out: str, device):
-    from raytrace import render_pair, write_pair
+    from synthbos.raytrace import render_pair, write_pair
 
     write_pair(out, render_pair(config, device=device))
     return out
@@ -127,8 +127,8 @@ def nominal_positions(pair) -> np.ndarray:
     """The prior a tracking user has: the camera model's image of the known target dot positions."""
     import tomllib
 
-    from raytrace.camera import camera_from_config
-    from raytrace.config import load_config
+    from synthbos.raytrace.camera import camera_from_config
+    from synthbos.raytrace.config import load_config
 
     cam = camera_from_config(load_config(tomllib.loads(pair.attrs["config"])))
     return cam.target_to_pixel(pair.target_xy_m)
@@ -138,10 +138,10 @@ def _settings(method: str, overrides: dict):
     if not overrides:
         return None
     if method == "correlation":
-        from correlation import CorrelationSettings
+        from synthbos.correlation import CorrelationSettings
 
         return CorrelationSettings(**overrides)
-    from tracking import TrackingSettings
+    from synthbos.tracking import TrackingSettings
 
     return TrackingSettings(**overrides)
 
@@ -157,7 +157,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
         displacement-gradient error), ``threshold`` (half the std of Eq. 4's displacement magnitudes),
         ``measured`` / ``expected`` (for the yield).
     """
-    from raytrace import add_noise
+    from synthbos.raytrace import add_noise
 
     peak = float(pair.attrs.get("peak_intensity", 1.0)) if peak is None else peak
     ref = add_noise(pair.reference, percent=noise_percent, seed=seeds[0], peak=peak)
@@ -198,7 +198,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
 
 
 def _score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict):
-    from raytrace import read_pair
+    from synthbos.raytrace import read_pair
 
     settings = _settings(method, overrides)
     scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds, settings=settings)
@@ -269,7 +269,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     list of dict
         One row per method, noise level, split and quantity (see ``summarise``).
     """
-    from raytrace import load_config
+    from synthbos.raytrace import load_config
 
     folder = Path(folder)
     workers = workers or default_workers()

@@ -25,7 +25,7 @@ def _out_path(path) -> Path:
 
 
 def _render(args):
-    from raytrace import render_pair, write_pair
+    from synthbos.raytrace import render_pair, write_pair
 
     out = _out_path(args.output)
     pair = render_pair(args.config, device=args.device, progress=not args.quiet)
@@ -43,7 +43,7 @@ def _render(args):
 
 
 def _process(args):
-    from benchmarks.process import load_image, read_dots_csv, run_method, write_result
+    from synthbos.benchmarks.process import load_image, read_dots_csv, run_method, write_result
 
     out = _out_path(args.output)
     prior = None
@@ -51,7 +51,7 @@ def _process(args):
     if args.pair:
         if args.reference or args.gradient:
             raise SynthbosError("give either a pair file or --reference and --gradient, not both")
-        from raytrace import read_pair
+        from synthbos.raytrace import read_pair
 
         from .campaign import nominal_positions
 
@@ -125,7 +125,7 @@ def _regress(args):
 
 
 def _sweep(args):
-    from raytrace.config import read_toml
+    from synthbos.raytrace.config import read_toml
 
     from .sweep import parse_parameter, run_sweep
 

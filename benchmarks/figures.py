@@ -35,8 +35,8 @@ def _save(fig, path):
 def figure4(spec, folder, path):
     """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4) and ray-traced
     displacement magnitude (contours), from the first pair of the snapshot."""
-    from raytrace import load_config, read_pair
-    from raytrace.sources import density_from_config
+    from synthbos.raytrace import load_config, read_pair
+    from synthbos.raytrace.sources import density_from_config
 
     folder = Path(folder)
     snaps = list(spec.snapshots)

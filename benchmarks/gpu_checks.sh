@@ -10,7 +10,7 @@ out=${OUT:-gpu-out}
 work=$(mktemp -d)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
-command -v synthbos >/dev/null || synthbos() { python3 -m benchmarks.cli "$@"; }
+command -v synthbos >/dev/null || synthbos() { python3 -m synthbos.benchmarks.cli "$@"; }
 { date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv;
   python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_devices())"; } > "$work/gpu.txt" 2>&1
 cat "$work/gpu.txt"
@@ -19,7 +19,7 @@ if [ "$part" = tests ]; then
   python3 -m pytest -q -rA -p no:cacheprovider -k "cuda or gpu" --ignore=tests/raytrace/test_loaders.py tests \
     > "$work/pytest_gpu.log" 2>&1
   grep -E "passed|failed|CPU vs CUDA|^FAILED" "$work/pytest_gpu.log" | tail -12
-  python3 -m benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
+  python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
     > "$work/bench_render.log" 2>&1
   tail -5 "$work/bench_render.log"
 else

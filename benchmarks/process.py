@@ -90,14 +90,14 @@ def run_method(method, reference, gradient, *, prior_xy=None, correlation_settin
     if method not in METHODS:
         raise SynthbosError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if method == "correlation":
-        from correlation import correlate_pair
+        from synthbos.correlation import correlate_pair
 
         res = correlate_pair(reference, gradient, settings=correlation_settings)
         xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
         uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
         table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio}
         return MethodResult(method, xy, uv, tuple(res.u.shape), table, _settings_dict(res.settings))
-    from tracking import track_pair
+    from synthbos.tracking import track_pair
 
     tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=tracking_settings)
     xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)

@@ -16,13 +16,13 @@ import math
 import tempfile
 from pathlib import Path
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError, atomic_output, data_file
 
 from .campaign import REGRESS, run_campaign
 
 __all__ = ["ATOL", "BASELINE", "RTOL", "YIELD_DROP", "compare_to_baseline", "run_regress"]
 
-BASELINE = Path(__file__).resolve().parent.parent / "data" / "baselines" / "regress.json"
+BASELINE = data_file("baselines", "regress.json")
 RTOL = 0.05
 ATOL = {"displacement": 2e-4, "gradient": 2e-5}
 YIELD_DROP = 0.005

@@ -1,6 +1,6 @@
 """Figure of the embedded density snapshots: density and density-gradient magnitude.
 
-``python3 -m benchmarks.show_density -o density.png [--snapshots FILE.h5]`` (to be wired as
+``python3 -m synthbos.benchmarks.show_density -o density.png [--snapshots FILE.h5]`` (to be wired as
 ``synthbos show-density``) draws one column per snapshot: the normalised density on top (diverging
 colour map centred on the mean), ``|grad rho|`` underneath on a logarithmic scale, with each
 snapshot's time and mixedness in the titles and the gradient flatness in the lower titles.
@@ -12,8 +12,8 @@ import argparse
 
 import numpy as np
 
-from raytrace.buoyancy import flatness, gradient_magnitude
-from raytrace.loaders import read_snapshots
+from synthbos.raytrace.buoyancy import flatness, gradient_magnitude
+from synthbos.raytrace.loaders import read_snapshots
 
 __all__ = ["main", "plot_snapshots"]
 
@@ -102,7 +102,7 @@ def plot_snapshots(path_png, *, snapshots_file=None, dpi=120):
 
 
 def main(argv=None):
-    """Draw the density snapshots: ``python3 -m benchmarks.show_density -o FIG.png``."""
+    """Draw the density snapshots: ``python3 -m synthbos.benchmarks.show_density -o FIG.png``."""
     ap = argparse.ArgumentParser(prog="synthbos show-density", description=main.__doc__)
     ap.add_argument("-o", "--output", default="density_snapshots.png", help="image to write (PNG)")
     ap.add_argument("--snapshots", default=None, help="snapshot file (default: the embedded one)")

@@ -78,7 +78,7 @@ def _slug(name, value):
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True):
     """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows."""
-    from raytrace import load_config
+    from synthbos.raytrace import load_config
 
     from .campaign import write_tables
     from .figures import sweep_figure

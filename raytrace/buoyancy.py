@@ -32,7 +32,7 @@ and 10, span the mixing: mixedness 0.23 (blobs starting to roll up), 0.39, 0.62 
 0.88 and 0.98 (nearly mixed, fine filaments). The flatness of ``|grad rho|`` is 3.6 to 6.3, against
 2.0 for a Gaussian field of the same spectrum (``phase_randomised``).
 
-``python3 -m raytrace.buoyancy -o data/buoyancy_snapshots.h5`` regenerates the embedded file
+``python3 -m synthbos.raytrace.buoyancy -o data/buoyancy_snapshots.h5`` regenerates the embedded file
 (about 2,000 steps, ~1 minute on two cores).
 """
 
@@ -373,10 +373,10 @@ def phase_randomised(field, *, seed):
 
 
 def main(argv=None):
-    """Regenerate the embedded snapshot file: ``python3 -m raytrace.buoyancy -o FILE.h5``."""
-    from raytrace.loaders import write_snapshots
+    """Regenerate the embedded snapshot file: ``python3 -m synthbos.raytrace.buoyancy -o FILE.h5``."""
+    from synthbos.raytrace.loaders import write_snapshots
 
-    ap = argparse.ArgumentParser(prog="python3 -m raytrace.buoyancy", description=main.__doc__)
+    ap = argparse.ArgumentParser(prog="python3 -m synthbos.raytrace.buoyancy", description=main.__doc__)
     ap.add_argument("-o", "--output", required=True, help="HDF5 file to write")
     ap.add_argument("--n", type=int, default=DEFAULT_PARAMS["n"], help="grid points per side")
     ap.add_argument("--seed", type=int, default=DEFAULT_PARAMS["seed"])

@@ -49,7 +49,7 @@ __all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 
 
 def _default():
-    text = resources.files("raytrace").joinpath("default.toml").read_text()
+    text = resources.files("synthbos.raytrace").joinpath("default.toml").read_text()
     return tomllib.loads(text)
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from synthbos import SynthbosError
+from synthbos import SynthbosError, data_file
 
 __all__ = [
     "DEFAULT_SNAPSHOTS",
@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 FORMATS = ("jhtdb", "nrrd", "npy", "npz", "hdf5")
-DEFAULT_SNAPSHOTS = Path(__file__).resolve().parent.parent / "data" / "buoyancy_snapshots.h5"
+DEFAULT_SNAPSHOTS = data_file("buoyancy_snapshots.h5")
 SNAPSHOT_FORMAT = "synthbos-buoyancy-snapshots/1"
 
 _AXES = {"x": 2, "y": 1, "z": 0}

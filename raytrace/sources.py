@@ -254,7 +254,7 @@ def _extrude(plane):
 
 
 def _slice_source(p, volume, size_m):
-    from raytrace.loaders import read_snapshots
+    from synthbos.raytrace.loaders import read_snapshots
 
     path = p["path"]
     if not isinstance(path, str):
@@ -272,7 +272,7 @@ def _optional(p, key, off):
 
 
 def _file_source(p, volume, size_m):
-    from raytrace.loaders import FORMATS, load_density
+    from synthbos.raytrace.loaders import FORMATS, load_density
 
     path = p["path"]
     if not isinstance(path, str) or not path:
@@ -337,7 +337,7 @@ def _file_source(p, volume, size_m):
 
 
 def _inferred(path):
-    from raytrace.loaders import infer_format
+    from synthbos.raytrace.loaders import infer_format
 
     return infer_format(path)
 

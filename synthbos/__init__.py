@@ -1,14 +1,18 @@
 """synthbos: synthetic Background Oriented Schlieren ray tracing and benchmarks.
 
-This small package holds what every part of the project shares: the version and the one
-exception type raised for input a user can get wrong. The algorithms live in the sibling
-packages ``raytrace``, ``correlation``, ``tracking`` and the harness in ``benchmarks``.
+This small package holds what every part of the project shares: the version, the one
+exception type raised for input a user can get wrong, atomic output and the embedded data.
+The algorithms live in the subpackages ``synthbos.raytrace``, ``synthbos.correlation``,
+``synthbos.tracking`` and ``synthbos.integration``; the harness and the command line in
+``synthbos.benchmarks``. In the repository those folders sit at the root and install under
+``synthbos`` through setuptools' package-dir mapping.
 """
 
 import contextlib
 import os
 import tempfile
 from importlib import metadata as _metadata
+from importlib import resources as _resources
 from pathlib import Path
 
 try:
@@ -46,4 +50,13 @@ def atomic_output(path):
         raise
 
 
-__all__ = ["SynthbosError", "__version__", "atomic_output"]
+def data_file(*parts):
+    """Path of an embedded data file (``data/`` in the repository, ``synthbos.data`` once installed).
+
+    Found through :mod:`importlib.resources`, so an editable install, a wheel or ``pip install .``
+    all find the same files from any working folder.
+    """
+    return Path(str(_resources.files("synthbos.data").joinpath(*parts)))
+
+
+__all__ = ["SynthbosError", "__version__", "atomic_output", "data_file"]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from correlation.peak import three_point_offset
+from synthbos.correlation.peak import three_point_offset
 
 __all__ = [
     "CENTROID_METHODS",

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from correlation.peak import subpixel_peak
-from correlation.xcorr import cross_correlate
+from synthbos.correlation.peak import subpixel_peak
+from synthbos.correlation.xcorr import cross_correlate
 
 __all__ = ["predict_displacement"]
 

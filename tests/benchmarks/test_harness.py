@@ -7,9 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from benchmarks.campaign import REGRESS, run_campaign
-from benchmarks.cli import main
-from raytrace import read_pair, render_pair, write_pair
+from synthbos.benchmarks.campaign import REGRESS, run_campaign
+from synthbos.benchmarks.cli import main
+from synthbos.raytrace import read_pair, render_pair, write_pair
 
 TINY_CONFIG = {
     "camera": {"pixels": [128, 128]},

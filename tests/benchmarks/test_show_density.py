@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from benchmarks.show_density import main, plot_snapshots
+from synthbos.benchmarks.show_density import main, plot_snapshots
 
 
 def test_plot_snapshots_writes_png(tmp_path):

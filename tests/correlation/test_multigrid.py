@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from correlation import (
+from synthbos.correlation import (
     FLAG_MASKED,
     CorrelationResult,
     CorrelationSettings,
     correlate_pair,
 )
-from raytrace.dots import draw_dots
+from synthbos.raytrace.dots import draw_dots
 from synthbos import SynthbosError
 
 DOTS_PER_PX = 20 / 32**2

@@ -6,12 +6,12 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy import ndimage
 
-from correlation.deform import bspline3_coefficients, deform_pair, grid_to_pixels, spline_weights
-from correlation.peak import peak_ratio, subpixel_peak
-from correlation.validation import normalized_median_test, replace_outliers
-from correlation.windows import extract_windows, window_starts
-from correlation.xcorr import cross_correlate, robust_phase_correlate
-from raytrace.dots import draw_dots
+from synthbos.correlation.deform import bspline3_coefficients, deform_pair, grid_to_pixels, spline_weights
+from synthbos.correlation.peak import peak_ratio, subpixel_peak
+from synthbos.correlation.validation import normalized_median_test, replace_outliers
+from synthbos.correlation.windows import extract_windows, window_starts
+from synthbos.correlation.xcorr import cross_correlate, robust_phase_correlate
+from synthbos.raytrace.dots import draw_dots
 
 
 def _mirror(k, n):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from raytrace.buoyancy import (
+from synthbos.raytrace.buoyancy import (
     DEFAULT_PARAMS,
     flatness,
     gradient_magnitude,
@@ -13,7 +13,7 @@ from raytrace.buoyancy import (
     phase_randomised,
     run_buoyancy,
 )
-from raytrace.loaders import DEFAULT_SNAPSHOTS, read_snapshots
+from synthbos.raytrace.loaders import DEFAULT_SNAPSHOTS, read_snapshots
 
 SHORT = {"n": 64, "times": (0.25, 0.5), "seed": 7}
 

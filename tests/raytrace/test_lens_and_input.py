@@ -7,12 +7,12 @@ import warp as wp
 from _small import small_config as _config
 from numpy.testing import assert_allclose
 
-from benchmarks.cli import main
-from raytrace import add_noise, kernels, load_config, read_pair, render_pair
-from raytrace.camera import camera_from_config
-from raytrace.medium import check_density
-from raytrace.pattern import grid_pattern, random_pattern
-from raytrace.render import plan_render
+from synthbos.benchmarks.cli import main
+from synthbos.raytrace import add_noise, kernels, load_config, read_pair, render_pair
+from synthbos.raytrace.camera import camera_from_config
+from synthbos.raytrace.medium import check_density
+from synthbos.raytrace.pattern import grid_pattern, random_pattern
+from synthbos.raytrace.render import plan_render
 from synthbos import SynthbosError
 
 
@@ -21,7 +21,7 @@ def test_thick_lens_focus_and_magnification_close_to_thin_lens():
     thick = camera_from_config(load_config(_config(camera={"lens": "thick", "lens_thickness_mm": 1.0})))
     assert_allclose(thick.magnification, thin.magnification, rtol=0.01)
     # A thin-lens limit: thickness -> 0 gives the thin lens exactly (paraxial).
-    from raytrace.camera import _thick_lens_focus, _thick_lens_radius
+    from synthbos.raytrace.camera import _thick_lens_focus, _thick_lens_radius
 
     f, n, d = 0.105, 1.5168, 1e-8
     s_image, m = _thick_lens_focus(f, n, d, _thick_lens_radius(f, n, d), 1.0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from raytrace.loaders import infer_format, load_density, read_snapshots, validate_density
+from synthbos.raytrace.loaders import infer_format, load_density, read_snapshots, validate_density
 from synthbos import SynthbosError
 
 

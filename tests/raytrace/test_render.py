@@ -6,10 +6,10 @@ import warp as wp
 from _small import small_config as _config
 from numpy.testing import assert_allclose
 
-from raytrace import kernels, reference
-from raytrace.medium import medium_from_density, to_warp
-from raytrace.render import plan_render, render_pair
-from raytrace.sources import DensityField, node_coordinates
+from synthbos.raytrace import kernels, reference
+from synthbos.raytrace.medium import medium_from_density, to_warp
+from synthbos.raytrace.render import plan_render, render_pair
+from synthbos.raytrace.sources import DensityField, node_coordinates
 
 
 def test_uniform_medium_gives_identical_images_and_zero_displacement(device):
@@ -124,7 +124,7 @@ def test_weak_gaussian_blob_agrees_with_eq4(device):
 
 def test_deposit_kernel_matches_numpy_twin(device):
     plan = plan_render(_config(volume={"source": "uniform", "grid": [4, 4, 2]}))
-    from raytrace.render import _sensor_struct
+    from synthbos.raytrace.render import _sensor_struct
 
     sen = _sensor_struct(plan)
     rng = np.random.default_rng(3)
@@ -137,7 +137,7 @@ def test_deposit_kernel_matches_numpy_twin(device):
               outputs=[img], device=device)
     twin = reference.deposit_gaussian((96, 96), px.astype(np.float32), energy.astype(np.float32),
                                       plan.sigma_px, plan.half_width)
-    from raytrace.render import fixed_to_image
+    from synthbos.raytrace.render import fixed_to_image
 
     assert_allclose(fixed_to_image(img.numpy()), twin, atol=2e-6 * energy.max())
 

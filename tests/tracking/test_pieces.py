@@ -5,9 +5,9 @@ import pytest
 from _synth import dot_pattern
 from numpy.testing import assert_allclose
 
-from raytrace.dots import draw_dots
+from synthbos.raytrace.dots import draw_dots
 from synthbos import SynthbosError
-from tracking import (
+from synthbos.tracking import (
     blob_properties,
     blob_score,
     centroid_gaussian3,
@@ -26,7 +26,7 @@ from tracking import (
     static_threshold_identification,
     subtract_gaussians,
 )
-from tracking.windows import measure_windows, measure_windows_numpy
+from synthbos.tracking.windows import measure_windows, measure_windows_numpy
 
 
 def _isolated_windows(rng, n, d, *, half=3, spacing=8):

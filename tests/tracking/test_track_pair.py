@@ -6,9 +6,9 @@ import pytest
 from _synth import dot_pattern, jittered_grid, smooth_displacement
 from numpy.testing import assert_allclose
 
-from raytrace.dots import draw_dots
+from synthbos.raytrace.dots import draw_dots
 from synthbos import SynthbosError
-from tracking import TRACK_DTYPE, DotStatus, TrackingSettings, fit_soloff, is_valid, track_pair
+from synthbos.tracking import TRACK_DTYPE, DotStatus, TrackingSettings, fit_soloff, is_valid, track_pair
 
 SHAPE = (256, 256)
 D = 3.0

@@ -1,0 +1,1 @@
+"""Displacements in, density out: Poisson and least-squares integration of BOS displacement fields."""
