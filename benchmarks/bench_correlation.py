@@ -21,7 +21,6 @@ import contextlib  # noqa: E402
 import io  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from synthbos.benchmarks.timing import best_time  # noqa: E402
 from synthbos.correlation import CorrelationSettings, correlate_pair  # noqa: E402
 from synthbos.raytrace.dots import draw_dots  # noqa: E402

@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 import warp as wp
-
 from synthbos.raytrace import render
 from synthbos.raytrace.sources import SOURCE_KEYS
 

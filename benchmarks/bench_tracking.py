@@ -19,7 +19,6 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
-
 from synthbos.benchmarks.timing import best_time  # noqa: E402
 from synthbos.raytrace.dots import draw_dots  # noqa: E402
 from synthbos.tracking import TrackingSettings, is_valid, track_pair  # noqa: E402

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-
 from synthbos.raytrace.buoyancy import flatness, gradient_magnitude
 from synthbos.raytrace.loaders import read_snapshots
 

@@ -11,7 +11,6 @@ estimator cannot fit falls back to a simpler estimate and is reported in ``ok``.
 from __future__ import annotations
 
 import numpy as np
-
 from synthbos.correlation.peak import three_point_offset
 
 __all__ = [

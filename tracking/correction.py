@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-
 from synthbos.correlation.peak import subpixel_peak
 from synthbos.correlation.xcorr import cross_correlate
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-
 from synthbos.correlation.peak import subpixel_peak
 from synthbos.correlation.xcorr import cross_correlate
 

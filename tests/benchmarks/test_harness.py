@@ -6,7 +6,6 @@ from dataclasses import replace
 import h5py
 import numpy as np
 import pytest
-
 from synthbos.benchmarks.campaign import REGRESS, run_campaign
 from synthbos.benchmarks.cli import main
 from synthbos.raytrace import read_pair, render_pair, write_pair

@@ -2,7 +2,6 @@
 
 import numpy as np
 from numpy.testing import assert_allclose
-
 from synthbos.benchmarks import scoring
 from synthbos.benchmarks.regress import compare_to_baseline
 

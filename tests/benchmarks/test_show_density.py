@@ -1,7 +1,6 @@
 """The density figure: writes a sensible PNG of the five embedded snapshots."""
 
 import numpy as np
-
 from synthbos.benchmarks.show_density import main, plot_snapshots
 
 

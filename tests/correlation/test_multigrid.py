@@ -9,7 +9,6 @@ settings: 32 px then 16 px windows, no overlap, 2 + 2 iterations, cubic B-spline
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
-
 from synthbos.correlation import (
     FLAG_MASKED,
     CorrelationResult,
@@ -17,6 +16,7 @@ from synthbos.correlation import (
     correlate_pair,
 )
 from synthbos.raytrace.dots import draw_dots
+
 from synthbos import SynthbosError
 
 DOTS_PER_PX = 20 / 32**2

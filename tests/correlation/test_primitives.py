@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 from scipy import ndimage
-
 from synthbos.correlation.deform import bspline3_coefficients, deform_pair, grid_to_pixels, spline_weights
 from synthbos.correlation.peak import peak_ratio, subpixel_peak
 from synthbos.correlation.validation import normalized_median_test, replace_outliers

@@ -6,13 +6,13 @@ import pytest
 import warp as wp
 from _small import small_config as _config
 from numpy.testing import assert_allclose
-
 from synthbos.benchmarks.cli import main
 from synthbos.raytrace import add_noise, kernels, load_config, read_pair, render_pair
 from synthbos.raytrace.camera import camera_from_config
 from synthbos.raytrace.medium import check_density
 from synthbos.raytrace.pattern import grid_pattern, random_pattern
 from synthbos.raytrace.render import plan_render
+
 from synthbos import SynthbosError
 
 

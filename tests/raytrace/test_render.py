@@ -5,7 +5,6 @@ import pytest
 import warp as wp
 from _small import small_config as _config
 from numpy.testing import assert_allclose
-
 from synthbos.raytrace import kernels, reference
 from synthbos.raytrace.medium import medium_from_density, to_warp
 from synthbos.raytrace.render import plan_render, render_pair

@@ -6,9 +6,9 @@ import h5py
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
-
 from synthbos.raytrace.loaders import DEFAULT_SNAPSHOTS, read_snapshots
 from synthbos.raytrace.sources import COMMON_KEYS, SOURCE_KEYS, density_from_config, node_coordinates
+
 from synthbos import SynthbosError
 
 NODES = [(0, 0, 0), (3, 7, 11), (5, 2, 9), (7, 8, 0)]  # (k, j, i)

@@ -4,9 +4,7 @@ import numpy as np
 import pytest
 from _synth import dot_pattern
 from numpy.testing import assert_allclose
-
 from synthbos.raytrace.dots import draw_dots
-from synthbos import SynthbosError
 from synthbos.tracking import (
     blob_properties,
     blob_score,
@@ -27,6 +25,8 @@ from synthbos.tracking import (
     subtract_gaussians,
 )
 from synthbos.tracking.windows import measure_windows, measure_windows_numpy
+
+from synthbos import SynthbosError
 
 
 def _isolated_windows(rng, n, d, *, half=3, spacing=8):

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from _synth import dot_pattern, jittered_grid, smooth_displacement
 from numpy.testing import assert_allclose
-
 from synthbos.raytrace.dots import draw_dots
-from synthbos import SynthbosError
 from synthbos.tracking import TRACK_DTYPE, DotStatus, TrackingSettings, fit_soloff, is_valid, track_pair
+
+from synthbos import SynthbosError
 
 SHAPE = (256, 256)
 D = 3.0
