@@ -15,6 +15,13 @@ from importlib import metadata as _metadata
 from importlib import resources as _resources
 from pathlib import Path
 
+# Running from a source checkout (the repository root holds pyproject.toml and raytrace/ beside this
+# folder): the subpackages are found in that checkout, so a worktree tests its own code. An installed
+# wheel has them inside this folder and skips this.
+_root = Path(__file__).resolve().parent.parent
+if (_root / "pyproject.toml").is_file() and (_root / "raytrace" / "__init__.py").is_file():
+    __path__.append(str(_root))  # noqa: F821 (the package's own __path__)
+
 try:
     __version__ = _metadata.version("synthbos")
 except _metadata.PackageNotFoundError:  # running from a source tree without installing
