@@ -20,7 +20,7 @@ from pathlib import Path
 # wheel has them inside this folder and skips this.
 _root = Path(__file__).resolve().parent.parent
 if (_root / "pyproject.toml").is_file() and (_root / "raytrace" / "__init__.py").is_file():
-    __path__.append(str(_root))  # noqa: F821 (the package's own __path__)
+    __path__.append(str(_root))
 
 try:
     __version__ = _metadata.version("synthbos")
