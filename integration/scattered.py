@@ -1,0 +1,78 @@
+"""Scattered measurements (tracked dots) onto a regular grid, for the grid solvers.
+
+Dots are scattered; the solvers of ``integration.solvers`` work on a grid. The interpolation is
+piecewise linear on the Delaunay triangulation of the dots (exact for a field linear over each
+triangle, second order otherwise); grid nodes outside the dots' convex hull, or in a triangle with a
+vertex that carries no value, are left NaN and so fall outside the solvers' mask.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+
+from synthbos import SynthbosError
+
+__all__ = ["grid_for_points", "scattered_to_grid"]
+
+
+def grid_for_points(x, y, *, spacing=None, extent=None):
+    """A regular grid of nodes covering scattered points.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Point coordinates.
+    spacing : float, optional
+        Node spacing; default: the mean point spacing ``sqrt(area / N)`` of the points' bounding box.
+    extent : (x0, x1, y0, y1), optional
+        Span of the grid; default: the points' bounding box.
+
+    Returns
+    -------
+    gx, gy : 1-D ndarrays
+        Node coordinates along x and y, centred in the extent.
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3:
+        raise SynthbosError(f"need at least 3 points to build a grid, got {int(ok.sum())}")
+    x0, x1, y0, y1 = extent if extent is not None else (x[ok].min(), x[ok].max(), y[ok].min(), y[ok].max())
+    if spacing is None:
+        spacing = np.sqrt(max((x1 - x0) * (y1 - y0), 1e-300) / ok.sum())
+    nx = int(np.floor((x1 - x0) / spacing)) + 1
+    ny = int(np.floor((y1 - y0) / spacing)) + 1
+    ox = x0 + 0.5 * ((x1 - x0) - (nx - 1) * spacing)
+    oy = y0 + 0.5 * ((y1 - y0) - (ny - 1) * spacing)
+    return ox + spacing * np.arange(nx), oy + spacing * np.arange(ny)
+
+
+def scattered_to_grid(x, y, values, grid_x, grid_y):
+    """Interpolate values at scattered points linearly onto the nodes of a grid.
+
+    Parameters
+    ----------
+    x, y : (N,) array_like
+        Point coordinates; points with a non-finite coordinate are dropped.
+    values : (N,) or (N, k) array_like
+        Values at the points; NaN marks a point without a value.
+    grid_x, grid_y : 1-D array_like
+        Node coordinates of the grid.
+
+    Returns
+    -------
+    out : (ny, nx) or (ny, nx, k) ndarray
+        Piecewise-linear interpolant on the Delaunay triangulation of the points that carry every
+        value; NaN outside their convex hull.
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    v = np.asarray(values, dtype=np.float64)
+    single = v.ndim == 1
+    v = v.reshape(len(x), -1)
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(v).all(axis=1)
+    if ok.sum() < 3:
+        raise SynthbosError(f"need at least 3 points with a valid value to interpolate, got {int(ok.sum())}")
+    interp = LinearNDInterpolator(np.stack([x[ok], y[ok]], axis=1), v[ok], fill_value=np.nan)
+    gx, gy = np.meshgrid(np.asarray(grid_x, float), np.asarray(grid_y, float))
+    out = interp(gx, gy)
+    return out[..., 0] if single else out
