@@ -328,28 +328,99 @@ def render_rays(
     wp.atomic_add(hits, dot, 1)
 
 
+@wp.func
+def inside_box(m: Medium, p: wp.vec3):
+    """1 if the local point p lies in the box (the test ``sample_medium`` makes), else 0."""
+    nz = m.field.shape[0]
+    ny = m.field.shape[1]
+    nx = m.field.shape[2]
+    fx = (p[0] + m.half[0]) * m.inv_spacing[0]
+    fy = (p[1] + m.half[1]) * m.inv_spacing[1]
+    fz = (p[2] + m.half[2]) * m.inv_spacing[2]
+    eps = 1.0e-4
+    if fx < -eps or fy < -eps or fz < -eps:
+        return 0
+    if fx > float(nx - 1) + eps or fy > float(ny - 1) + eps or fz > float(nz - 1) + eps:
+        return 0
+    return 1
+
+
+@wp.func
+def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: int, outside: float):
+    """Along the straight line from ``origin`` towards ``aim``, through the depth of the box (midpoint
+    rule in z): the integral of (dn/dx, dn/dy) dz (Eq. 4's integral) and the depth average of n - 1,
+    taking n - 1 = ``outside`` where the line passes beside the box."""
+    t = wp.normalize(aim - origin)
+    z0 = m.centre[2] - m.half[2]
+    dz = 2.0 * m.half[2] / float(n_samples)
+    acc = wp.vec2(0.0)
+    nm1 = wp.float32(0.0)  # a dynamic variable: it changes inside the loop
+    for k in range(n_samples):
+        z = z0 + (float(k) + 0.5) * dz
+        p = origin + ((z - origin[2]) / t[2]) * t - m.centre
+        s = sample_medium(m, p)
+        acc = acc + wp.vec2(s[0], s[1]) * dz
+        if inside_box(m, p) == 1:
+            nm1 = nm1 + s[3]
+        else:
+            nm1 = nm1 + outside
+    return acc, nm1 / float(n_samples)
+
+
 @wp.kernel
 def integrate_grad_n(
     medium: Medium,
     cam: Camera,
     dots: wp.array(dtype=wp.vec2),
     n_samples: int,
+    outside: float,
     out: wp.array(dtype=wp.vec2),
+    out_nm1: wp.array(dtype=float),
 ):
-    """Line integral of (dn/dx, dn/dy) dz along the straight chief ray from each dot to the centre of
-    the aperture, through the depth of the box (midpoint rule): the integral in Eq. 4."""
+    """Along the straight chief ray from each dot to the centre of the aperture: the integral of
+    (dn/dx, dn/dy) dz in Eq. 4 and the depth-averaged n - 1 (see ``straight_ray_integrals``)."""
     i = wp.tid()
     origin = wp.vec3(dots[i][0], dots[i][1], 0.0)
-    t = wp.normalize(wp.vec3(0.0, 0.0, cam.z_stop) - origin)
-    z0 = medium.centre[2] - medium.half[2]
-    dz = 2.0 * medium.half[2] / float(n_samples)
-    acc = wp.vec2(0.0)
-    for k in range(n_samples):
-        z = z0 + (float(k) + 0.5) * dz
-        p = origin + ((z - origin[2]) / t[2]) * t
-        s = sample_medium(medium, p - medium.centre)
-        acc = acc + wp.vec2(s[0], s[1]) * dz
+    acc, nm1 = straight_ray_integrals(medium, origin, wp.vec3(0.0, 0.0, cam.z_stop), n_samples, outside)
     out[i] = acc
+    out_nm1[i] = nm1
+
+
+@wp.kernel
+def integrate_cone(
+    medium: Medium,
+    cam: Camera,
+    dots: wp.array(dtype=wp.vec2),
+    dot_radius: float,
+    rays_per_dot: int,
+    rays_per_thread: int,
+    seed: int,
+    n_samples: int,
+    outside: float,
+    out: wp.array2d(dtype=wp.vec3),
+):
+    """Eq. 4's integral and the depth-averaged n - 1 summed over the rays the renderer traces for a dot.
+
+    Thread ``tid`` takes dot ``tid % n_dots`` and rays ``c * rays_per_thread ...`` of it, c = tid //
+    n_dots; each ray draws its emission point and aperture point exactly as ``render_rays`` does (same
+    seed, same (dot, ray) stream), and is followed as the straight line of the undisturbed medium.
+    ``out[c, dot]`` = (sum of integral dn/dx dz, sum of integral dn/dy dz, sum of depth-mean n - 1).
+    """
+    tid = wp.tid()
+    n_dots = dots.shape[0]
+    dot = tid % n_dots
+    c = tid / n_dots
+    acc = wp.vec3(0.0)
+    r0 = c * rays_per_thread
+    r1 = wp.min(r0 + rays_per_thread, rays_per_dot)
+    for ray in range(r0, r1):
+        state = wp.rand_init(seed, ray * n_dots + dot)
+        e2 = dots[dot] + sample_disk(state, dot_radius)
+        a2 = sample_disk(state, cam.aperture_radius)
+        origin = wp.vec3(e2[0], e2[1], 0.0)
+        g, nm1 = straight_ray_integrals(medium, origin, wp.vec3(a2[0], a2[1], cam.z_stop), n_samples, outside)
+        acc = acc + wp.vec3(g[0], g[1], nm1)
+    out[c, dot] = acc
 
 
 @wp.kernel

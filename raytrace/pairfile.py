@@ -9,11 +9,23 @@ File layout
 ``/dots/reference_px``, ``/dots/gradient_px``, ``/dots/displacement_px``, ``/dots/theory_px`` (N, 2)
     Ray-mean image positions without and with the flow, their difference (the exact displacement)
     and Eq. 4's theoretical displacement; x = column, y = row, pixel centres at integer coordinates.
+``/dots/theory_cone_px`` (N, 2)
+    Eq. 4 averaged over the rays the renderer traced for the dot (its emission points and aperture
+    points, each ray taken straight): the displacement the camera's cone of rays sees in the
+    weak-deflection limit.
+``/dots/density_cone_kg_m3``, ``/dots/density_chief_kg_m3`` (N,)
+    The density averaged over the volume's depth, averaged over the dot's cone of rays, and along its
+    chief ray (ambient density where a ray passes beside the volume).
 ``/dots/valid`` (N,) bool
     Every ray of the dot reached the sensor in both images.
 root attributes
     ``config`` (the full configuration as TOML text), ``magnification``, ``version``, ``device``,
-    ``render_seconds``, ``n0``, ``spot_diameter_px``, ``sign_convention``.
+    ``render_seconds``, ``n0``, ``spot_diameter_px``, ``sign_convention``, ``z_d_m``, ``z_stop_m``,
+    ``pixel_pitch_m``, ``principal_point_px``, ``volume_size_m``, ``volume_centre_m`` (x, y, z in the
+    target frame), ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3``.
+
+Every dataset carries ``units`` and ``description`` attributes. Files written before the cone truth
+existed read with ``theory_cone_px`` and the densities set to None.
 
 Sign convention: the image is upright (columns grow with target x, rows with target y) and a
 displacement is gradient-image position minus reference-image position. A ray bends towards higher
@@ -40,6 +52,19 @@ SIGN_CONVENTION = (
 )
 
 _DOT_SETS = ("target_xy_m", "reference_px", "gradient_px", "displacement_px", "theory_px")
+_TRUTH_SETS = ("theory_cone_px", "density_cone_kg_m3", "density_chief_kg_m3")
+
+_DESCRIPTIONS = {
+    "target_xy_m": ("m", "dot centres on the target plane (x, y)"),
+    "reference_px": ("px", "ray-mean image position of each dot without the flow (x = column, y = row)"),
+    "gradient_px": ("px", "ray-mean image position of each dot through the flow"),
+    "displacement_px": ("px", "exact displacement: gradient_px - reference_px"),
+    "theory_px": ("px", "Eq. 4 along the chief ray: -(M Z_D / n0) * integral of grad n dz / pitch"),
+    "theory_cone_px": ("px", "Eq. 4 averaged over the rays traced for the dot (the aperture's cone)"),
+    "density_cone_kg_m3": ("kg/m^3", "depth-averaged density, averaged over the dot's cone of rays"),
+    "density_chief_kg_m3": ("kg/m^3", "depth-averaged density along the dot's chief ray"),
+    "valid": ("1", "every ray of the dot reached the sensor in both images"),
+}
 
 
 @dataclass
@@ -54,6 +79,9 @@ class Pair:
     displacement_px: np.ndarray
     theory_px: np.ndarray
     valid: np.ndarray
+    theory_cone_px: np.ndarray | None = None
+    density_cone_kg_m3: np.ndarray | None = None
+    density_chief_kg_m3: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
 
     @property
@@ -68,10 +96,16 @@ def write_pair(path, pair: Pair) -> Path:
         img = f.create_group("images")
         img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
         img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
+        for name, ds in img.items():
+            ds.attrs["units"] = "intensity"
+            ds.attrs["description"] = f"{name} image, noise-free, upright (row = y, column = x)"
         dots = f.create_group("dots")
-        for name in _DOT_SETS:
-            dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
+        for name in _DOT_SETS + _TRUTH_SETS:
+            if getattr(pair, name) is not None:
+                dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
         dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
+        for name, ds in dots.items():
+            ds.attrs["units"], ds.attrs["description"] = _DESCRIPTIONS[name]
         for key, value in pair.attrs.items():
             f.attrs[key] = value
         f.attrs["sign_convention"] = SIGN_CONVENTION
@@ -90,6 +124,7 @@ def read_pair(path) -> Pair:
             if missing:
                 raise SynthbosError(f"{path} is not a synthbos pair file: missing {', '.join(missing)}")
             kwargs = {n: f[f"dots/{n}"][()] for n in _DOT_SETS}
+            kwargs.update({n: (f[f"dots/{n}"][()] if f"dots/{n}" in f else None) for n in _TRUTH_SETS})
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
             return Pair(
                 reference=f["images/reference"][()], gradient=f["images/gradient"][()],

@@ -10,7 +10,7 @@ import numpy as np
 
 from .medium import MediumData
 
-__all__ = ["deposit_gaussian", "sample_medium", "trace_volume"]
+__all__ = ["deposit_gaussian", "sample_medium", "straight_ray_integrals", "trace_volume"]
 
 
 def sample_medium(medium: MediumData, p_local):
@@ -32,6 +32,27 @@ def sample_medium(medium: MediumData, p_local):
     c11 = f[k + 1, j + 1, i] * (1 - ax) + f[k + 1, j + 1, i + 1] * ax
     out = (c00 * (1 - ay) + c10 * ay) * (1 - az) + (c01 * (1 - ay) + c11 * ay) * az
     return np.where(inside[..., None], out, 0.0)
+
+
+def straight_ray_integrals(medium: MediumData, origins, aims, n_samples, outside):
+    """Float64 twin of ``kernels.straight_ray_integrals`` for rays (N, 3) from ``origins`` towards ``aims``.
+
+    Returns the integral of (dn/dx, dn/dy) dz over the box's depth (N, 2) and the depth-mean of n - 1
+    (N,), with n - 1 = ``outside`` beside the box.
+    """
+    o = np.asarray(origins, dtype=np.float64)
+    t = np.asarray(aims, dtype=np.float64) - o
+    t = t / np.linalg.norm(t, axis=-1, keepdims=True)
+    centre, half = np.array(medium.centre), np.array(medium.size) / 2.0
+    dz = 2.0 * half[2] / n_samples
+    z = centre[2] - half[2] + (np.arange(n_samples) + 0.5) * dz  # (S,)
+    p = o[:, None, :] + ((z[None, :] - o[:, None, 2]) / t[:, None, 2])[..., None] * t[:, None, :] - centre
+    s = sample_medium(medium, p)  # (N, S, 4)
+    frac = (p + half) / np.array(medium.spacing)
+    nz, ny, nx = medium.field.shape[:3]
+    inside = np.all((frac >= -1e-4) & (frac <= np.array([nx - 1, ny - 1, nz - 1]) + 1e-4), axis=-1)
+    nm1 = np.where(inside, s[..., 3], outside).mean(axis=1)
+    return s[..., :2].sum(axis=1) * dz, nm1
 
 
 def _rate(medium, x, t):

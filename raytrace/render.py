@@ -24,7 +24,7 @@ from .medium import MediumData, medium_from_config, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
-__all__ = ["RenderPlan", "plan_render", "render_pair", "trace_rays"]
+__all__ = ["RenderPlan", "chief_ray_truth", "cone_truth", "plan_render", "render_pair", "trace_rays"]
 
 _INT32_MAX = 2**31 - 1
 
@@ -196,19 +196,68 @@ def fixed_to_image(fixed):
     return (fixed.astype(np.float64) / float(kernels.IMAGE_SCALE)).astype(np.float32)
 
 
-def theory_displacement(plan: RenderPlan, *, device=None, samples_per_step=1):
-    """Eq. 4 at each dot: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels."""
+def _eq4_px(plan: RenderPlan, integral):
+    """Eq. 4 in pixels from the integral of grad n dz: dX = -(M Z_D / n0) * integral / pitch."""
+    m, z_d = plan.camera.magnification, plan.medium.centre[2]
+    return -(m * z_d / plan.medium.n0) * np.asarray(integral, dtype=np.float64) / plan.camera.pitch
+
+
+def _n_samples(plan: RenderPlan, samples_per_step=1):
+    return max(8, samples_per_step * plan.steps_per_ray)
+
+
+def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
+    """Eq. 4 and the depth-averaged density along each dot's chief ray (dot centre to aperture centre).
+
+    Returns
+    -------
+    theory_px : (N, 2) float64
+        Eq. 4: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels.
+    density : (N,) float64
+        The density averaged over the volume's depth along the chief ray, kg/m^3 (the ambient density
+        where the ray passes beside the volume).
+    """
     _init_warp()
     medium = to_warp(plan.medium, device=device)
     cam = _camera_struct(plan.camera)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
-    n_samples = max(8, samples_per_step * plan.steps_per_ray)
-    wp.launch(kernels.integrate_grad_n, dim=plan.n_dots, inputs=[medium, cam, dots, n_samples],
+    out_nm1 = wp.zeros(plan.n_dots, dtype=float, device=device)
+    wp.launch(kernels.integrate_grad_n, dim=plan.n_dots,
+              inputs=[medium, cam, dots, _n_samples(plan, samples_per_step), plan.medium.n0 - 1.0],
+              outputs=[out, out_nm1], device=device)
+    k = plan.medium.gladstone_dale
+    return _eq4_px(plan, out.numpy()), out_nm1.numpy().astype(np.float64) / k
+
+
+def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per_step=1):
+    """Eq. 4 and the depth-averaged density averaged over the rays the renderer traces for each dot.
+
+    Every ray of a dot is drawn as ``kernels.render_rays`` draws it (the same seed, emission point on
+    the dot and point on the aperture) and followed as the straight line of the undisturbed medium,
+    the reference image's ray. The mean over those rays of Eq. 4 is what the ray-traced displacement
+    tends to when deflections are weak: the camera's finite aperture averages the flow over the cone.
+
+    Returns
+    -------
+    theory_cone_px : (N, 2) float64
+        Mean over the dot's rays of Eq. 4's displacement, pixels.
+    density_cone : (N,) float64
+        Mean over the dot's rays of the depth-averaged density, kg/m^3.
+    """
+    _init_warp()
+    n = plan.n_dots
+    medium = to_warp(plan.medium, device=device)
+    cam = _camera_struct(plan.camera)
+    dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
+    chunks = -(-plan.rays_per_dot // rays_per_thread)
+    out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
+    wp.launch(kernels.integrate_cone, dim=chunks * n,
+              inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
+                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), plan.medium.n0 - 1.0],
               outputs=[out], device=device)
-    integral = out.numpy().astype(np.float64)
-    m, z_d = plan.camera.magnification, plan.medium.centre[2]
-    return -(m * z_d / plan.medium.n0) * integral / plan.camera.pitch
+    sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
+    return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale
 
 
 def render_pair(config=None, *, device=None, progress=False) -> Pair:
@@ -237,7 +286,8 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     with bar:
         ref_img, ref_px, ref_ok, tir_ref = trace_rays(plan, active=False, device=device, progress=bar)
         grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar)
-        theory = theory_displacement(plan, device=device)
+        theory, density_chief = chief_ray_truth(plan, device=device)
+        theory_cone, density_cone = cone_truth(plan, device=device)
         wp.synchronize_device(device)
     seconds = time.perf_counter() - t0
     if tir_ref + tir_grad:
@@ -258,9 +308,16 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
         "z_d_m": plan.medium.centre[2],
         "pixel_pitch_m": plan.camera.pitch,
         "peak_intensity": plan.cfg["sensor"]["peak_intensity"],
+        "z_stop_m": plan.camera.z_stop,
+        "principal_point_px": np.array(plan.camera.principal_point, dtype=np.float64),
+        "volume_size_m": np.array(plan.medium.size, dtype=np.float64),
+        "volume_centre_m": np.array(plan.medium.centre, dtype=np.float64),
+        "gladstone_dale_m3_per_kg": plan.medium.gladstone_dale,
+        "ambient_density_kg_m3": float(plan.medium.density.ambient),
     }
     return Pair(
         reference=ref_img, gradient=grad_img, target_xy_m=plan.target_xy, reference_px=ref_px,
         gradient_px=grad_px, displacement_px=grad_px - ref_px, theory_px=theory,
-        valid=ref_ok & grad_ok, attrs=attrs,
+        valid=ref_ok & grad_ok, theory_cone_px=theory_cone, density_cone_kg_m3=density_cone,
+        density_chief_kg_m3=density_chief, attrs=attrs,
     )
