@@ -68,6 +68,7 @@ def _process(args):
         if method.uses_prior:
             prior = read_dots_csv(args.dots) if args.dots else nominal_positions(pair)
         attrs["input"] = str(args.pair)
+        attrs["magnification"] = float(pair.attrs["magnification"])
     else:
         if not (args.reference and args.gradient):
             raise SynthbosError("give a pair file, or both --reference and --gradient images")
@@ -75,6 +76,7 @@ def _process(args):
         if method.uses_prior and args.dots:
             prior = read_dots_csv(args.dots)
         attrs["input"] = f"{args.reference} {args.gradient}"
+    attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
     t0 = time.perf_counter()
     res = run_method(args.method, ref, grad, prior_xy=prior)
     attrs["seconds"] = time.perf_counter() - t0
@@ -83,6 +85,40 @@ def _process(args):
     print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
           f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
           f"{attrs['seconds']:.2f} s")
+    return 0
+
+
+def _floats(text, n, what):
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise SynthbosError(f"{what} must be {n} comma-separated numbers, got {text!r}")
+    return vals
+
+
+def _integrate(args):
+    from .integrate import integrate_file
+
+    out = _out_path(args.output)
+    region = _floats(args.reference_region, 4, "--reference-region") if args.reference_region else None
+    mask = _floats(args.mask_region, 4, "--mask-region") if args.mask_region else None
+    if args.pair and args.config:
+        raise SynthbosError("give either --pair or --config (the pair file holds its own set-up)")
+    res = integrate_file(args.result, out, pair_path=args.pair, config=args.config, solver=args.solver,
+                         spacing_px=args.spacing, reference_density=args.reference_density,
+                         reference_region_mm=region, dirichlet=args.dirichlet, mask_region_mm=mask)
+    d = res["density"]
+    rho = d.density[np.isfinite(d.density)]
+    print(f"wrote {out}: {args.solver}, {rho.size} nodes ({d.grid.gx.shape[1]} x {d.grid.gx.shape[0]}), "
+          f"density {rho.min():.5g} .. {rho.max():.5g} kg/m^3; constant from {d.reference}")
+    s = res["summary"]
+    if s:
+        print(f"{'truth':<7} {'rms kg/m3':>10} {'p90 kg/m3':>10} {'rms/range':>10} {'p90/range':>10} {'offset':>10}")
+        for t in ("cone", "chief"):
+            print(f"{t:<7} {s[f'{t}_rms_kg_m3']:>10.3g} {s[f'{t}_p90_kg_m3']:>10.3g} {s[f'{t}_rms_rel']:>10.3g} "
+                  f"{s[f'{t}_p90_rel']:>10.3g} {s[f'{t}_offset_kg_m3']:>10.3g}")
     return 0
 
 
@@ -160,6 +196,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
     p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
     p.set_defaults(func=_process)
+
+    p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
+    p.add_argument("result", help="result file from 'synthbos process'")
+    p.add_argument("--pair", help="the pair file the result came from: its set-up, and the truths to score against")
+    p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file "
+                                    "(default: the embedded default)")
+    p.add_argument("--solver", default="lsq", choices=("dct", "lsq", "wlsq"),
+                   help="dct: Poisson by DCT (full rectangle); lsq: sparse least squares; wlsq: uncertainty-weighted")
+    p.add_argument("--spacing", type=float, default=None,
+                   help="grid spacing in px for tracked dots (default: the mean dot spacing)")
+    p.add_argument("--reference-density", type=float, default=None,
+                   help="density (kg/m^3) of the reference region (default: the configuration's ambient density)")
+    p.add_argument("--reference-region", default=None,
+                   help="x0,x1,y0,y1 in mm (volume frame) where the reference density holds (default: the border); "
+                        "write --reference-region=-5,5,-5,5 when it starts with a minus")
+    p.add_argument("--dirichlet", action="store_true", help="hold the reference region fixed (lsq, wlsq)")
+    p.add_argument("--mask-region", default=None, help="x0,x1,y0,y1 in mm (volume frame): nodes left out")
+    p.add_argument("-o", "--output", required=True, help="density file to write (HDF5)")
+    p.set_defaults(func=_integrate)
 
     for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
         p = sub.add_parser(name, help=helptext)

@@ -12,6 +12,9 @@ A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (refere
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, plus every other column of the tracking table under ``/dots/`` (the centroid-difference
 displacement as ``u_centroid``, ``v_centroid``); settings as attributes.
+Both: ``valid`` (``/valid`` or ``/dots/valid``), the vectors the method counts as measured and unflagged;
+root attributes ``method``, ``settings`` (JSON) and, from the command line, ``input``, ``seconds``,
+``image_shape`` (H, W) and, for a pair file, its ``magnification``. ``read_result`` reads it back.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from synthbos import SynthbosError, atomic_output
 
 from .registry import GRID, MethodResult, get_method
 
-__all__ = ["load_image", "read_dots_csv", "run_method", "write_result"]
+__all__ = ["load_image", "read_dots_csv", "read_result", "run_method", "write_result"]
 
 
 def load_image(path) -> np.ndarray:
@@ -84,6 +87,8 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
         if get_method(result.method).kind == GRID:
             for name in ("x", "y", "u", "v", "flags", "peak_ratio"):
                 f.create_dataset(name, data=np.asarray(result.table[name]))
+            if result.valid is not None:
+                f.create_dataset("valid", data=np.asarray(result.valid, bool).reshape(np.shape(result.table["u"])))
         else:
             g = f.create_group("dots")
             g.create_dataset("x", data=result.xy[:, 0])
@@ -95,8 +100,61 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
                     g.create_dataset(f"{name}_centroid", data=np.asarray(values))
                 elif name not in ("x", "y"):
                     g.create_dataset(name, data=np.asarray(values))
+            if result.valid is not None:
+                g.create_dataset("valid", data=np.asarray(result.valid, bool))
         f.attrs["method"] = result.method
         f.attrs["settings"] = json.dumps(result.settings, default=str)
         for key, value in (extra_attrs or {}).items():
             f.attrs[key] = value
     return path
+
+
+def read_result(path):
+    """Read a result file written by ``write_result``; return ``(MethodResult, root attributes)``.
+
+    A missing, unreadable or malformed file, or an empty one, raises ``SynthbosError``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"result file {path} does not exist")
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            if "method" not in attrs:
+                raise SynthbosError(f"{path} is not a synthbos result file: no 'method' attribute")
+            method = get_method(str(attrs["method"]))
+            try:
+                settings = json.loads(attrs.get("settings", "{}"))
+            except json.JSONDecodeError:
+                settings = {}
+            if method.kind == GRID:
+                need = ("x", "y", "u", "v", "flags", "peak_ratio")
+                missing = [f"/{n}" for n in need if n not in f]
+                if missing:
+                    raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
+                table = {n: f[n][()] for n in need}
+                shape = tuple(np.shape(table["u"]))
+                valid = f["valid"][()].ravel().astype(bool) if "valid" in f else None
+                xy = np.stack([np.ravel(table["x"]), np.ravel(table["y"])], axis=1).astype(np.float64)
+                uv = np.stack([np.ravel(table["u"]), np.ravel(table["v"])], axis=1).astype(np.float64)
+                if len(shape) != 2:
+                    raise SynthbosError(f"{path}: a grid result needs 2-D /u, got shape {shape}")
+            else:
+                missing = [f"/dots/{n}" for n in ("x", "y", "u", "v") if f"dots/{n}" not in f]
+                if missing:
+                    raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
+                g = f["dots"]
+                table = {n: g[n][()] for n in g if n != "valid"}
+                table["u_cc"] = table.get("u_cc", table["u"])
+                table["v_cc"] = table.get("v_cc", table["v"])
+                shape = None
+                valid = g["valid"][()].astype(bool) if "valid" in g else None
+                xy = np.stack([table["x"], table["y"]], axis=1).astype(np.float64)
+                uv = np.stack([table["u"], table["v"]], axis=1).astype(np.float64)
+                if "u_centroid" in table:  # the table's own u, v were the centroid difference
+                    table["u"], table["v"] = table["u_centroid"], table["v_centroid"]
+    except OSError as err:
+        raise SynthbosError(f"cannot read result file {path}: {err}") from None
+    if len(xy) == 0:
+        raise SynthbosError(f"{path} holds no vectors (an empty result)")
+    return MethodResult(method.name, xy, uv, shape, table, settings, valid), attrs

@@ -18,6 +18,9 @@ How the truth reaches each method's points
   interpolated true field on the same grid; at dots, a least-squares plane through each dot and its
   nearest neighbours, fitted to the measured and to the true displacements alike. The error is the
   Frobenius norm of the difference of the 2 x 2 gradient tensors (px / px).
+* Density: the reconstructed depth-averaged density against the renderer's two truths (the cone of
+  rays of each dot, and its chief ray) on the integration grid; errors in kg/m^3 and relative to the
+  truth's range (max - min over the grid), RMS and percentiles of the absolute error.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "PERCENTILES",
     "cramer_rao_displacement",
+    "density_errors",
     "empirical_cdf",
     "error_percentiles",
     "grid_gradient",
@@ -144,3 +148,37 @@ def cramer_rao_displacement(noise_percent, *, peak=1.0):
     """
     sigma_n = noise_percent / 100.0 * peak
     return np.sqrt(2.0) * 0.8 * sigma_n / peak
+
+
+def density_errors(density, truth, *, region=None, percentiles=(50, 90, 95, 99)):
+    """Error of a reconstructed density against a truth on the same grid.
+
+    Parameters
+    ----------
+    density, truth : (ny, nx) arrays, kg/m^3; NaN where absent.
+    region : (ny, nx) bool array, optional
+        The reference region; the mean error there is reported as ``offset_kg_m3`` (the part of the
+        error that a different constant of integration would remove).
+
+    Returns
+    -------
+    dict
+        ``n``, ``range_kg_m3`` (max - min of the truth), ``rms_kg_m3``, ``p{k}_kg_m3`` (percentiles of
+        the absolute error), the same divided by the range as ``rms_rel``, ``p{k}_rel``, and
+        ``offset_kg_m3``.
+    """
+    d, t = np.asarray(density, np.float64), np.asarray(truth, np.float64)
+    ok = np.isfinite(d) & np.isfinite(t)
+    err = (d - t)[ok]
+    rng = float(np.ptp(t[np.isfinite(t)])) if np.isfinite(t).any() else float("nan")
+    out = {"n": int(ok.sum()), "range_kg_m3": rng}
+    rms = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
+    pct = error_percentiles(np.abs(err), percentiles)
+    out["rms_kg_m3"] = rms
+    out.update({f"p{k}_kg_m3": v for k, v in pct.items()})
+    scale = rng if rng > 0 else float("nan")
+    out["rms_rel"] = rms / scale
+    out.update({f"p{k}_rel": v / scale for k, v in pct.items()})
+    sel = ok & (np.asarray(region, bool) if region is not None else True)
+    out["offset_kg_m3"] = float(np.mean((d - t)[sel])) if sel.any() else float("nan")
+    return out

@@ -1,0 +1,455 @@
+"""``synthbos integrate``: from a result file's displacements to the depth-averaged density, and its error.
+
+The algorithms live in ``synthbos.integration`` (pure arrays); this module reads the inputs, maps them
+onto a grid at the volume's mid-plane, calls a solver, and (with the pair file) scores the density
+against the renderer's two truths.
+
+Steps
+-----
+1. Displacements (px) to density gradients (kg/m^4), Eq. 4 inverted with the set-up's numbers (the
+   pair file's attributes with ``--pair``, otherwise a render configuration: ``--config`` or the
+   embedded default): ``grad rho_avg = -n0 dX pitch / (M Z_D K L)``.
+2. The grid. A correlation result keeps its own grid of window centres. Tracked dots are interpolated
+   linearly on the Delaunay triangulation of the valid dots (``integration.scattered_to_grid``) onto a
+   square grid whose spacing is the mean dot spacing (``--spacing`` px to change it); nodes outside the
+   dots' convex hull stay unmeasured. Image pixels map to the mid-plane along the chief rays
+   (``integration.pixel_to_midplane``), so ``/x_mm`` and ``/y_mm`` are in the volume's own frame.
+3. The solver: ``dct`` (Neumann Poisson by DCT on the full rectangle; unmeasured nodes are filled
+   first, linearly between measured nodes and by the nearest one beyond them), ``lsq`` (sparse least
+   squares on the measured nodes only) or ``wlsq`` (least squares weighted by each vector's
+   uncertainty, Rajendran, Bane and Vlachos 2020; see :func:`uncertainty_px` for the proxies used).
+4. The constant of integration: the mean density over a reference region equals a reference density.
+   Default: the configuration's ambient density over the border of the measured domain (its outermost
+   ring of nodes). ``--reference-density`` sets the value, ``--reference-region x0,x1,y0,y1`` (mm, volume
+   frame) the region; with ``--dirichlet`` the ``lsq``/``wlsq`` solvers hold the region at that value.
+   ``--mask-region x0,x1,y0,y1`` (mm) removes nodes (a model in the flow, a bad area) from the domain.
+
+Output file (HDF5)
+------------------
+``/density_kg_m3`` (ny, nx), ``/x_mm`` (nx), ``/y_mm`` (ny), ``/measured`` (ny, nx) bool, ``/x_px``,
+``/y_px`` (the grid in image pixels), each with ``units`` and ``description``; with ``--pair`` also
+``/truth_cone_kg_m3`` and ``/truth_chief_kg_m3`` on the same grid (the per-dot truths of the pair file,
+interpolated like the dots) and the error summary as root attributes (``cone_rms_kg_m3``,
+``cone_p90_kg_m3``, ``cone_rms_rel``, ... relative to the truth's range; ``cone_offset_kg_m3`` is the
+mean error over the reference region, the part due to the constant of integration).
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+from scipy import ndimage
+from synthbos.integration import (
+    SOLVERS,
+    displacement_to_density_gradient,
+    grid_for_points,
+    lsq_integrate,
+    midplane_scale,
+    pixel_to_midplane,
+    poisson_dct,
+    scattered_to_grid,
+    set_reference,
+    weighted_lsq,
+)
+
+from synthbos import SynthbosError, atomic_output
+
+from . import scoring
+from .registry import GRID, MethodResult, get_method
+
+__all__ = [
+    "DensityMap",
+    "Geometry",
+    "GradientGrid",
+    "density_from_result",
+    "geometry_from_config",
+    "geometry_from_pair",
+    "gradient_grid",
+    "solve_density",
+    "truth_on_grid",
+    "uncertainty_px",
+    "write_density",
+]
+
+# Uncertainty proxies of the weighted least squares (px).
+SIGMA_FLOOR_PX = 0.02
+PEAK_RATIO_SCALE_PX = 0.1
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The set-up numbers the integration needs (metres, the renderer's conventions)."""
+
+    magnification: float
+    pixel_pitch_m: float
+    z_d_m: float
+    z_stop_m: float
+    depth_m: float
+    gladstone_dale_m3_per_kg: float
+    n0: float
+    principal_point_px: tuple
+    volume_centre_m: tuple  # lateral (x, y)
+    ambient_density_kg_m3: float
+    image_shape: tuple  # (H, W)
+
+    @property
+    def mm_per_px(self) -> float:
+        """Millimetres at the mid-plane per image pixel."""
+        return 1e3 * midplane_scale(magnification=self.magnification, pixel_pitch_m=self.pixel_pitch_m,
+                                    z_d_m=self.z_d_m, z_stop_m=self.z_stop_m)
+
+    def gradient(self, u_px, v_px):
+        return displacement_to_density_gradient(
+            u_px, v_px, magnification=self.magnification, z_d_m=self.z_d_m, depth_m=self.depth_m,
+            gladstone_dale_m3_per_kg=self.gladstone_dale_m3_per_kg, n0=self.n0, pixel_pitch_m=self.pixel_pitch_m)
+
+    def to_mm(self, x_px, y_px):
+        x, y = pixel_to_midplane(x_px, y_px, principal_point_px=self.principal_point_px,
+                                 magnification=self.magnification, pixel_pitch_m=self.pixel_pitch_m,
+                                 z_d_m=self.z_d_m, z_stop_m=self.z_stop_m, volume_centre_m=self.volume_centre_m)
+        return x * 1e3, y * 1e3
+
+
+def geometry_from_config(cfg) -> Geometry:
+    """The set-up of a render configuration (dict, path, or None for the embedded default)."""
+    from synthbos.raytrace import load_config
+    from synthbos.raytrace.camera import camera_from_config
+    from synthbos.raytrace.medium import medium_from_config
+
+    cfg = load_config(cfg)
+    cam, med = camera_from_config(cfg), medium_from_config(cfg)
+    W, H = cam.pixels
+    return Geometry(
+        magnification=cam.magnification, pixel_pitch_m=cam.pitch, z_d_m=med.centre[2], z_stop_m=cam.z_stop,
+        depth_m=med.size[2], gladstone_dale_m3_per_kg=med.gladstone_dale, n0=med.n0,
+        principal_point_px=tuple(cam.principal_point), volume_centre_m=tuple(med.centre[:2]),
+        ambient_density_kg_m3=float(med.density.ambient), image_shape=(H, W),
+    )
+
+
+def geometry_from_pair(pair) -> Geometry:
+    """The set-up stored in a pair file's attributes (older files: rebuilt from its configuration)."""
+    a = pair.attrs
+    if "volume_size_m" not in a:
+        return geometry_from_config(tomllib.loads(a["config"]))
+    return Geometry(
+        magnification=float(a["magnification"]), pixel_pitch_m=float(a["pixel_pitch_m"]), z_d_m=float(a["z_d_m"]),
+        z_stop_m=float(a["z_stop_m"]), depth_m=float(a["volume_size_m"][2]),
+        gladstone_dale_m3_per_kg=float(a["gladstone_dale_m3_per_kg"]), n0=float(a["n0"]),
+        principal_point_px=tuple(float(c) for c in a["principal_point_px"]),
+        volume_centre_m=tuple(float(c) for c in a["volume_centre_m"][:2]),
+        ambient_density_kg_m3=float(a["ambient_density_kg_m3"]), image_shape=tuple(pair.reference.shape),
+    )
+
+
+def uncertainty_px(result: MethodResult) -> np.ndarray:
+    """A per-vector displacement uncertainty (px), the weights of ``wlsq``.
+
+    Proxies, documented because neither method reports a calibrated uncertainty:
+
+    * correlation: ``SIGMA_FLOOR_PX + PEAK_RATIO_SCALE_PX / (peak_ratio - 1)``; the uncertainty grows as
+      the primary correlation peak stops standing out of the secondary one (the peak-ratio measure of
+      Charonko and Vlachos 2013);
+    * tracking: ``hypot(SIGMA_FLOOR_PX, |d_cc - d_centroid| / sqrt(2))``, the disagreement of the two
+      displacement estimates the tracker makes of the same dot (centroid difference and correlation
+      correction).
+    """
+    t = result.table
+    if get_method(result.method).kind == GRID:
+        pr = np.asarray(t["peak_ratio"], dtype=np.float64).ravel()
+        return SIGMA_FLOOR_PX + PEAK_RATIO_SCALE_PX / np.maximum(pr - 1.0, 1e-3)
+    du = np.asarray(t["u_cc"], float) - np.asarray(t["u"], float)
+    dv = np.asarray(t["v_cc"], float) - np.asarray(t["v"], float)
+    spread = np.hypot(du, dv) / np.sqrt(2.0)
+    return np.hypot(SIGMA_FLOOR_PX, np.where(np.isfinite(spread), spread, 0.0))
+
+
+@dataclass
+class GradientGrid:
+    """Density gradients on the integration grid."""
+
+    x_px: np.ndarray  # (nx,) node columns in image pixels
+    y_px: np.ndarray  # (ny,)
+    gx: np.ndarray  # (ny, nx) kg/m^4, NaN where unmeasured
+    gy: np.ndarray
+    sigma: np.ndarray  # (ny, nx) kg/m^4, uncertainty of each component
+    measured: np.ndarray  # (ny, nx) bool
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+
+    @property
+    def spacing_m(self):
+        dx = (self.x_mm[1] - self.x_mm[0]) * 1e-3 if len(self.x_mm) > 1 else 1.0
+        dy = (self.y_mm[1] - self.y_mm[0]) * 1e-3 if len(self.y_mm) > 1 else 1.0
+        return dx, dy
+
+
+def _valid_vectors(result: MethodResult):
+    uv = np.asarray(result.uv, dtype=np.float64)
+    xy = np.asarray(result.xy, dtype=np.float64)
+    ok = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(xy), axis=1)
+    if result.valid is not None:
+        ok &= np.asarray(result.valid, bool)
+    return ok
+
+
+def gradient_grid(result: MethodResult, geometry: Geometry, *, spacing_px=None) -> GradientGrid:
+    """Map a method's displacements to density gradients on a grid (see the module docstring, step 2)."""
+    if result.xy is None or len(result.xy) == 0:
+        raise SynthbosError("the result holds no vectors: nothing to integrate")
+    ok = _valid_vectors(result)
+    if not ok.any():
+        raise SynthbosError("the result holds no valid vector: nothing to integrate")
+    sigma_px = uncertainty_px(result)
+    if get_method(result.method).kind == GRID and result.grid_shape is not None and spacing_px is None:
+        ny, nx = result.grid_shape
+        x_px = result.xy[:, 0].reshape(ny, nx)[0]
+        y_px = result.xy[:, 1].reshape(ny, nx)[:, 0]
+        u = np.where(ok, result.uv[:, 0], np.nan).reshape(ny, nx)
+        v = np.where(ok, result.uv[:, 1], np.nan).reshape(ny, nx)
+        s = np.where(ok, sigma_px, np.nan).reshape(ny, nx)
+    else:
+        if ok.sum() < 3:
+            raise SynthbosError(f"the result holds {int(ok.sum())} valid vector(s); integration needs at least 3")
+        x, y = result.xy[ok, 0], result.xy[ok, 1]
+        x_px, y_px = grid_for_points(x, y, spacing=spacing_px)
+        grid = scattered_to_grid(x, y, np.stack([result.uv[ok, 0], result.uv[ok, 1], sigma_px[ok]], axis=1),
+                                 x_px, y_px)
+        u, v, s = grid[..., 0], grid[..., 1], grid[..., 2]
+    measured = np.isfinite(u) & np.isfinite(v)
+    if measured.sum() < 2:
+        raise SynthbosError("fewer than two grid nodes carry a valid vector: nothing to integrate")
+    gx, gy = geometry.gradient(u, v)
+    factor = abs(float(geometry.gradient(1.0, 0.0)[0]))
+    x_mm, _ = geometry.to_mm(x_px, np.zeros_like(x_px))
+    _, y_mm = geometry.to_mm(np.zeros_like(y_px), y_px)
+    return GradientGrid(x_px=np.asarray(x_px, float), y_px=np.asarray(y_px, float), gx=gx, gy=gy,
+                        sigma=factor * s, measured=measured, x_mm=x_mm, y_mm=y_mm)
+
+
+def _filled(values, measured):
+    """Fill unmeasured nodes: linear between measured nodes, then the nearest measured node."""
+    out = np.array(values, dtype=np.float64)
+    if measured.all():
+        return out
+    jj, ii = np.nonzero(measured)
+    if len(ii) >= 3 and np.ptp(ii) > 0 and np.ptp(jj) > 0:
+        try:
+            lin = scattered_to_grid(ii.astype(float), jj.astype(float), out[measured],
+                                    np.arange(out.shape[1], dtype=float), np.arange(out.shape[0], dtype=float))
+            out = np.where(measured, out, lin)
+        except Exception:  # a degenerate (collinear) set: nearest only
+            pass
+    have = np.isfinite(out)
+    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
+    return out[tuple(idx)]
+
+
+def border_region(measured):
+    """The outermost ring of nodes of the measured domain (measured nodes next to an unmeasured one or
+    the grid's edge)."""
+    measured = np.asarray(measured, bool)
+    return measured & ~ndimage.binary_erosion(measured, border_value=0)
+
+
+@dataclass
+class DensityMap:
+    """A reconstructed depth-averaged density on a grid at the volume's mid-plane."""
+
+    density: np.ndarray  # (ny, nx) kg/m^3, NaN where not reconstructed
+    grid: GradientGrid
+    reference_region: np.ndarray  # (ny, nx) bool
+    solver: str
+    reference: str  # how the constant was fixed, in words
+
+
+def solve_density(grid: GradientGrid, *, solver="lsq", reference_value=None, reference_region=None,
+                  dirichlet=False, ambient=None) -> DensityMap:
+    """Integrate a gradient grid with one solver and fix the constant of integration.
+
+    Parameters
+    ----------
+    grid : GradientGrid
+    solver : {"dct", "lsq", "wlsq"}
+    reference_value : float or (ny, nx) array, optional
+        The reference density (a number, or known values over the region, NaN elsewhere); default
+        ``ambient``.
+    reference_region : (ny, nx) bool array, optional
+        Where the reference holds; default: the border of the measured domain.
+    dirichlet : bool
+        Hold the region at the reference (``lsq``/``wlsq`` only) instead of matching its mean.
+    ambient : float
+        The configuration's ambient density, the default reference.
+    """
+    if solver not in SOLVERS:
+        raise SynthbosError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
+    region = border_region(grid.measured) if reference_region is None else np.asarray(reference_region, bool)
+    if not region.any():
+        raise SynthbosError("the reference region holds no node of the grid")
+    if reference_value is None:
+        if ambient is None:
+            raise SynthbosError("no reference density given and no ambient density known")
+        reference_value = float(ambient)
+        words = f"ambient density {ambient:.6g} kg/m^3"
+    else:
+        words = ("given density" if np.ndim(reference_value) == 0 else "known densities")
+    words += " over " + ("the border of the measured domain" if reference_region is None else "the given region")
+    dx, dy = grid.spacing_m
+    known = None
+    if dirichlet:
+        if solver == "dct":
+            raise SynthbosError("--dirichlet needs the lsq or wlsq solver")
+        known = np.where(region, np.broadcast_to(reference_value, region.shape), np.nan)
+        words += " (held fixed)"
+    if solver == "dct":
+        phi = poisson_dct(_filled(grid.gx, grid.measured), _filled(grid.gy, grid.measured), dx=dx, dy=dy)
+        phi = np.where(grid.measured, phi, np.nan)
+    elif solver == "lsq":
+        phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=grid.measured | np.isfinite(known)
+                            if known is not None else grid.measured, known=known)
+    else:
+        phi = weighted_lsq(grid.gx, grid.gy, grid.sigma, grid.sigma, dx=dx, dy=dy,
+                           mask=grid.measured | np.isfinite(known) if known is not None else grid.measured,
+                           known=known)
+    if known is None:
+        phi = set_reference(phi, value=reference_value, region=region)
+    return DensityMap(density=phi, grid=grid, reference_region=region, solver=solver, reference=words)
+
+
+def density_from_result(result, geometry, *, solver="lsq", spacing_px=None, **reference) -> DensityMap:
+    """Result in, density map out: :func:`gradient_grid` then :func:`solve_density`."""
+    grid = gradient_grid(result, geometry, spacing_px=spacing_px)
+    reference.setdefault("ambient", geometry.ambient_density_kg_m3)
+    return solve_density(grid, solver=solver, **reference)
+
+
+def truth_on_grid(pair, grid: GradientGrid):
+    """The pair's per-dot cone and chief-ray densities, interpolated like the dots onto the grid.
+
+    Returns (cone, chief), each (ny, nx) kg/m^3, NaN outside the valid dots' convex hull.
+    """
+    if pair.density_cone_kg_m3 is None:
+        raise SynthbosError("the pair file has no density truth (rendered before /dots/density_cone_kg_m3 existed)")
+    ok = pair.valid & np.all(np.isfinite(pair.reference_px), axis=1)
+    x, y = pair.reference_px[ok, 0], pair.reference_px[ok, 1]
+    both = scattered_to_grid(x, y, np.stack([pair.density_cone_kg_m3[ok], pair.density_chief_kg_m3[ok]], 1),
+                             grid.x_px, grid.y_px)
+    return both[..., 0], both[..., 1]
+
+
+def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry) -> None:
+    """Refuse a result and a pair that do not belong together (image size, magnification, points)."""
+    shape = result_attrs.get("image_shape")
+    if shape is not None and tuple(int(s) for s in shape) != tuple(geometry.image_shape):
+        H, W = geometry.image_shape
+        raise SynthbosError(f"the result was measured on {int(shape[1])} x {int(shape[0])} px images but the "
+                            f"pair's are {W} x {H} px: they do not belong together")
+    m = result_attrs.get("magnification")
+    if m is not None and abs(float(m) - geometry.magnification) > 1e-9 * geometry.magnification:
+        raise SynthbosError(f"the result's magnification {float(m):.6g} differs from the pair's "
+                            f"{geometry.magnification:.6g}: they do not belong together")
+    xy = np.asarray(result.xy, float)
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    H, W = geometry.image_shape
+    if len(xy) and (xy.min() < -0.5 or xy[:, 0].max() > W - 0.5 or xy[:, 1].max() > H - 0.5):
+        raise SynthbosError(f"the result's points reach beyond the pair's {W} x {H} px image: "
+                            "they do not belong together")
+
+
+def write_density(path, dmap: DensityMap, *, truths=None, summary=None, attrs=None) -> Path:
+    """Write the density file atomically (layout in the module docstring)."""
+    path = Path(path)
+    g = dmap.grid
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        def put(name, data, units, description):
+            ds = f.create_dataset(name, data=data)
+            ds.attrs["units"] = units
+            ds.attrs["description"] = description
+
+        put("density_kg_m3", dmap.density, "kg/m^3",
+            f"depth-averaged density at the volume's mid-plane, solver {dmap.solver}; NaN where not reconstructed")
+        put("x_mm", g.x_mm, "mm", "node x in the volume's frame (centred on its mid-point), at its mid-plane")
+        put("y_mm", g.y_mm, "mm", "node y in the volume's frame (centred on its mid-point), at its mid-plane")
+        put("x_px", g.x_px, "px", "node x in the image (column)")
+        put("y_px", g.y_px, "px", "node y in the image (row)")
+        put("measured", g.measured, "1", "nodes that carry a measured vector")
+        put("reference_region", dmap.reference_region, "1", "nodes where the reference density fixed the constant")
+        if truths is not None:
+            cone, chief = truths
+            put("truth_cone_kg_m3", cone, "kg/m^3",
+                "true depth-averaged density averaged over each dot's cone of rays, interpolated from the dots")
+            put("truth_chief_kg_m3", chief, "kg/m^3",
+                "true depth-averaged density along each dot's chief ray, interpolated from the dots")
+        f.attrs["solver"] = dmap.solver
+        f.attrs["reference"] = dmap.reference
+        for key, value in (summary or {}).items():
+            f.attrs[key] = value
+        for key, value in (attrs or {}).items():
+            f.attrs[key] = value
+    return path
+
+
+def density_summary(dmap: DensityMap, truths) -> dict:
+    """Error summary against both truths, as flat ``{truth}_{stat}`` entries (see ``scoring.density_errors``)."""
+    out = {}
+    for name, truth in zip(("cone", "chief"), truths, strict=True):
+        stats = scoring.density_errors(dmap.density, truth, region=dmap.reference_region)
+        out.update({f"{name}_{k}": v for k, v in stats.items()})
+    return out
+
+
+def _region_mm(grid: GradientGrid, box):
+    x0, x1, y0, y1 = box
+    X, Y = np.meshgrid(grid.x_mm, grid.y_mm)
+    return (X >= min(x0, x1)) & (X <= max(x0, x1)) & (Y >= min(y0, y1)) & (Y <= max(y0, y1))
+
+
+def mask_grid(grid: GradientGrid, masked) -> GradientGrid:
+    """Remove the nodes ``masked`` (an object, a region known to be bad) from the measured domain."""
+    keep = grid.measured & ~np.asarray(masked, bool)
+    if keep.sum() < 2:
+        raise SynthbosError("the mask covers every measured node: nothing to integrate")
+    grid.measured = keep
+    grid.gx = np.where(keep, grid.gx, np.nan)
+    grid.gy = np.where(keep, grid.gy, np.nan)
+    return grid
+
+
+def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq", spacing_px=None,
+                   reference_density=None, reference_region_mm=None, dirichlet=False, mask_region_mm=None) -> dict:
+    """The work of ``synthbos integrate``: read, integrate, (score,) write; return the summary."""
+    from .process import read_result
+
+    result, rattrs = read_result(result_path)
+    pair = None
+    if pair_path is not None:
+        from synthbos.raytrace import read_pair
+
+        pair = read_pair(pair_path)
+        geometry = geometry_from_pair(pair)
+        check_belongs(rattrs, result, geometry)
+    else:
+        geometry = geometry_from_config(config)
+    grid = gradient_grid(result, geometry, spacing_px=spacing_px)
+    if mask_region_mm is not None:
+        grid = mask_grid(grid, _region_mm(grid, mask_region_mm))
+    region = None
+    if reference_region_mm is not None:
+        x0, x1, y0, y1 = reference_region_mm
+        region = _region_mm(grid, reference_region_mm)
+        if not (region & grid.measured).any():
+            raise SynthbosError(f"the reference region x {x0:g}..{x1:g} mm, y {y0:g}..{y1:g} mm holds no measured node")
+    dmap = solve_density(grid, solver=solver, reference_value=reference_density, reference_region=region,
+                         dirichlet=dirichlet, ambient=geometry.ambient_density_kg_m3)
+    truths = truth_on_grid(pair, grid) if pair is not None else None
+    summary = density_summary(dmap, truths) if truths is not None else {}
+    attrs = {"method": result.method, "input": str(result_path), "geometry": json.dumps(asdict(geometry))}
+    if pair_path is not None:
+        attrs["pair"] = str(pair_path)
+    write_density(out, dmap, truths=truths, summary=summary, attrs=attrs)
+    return {"density": dmap, "summary": summary}
