@@ -13,7 +13,7 @@ from pathlib import Path
 
 from synthbos.raytrace import load_config
 
-from .figures import figure4, figure5
+from .figures import figure4, figure5, figure_density
 from .items import render_item, score_item
 from .registry import get_method
 from .scheduling import default_workers, run_items
@@ -60,4 +60,5 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     if figures:
         figure4(spec, folder, folder / "fig4")
         figure5(spec, folder, folder / "fig5")
+        figure_density(spec, folder, folder / "fig_density")
     return rows

@@ -142,7 +142,7 @@ def _paper(args):
     rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
+          f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
     return 0
 
 

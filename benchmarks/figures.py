@@ -18,10 +18,10 @@ from synthbos import atomic_output
 
 from . import scoring
 from .registry import METHODS
-from .storage import load_scores, pair_path
+from .storage import DENSITY_TRUTHS, load_density_map, load_scores, pair_path
 from .tables import split_masks
 
-__all__ = ["FORMATS", "figure4", "figure5", "method_style", "save_figure", "sweep_figure"]
+__all__ = ["FORMATS", "figure4", "figure5", "figure_density", "method_style", "save_figure", "sweep_figure"]
 
 FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
 
@@ -55,11 +55,12 @@ _save = save_figure
 
 
 def figure4(spec, folder, path):
-    """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4) and ray-traced
-    displacement magnitude (contours), from the first pair of the snapshot."""
+    """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4 along the chief ray),
+    cone-averaged theoretical (Eq. 4 averaged over each dot's traced rays) and ray-traced displacement
+    magnitude (contours), from the first pair of the snapshot."""
     folder = Path(folder)
     snaps = list(spec.snapshots)
-    fig, axes = plt.subplots(len(snaps), 4, figsize=(13, 3.0 * len(snaps)), squeeze=False)
+    fig, axes = plt.subplots(len(snaps), 5, figsize=(16, 3.0 * len(snaps)), squeeze=False)
     for row, s in enumerate(snaps):
         pair = read_pair(pair_path(folder, s, 0))
         cfg = load_config(tomllib.loads(pair.attrs["config"]))
@@ -78,8 +79,13 @@ def figure4(spec, folder, path):
         xy = pair.reference_px[ok]
         th = np.hypot(*pair.theory_px[ok].T)
         rt = np.hypot(*pair.displacement_px[ok].T)
+        cone = np.hypot(*pair.theory_cone_px[ok].T) if pair.theory_cone_px is not None else np.full_like(rt, np.nan)
         levels = np.linspace(0, max(th.max(), rt.max(), 1e-9), 12)
-        for k, (vals, title) in enumerate(((th, "theory, Eq. 4"), (rt, "ray-traced")), start=2):
+        panels = ((th, "Eq. 4, chief ray"), (cone, "Eq. 4, mean over the ray cone"), (rt, "ray-traced"))
+        for k, (vals, title) in enumerate(panels, start=2):
+            if not np.isfinite(vals).all():
+                ax[k].text(0.5, 0.5, "not in this pair file", ha="center", va="center", transform=ax[k].transAxes)
+                continue
             cs = ax[k].tricontourf(xy[:, 0], xy[:, 1], vals, levels=levels, cmap="cividis")
             ax[k].set_xlim(0, pair.reference.shape[1])
             ax[k].set_ylim(pair.reference.shape[0], 0)
@@ -138,6 +144,62 @@ def figure5(spec, folder, path):
     labels.append("Cramér-Rao bound (displacement)")
     fig.legend(handles, labels, loc="upper center", ncol=len(labels), bbox_to_anchor=(0.5, 1.02))
     fig.tight_layout(rect=(0, 0, 1, 0.97))
+    _save(fig, path)
+
+
+def figure_density(spec, folder, path):
+    """True and reconstructed depth-averaged density per method, with the error CDFs.
+
+    One row per method. Maps from the first pair of the first snapshot at the lowest noise level: the
+    cone truth, the reconstruction (integrated by ``integrate.DENSITY_SOLVER``, the constant from the
+    truth over the measured domain's border) and their difference. Then the CDFs of the absolute
+    density error relative to the truth's range, over all pairs, against the cone truth and against the
+    chief-ray truth, one line per noise level.
+    """
+    folder = Path(folder)
+    methods, noises = list(spec.methods), list(spec.noise_percent)
+    s0, n0 = spec.snapshots[0], min(noises)
+    fig, axes = plt.subplots(len(methods), 5, figsize=(19, 3.3 * len(methods)), squeeze=False)
+    widths = np.linspace(2.2, 0.8, len(noises))
+    for r, method in enumerate(methods):
+        ax = axes[r]
+        style = method_style(method)
+        maps = load_density_map(folder, s0, 0, n0, method)
+        if maps is not None:
+            x, y = maps["density_x_mm"], maps["density_y_mm"]
+            ext = (x[0], x[-1], y[-1], y[0])
+            truth, rec = maps["density_truth_cone"], maps["density_map"]
+            lo, hi = np.nanmin(truth), np.nanmax(truth)
+            for k, (field, title) in enumerate(((truth, "true (cone) density"), (rec, "reconstructed"))):
+                im = ax[k].imshow(field, extent=ext, vmin=lo, vmax=hi, cmap="viridis", interpolation="nearest")
+                fig.colorbar(im, ax=ax[k], label="ρ (kg/m³)")
+                ax[k].set_title(f"{style['label']}: {title}", fontsize=9)
+            diff = rec - truth
+            lim = max(float(np.nanmax(np.abs(diff))) if np.isfinite(diff).any() else 0.0, 1e-12)
+            im = ax[2].imshow(diff, extent=ext, vmin=-lim, vmax=lim, cmap="RdBu_r", interpolation="nearest")
+            fig.colorbar(im, ax=ax[2], label="Δρ (kg/m³)")
+            ax[2].set_title(f"reconstructed − true, snapshot {s0}, noise {n0:g}%", fontsize=9)
+            for a in ax[:3]:
+                a.set_xlabel("x (mm)")
+                a.set_ylabel("y (mm)")
+        for c, truth in enumerate(DENSITY_TRUTHS, start=3):
+            for k, noise in enumerate(noises):
+                sc = load_scores(spec, folder, method, noise)
+                e = sc[f"density_{truth}_rel"]
+                xs, ys = scoring.empirical_cdf(e)
+                ax[c].step(np.maximum(xs, 1e-6), ys, where="post", color=style.get("color"), ls=style.get("ls"),
+                           lw=widths[k], alpha=1.0 - 0.6 * k / max(len(noises) - 1, 1),
+                           label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})")
+            ax[c].set_xscale("log")
+            ax[c].set_xlim(1e-5, 1)
+            ax[c].grid(True, which="both", alpha=0.3)
+            ax[c].set_xlabel("|density error| / density range")
+            ax[c].set_ylabel("CDF")
+            what = "cone of rays" if truth == "cone" else "chief ray"
+            ax[c].set_title(f"{method}: error vs the {what} truth", fontsize=9)
+            ax[c].legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"Campaign '{spec.name}': density from each method's displacements (least squares)", y=1.0)
+    fig.tight_layout()
     _save(fig, path)
 
 

@@ -70,6 +70,7 @@ __all__ = [
     "geometry_from_config",
     "geometry_from_pair",
     "gradient_grid",
+    "score_density",
     "solve_density",
     "truth_on_grid",
     "uncertainty_px",
@@ -340,6 +341,44 @@ def truth_on_grid(pair, grid: GradientGrid):
     both = scattered_to_grid(x, y, np.stack([pair.density_cone_kg_m3[ok], pair.density_chief_kg_m3[ok]], 1),
                              grid.x_px, grid.y_px)
     return both[..., 0], both[..., 1]
+
+
+DENSITY_SOLVER = "lsq"  # the solver campaigns score every method with
+
+
+def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
+    """A campaign item's density scores: integrate one method's result and compare with both truths.
+
+    The constant of integration comes from the known density over the border of the measured domain
+    (the cone truth there), so the scores measure the integration of the measured gradients, not a
+    guess of the ambient density. Returns arrays for the item's score file: ``density_error_cone`` and
+    ``density_error_chief`` (signed errors at the scored nodes, kg/m^3), ``density_range_cone`` and
+    ``density_range_chief`` (the truths' ranges) and, for the figure, the maps ``density_map``,
+    ``density_truth_cone``, ``density_truth_chief`` with ``density_x_mm``, ``density_y_mm``. Empty
+    arrays when the pair has no density truth or nothing could be integrated.
+    """
+    empty = {k: np.zeros(0) for k in ("density_error_cone", "density_error_chief", "density_map",
+                                      "density_truth_cone", "density_truth_chief", "density_x_mm", "density_y_mm")}
+    empty.update(density_range_cone=np.float64(np.nan), density_range_chief=np.float64(np.nan))
+    if pair.density_cone_kg_m3 is None:
+        return empty
+    try:
+        grid = gradient_grid(result, geometry_from_pair(pair))
+        cone, chief = truth_on_grid(pair, grid)
+        region = border_region(grid.measured & np.isfinite(cone))
+        dmap = solve_density(grid, solver=solver, reference_value=np.where(region, cone, np.nan),
+                             reference_region=region)
+    except SynthbosError:
+        return empty
+    ok = np.isfinite(dmap.density) & np.isfinite(cone) & np.isfinite(chief)
+    return {
+        "density_error_cone": (dmap.density - cone)[ok],
+        "density_error_chief": (dmap.density - chief)[ok],
+        "density_range_cone": np.float64(np.ptp(cone[ok])) if ok.any() else np.float64(np.nan),
+        "density_range_chief": np.float64(np.ptp(chief[ok])) if ok.any() else np.float64(np.nan),
+        "density_map": dmap.density, "density_truth_cone": cone, "density_truth_chief": chief,
+        "density_x_mm": grid.x_mm, "density_y_mm": grid.y_mm,
+    }
 
 
 def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry) -> None:

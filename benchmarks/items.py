@@ -12,6 +12,7 @@ from synthbos.raytrace import add_noise, load_config, read_pair, render_pair, wr
 from synthbos.raytrace.camera import camera_from_config
 
 from . import scoring
+from .integrate import score_density
 from .registry import GRID, get_method
 from .storage import save_scores
 
@@ -39,7 +40,8 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
         ``error`` (displacement error magnitude at each scored point, px), ``true_mag`` (true
         displacement magnitude there, for the threshold split), ``grad_error`` (Frobenius norm of the
         displacement-gradient error), ``threshold`` (half the std of Eq. 4's displacement magnitudes),
-        ``measured`` / ``expected`` (for the yield).
+        ``measured`` / ``expected`` (for the yield); and the density errors of the method's result
+        integrated by ``integrate.DENSITY_SOLVER`` against both truths (``integrate.score_density``).
     """
     m = get_method(method)
     peak = float(pair.attrs.get("peak_intensity", 1.0)) if peak is None else peak
@@ -67,7 +69,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
         g_true = scoring.scattered_gradient(at, truth)
     err = scoring.vector_errors(res.uv, truth)
     grad_err = np.sqrt(np.sum((g_meas - g_true) ** 2, axis=(1, 2)))
-    return {
+    return score_density(pair, res) | {
         "error": np.where(measured, err, np.nan)[keep],
         "true_mag": np.hypot(truth[:, 0], truth[:, 1])[keep],
         "grad_error": np.where(measured, grad_err, np.nan)[keep],

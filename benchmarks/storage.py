@@ -6,7 +6,7 @@
     pairs/s{S}_p{P}.h5                     one noise-free rendered pair per snapshot S and pair P
     scores/s{S}_p{P}_n{N}_{method}.npz     the errors of one method on one pair at noise level N %
     results.csv, results.json              the summary table, made from the scores at the end
-    fig4.*, fig5.*                         the figures, made from the pairs and scores
+    fig4.*, fig5.*, fig_density.*          the figures, made from the pairs and scores
 
 Figures and tables read results through this module, never through the campaign runner.
 """
@@ -20,7 +20,10 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_output
 
-__all__ = ["check_folder", "load_scores", "pair_path", "save_scores", "score_path", "write_tables"]
+__all__ = ["DENSITY_TRUTHS", "check_folder", "load_density_map", "load_scores", "pair_path", "save_scores",
+           "score_path", "write_tables"]
+
+DENSITY_TRUTHS = ("cone", "chief")  # the renderer's two density truths: each dot's cone of rays, its chief ray
 
 
 def pair_path(folder, snapshot: int, pair: int) -> Path:
@@ -62,9 +65,16 @@ def save_scores(path, scores: dict) -> None:
 def load_scores(spec, folder, method: str, noise: float) -> dict:
     """Concatenate the scores of one method and noise level over all pairs of a campaign."""
     parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "measured": 0, "expected": 0}
+    for truth in DENSITY_TRUTHS:
+        parts[f"density_{truth}"], parts[f"density_{truth}_rel"] = [], []
     for s, p in spec.pair_keys():
         with np.load(score_path(folder, s, p, noise, method)) as z:
             n = len(z["error"])
+            for truth in DENSITY_TRUTHS:  # |error| in kg/m^3 and relative to the pair's truth range
+                e = np.abs(z[f"density_error_{truth}"]) if f"density_error_{truth}" in z else np.zeros(0)
+                rng = float(z[f"density_range_{truth}"]) if f"density_range_{truth}" in z else np.nan
+                parts[f"density_{truth}"].append(e)
+                parts[f"density_{truth}_rel"].append(e / rng if rng > 0 else np.full(len(e), np.nan))
             parts["error"].append(z["error"])
             parts["true_mag"].append(z["true_mag"])
             parts["grad_error"].append(z["grad_error"])
@@ -72,6 +82,18 @@ def load_scores(spec, folder, method: str, noise: float) -> dict:
             parts["measured"] += int(z["measured"])
             parts["expected"] += int(z["expected"])
     return {k: (np.concatenate(v) if isinstance(v, list) else v) for k, v in parts.items()}
+
+
+def load_density_map(folder, snapshot: int, pair: int, noise: float, method: str) -> dict | None:
+    """The density maps one item stored (reconstruction, both truths, grid in mm); None if it has none."""
+    path = score_path(folder, snapshot, pair, noise, method)
+    if not path.exists():
+        return None
+    with np.load(path) as z:
+        if "density_map" not in z or z["density_map"].size == 0:
+            return None
+        return {k: z[k] for k in ("density_map", "density_truth_cone", "density_truth_chief", "density_x_mm",
+                                  "density_y_mm")}
 
 
 def write_tables(rows: list[dict], folder, *, stem: str = "results") -> None:

@@ -5,12 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from . import scoring
-from .storage import load_scores
+from .storage import DENSITY_TRUTHS, load_scores
 
-__all__ = ["QUANTITIES", "SPLITS", "format_summary", "split_masks", "summarise"]
+__all__ = ["DENSITY_QUANTITIES", "QUANTITIES", "SPLITS", "format_summary", "split_masks", "summarise"]
 
 SPLITS = ("all", "below", "above")
 QUANTITIES = ("displacement", "gradient")
+# Density errors (split "all" only): kg/m^3, and relative to the truth's range (``_rel``).
+DENSITY_QUANTITIES = tuple(q for t in DENSITY_TRUTHS for q in (f"density_{t}", f"density_{t}_rel"))
 
 
 def split_masks(scores: dict) -> dict:
@@ -20,7 +22,12 @@ def split_masks(scores: dict) -> dict:
 
 
 def summarise(spec, folder) -> list[dict]:
-    """One row per method, noise level, split and quantity: error percentiles (px) and yield."""
+    """One row per method, noise level, split and quantity: error percentiles and RMS, and yield.
+
+    Displacement errors in px, gradient errors in px/px (three splits each); density errors after
+    integration (split ``all``): ``density_cone`` / ``density_chief`` in kg/m^3 against the cone and
+    chief-ray truths, ``density_cone_rel`` / ``density_chief_rel`` relative to the truth's range.
+    """
     rows = []
     for noise in spec.noise_percent:
         for method in spec.methods:
@@ -31,23 +38,34 @@ def summarise(spec, folder) -> list[dict]:
                 errors = sc["error"] if quantity == "displacement" else sc["grad_error"]
                 for split in SPLITS:
                     e = errors[masks[split]]
-                    row = {"method": method, "noise_percent": noise, "split": split, "quantity": quantity,
-                           "n": int(np.isfinite(e).sum()), "yield": float(yield_)}
-                    row.update({f"p{k}": v for k, v in scoring.error_percentiles(e).items()})
-                    rows.append(row)
+                    rows.append(_row(method, noise, split, quantity, e, yield_))
+            for quantity in DENSITY_QUANTITIES:
+                rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_))
     return rows
+
+
+def _row(method, noise, split, quantity, e, yield_):
+    e = np.asarray(e, dtype=np.float64)
+    fin = e[np.isfinite(e)]
+    row = {"method": method, "noise_percent": noise, "split": split, "quantity": quantity,
+           "n": len(fin), "yield": float(yield_)}
+    row.update({f"p{k}": v for k, v in scoring.error_percentiles(e).items()})
+    row["rms"] = float(np.sqrt(np.mean(fin**2))) if len(fin) else float("nan")
+    return row
 
 
 def format_summary(rows: list[dict]) -> str:
     """Short terminal table: displacement error p50 / p90 over all points, and yield."""
     lines = [f"{'method':<13} {'noise %':>7} {'p50 px':>9} {'p90 px':>9} {'p90 below':>10} {'p90 above':>10} "
-             f"{'yield':>7}"]
+             f"{'yield':>7} {'rho rms % cone':>14} {'rho rms % chief':>15}"]
     by = {(r["method"], r["noise_percent"], r["split"], r["quantity"]): r for r in rows}
     for (method, noise, split, quantity), r in by.items():
         if split != "all" or quantity != "displacement":
             continue
         lo = by[(method, noise, "below", "displacement")]["p90"]
         hi = by[(method, noise, "above", "displacement")]["p90"]
+        rc = by.get((method, noise, "all", "density_cone_rel"), {}).get("rms", float("nan"))
+        rh = by.get((method, noise, "all", "density_chief_rel"), {}).get("rms", float("nan"))
         lines.append(f"{method:<13} {noise:>7g} {r['p50']:>9.4f} {r['p90']:>9.4f} {lo:>10.4f} {hi:>10.4f} "
-                     f"{r['yield']:>7.3f}")
+                     f"{r['yield']:>7.3f} {100 * rc:>14.2f} {100 * rh:>15.2f}")
     return "\n".join(lines)

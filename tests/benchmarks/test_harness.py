@@ -23,8 +23,11 @@ TINY = replace(REGRESS, name="tiny", snapshots=(2,), noise_percent=(0.0, 3.0), c
 def test_campaign_is_resumable_and_deterministic(tmp_path):
     rows = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=False, figures=False)
     assert {r["method"] for r in rows} == {"correlation", "tracking", "tracking-cc"}
-    assert len(rows) == 3 * 2 * 3 * 2  # methods x noise levels x splits x quantities
+    # methods x noise levels x (splits x displacement/gradient + 4 density quantities)
+    assert len(rows) == 3 * 2 * (3 * 2 + 4)
     assert all(r["n"] > 0 for r in rows if r["split"] == "all")
+    dens = [r for r in rows if r["quantity"] == "density_cone_rel"]
+    assert len(dens) == 6 and all(0 < r["rms"] < 0.2 for r in dens)
     scores = sorted((tmp_path / "c" / "scores").iterdir())
     assert len(scores) == 3 * 2
     # A re-run skips finished work: nothing is rewritten.
