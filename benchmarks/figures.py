@@ -204,13 +204,14 @@ def figure_density(spec, folder, path):
 
 
 def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
-    """Error percentiles (displacement, all points) and yield against the swept parameter."""
+    """Error percentiles (displacement, all points), yield, and the RMS density error relative to the
+    density range (against the cone truth) against the swept parameter."""
     order = list(METHODS)
     methods = sorted({r["method"] for r in rows},
                      key=lambda m: (m not in order, order.index(m) if m in order else 0, m))
     noises = sorted({r["noise_percent"] for r in rows})
     second = sorted({r.get("param2_value") for r in rows}, key=lambda v: (v is None, v))
-    fig, axes = plt.subplots(len(noises), len(percentiles) + 1, figsize=(4.3 * (len(percentiles) + 1),
+    fig, axes = plt.subplots(len(noises), len(percentiles) + 2, figsize=(4.3 * (len(percentiles) + 2),
                              3.0 * len(noises)), squeeze=False)
     linestyles = ["-", "--", ":", "-."]
     for r, noise in enumerate(noises):
@@ -227,13 +228,20 @@ def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
                       "marker": METHODS[method].marker if method in METHODS else "o", "label": lab}
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
-                axes[r, -1].plot(xs, [x["yield"] for x in sel], **kw)
+                axes[r, -2].plot(xs, [x["yield"] for x in sel], **kw)
+                dens = [x for x in rows if x["method"] == method and x["noise_percent"] == noise
+                        and x.get("param2_value") == val2 and x["quantity"] == "density_cone_rel"]
+                dens.sort(key=lambda x: x["param_value"])
+                axes[r, -1].plot([x["param_value"] for x in dens], [x.get("rms", np.nan) for x in dens], **kw)
         for c, p in enumerate(percentiles):
             axes[r, c].set_yscale("log")
             axes[r, c].set_ylabel(f"{p}th percentile error (px)")
             axes[r, c].set_title(f"noise {noise:g}%", fontsize=9)
-        axes[r, -1].set_ylabel("yield")
-        axes[r, -1].set_title(f"noise {noise:g}%", fontsize=9)
+        axes[r, -2].set_ylabel("yield")
+        axes[r, -2].set_title(f"noise {noise:g}%", fontsize=9)
+        axes[r, -1].set_yscale("log")
+        axes[r, -1].set_ylabel("density rms error / range (cone truth)")
+        axes[r, -1].set_title(f"noise {noise:g}%: density", fontsize=9)
         for ax in axes[r]:
             ax.set_xlabel(param)
             ax.grid(True, alpha=0.3)

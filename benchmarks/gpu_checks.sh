@@ -30,7 +30,7 @@ else
     --out "$work/sweep-fnumber" > "$work/sweep.log" 2>&1
   tail -3 "$work/sweep.log"
   mkdir -p "$work/keep"
-  cp "$work"/paper-full/{results.csv,results.json,fig4.png,fig5.png,campaign.json} "$work/keep/" 2>/dev/null
+  cp "$work"/paper-full/{results.csv,results.json,fig4.png,fig5.png,fig_density.png,campaign.json} "$work/keep/" 2>/dev/null
   cp "$work"/sweep-fnumber/{sweep.csv,sweep.json,sweep.png} "$work/keep/" 2>/dev/null
 fi
 tar -czf "$out/gpu-$part.tar.gz" -C "$work" --exclude=paper-full --exclude=sweep-fnumber .
