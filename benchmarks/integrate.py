@@ -307,16 +307,14 @@ def solve_density(grid: GradientGrid, *, solver="lsq", reference_value=None, ref
             raise SynthbosError("--dirichlet needs the lsq or wlsq solver")
         known = np.where(region, np.broadcast_to(reference_value, region.shape), np.nan)
         words += " (held fixed)"
+    domain = grid.measured if known is None else grid.measured | np.isfinite(known)
     if solver == "dct":
         phi = poisson_dct(_filled(grid.gx, grid.measured), _filled(grid.gy, grid.measured), dx=dx, dy=dy)
         phi = np.where(grid.measured, phi, np.nan)
     elif solver == "lsq":
-        phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=grid.measured | np.isfinite(known)
-                            if known is not None else grid.measured, known=known)
+        phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=domain, known=known)
     else:
-        phi = weighted_lsq(grid.gx, grid.gy, grid.sigma, grid.sigma, dx=dx, dy=dy,
-                           mask=grid.measured | np.isfinite(known) if known is not None else grid.measured,
-                           known=known)
+        phi = weighted_lsq(grid.gx, grid.gy, grid.sigma, grid.sigma, dx=dx, dy=dy, mask=domain, known=known)
     if known is None:
         phi = set_reference(phi, value=reference_value, region=region)
     return DensityMap(density=phi, grid=grid, reference_region=region, solver=solver, reference=words)
@@ -381,22 +379,23 @@ def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
     }
 
 
-def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry) -> None:
-    """Refuse a result and a pair that do not belong together (image size, magnification, points)."""
+def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry, *, what="pair") -> None:
+    """Refuse a result and a pair (or set-up) that do not belong together: image size, magnification,
+    points beyond the image."""
     shape = result_attrs.get("image_shape")
     if shape is not None and tuple(int(s) for s in shape) != tuple(geometry.image_shape):
         H, W = geometry.image_shape
         raise SynthbosError(f"the result was measured on {int(shape[1])} x {int(shape[0])} px images but the "
-                            f"pair's are {W} x {H} px: they do not belong together")
+                            f"{what}'s are {W} x {H} px: they do not belong together")
     m = result_attrs.get("magnification")
     if m is not None and abs(float(m) - geometry.magnification) > 1e-9 * geometry.magnification:
-        raise SynthbosError(f"the result's magnification {float(m):.6g} differs from the pair's "
+        raise SynthbosError(f"the result's magnification {float(m):.6g} differs from the {what}'s "
                             f"{geometry.magnification:.6g}: they do not belong together")
     xy = np.asarray(result.xy, float)
     xy = xy[np.all(np.isfinite(xy), axis=1)]
     H, W = geometry.image_shape
     if len(xy) and (xy.min() < -0.5 or xy[:, 0].max() > W - 0.5 or xy[:, 1].max() > H - 0.5):
-        raise SynthbosError(f"the result's points reach beyond the pair's {W} x {H} px image: "
+        raise SynthbosError(f"the result's points reach beyond the {what}'s {W} x {H} px image: "
                             "they do not belong together")
 
 
@@ -474,6 +473,7 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
         check_belongs(rattrs, result, geometry)
     else:
         geometry = geometry_from_config(config)
+        check_belongs({k: v for k, v in rattrs.items() if k == "image_shape"}, result, geometry, what="set-up")
     grid = gradient_grid(result, geometry, spacing_px=spacing_px)
     if mask_region_mm is not None:
         grid = mask_grid(grid, _region_mm(grid, mask_region_mm))

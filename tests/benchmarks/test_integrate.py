@@ -146,6 +146,12 @@ def test_bad_inputs_one_line_and_nothing_written(blob, tmp_path, capsys):
     assert main(["integrate", str(tmp_path / "mag.h5"), "--pair", pair_file, "-o", str(out)]) == 2
     assert "magnification" in _error_line(capsys)
 
+    # ... or a set-up (configuration) with another image size.
+    cfg = tmp_path / "setup.toml"
+    cfg.write_text("[camera]\npixels = [128, 128]\n")
+    assert main(["integrate", str(blob / "correlation.h5"), "--config", str(cfg), "-o", str(out)]) == 2
+    assert "set-up's are 128 x 128 px" in _error_line(capsys)
+
     # A bad option value and a missing file.
     assert main(["integrate", str(blob / "correlation.h5"), "--reference-region", "1,2", "-o", str(out)]) == 2
     _error_line(capsys)
