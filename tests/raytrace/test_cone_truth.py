@@ -98,3 +98,19 @@ def test_pair_file_stores_the_cone_truth(tmp_path):
         assert "cone" in f["dots/theory_cone_px"].attrs["description"]
         assert_allclose(f.attrs["volume_size_m"], [0.032, 0.032, 0.01])
         assert f.attrs["ambient_density_kg_m3"] == pytest.approx(1.225)
+
+
+@pytest.mark.gpu
+def test_cone_truth_cpu_and_cuda_agree():
+    wp.init()
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device visible to Warp")
+    plan = plan_render(small_config(volume={"source": "slice", "snapshot": 2}, rays={"per_dot": 300}))
+    (c_cpu, r_cpu), (c_gpu, r_gpu) = cone_truth(plan, device="cpu"), cone_truth(plan, device="cuda:0")
+    (h_cpu, q_cpu), (h_gpu, q_gpu) = chief_ray_truth(plan, device="cpu"), chief_ray_truth(plan, device="cuda:0")
+    print(f"\ncone truth CPU vs CUDA: max |theory_cone difference| {np.abs(c_cpu - c_gpu).max():.2e} px, "
+          f"density {np.abs(r_cpu - r_gpu).max():.2e} kg/m^3")
+    assert_allclose(c_gpu, c_cpu, atol=1e-5 * np.abs(c_cpu).max())
+    assert_allclose(r_gpu, r_cpu, rtol=1e-6)
+    assert_allclose(h_gpu, h_cpu, atol=1e-5 * np.abs(h_cpu).max())
+    assert_allclose(q_gpu, q_cpu, rtol=1e-6)
