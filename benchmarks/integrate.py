@@ -312,9 +312,10 @@ def solve_density(grid: GradientGrid, *, solver="lsq", reference_value=None, ref
         phi = poisson_dct(_filled(grid.gx, grid.measured), _filled(grid.gy, grid.measured), dx=dx, dy=dy)
         phi = np.where(grid.measured, phi, np.nan)
     elif solver == "lsq":
-        phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=domain, known=known)
+        phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=domain, known=known, unreferenced="nan")
     else:
-        phi = weighted_lsq(grid.gx, grid.gy, grid.sigma, grid.sigma, dx=dx, dy=dy, mask=domain, known=known)
+        phi = weighted_lsq(grid.gx, grid.gy, grid.sigma, grid.sigma, dx=dx, dy=dy, mask=domain, known=known,
+                           unreferenced="nan")
     if known is None:
         phi = set_reference(phi, value=reference_value, region=region)
     return DensityMap(density=phi, grid=grid, reference_region=region, solver=solver, reference=words)

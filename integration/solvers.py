@@ -140,7 +140,7 @@ def poisson_dct(gx, gy, *, dx, dy):
     return fft.idctn(p, type=2, norm="ortho")
 
 
-def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_y=None):
+def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_y=None, unreferenced="mean"):
     """Integrate a gradient field by sparse least squares on a masked grid, with known values.
 
     Parameters
@@ -156,6 +156,9 @@ def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_
     sigma_x, sigma_y : (ny, nx) array_like, optional
         Standard uncertainties of ``gx`` and ``gy``; each increment is then weighted by the inverse of
         its propagated variance (see :func:`weighted_lsq`). Default: all increments weigh 1.
+    unreferenced : {"mean", "nan"}
+        What a connected part of the domain without a known node gets: zero mean, or NaN (its level
+        cannot be known).
 
     Returns
     -------
@@ -232,11 +235,11 @@ def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_
     for part in free_parts:
         sel = labels == part
         sel &= inside
-        phi[sel] -= phi[sel].mean()
+        phi[sel] = np.nan if unreferenced == "nan" and fixed.any() else phi[sel] - phi[sel].mean()
     return phi.reshape(ny, nx)
 
 
-def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None):
+def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None, unreferenced="mean"):
     """Uncertainty-weighted least-squares integration (Rajendran, Bane and Vlachos 2020).
 
     Parameters
@@ -246,7 +249,7 @@ def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None):
     sigma_x, sigma_y : (ny, nx) array_like
         Standard uncertainty of each gradient component, in its units (a displacement uncertainty in
         px times the factor of ``integration.displacement_to_density_gradient``).
-    dx, dy, mask, known
+    dx, dy, mask, known, unreferenced
         As in :func:`lsq_integrate`.
 
     Returns
@@ -262,7 +265,8 @@ def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None):
     """
     if sigma_x is None or sigma_y is None:
         raise SynthbosError("weighted_lsq needs the uncertainties of both gradient components")
-    return lsq_integrate(gx, gy, dx=dx, dy=dy, mask=mask, known=known, sigma_x=sigma_x, sigma_y=sigma_y)
+    return lsq_integrate(gx, gy, dx=dx, dy=dy, mask=mask, known=known, sigma_x=sigma_x, sigma_y=sigma_y,
+                         unreferenced=unreferenced)
 
 
 def set_reference(phi, *, value, region=None):

@@ -94,6 +94,15 @@ def test_cli_without_pair_uses_a_configuration(blob, tmp_path):
             rho = f["density_kg_m3"][()]
             assert_allclose(np.nanmean(rho), 1.2, rtol=1e-12)
             assert "truth_cone_kg_m3" not in f
+    # Dirichlet: the border of the measured domain held at the given density.
+    out = tmp_path / "d_dirichlet.h5"
+    assert main(["integrate", str(blob / "correlation.h5"), "--config", str(cfg), "--dirichlet",
+                 "--reference-density", "1.21", "-o", str(out)]) == 0
+    with h5py.File(out) as f:
+        rho, border = f["density_kg_m3"][()], f["reference_region"][()]
+        assert_allclose(rho[border], 1.21, rtol=1e-12)
+        assert np.isfinite(rho[f["measured"][()]]).all()
+        assert "held fixed" in f.attrs["reference"]
 
 
 def _error_line(capsys):

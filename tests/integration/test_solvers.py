@@ -105,6 +105,14 @@ def test_masked_domain_and_islands():
         err = phi[part] - rho[part]
         assert np.sqrt(np.mean((err - err.mean()) ** 2)) / np.ptp(rho) < 1e-3
         assert abs(phi[part].mean()) < 1e-12  # each island without a known node has zero mean
+    # With a known node in the left island only, the right one cannot be levelled: NaN on request.
+    known = np.full(rho.shape, np.nan)
+    j, i = np.argwhere(mask & (cols < 50))[0]
+    known[j, i] = rho[j, i]
+    phi = lsq_integrate(gx, gy, dx=DX, dy=DY, mask=mask, known=known, unreferenced="nan")
+    left = mask & (cols < 50)
+    assert np.isnan(phi[mask & (cols >= 53)]).all()
+    assert np.sqrt(np.mean((phi - rho)[left] ** 2)) / np.ptp(rho) < 1e-3
 
 
 def test_weights_follow_the_uncertainty():
