@@ -43,10 +43,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from scipy import ndimage
 from synthbos.integration import (
     SOLVERS,
+    border_region,
     displacement_to_density_gradient,
+    fill_missing,
     grid_for_points,
     lsq_integrate,
     midplane_scale,
@@ -233,31 +234,6 @@ def gradient_grid(result: MethodResult, geometry: Geometry, *, spacing_px=None) 
                         sigma=factor * s, measured=measured, x_mm=x_mm, y_mm=y_mm)
 
 
-def _filled(values, measured):
-    """Fill unmeasured nodes: linear between measured nodes, then the nearest measured node."""
-    out = np.array(values, dtype=np.float64)
-    if measured.all():
-        return out
-    jj, ii = np.nonzero(measured)
-    if len(ii) >= 3 and np.ptp(ii) > 0 and np.ptp(jj) > 0:
-        try:
-            lin = scattered_to_grid(ii.astype(float), jj.astype(float), out[measured],
-                                    np.arange(out.shape[1], dtype=float), np.arange(out.shape[0], dtype=float))
-            out = np.where(measured, out, lin)
-        except Exception:  # a degenerate (collinear) set: nearest only
-            pass
-    have = np.isfinite(out)
-    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
-    return out[tuple(idx)]
-
-
-def border_region(measured):
-    """The outermost ring of nodes of the measured domain (measured nodes next to an unmeasured one or
-    the grid's edge)."""
-    measured = np.asarray(measured, bool)
-    return measured & ~ndimage.binary_erosion(measured, border_value=0)
-
-
 @dataclass
 class DensityMap:
     """A reconstructed depth-averaged density on a grid at the volume's mid-plane."""
@@ -309,7 +285,7 @@ def solve_density(grid: GradientGrid, *, solver="lsq", reference_value=None, ref
         words += " (held fixed)"
     domain = grid.measured if known is None else grid.measured | np.isfinite(known)
     if solver == "dct":
-        phi = poisson_dct(_filled(grid.gx, grid.measured), _filled(grid.gy, grid.measured), dx=dx, dy=dy)
+        phi = poisson_dct(fill_missing(grid.gx, grid.measured), fill_missing(grid.gy, grid.measured), dx=dx, dy=dy)
         phi = np.where(grid.measured, phi, np.nan)
     elif solver == "lsq":
         phi = lsq_integrate(grid.gx, grid.gy, dx=dx, dy=dy, mask=domain, known=known, unreferenced="nan")

@@ -9,11 +9,13 @@ vertex that carries no value, are left NaN and so fall outside the solvers' mask
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import QhullError
 
 from synthbos import SynthbosError
 
-__all__ = ["grid_for_points", "scattered_to_grid"]
+__all__ = ["fill_missing", "grid_for_points", "scattered_to_grid"]
 
 
 def grid_for_points(x, y, *, spacing=None, extent=None):
@@ -76,3 +78,37 @@ def scattered_to_grid(x, y, values, grid_x, grid_y):
     gx, gy = np.meshgrid(np.asarray(grid_x, float), np.asarray(grid_y, float))
     out = interp(gx, gy)
     return out[..., 0] if single else out
+
+
+def fill_missing(values, measured):
+    """Fill the unmeasured nodes of a grid: linearly between measured nodes, then from the nearest one.
+
+    Parameters
+    ----------
+    values : (ny, nx) array_like
+    measured : (ny, nx) bool array
+        Nodes whose value is known (at least one).
+
+    Returns
+    -------
+    (ny, nx) ndarray
+        ``values`` at measured nodes; inside their convex hull the linear interpolant on their Delaunay
+        triangulation (node index coordinates); beyond it the value of the nearest filled node.
+    """
+    out = np.array(values, dtype=np.float64)
+    measured = np.asarray(measured, bool) & np.isfinite(out)
+    if measured.all():
+        return out
+    if not measured.any():
+        raise SynthbosError("no measured node to fill the grid from")
+    jj, ii = np.nonzero(measured)
+    out = np.where(measured, out, np.nan)
+    if len(ii) >= 3 and np.ptp(ii) > 0 and np.ptp(jj) > 0:
+        try:
+            lin = scattered_to_grid(ii.astype(float), jj.astype(float), out[measured],
+                                    np.arange(out.shape[1], dtype=float), np.arange(out.shape[0], dtype=float))
+            out = np.where(measured, out, lin)
+        except QhullError:  # collinear nodes: nearest only
+            pass
+    idx = ndimage.distance_transform_edt(~np.isfinite(out), return_distances=False, return_indices=True)
+    return out[tuple(idx)]

@@ -24,13 +24,13 @@ fixes it from a reference value over a region.
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft, sparse
+from scipy import fft, ndimage, sparse
 from scipy.sparse import csgraph
 from scipy.sparse import linalg as splinalg
 
 from synthbos import SynthbosError
 
-__all__ = ["edge_increments", "lsq_integrate", "poisson_dct", "set_reference", "weighted_lsq"]
+__all__ = ["border_region", "edge_increments", "lsq_integrate", "poisson_dct", "set_reference", "weighted_lsq"]
 
 _W4 = np.array([-1.0, 13.0, 13.0, -1.0]) / 24.0
 
@@ -269,6 +269,13 @@ def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None, unr
                          unreferenced=unreferenced)
 
 
+def border_region(domain):
+    """The outermost ring of nodes of a domain: nodes of ``domain`` next to a node outside it or on the
+    grid's edge (4-connectivity)."""
+    domain = np.asarray(domain, bool)
+    return domain & ~ndimage.binary_erosion(domain, border_value=0)
+
+
 def set_reference(phi, *, value, region=None):
     """Add the constant that gives ``phi`` the mean ``value`` over ``region``.
 
@@ -279,7 +286,8 @@ def set_reference(phi, *, value, region=None):
     value : float or (ny, nx) array_like
         The reference density: one number, or the known values over ``region`` (their mean is used).
     region : (ny, nx) bool array, optional
-        Where the reference holds; default: the outermost ring of nodes (the image border).
+        Where the reference holds; default: the border of the domain where ``phi`` is finite
+        (:func:`border_region`), the image border for a full rectangle.
 
     Returns
     -------
@@ -288,8 +296,7 @@ def set_reference(phi, *, value, region=None):
     """
     phi = np.asarray(phi, dtype=np.float64)
     if region is None:
-        region = np.zeros(phi.shape, dtype=bool)
-        region[0, :] = region[-1, :] = region[:, 0] = region[:, -1] = True
+        region = border_region(np.isfinite(phi))
     region = np.asarray(region, dtype=bool)
     ref = np.broadcast_to(np.asarray(value, dtype=np.float64), phi.shape)
     use = region & np.isfinite(phi) & np.isfinite(ref)

@@ -7,7 +7,6 @@ import pytest
 from numpy.testing import assert_allclose
 from synthbos.benchmarks.cli import main
 from synthbos.benchmarks.integrate import (
-    border_region,
     geometry_from_pair,
     gradient_grid,
     solve_density,
@@ -15,6 +14,7 @@ from synthbos.benchmarks.integrate import (
 )
 from synthbos.benchmarks.process import read_result, run_method, write_result
 from synthbos.benchmarks.registry import method_names
+from synthbos.integration import border_region
 from synthbos.raytrace import read_pair, render_pair, write_pair
 
 BLOB = {"camera": {"pixels": [256, 256]}, "rays": {"per_dot": 200},

@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 from synthbos.integration import (
+    border_region,
     displacement_to_density_gradient,
     edge_increments,
+    fill_missing,
     grid_for_points,
     lsq_integrate,
     pixel_to_midplane,
@@ -183,3 +185,20 @@ def test_bad_input_is_refused():
         poisson_dct(gx, gy[:-1], dx=DX, dy=DY)
     with pytest.raises(SynthbosError, match="reference region"):
         set_reference(nan, value=1.0)
+
+
+def test_fill_missing_and_border_region():
+    X, Y = _grid()
+    f = 3.0 * X - 2.0 * Y + 1.0
+    measured = np.hypot(X, Y) < 6e-3
+    measured[40, 56] = False  # a hole inside
+    out = fill_missing(np.where(measured, f, np.nan), measured)
+    assert np.isfinite(out).all()
+    assert_allclose(out[40, 56], f[40, 56], rtol=1e-12)  # linear inside the hull is exact
+    far = ~measured & (np.hypot(X, Y) > 7e-3)
+    assert np.all((out[far] >= f[measured].min()) & (out[far] <= f[measured].max()))  # nearest beyond it
+    ring = border_region(measured)
+    assert ring[measured].sum() < measured.sum() and not ring[~measured].any()
+    assert ring[40, 55] and ring[40, 57]  # the hole's neighbours belong to the border
+    full = border_region(np.ones((4, 5), bool))
+    assert full.sum() == 4 * 5 - 2 * 3
