@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.ticker import LogLocator, MaxNLocator, NullFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 from synthbos.raytrace import load_config, read_pair
 from synthbos.raytrace.sources import density_from_config
 
@@ -133,9 +133,16 @@ def _log_limits(arrays, *, low_quantile=0.005, margin=1.25):
 
 
 def _log_axis(axis, lo, hi):
-    """A log axis with labelled ticks at 1, 2, 5 x 10^k when it spans less than two decades, else decades."""
+    """A log axis whose labelled ticks suit its span: decades over two decades or more, else 1, 2, 5 x 10^k,
+    and every integer multiple below one decade (so a narrow axis still has numbers)."""
     axis.axes.set_xscale("log") if axis.axis_name == "x" else axis.axes.set_yscale("log")
-    axis.set_major_locator(LogLocator(base=10, subs=(1.0,) if hi / lo >= 100 else (1.0, 2.0, 5.0)))
+    span = hi / lo if lo > 0 else np.inf
+    if span >= 100:
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0,)))
+    else:
+        subs = (1.0, 2.0, 5.0) if span >= 10 else (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
+        axis.set_major_locator(LogLocator(base=10, subs=subs))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     axis.set_minor_formatter(NullFormatter())
 
 
@@ -201,41 +208,63 @@ def figure5(spec, folder, path):
     _save(fig, path)
 
 
-def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
-    """Error percentiles (displacement, all points) and yield against the swept parameter."""
+def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_label=None, percentiles=(50, 90)):
+    """Error percentiles (displacement, all points) and yield against the swept parameter.
+
+    One row of panels per noise level (one row in all when noise is swept); colour and marker per method
+    (from the registry); with a second parameter, one line style per value of it. ``param_label`` and
+    ``param2_label`` are the axis words with units (the parameter keys otherwise).
+    """
+    label1, label2 = param_label or param, param2_label or param2
     order = list(METHODS)
     methods = sorted({r["method"] for r in rows},
                      key=lambda m: (m not in order, order.index(m) if m in order else 0, m))
-    noises = sorted({r["noise_percent"] for r in rows})
+    by_noise = "noise" not in (param, param2)
+    noises = sorted({r["noise_percent"] for r in rows}) if by_noise else [None]
     second = sorted({r.get("param2_value") for r in rows}, key=lambda v: (v is None, v))
-    fig, axes = plt.subplots(len(noises), len(percentiles) + 1, figsize=(4.3 * (len(percentiles) + 1),
-                             3.0 * len(noises)), squeeze=False)
-    linestyles = ["-", "--", ":", "-."]
+    ncols = len(percentiles) + 1
+    fig, axes = plt.subplots(len(noises), ncols, figsize=(4.4 * ncols, 3.0 * len(noises) + 1.2), squeeze=False,
+                             layout="constrained")
+    dashes = ["-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1))]
     for r, noise in enumerate(noises):
         for method in methods:
             style = method_style(method)
             for k, val2 in enumerate(second):
-                sel = [x for x in rows if x["method"] == method and x["noise_percent"] == noise
+                sel = [x for x in rows if x["method"] == method and (noise is None or x["noise_percent"] == noise)
                        and x.get("param2_value") == val2 and x["split"] == "all" and x["quantity"] == "displacement"]
                 sel.sort(key=lambda x: x["param_value"])
                 xs = [x["param_value"] for x in sel]
-                lab = style["label"] + (f", {param2} = {val2:g}" if val2 is not None else "")
-                ls = linestyles[k % 4] if val2 is not None else style.get("ls", "-")
-                kw = {"color": style.get("color"), "ls": ls,
-                      "marker": METHODS[method].marker if method in METHODS else "o", "label": lab}
+                kw = {"color": style.get("color"), "marker": METHODS[method].marker if method in METHODS else "o",
+                      "ls": dashes[k % len(dashes)] if val2 is not None else style.get("ls", "-"), "ms": 5}
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
                 axes[r, -1].plot(xs, [x["yield"] for x in sel], **kw)
-        for c, p in enumerate(percentiles):
-            axes[r, c].set_yscale("log")
-            axes[r, c].set_ylabel(f"{p}th percentile error (px)")
-            axes[r, c].set_title(f"noise {noise:g}%", fontsize=9)
-        axes[r, -1].set_ylabel("yield")
-        axes[r, -1].set_title(f"noise {noise:g}%", fontsize=9)
+        for c in range(len(percentiles)):
+            lines = [ln.get_ydata() for ln in axes[r, c].get_lines()]
+            lo, hi = _log_limits(lines, low_quantile=0.0, margin=1.1)
+            _log_axis(axes[r, c].yaxis, lo, hi)
+            axes[r, c].set_ylim(lo, hi)
+            axes[r, c].set_ylabel("error (px)")
+        axes[r, -1].set_ylabel("fraction of points measured")
+        if noise is not None:
+            axes[r, 0].set_ylabel(f"noise {noise:g} %\n" + axes[r, 0].get_ylabel())
         for ax in axes[r]:
-            ax.set_xlabel(param)
+            ax.set_xlabel(label1)
             ax.grid(True, alpha=0.3)
-    h, lab = axes[0, 0].get_legend_handles_labels()
-    fig.legend(h, lab, loc="upper center", ncol=min(len(lab), 3), bbox_to_anchor=(0.5, 1.04))
-    fig.tight_layout()
+    for c, p in enumerate(percentiles):
+        axes[0, c].set_title(f"displacement error, {'median' if p == 50 else f'{p}th percentile'}", fontsize=10)
+    axes[0, -1].set_title("yield", fontsize=10)
+    marker = {m: METHODS[m].marker if m in METHODS else "o" for m in methods}
+    if param2 is None:
+        handles = [plt.Line2D([], [], marker=marker[m], **method_style(m)) for m in methods]
+    else:  # the line style tells the second parameter's value: a legend of its own, at the right
+        handles = [plt.Line2D([], [], color=method_style(m).get("color"), marker=marker[m]) for m in methods]
+        fig.legend([plt.Line2D([], [], color="k", ls=dashes[k % len(dashes)]) for k in range(len(second))],
+                   [f"{v:g}" for v in second], title=label2.replace(" (", "\n("), loc="outside right center",
+                   frameon=False)
+    fig.legend(handles, [method_style(m)["label"] for m in methods], loc="outside lower center",
+               ncol=len(methods), frameon=False)
+    what = label1 if param2 is None else f"{label1} and {label2}"
+    fig.suptitle(f"Sweep of {what}: displacement error over all scored points, and yield", fontsize=11)
     _save(fig, path)
+
