@@ -95,6 +95,7 @@ def figure4(spec, folder, path):
         for k, vals in ((2, np.hypot(*pair.theory_px[ok].T)), (3, np.hypot(*pair.displacement_px[ok].T))):
             levels = _nice_levels(vals.max())
             cs = ax[k].tricontourf(xy[:, 0], xy[:, 1], vals, levels=levels, cmap="cividis")
+            cs.set_rasterized(True)  # thousands of contour polygons: pixels in the PDF, axes and text stay vector
             ax[k].set_xlim(0, pair.reference.shape[1])
             ax[k].set_ylim(pair.reference.shape[0], 0)
             ax[k].set_aspect("equal")
