@@ -103,10 +103,12 @@ def test_installed_wheel_renders_from_another_folder(wheel, tmp_path):
     venv = tmp_path / "venv"
     # The dependencies (warp-lang, numpy, h5py, ...) come from the environment running the tests; the
     # editable install of the checkout there must not shadow the venv's own copy (checked below).
-    _run([sys.executable, "-m", "venv", "--system-site-packages", venv], cwd=tmp_path)
+    # Without pip of its own (no ensurepip needed): this interpreter's pip installs into it.
+    _run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", venv], cwd=tmp_path)
     bindir = venv / ("Scripts" if os.name == "nt" else "bin")
     python = bindir / "python"
-    _run([python, "-m", "pip", "install", "--no-deps", "--force-reinstall", "--quiet", wheel], cwd=tmp_path)
+    _run([sys.executable, "-m", "pip", "--python", python, "install", "--no-deps", "--force-reinstall", "--quiet",
+          wheel], cwd=tmp_path)
     work = tmp_path / "elsewhere"
     work.mkdir()
 
