@@ -76,9 +76,19 @@ def flag_bits(bits: dict[int, tuple[str, str]]) -> str:
     return json.dumps({str(b): {"name": n, "description": d} for b, (n, d) in sorted(bits.items())})
 
 
+def _module_flag_bits(module) -> dict[int, tuple[str, str]]:
+    """A module's flags: its documented ``FLAG_X`` constants, else the members of an IntFlag it defines."""
+    bits = _constant_flag_bits(module)
+    if not bits:
+        for value in vars(module).values():
+            if isinstance(value, type) and issubclass(value, enum.IntFlag) and value.__module__ == module.__name__:
+                bits.update(_int_flag_bits(value))
+    return bits
+
+
 # Bit-flag columns of the methods' tables, described from their own documentation.
 FLAG_BITS = {
-    "flags": _constant_flag_bits(multigrid),
+    "flags": _module_flag_bits(multigrid),
     "status": _int_flag_bits(DotStatus),
 }
 
