@@ -10,7 +10,7 @@ import pytest
 from synthbos.benchmarks.process import FLAG_BITS, write_result
 from synthbos.benchmarks.registry import GRID, MethodResult, get_method, method_names
 from synthbos.correlation import FLAG_BORDER, FLAG_MASKED, FLAG_MEDIAN, FLAG_PEAK_RATIO
-from synthbos.raytrace import Pair, write_pair
+from synthbos.raytrace import render_pair, write_pair
 from synthbos.tracking import TRACK_DTYPE, DotStatus
 
 from synthbos import atomic_output
@@ -49,12 +49,8 @@ def test_atomic_output_gives_the_users_umask(tmp_path, umask_022):
 
 
 def test_pair_file_datasets_carry_units_and_description(tmp_path, umask_022):
-    n = 5
-    xy = np.zeros((n, 2))
-    pair = Pair(reference=np.zeros((8, 8), np.float32), gradient=np.zeros((8, 8), np.float32), target_xy_m=xy,
-                reference_px=xy, gradient_px=xy, displacement_px=xy, theory_px=xy, valid=np.ones(n, bool),
-                attrs={"magnification": 0.1})
-    write_pair(tmp_path / "p.h5", pair)
+    cfg = {"camera": {"pixels": [64, 64]}, "target": {"dots_per_32px": 8.0}, "rays": {"per_dot": 10}}
+    write_pair(tmp_path / "p.h5", render_pair(cfg, device="cpu"))
     _assert_described(tmp_path / "p.h5")
     assert (tmp_path / "p.h5").stat().st_mode & 0o777 == 0o644
     with h5py.File(tmp_path / "p.h5") as f:
