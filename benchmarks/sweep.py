@@ -20,7 +20,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from synthbos.raytrace import load_config
+from synthbos.raytrace import DEFAULT_CONFIG, load_config
 
 from synthbos import SynthbosError, atomic_output
 
@@ -100,7 +100,7 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
     if name == "magnification":
         if value <= 0:
             raise SynthbosError(f"magnification must be > 0, got {value:g}")
-        f = spec.config.get("camera", {}).get("focal_length_mm", 105.0)
+        f = spec.config.get("camera", {}).get("focal_length_mm", DEFAULT_CONFIG["camera"]["focal_length_mm"])
         return spec.with_config({"target": {"distance_mm": f * (1.0 + 1.0 / value)}})
     table, key = name.split(".")
     integer_keys = {"rays.per_dot", "target.seed", "rays.seed"}
