@@ -29,7 +29,11 @@ _initialised = False
 def _filtered_native_stderr(drop: str):
     """Catch what native code writes to descriptor 2; write it back without the lines containing ``drop``."""
     sys.stderr.flush()
-    saved = os.dup(2)
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 (a detached process): nothing to filter
+        yield
+        return
     with tempfile.TemporaryFile(mode="w+b") as caught:
         os.dup2(caught.fileno(), 2)
         try:
