@@ -131,14 +131,14 @@ def _sweep(args):
     params = [parse_parameter(p) for p in args.param]
     rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
                      workers=args.workers, progress=not args.quiet)
-    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
 
 def _show_density(args):
     out = _out_path(args.output)
     plot_snapshots(out, snapshots_file=args.snapshots)
-    print(f"wrote {out}")
+    print(f"wrote {out} (and .pdf)")
     return 0
 
 
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
-    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write")
+    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
     return parser
