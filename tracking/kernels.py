@@ -1,17 +1,27 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of dot tracking: one thread measures the window around one predicted dot position.
+"""Warp kernels of dot tracking.
 
-Kernels only; the host code that allocates and launches is :mod:`tracking.windows`, whose NumPy
-reference (``measure_windows_numpy``) defines what the kernel computes.
+Kernels and ``@wp.func`` steps only; the host code that allocates and launches lives next to it:
+:mod:`tracking.windows` (identification: one thread measures the window around one predicted dot) and
+:mod:`tracking.dotfit` (the joint least-squares fit of the pixel-integrated dot model: one thread per
+dot). Their NumPy references (``measure_windows_numpy``, ``fit_dots_numpy``) define what the kernels
+compute. Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 """
 
 import warp as wp
 
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
-wp.config.quiet = True
+vec5d = wp.types.vector(length=5, dtype=wp.float64)
+mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+
+
+# --- identification: one window around one predicted position -------------------------------------
 
 
 @wp.func
@@ -26,6 +36,210 @@ def ring_pixel(k: int, w: int) -> int:
     if k2 % 2 == 0:
         return row * w
     return row * w + (w - 1)
+
+
+@wp.func
+def load_window(
+    image: wp.array2d(dtype=wp.float64),
+    fill: wp.float64,
+    ox: int,
+    oy: int,
+    w: int,
+    i: int,
+    win: wp.array2d(dtype=wp.float64),
+) -> wp.vec2d:
+    """Copy the window at column ``ox``, row ``oy`` into ``win[i]`` (``fill`` outside); return (min, max)."""
+    vmin = wp.float64(1.0e300)
+    vmax = wp.float64(-1.0e300)
+    for p in range(w * w):
+        y = oy + p // w
+        x = ox + p % w
+        v = fill
+        if y >= 0 and y < image.shape[0] and x >= 0 and x < image.shape[1]:
+            v = image[y, x]
+        win[i, p] = v
+        vmin = wp.min(vmin, v)
+        vmax = wp.max(vmax, v)
+    return wp.vec2d(vmin, vmax)
+
+
+@wp.func
+def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
+    """Median of the window's edge pixels (insertion sort in ``ring[i]``; ``4 (w - 1)`` is small)."""
+    n = 4 * (w - 1)
+    for j in range(n):
+        ring[i, j] = win[i, ring_pixel(j, w)]
+    for j in range(1, n):
+        v = ring[i, j]
+        k = j - 1
+        while k >= 0 and ring[i, k] > v:
+            ring[i, k + 1] = ring[i, k]
+            k -= 1
+        ring[i, k + 1] = v
+    return (ring[i, n / 2 - 1] + ring[i, n / 2]) / wp.float64(2.0)
+
+
+@wp.func
+def uphill_neighbour(win: wp.array2d(dtype=wp.float64), i: int, w: int, p: int) -> int:
+    """The brightest of pixel p and its 8 neighbours (ties: the higher index)."""
+    pr = p // w
+    pc = p % w
+    best = p
+    bv = win[i, p]
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = pr + dy
+            c = pc + dx
+            if r >= 0 and r < w and c >= 0 and c < w:
+                q = r * w + c
+                vq = win[i, q]
+                if vq > bv or (vq == bv and q > best):
+                    best = q
+                    bv = vq
+    return best
+
+
+@wp.func
+def segment_window(
+    win: wp.array2d(dtype=wp.float64),
+    i: int,
+    w: int,
+    thr: wp.float64,
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+) -> int:
+    """Label each pixel above ``thr`` with its blob's peak pixel by steepest ascent (-1 below).
+
+    Fills ``area[i, root]`` with each blob's pixel count and returns the number of blobs.
+    """
+    for p in range(w * w):
+        area[i, p] = 0
+        lab[i, p] = -1
+        if win[i, p] > thr:
+            lab[i, p] = uphill_neighbour(win, i, w, p)
+    nblobs = int(0)
+    for p in range(w * w):
+        if lab[i, p] >= 0:
+            r = lab[i, p]
+            while lab[i, r] != r:
+                r = lab[i, r]
+            lab[i, p] = r
+            area[i, r] = area[i, r] + 1
+            if r == p:
+                nblobs += 1
+    return nblobs
+
+
+@wp.func
+def peak_distance(p: int, w: int, lx: wp.float64, ly: wp.float64) -> wp.float64:
+    """Distance of window pixel p from the point (lx, ly) in window coordinates."""
+    ddx = wp.float64(p % w) - lx
+    ddy = wp.float64(p // w) - ly
+    return wp.sqrt(ddx * ddx + ddy * ddy)
+
+
+@wp.func
+def choose_blob(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    bg: wp.float64,
+    lx: wp.float64,
+    ly: wp.float64,
+    radius: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+) -> int:
+    """Peak pixel of the blob with the best Eq. 1 score among those within ``radius``; -1 if none.
+
+    Eq. 1 of Rajendran, Bane and Vlachos (2019); area, peak and distance are scaled by their maxima
+    over the candidates, and the first best wins.
+    """
+    ma = wp.float64(-1.0e300)
+    mi = wp.float64(-1.0e300)
+    md = wp.float64(-1.0e300)
+    for p in range(w * w):
+        if lab[i, p] == p:
+            dist = peak_distance(p, w, lx, ly)
+            if dist <= radius:
+                ma = wp.max(ma, wp.float64(area[i, p]))
+                mi = wp.max(mi, win[i, p] - bg)
+                md = wp.max(md, dist)
+    chosen = int(-1)
+    best = wp.float64(-1.0e300)
+    for p in range(w * w):
+        if lab[i, p] == p:
+            dist = peak_distance(p, w, lx, ly)
+            if dist <= radius:
+                ta = wp.float64(1.0)
+                ti = wp.float64(1.0)
+                td = wp.float64(1.0)
+                if ma > wp.float64(0.0):
+                    ta = wp.float64(area[i, p]) / ma
+                if mi > wp.float64(0.0):
+                    ti = (win[i, p] - bg) / mi
+                if md > wp.float64(0.0):
+                    td = wp.float64(1.0) - dist / md
+                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+                if score > best:
+                    best = score
+                    chosen = p
+    return chosen
+
+
+@wp.func
+def count_saturated(
+    win: wp.array2d(dtype=wp.float64), lab: wp.array2d(dtype=wp.int32), i: int, w: int, chosen: int, sat: wp.float64
+) -> int:
+    """Pixels of the chosen blob at or above the saturation level."""
+    nsat = int(0)
+    for p in range(w * w):
+        if lab[i, p] == chosen and win[i, p] >= sat:
+            nsat += 1
+    return nsat
+
+
+@wp.func
+def touches_blob(lab: wp.array2d(dtype=wp.int32), i: int, w: int, qr: int, qc: int, blob: int) -> bool:
+    """True where pixel (qr, qc) or one of its 8 neighbours belongs to ``blob``."""
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = qr + dy
+            c = qc + dx
+            if r >= 0 and r < w and c >= 0 and c < w:
+                if lab[i, r * w + c] == blob:
+                    return True
+    return False
+
+
+@wp.func
+def cut_dot_map(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    chosen: int,
+    bg: wp.float64,
+    hc: int,
+    dotmap: wp.array3d(dtype=wp.float64),
+):
+    """Dot map centred on the chosen peak: the blob and its one-pixel rim minus background, others zero."""
+    c = 2 * hc + 1
+    rr = chosen // w
+    rc = chosen % w
+    for a in range(c):
+        for b in range(c):
+            qr = rr + a - hc
+            qc = rc + b - hc
+            val = wp.float64(0.0)
+            if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+                l = lab[i, qr * w + qc]
+                if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
+                    val = win[i, qr * w + qc] - bg
+            dotmap[i, a, b] = val
 
 
 @wp.kernel
@@ -52,149 +266,222 @@ def measure_windows_kernel(
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
+    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map."""
     i = wp.tid()
     w = 2 * half + 1
-    ww = w * w
-    nrow = image.shape[0]
-    ncol = image.shape[1]
-    ox = origin[i, 0]
-    oy = origin[i, 1]
-    vmax = wp.float64(-1.0e300)
-    vmin = wp.float64(1.0e300)
-    for p in range(ww):
-        y = oy + p // w
-        x = ox + p % w
-        v = fill
-        if y >= 0 and y < nrow and x >= 0 and x < ncol:
-            v = image[y, x]
-        win[i, p] = v
-        vmax = wp.max(vmax, v)
-        vmin = wp.min(vmin, v)
-        area[i, p] = 0
-    # Background: the median of the window's edge pixels (or the window minimum).
-    bg = vmin
+    mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, i, win)
+    bg = mm[0]
     if use_min == 0:
-        n = 4 * (w - 1)
-        for j in range(n):
-            ring[i, j] = win[i, ring_pixel(j, w)]
-        # Insertion sort of the edge pixels (n <= 4 (w - 1) is small), then the two middle values.
-        for j in range(1, n):
-            v = ring[i, j]
-            k = j - 1
-            while k >= 0 and ring[i, k] > v:
-                ring[i, k + 1] = ring[i, k]
-                k -= 1
-            ring[i, k + 1] = v
-        m1 = ring[i, n / 2 - 1]
-        m2 = ring[i, n / 2]
-        bg = (m1 + m2) / wp.float64(2.0)
-    thr = bg + wp.max(frac * (vmax - bg), floor)
-    # Steepest ascent: each foreground pixel points to its brightest 8-neighbour (ties: higher index).
-    for p in range(ww):
-        vp = win[i, p]
-        if vp > thr:
-            pr = p // w
-            pc = p % w
-            best = p
-            bv = vp
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    r = pr + dy
-                    c = pc + dx
-                    if r >= 0 and r < w and c >= 0 and c < w:
-                        q = r * w + c
-                        vq = win[i, q]
-                        if vq > bv or (vq == bv and q > best):
-                            best = q
-                            bv = vq
-            lab[i, p] = best
-        else:
-            lab[i, p] = -1
-    for p in range(ww):
-        if lab[i, p] >= 0:
-            r = lab[i, p]
-            while lab[i, r] != r:
-                r = lab[i, r]
-            lab[i, p] = r
-            area[i, r] = area[i, r] + 1
-    lx = local[i, 0]
-    ly = local[i, 1]
-    ma = wp.float64(-1.0e300)
-    mi = wp.float64(-1.0e300)
-    md = wp.float64(-1.0e300)
-    nblobs = int(0)  # a dynamic Warp variable
-    for p in range(ww):
-        if lab[i, p] == p:
-            nblobs += 1
-            ddx = wp.float64(p % w) - lx
-            ddy = wp.float64(p // w) - ly
-            dist = wp.sqrt(ddx * ddx + ddy * ddy)
-            if dist <= radius:
-                ma = wp.max(ma, wp.float64(area[i, p]))
-                mi = wp.max(mi, win[i, p] - bg)
-                md = wp.max(md, dist)
-    # Eq. 1 of Rajendran, Bane and Vlachos (2019) over the candidate blobs; the first best wins.
-    chosen = int(-1)  # a dynamic Warp variable
-    best_score = wp.float64(-1.0e300)
-    best_dist = wp.float64(0.0)
-    for p in range(ww):
-        if lab[i, p] == p:
-            ddx = wp.float64(p % w) - lx
-            ddy = wp.float64(p // w) - ly
-            dist = wp.sqrt(ddx * ddx + ddy * ddy)
-            if dist <= radius:
-                ta = wp.float64(1.0)
-                ti = wp.float64(1.0)
-                td = wp.float64(1.0)
-                if ma > wp.float64(0.0):
-                    ta = wp.float64(area[i, p]) / ma
-                if mi > wp.float64(0.0):
-                    ti = (win[i, p] - bg) / mi
-                if md > wp.float64(0.0):
-                    td = wp.float64(1.0) - dist / md
-                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
-                if score > best_score:
-                    best_score = score
-                    chosen = p
-                    best_dist = dist
+        bg = edge_median(win, i, w, ring)
+    thr = bg + wp.max(frac * (mm[1] - bg), floor)
+    nblobs = segment_window(win, i, w, thr, lab, area)
+    chosen = choose_blob(win, lab, area, i, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
+    out_int[i, 2] = 0
     out_float[i, 0] = bg
-    c = 2 * hc + 1
-    if chosen < 0:
-        out_int[i, 2] = 0
-        out_float[i, 1] = wp.float64(0.0)
-        out_float[i, 2] = wp.float64(0.0)
-        for a in range(c):
-            for b in range(c):
-                dotmap[i, a, b] = wp.float64(0.0)
+    out_float[i, 1] = wp.float64(0.0)
+    out_float[i, 2] = wp.float64(0.0)
+    if chosen >= 0:
+        out_int[i, 2] = count_saturated(win, lab, i, w, chosen, sat)
+        out_float[i, 1] = win[i, chosen] - bg
+        out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
+    cut_dot_map(win, lab, i, w, chosen, bg, hc, dotmap)
+
+
+# --- the pixel-integrated dot model and its joint fit ---------------------------------------------
+
+
+@wp.func
+def integrated_profile(
+    first: int, n: int, c: wp.float64, s: wp.float64, i: int, row: int, prof: wp.array3d(dtype=wp.float64)
+):
+    """1-D pixel profile of a unit-peak Gaussian and its c- and s-derivatives into ``prof[i, row:row + 3]``.
+
+    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
+    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``.
+    """
+    inv = wp.float64(1.0) / s
+    k0 = wp.float64(0.7071067811865476)
+    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+    z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
+    g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
+    e0 = wp.erf(z0 * k0)
+    for k in range(n):
+        z1 = (wp.float64(first + k) + wp.float64(0.5) - c) * inv
+        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = wp.erf(z1 * k0)
+        p = scale * (e1 - e0)
+        prof[i, row, k] = p
+        prof[i, row + 1, k] = g0 - g1
+        prof[i, row + 2, k] = z0 * g0 - z1 * g1 + p * inv
+        z0 = z1
+        g0 = g1
+        e0 = e1
+
+
+@wp.func
+def solve_spd5(a: mat55d, g: vec5d) -> vec5d:
+    """Solution of ``a x = g`` for a symmetric positive-definite 5x5 ``a`` (Cholesky); NaN if not SPD."""
+    l = mat55d()
+    bad = int(0)
+    for j in range(5):
+        d = a[j, j]
+        for k in range(j):
+            d -= l[j, k] * l[j, k]
+        if d <= wp.float64(0.0):
+            bad = 1
+            d = wp.float64(1.0)
+        ljj = wp.sqrt(d)
+        l[j, j] = ljj
+        for r in range(j + 1, 5):
+            v = a[r, j]
+            for k in range(j):
+                v -= l[r, k] * l[j, k]
+            l[r, j] = v / ljj
+    y = vec5d()
+    for j in range(5):
+        v = g[j]
+        for k in range(j):
+            v -= l[j, k] * y[k]
+        y[j] = v / l[j, j]
+    x = vec5d()
+    for jj in range(5):
+        j = 4 - jj
+        v = y[j]
+        for k in range(j + 1, 5):
+            v -= l[k, j] * x[k]
+        x[j] = v / l[j, j]
+    if bad != 0:
+        nan = wp.float64(wp.nan)
+        x = vec5d(nan, nan, nan, nan, nan)
+    return x
+
+
+@wp.kernel
+def render_dots_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    half: int,
+    prof: wp.array3d(dtype=wp.float64),
+    model: wp.array2d(dtype=wp.float64),
+):
+    """Add dot i's model ``I0 p_x p_y`` (no background) on its ``2 half + 1`` stamp into ``model``."""
+    i = wp.tid()
+    x = params[i, 0]
+    y = params[i, 1]
+    a = params[i, 2]
+    s = params[i, 3]
+    if not (wp.isfinite(x) and wp.isfinite(y) and wp.isfinite(a) and wp.isfinite(s)):
         return
-    out_float[i, 1] = win[i, chosen] - bg
-    out_float[i, 2] = best_dist
-    nsat = int(0)  # a dynamic Warp variable
-    for p in range(ww):
-        if lab[i, p] == chosen and win[i, p] >= sat:
-            nsat += 1
-    out_int[i, 2] = nsat
-    # Dot map around the peak: the chosen blob and its rim, minus background; other blobs zeroed.
-    rr = chosen // w
-    rc = chosen % w
-    for a in range(c):
-        for b in range(c):
-            qr = rr + a - hc
-            qc = rc + b - hc
-            val = wp.float64(0.0)
-            if qr >= 0 and qr < w and qc >= 0 and qc < w:
-                l = lab[i, qr * w + qc]
-                keep = l == chosen
-                if l < 0:
-                    for dy in range(-1, 2):
-                        for dx in range(-1, 2):
-                            r = qr + dy
-                            cc = qc + dx
-                            if r >= 0 and r < w and cc >= 0 and cc < w:
-                                if lab[i, r * w + cc] == chosen:
-                                    keep = True
-                if keep:
-                    val = win[i, qr * w + qc] - bg
-            dotmap[i, a, b] = val
+    n = 2 * half + 1
+    ox = int(wp.rint(x)) - half
+    oy = int(wp.rint(y)) - half
+    integrated_profile(ox, n, x, s, i, 0, prof)
+    integrated_profile(oy, n, y, s, i, 3, prof)
+    for r in range(n):
+        row = oy + r
+        if row >= 0 and row < model.shape[0]:
+            ay = a * prof[i, 3, r]
+            for c in range(n):
+                col = ox + c
+                if col >= 0 and col < model.shape[1]:
+                    wp.atomic_add(model, row, col, ay * prof[i, 0, c])
+
+
+@wp.func
+def gram_matrix(
+    image: wp.array2d(dtype=wp.float64),
+    model: wp.array2d(dtype=wp.float64),
+    i: int,
+    ox: int,
+    oy: int,
+    n: int,
+    a: wp.float64,
+    b: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+) -> mat66d:
+    """Sum over dot i's window of ``v v^T``, ``v = (J, r)``: ``J^T J`` and, in the last column, ``J^T r``.
+
+    The residual is ``r = image - model - b``: the model image holds dot i itself, so this is the data
+    less the other dots minus dot i's model and background. ``J`` is the derivative of the model with
+    respect to x, y, I0, sigma and the background.
+    """
+    m = mat66d()
+    for rr in range(n):
+        row = oy + rr
+        if row >= 0 and row < image.shape[0]:
+            py = prof[i, 3, rr]
+            dpy = prof[i, 4, rr]
+            spy = prof[i, 5, rr]
+            for cc in range(n):
+                col = ox + cc
+                if col >= 0 and col < image.shape[1]:
+                    px = prof[i, 0, cc]
+                    dpx = prof[i, 1, cc]
+                    spx = prof[i, 2, cc]
+                    res = image[row, col] - model[row, col] - b
+                    v = vec6d(
+                        a * py * dpx,
+                        a * dpy * px,
+                        py * px,
+                        a * (spy * px + py * spx),
+                        wp.float64(1.0),
+                        res,
+                    )
+                    m += wp.outer(v, v)
+    return m
+
+
+@wp.kernel
+def fit_dot_step_kernel(
+    image: wp.array2d(dtype=wp.float64),
+    model: wp.array2d(dtype=wp.float64),
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    half: int,
+    fit_shape: int,
+    max_move: wp.float64,
+    smin: wp.float64,
+    smax: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+):
+    """One Gauss-Newton step of dot i against the image less the other dots (see ``fit_dots_numpy``)."""
+    i = wp.tid()
+    p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
+    n = 2 * half + 1
+    ox = int(wp.rint(p[0])) - half
+    oy = int(wp.rint(p[1])) - half
+    integrated_profile(ox, n, p[0], p[3], i, 0, prof)
+    integrated_profile(oy, n, p[1], p[3], i, 3, prof)
+    gram = gram_matrix(image, model, i, ox, oy, n, p[2], p[4], prof)
+    m = mat55d()
+    g = vec5d()
+    for k in range(5):
+        g[k] = gram[k, 5]
+        for l in range(5):
+            m[k, l] = gram[k, l]
+    if fit_shape == 0:
+        for k in range(2, 4):
+            for l in range(5):
+                m[k, l] = wp.float64(0.0)
+                m[l, k] = wp.float64(0.0)
+            m[k, k] = wp.float64(1.0)
+            g[k] = wp.float64(0.0)
+    for k in range(5):
+        m[k, k] = m[k, k] + wp.float64(1.0e-12)
+    step = solve_spd5(m, g)
+    big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
+    scale = wp.float64(1.0)
+    if big > wp.float64(0.5):
+        scale = wp.float64(0.5) / big
+    q = p + step * scale
+    good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
+    good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
+    good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
+    if not good:
+        q = p
+    for k in range(5):
+        out[i, k] = q[k]
+    ok[i] = int(good)

@@ -262,10 +262,15 @@ def test_numpy_and_warp_backends_agree(device):
 
 def test_settings_as_dict():
     d = TrackingSettings(diameter=3.0).as_dict()
-    assert d["centroid"] == "gaussian3" and d["cc_threshold"] == 0.5 and d["threshold"] == "auto"
+    assert d["centroid"] == "model" and d["correction"] == "model"
+    assert d["cc_threshold"] == 0.5 and d["threshold"] == "auto"
+    p = TrackingSettings.paper(diameter=3.0)
+    assert (p.centroid, p.correction, p.diameter) == ("gaussian3", "paper", 3.0)
     assert_allclose(d["weights"], [1 / 3] * 3)
     with pytest.raises(SynthbosError):
         TrackingSettings(centroid="median")
+    with pytest.raises(SynthbosError):
+        TrackingSettings(correction="fft")
 
 
 @pytest.mark.parametrize("centroid", ["centroid", "gaussian4", "lsq"])
