@@ -17,8 +17,7 @@ wp.set_module_options({"enable_backward": False})  # forward-only kernels: no ad
 
 vec5d = wp.types.vector(length=5, dtype=wp.float64)
 mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
-vec6d = wp.types.vector(length=6, dtype=wp.float64)
-mat66d = wp.types.matrix(shape=(6, 6), dtype=wp.float64)
+mat76d = wp.types.matrix(shape=(7, 6), dtype=wp.float64)
 
 
 # --- identification: one window around one predicted position -------------------------------------
@@ -293,6 +292,20 @@ def measure_windows_kernel(
 
 
 @wp.func
+def erf_from_gauss(x: wp.float64, g: wp.float64) -> wp.float64:
+    """``erf(x)`` given ``g = exp(-x^2)``: Abramowitz and Stegun 7.1.26 (absolute error below 1.5e-7)."""
+    t = wp.float64(1.0) / (wp.float64(1.0) + wp.float64(0.3275911) * wp.abs(x))
+    poly = wp.float64(1.061405429) * t - wp.float64(1.453152027)
+    poly = poly * t + wp.float64(1.421413741)
+    poly = poly * t - wp.float64(0.284496736)
+    poly = poly * t + wp.float64(0.254829592)
+    e = wp.float64(1.0) - poly * t * g
+    if x < wp.float64(0.0):
+        return -e
+    return e
+
+
+@wp.func
 def integrated_profile(
     first: int, n: int, c: wp.float64, s: wp.float64, i: int, row: int, prof: wp.array3d(dtype=wp.float64)
 ):
@@ -306,11 +319,11 @@ def integrated_profile(
     scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
     z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
     g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
-    e0 = wp.erf(z0 * k0)
+    e0 = erf_from_gauss(z0 * k0, g0)
     for k in range(n):
-        z1 = (wp.float64(first + k) + wp.float64(0.5) - c) * inv
+        z1 = z0 + inv
         g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
-        e1 = wp.erf(z1 * k0)
+        e1 = erf_from_gauss(z1 * k0, g1)
         p = scale * (e1 - e0)
         prof[i, row, k] = p
         prof[i, row + 1, k] = g0 - g1
@@ -358,130 +371,239 @@ def solve_spd5(a: mat55d, g: vec5d) -> vec5d:
     return x
 
 
+@wp.func
+def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Both axes' profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel (rows 0-5)."""
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    integrated_profile(ox, 2 * half + 1, params[i, 0], params[i, 3], i, 0, prof)
+    integrated_profile(oy, 2 * half + 1, params[i, 1], params[i, 3], i, 3, prof)
+
+
 @wp.kernel
-def render_dots_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    half: int,
-    prof: wp.array3d(dtype=wp.float64),
-    model: wp.array2d(dtype=wp.float64),
-):
-    """Add dot i's model ``I0 p_x p_y`` (no background) on its ``2 half + 1`` stamp into ``model``."""
-    i = wp.tid()
-    x = params[i, 0]
-    y = params[i, 1]
-    a = params[i, 2]
-    s = params[i, 3]
-    if not (wp.isfinite(x) and wp.isfinite(y) and wp.isfinite(a) and wp.isfinite(s)):
-        return
-    n = 2 * half + 1
-    ox = int(wp.rint(x)) - half
-    oy = int(wp.rint(y)) - half
-    integrated_profile(ox, n, x, s, i, 0, prof)
-    integrated_profile(oy, n, y, s, i, 3, prof)
-    for r in range(n):
-        row = oy + r
-        if row >= 0 and row < model.shape[0]:
-            ay = a * prof[i, 3, r]
-            for c in range(n):
-                col = ox + c
-                if col >= 0 and col < model.shape[1]:
-                    wp.atomic_add(model, row, col, ay * prof[i, 0, c])
+def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Profiles of every dot on its stamp (see ``dot_profiles``)."""
+    dot_profiles(params, wp.tid(), half, prof)
 
 
 @wp.func
-def gram_matrix(
-    image: wp.array2d(dtype=wp.float64),
-    model: wp.array2d(dtype=wp.float64),
-    i: int,
-    ox: int,
-    oy: int,
-    n: int,
-    a: wp.float64,
-    b: wp.float64,
-    prof: wp.array3d(dtype=wp.float64),
-) -> mat66d:
-    """Sum over dot i's window of ``v v^T``, ``v = (J, r)``: ``J^T J`` and, in the last column, ``J^T r``.
+def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.vec2d:
+    """(I0, sigma) of dot i shared with its partner in the other image: the mean of both (own if none)."""
+    j = partner[i]
+    if j < 0:
+        return wp.vec2d(params[i, 2], params[i, 3])
+    half = wp.float64(0.5)
+    return wp.vec2d(half * (params[i, 2] + params[j, 2]), half * (params[i, 3] + params[j, 3]))
 
-    The residual is ``r = image - model - b``: the model image holds dot i itself, so this is the data
-    less the other dots minus dot i's model and background. ``J`` is the derivative of the model with
+
+@wp.kernel
+def render_dots_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    half: int,
+    prof: wp.array3d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
+):
+    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's two model images.
+
+    ``models[0, f]``: ``I0 p_x p_y``; ``models[1, f]``: the same at the pair's common shape, linearised
+    in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
+    """
+    i = wp.tid()
+    f = frame[i]
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    cs = common_shape(params, partner, i)
+    ds = cs[1] - params[i, 3]
+    for r in range(n):
+        row = oy + r
+        if row >= 0 and row < models.shape[2]:
+            py = prof[i, 3, r]
+            spy = prof[i, 5, r]
+            for c in range(n):
+                col = ox + c
+                if col >= 0 and col < models.shape[3]:
+                    px = prof[i, 0, c]
+                    models[0, f, row, col] += a * py * px
+                    models[1, f, row, col] += cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+
+
+@wp.func
+def normal_matrix(
+    image: wp.array3d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    prof: wp.array3d(dtype=wp.float64),
+) -> mat76d:
+    """Dot i's ``J^T J`` (rows 0-4, columns 0-4), ``J^T r`` (column 5) and ``J^T r'`` (row 6).
+
+    The window is the central ``2 half + 1`` part of the stamp whose profiles ``prof`` holds (``skip``
+    pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
+    this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
+    against the common-shape model image ``models[1]``. ``J`` is the derivative of the model with
     respect to x, y, I0, sigma and the background.
     """
-    m = mat66d()
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    s00 = zero
+    s01 = zero
+    s02 = zero
+    s03 = zero
+    s04 = zero
+    s11 = zero
+    s12 = zero
+    s13 = zero
+    s14 = zero
+    s22 = zero
+    s23 = zero
+    s24 = zero
+    s33 = zero
+    s34 = zero
+    s44 = zero
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
     for rr in range(n):
         row = oy + rr
-        if row >= 0 and row < image.shape[0]:
-            py = prof[i, 3, rr]
-            dpy = prof[i, 4, rr]
-            spy = prof[i, 5, rr]
+        if row >= 0 and row < image.shape[1]:
+            py = prof[i, 3, rr + skip]
+            dpy = a * prof[i, 4, rr + skip]
+            spy = a * prof[i, 5, rr + skip]
+            apy = a * py
             for cc in range(n):
                 col = ox + cc
-                if col >= 0 and col < image.shape[1]:
-                    px = prof[i, 0, cc]
-                    dpx = prof[i, 1, cc]
-                    spx = prof[i, 2, cc]
-                    res = image[row, col] - model[row, col] - b
-                    v = vec6d(
-                        a * py * dpx,
-                        a * dpy * px,
-                        py * px,
-                        a * (spy * px + py * spx),
-                        wp.float64(1.0),
-                        res,
-                    )
-                    m += wp.outer(v, v)
-    return m
+                if col >= 0 and col < image.shape[2]:
+                    px = prof[i, 0, cc + skip]
+                    v = image[f, row, col] - b
+                    res = v - models[0, f, row, col]
+                    res2 = v - models[1, f, row, col]
+                    j0 = apy * prof[i, 1, cc + skip]
+                    j1 = dpy * px
+                    j2 = py * px
+                    j3 = spy * px + apy * prof[i, 2, cc + skip]
+                    s00 += j0 * j0
+                    s01 += j0 * j1
+                    s02 += j0 * j2
+                    s03 += j0 * j3
+                    s04 += j0
+                    s11 += j1 * j1
+                    s12 += j1 * j2
+                    s13 += j1 * j3
+                    s14 += j1
+                    s22 += j2 * j2
+                    s23 += j2 * j3
+                    s24 += j2
+                    s33 += j3 * j3
+                    s34 += j3
+                    s44 += wp.float64(1.0)
+                    g0 += j0 * res
+                    g1 += j1 * res
+                    g2 += j2 * res
+                    g3 += j3 * res
+                    g4 += res
+                    h0 += j0 * res2
+                    h1 += j1 * res2
+                    h4 += res2
+    return mat76d(
+        s00, s01, s02, s03, s04, g0,
+        s01, s11, s12, s13, s14, g1,
+        s02, s12, s22, s23, s24, g2,
+        s03, s13, s23, s33, s34, g3,
+        s04, s14, s24, s34, s44, g4,
+        g0, g1, g2, g3, g4, zero,
+        h0, h1, zero, zero, h4, zero,
+    )  # fmt: skip
+
+
+@wp.func
+def solve_free(m: mat55d, g: vec5d, free: vec5d) -> vec5d:
+    """Gauss-Newton step for the parameters with ``free[k] = 1``; the others' step is zero."""
+    a = mat55d()
+    r = vec5d()
+    for k in range(5):
+        r[k] = g[k] * free[k]
+        for l in range(5):
+            a[k, l] = m[k, l] * free[k] * free[l]
+        a[k, k] = a[k, k] + (wp.float64(1.0) - free[k]) + wp.float64(1.0e-12)
+    return solve_spd5(a, r)
+
+
+@wp.func
+def limited(step: vec5d) -> vec5d:
+    """The step scaled so that the position moves at most half a pixel per axis."""
+    big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
+    if big > wp.float64(0.5):
+        return step * (wp.float64(0.5) / big)
+    return step
 
 
 @wp.kernel
 def fit_dot_step_kernel(
-    image: wp.array2d(dtype=wp.float64),
-    model: wp.array2d(dtype=wp.float64),
+    image: wp.array3d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
     half: int,
-    fit_shape: int,
+    render_half: int,
     max_move: wp.float64,
     smin: wp.float64,
     smax: wp.float64,
     prof: wp.array3d(dtype=wp.float64),
     out: wp.array2d(dtype=wp.float64),
     ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
 ):
-    """One Gauss-Newton step of dot i against the image less the other dots (see ``fit_dots_numpy``)."""
+    """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
+
+    ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
+    at the new parameters ``out``. ``shared_xy`` gets the position of the step for position and
+    background against the common-shape model image (NaN without a partner).
+    """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
-    n = 2 * half + 1
-    ox = int(wp.rint(p[0])) - half
-    oy = int(wp.rint(p[1])) - half
-    integrated_profile(ox, n, p[0], p[3], i, 0, prof)
-    integrated_profile(oy, n, p[1], p[3], i, 3, prof)
-    gram = gram_matrix(image, model, i, ox, oy, n, p[2], p[4], prof)
+    gram = normal_matrix(image, models, frame[i], params, i, half, render_half - half, prof)
     m = mat55d()
     g = vec5d()
+    h = vec5d()
     for k in range(5):
         g[k] = gram[k, 5]
+        h[k] = gram[6, k]
         for l in range(5):
             m[k, l] = gram[k, l]
-    if fit_shape == 0:
-        for k in range(2, 4):
-            for l in range(5):
-                m[k, l] = wp.float64(0.0)
-                m[l, k] = wp.float64(0.0)
-            m[k, k] = wp.float64(1.0)
-            g[k] = wp.float64(0.0)
-    for k in range(5):
-        m[k, k] = m[k, k] + wp.float64(1.0e-12)
-    step = solve_spd5(m, g)
-    big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
-    scale = wp.float64(1.0)
-    if big > wp.float64(0.5):
-        scale = wp.float64(0.5) / big
-    q = p + step * scale
+    one = wp.float64(1.0)
+    zero = wp.float64(0.0)
+    q = p + limited(solve_free(m, g, vec5d(one, one, one, one, one)))
     good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
     good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
     good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
     if not good:
         q = p
+    qs = limited(solve_free(m, h, vec5d(one, one, zero, zero, one)))
+    nan = wp.float64(wp.nan)
+    shared_xy[i, 0] = nan
+    shared_xy[i, 1] = nan
+    if partner[i] >= 0:
+        shared_xy[i, 0] = p[0] + qs[0]
+        shared_xy[i, 1] = p[1] + qs[1]
     for k in range(5):
         out[i, k] = q[k]
     ok[i] = int(good)
+    dot_profiles(out, i, render_half, prof)

@@ -125,8 +125,8 @@ class TrackingSettings:
         the dot model). "paper": the correlation of the two dots' segmented maps with a three-point
         Gaussian peak fit (Rajendran, Bane and Vlachos 2019, section 2.3); it is biased by the map's
         cut (up to ~0.05 px without noise) and by the three-point fit.
-    fit_iterations, correction_iterations : int
-        Gauss-Newton steps of the model fit of each image and of the common-shape refit.
+    fit_iterations : int
+        Gauss-Newton steps of the model fit of each image (the model correction comes with the last).
     weights : (W_A, W_I, W_dx)
         Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
     diameter : float or None
@@ -182,8 +182,7 @@ class TrackingSettings:
 
     centroid: str = "model"
     correction: str = "model"
-    fit_iterations: int = 3
-    correction_iterations: int = 2
+    fit_iterations: int = 2
     weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
     diameter: float | None = None
     window_margin: float = 1.0
@@ -213,16 +212,14 @@ class TrackingSettings:
             )
         if self.correction not in ("model", "paper"):
             raise SynthbosError(f"unknown correction {self.correction!r}; choose 'model' or 'paper'")
-        if self.fit_iterations < 1 or self.correction_iterations < 1:
-            raise SynthbosError("fit_iterations and correction_iterations must be at least 1")
+        if self.fit_iterations < 1:
+            raise SynthbosError(f"fit_iterations must be at least 1, got {self.fit_iterations}")
         if self.matching not in MATCH_METHODS:
             raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
         if self.background not in ("ring-median", "minimum"):
             raise SynthbosError(f"unknown background {self.background!r}; choose 'ring-median' or 'minimum'")
         if self.identification not in ("dynamic", "static"):
-            raise SynthbosError(
-                f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'"
-            )
+            raise SynthbosError(f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'")
         if self.diameter is not None and not (np.isfinite(self.diameter) and self.diameter > 0):
             raise SynthbosError(f"dot diameter must be a positive number, got {self.diameter!r}")
         if self.predictor not in ("correlation", "none"):
@@ -269,9 +266,7 @@ def _saturation_level(image, level):
     return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
 
 
-def _identify(
-    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
-):
+def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
@@ -352,11 +347,7 @@ def _identify(
         method = "gaussian3" if settings.centroid == "model" else settings.centroid
         xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = (
-            ~(np.isfinite(xw) & np.isfinite(yw))
-            | (np.abs(xw - map_half) > 1.0)
-            | (np.abs(yw - map_half) > 1.0)
-        )
+        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
@@ -406,85 +397,66 @@ class _Frame(NamedTuple):
     saturation: float
 
 
-def _model_windows(eta0):
-    """Fit and rendering half-widths for dots of nominal standard deviation ``eta0``."""
-    return fit_window_half(eta0)
-
-
-def _fit_model(image, found, eta0, settings, device):
-    """Joint least-squares fit of the pixel-integrated dot model to every dot found in one image.
-
-    Starts from the identification's estimate (position, peak, nominal width, zero background). Returns
-    (N, 5) parameters (:data:`tracking.dotfit.PARAMS`, NaN for dots not found) and (N,) fit success.
-    """
-    n = len(found["x"])
-    params = np.full((n, 5), np.nan)
-    ok = np.zeros(n, dtype=bool)
+def _model_start(found, eta0):
+    """Rows found and their starting parameters: the identification's estimate, nominal width."""
     idx = np.flatnonzero(np.isfinite(found["x"]))
-    if idx.size == 0:
-        return params, ok
-    start = np.stack(
-        [found["x"][idx], found["y"][idx], found["i0"][idx], np.full(idx.size, eta0), np.zeros(idx.size)],
-        axis=1,
-    )
-    half, render_half = _model_windows(eta0)
+    # The three-point peak is that of the pixel-broadened dot (variance eta0^2 + 1/12, same flux).
+    peak = found["i0"][idx] * (1.0 + 1.0 / (12.0 * eta0**2))
+    start = np.stack([found["x"][idx], found["y"][idx], peak, np.full(idx.size, eta0), np.zeros(idx.size)], axis=1)
+    return idx, start
+
+
+def _fit_models(images, founds, partner, eta0, settings, device):
+    """Joint least-squares fit of the pixel-integrated dot model to every dot found in both images.
+
+    Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
+    last step also gives their positions at the pair's common shape (the model correction). Returns per
+    image a dict of ``params`` (N, 5; NaN where not found), ``ok`` (N,) and ``shared_xy`` (N, 2; NaN
+    where not matched).
+    """
+    half, render_half = fit_window_half(eta0)
+    starts = [_model_start(found, eta0) for found in founds]
+    (idx_r, start_r), (idx_g, start_g) = starts
+    # Row of each fitted dot's partner among the fitted rows of the other image.
+    pos_g = np.full(len(founds[1]["x"]), -1)
+    pos_g[idx_g] = np.arange(idx_g.size)
+    pr = partner[idx_r]
+    pair_r = np.where(pr >= 0, pos_g[np.maximum(pr, 0)], -1)
+    pair = np.full(idx_r.size + idx_g.size, -1)
+    has = np.flatnonzero(pair_r >= 0)
+    pair[has] = idx_r.size + pair_r[has]
+    pair[idx_r.size + pair_r[has]] = has
     fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
     extra = {"device": device} if settings.backend == "warp" else {}
-    params[idx], ok[idx] = fit(
-        image,
-        start,
+    params, ok, shared = fit(
+        np.stack(images),
+        np.vstack([start_r, start_g]),
         half=half,
         render_half=render_half,
+        frame=np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)],
+        partner=pair,
         iterations=settings.fit_iterations,
         sigma_range=(0.25 * eta0, 4.0 * eta0),
         **extra,
     )
-    return params, ok
+    fits = []
+    for (idx, _), found, rows in zip(starts, founds, (slice(0, idx_r.size), slice(idx_r.size, None)), strict=True):
+        n = len(found["x"])
+        f = {"params": np.full((n, 5), np.nan), "ok": np.zeros(n, dtype=bool), "shared_xy": np.full((n, 2), np.nan)}
+        f["params"][idx], f["ok"][idx], f["shared_xy"][idx] = params[rows], ok[rows], shared[rows]
+        fits.append(f)
+    return fits
 
 
-def _take_model(found):
-    """Use the model fit's position, width and peak (the fit's failures keep theirs, flagged)."""
-    params, ok = found["model"]
+def _take_model(found, fit):
+    """Use the model fit's position, width and peak (failed fits keep their last step, flagged)."""
+    params = fit["params"]
     has = np.isfinite(params[:, 0])
     found["x"] = np.where(has, params[:, 0], found["x"])
     found["y"] = np.where(has, params[:, 1], found["y"])
     found["eta"] = np.where(has, params[:, 3], found["eta"])
     found["i0"] = np.where(has, params[:, 2], found["i0"])
-    found["flags"][has & ~ok] |= DotStatus.FIT_FALLBACK
-
-
-def _model_correction(ref, grad, model_r, model_g, m, gi, eta0, settings, device):
-    """Displacement of matched dots by refitting both images with each pair's common shape.
-
-    Each pair's peak and width are set to the mean of its two fits, and both images are refitted for
-    position and background only (the other dots modelled as before); the displacement is the
-    difference of the refitted positions. Sharing the shape leaves two fewer free parameters per dot,
-    so it is at least as precise as the difference of two independent fits (and it reaches the
-    displacement's Cramer-Rao bound when the dot looks the same in both images).
-    """
-    pr, pg = model_r[0].copy(), model_g[0].copy()
-    shape = 0.5 * (pr[m, 2:4] + pg[gi, 2:4])
-    pr[m, 2:4] = shape
-    pg[gi, 2:4] = shape
-    half, render_half = _model_windows(eta0)
-    fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
-    extra = {"device": device} if settings.backend == "warp" else {}
-    res = []
-    for image, p in ((ref, pr), (grad, pg)):
-        has = np.flatnonzero(np.isfinite(p[:, 0]))
-        q, ok = np.full_like(p, np.nan), np.zeros(len(p), dtype=bool)
-        q[has], ok[has] = fit(
-            image,
-            p[has],
-            half=half,
-            render_half=render_half,
-            iterations=settings.correction_iterations,
-            fit_shape=False,
-            **extra,
-        )
-        res.append((q, ok))
-    (qr, okr), (qg, okg) = res
-    return qg[gi, 0] - qr[m, 0], qg[gi, 1] - qr[m, 1], okr[m] & okg[gi]
+    found["flags"][has & ~fit["ok"]] |= DotStatus.FIT_FALLBACK
 
 
 def _drop_shared_blobs(found, pred):
@@ -597,9 +569,7 @@ def track_pair(
     if d is None:
         d = estimate_dot_diameter(ref)
         if not (np.isfinite(d) and d > 0):
-            raise SynthbosError(
-                "cannot estimate the dot diameter from the reference image; give it in settings"
-            )
+            raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
     eta0 = d / 4.0
     half_r = int(np.ceil(d / 2.0 + settings.window_margin))
     half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
@@ -666,12 +636,12 @@ def track_pair(
                 radius=search,
                 weights=settings.match_weights,
             )
+    fits = None
     if settings.centroid == "model" or settings.correction == "model":
-        r["model"] = _fit_model(ref, r, eta0, settings, device)
-        g["model"] = _fit_model(grad, g, eta0, settings, device)
+        fits = _fit_models((ref, grad), (r, g), partner, eta0, settings, device)
     if settings.centroid == "model":
-        for found in (r, g):
-            _take_model(found)
+        _take_model(r, fits[0])
+        _take_model(g, fits[1])
 
     n = len(r["x"])
     out = np.zeros(n, dtype=TRACK_DTYPE)
@@ -705,7 +675,12 @@ def track_pair(
     if m.size:
         gi = pi[m]
         if settings.correction == "model":
-            ucc, vcc, cc_ok = _model_correction(ref, grad, r["model"], g["model"], m, gi, eta0, settings, device)
+            # The model correction: both positions refitted with the pair's common peak and width.
+            du = fits[1]["shared_xy"][gi] - fits[0]["shared_xy"][m]
+            ucc, vcc = du[:, 0], du[:, 1]
+            cc_ok = np.isfinite(ucc) & np.isfinite(vcc)
+            ucc = np.where(cc_ok, ucc, out["u"][m])
+            vcc = np.where(cc_ok, vcc, out["v"][m])
         else:
             # The paper's correlation correction: both dot maps are centred on their peak pixels, so the
             # displacement is the peak pixels' offset plus the correlation peak's.

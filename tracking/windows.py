@@ -179,9 +179,13 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
+    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels.
+    order = np.lexsort((origin[:, 0], origin[:, 1] // 8))
+    back = np.empty_like(order)
+    back[order] = np.arange(n)
     img = wp.array(np.ascontiguousarray(image, dtype=np.float64), dtype=wp.float64, device=device)
-    org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
-    loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
+    org = wp.array(np.ascontiguousarray(origin[order], dtype=np.int32), dtype=wp.int32, device=device)
+    loc = wp.array(np.ascontiguousarray(local[order], dtype=np.float64), dtype=wp.float64, device=device)
     win = wp.empty((n, w * w), dtype=wp.float64, device=device)
     ring = wp.empty((n, 4 * (w - 1)), dtype=wp.float64, device=device)
     lab = wp.empty((n, w * w), dtype=wp.int32, device=device)
@@ -218,7 +222,7 @@ def measure_windows(
         ],
         device=device,
     )
-    oi, of = out_i.numpy(), out_f.numpy()
+    oi, of = out_i.numpy()[back], out_f.numpy()[back]
     return {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
@@ -226,5 +230,5 @@ def measure_windows(
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy(),
+        "dotmap": dotmap.numpy()[back],
     }
