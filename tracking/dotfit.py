@@ -379,8 +379,9 @@ def fit_dots(
     shared = wp.empty((n, 2), dtype=wp.float64, device=device)
     prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
-    for _ in range(iterations):
-        models.zero_()
+    for it in range(iterations):
+        if it:
+            models.zero_()
         wp.launch(render_dots_kernel, dim=n, inputs=[cur, fr, pa, int(render_half), prof, models], device=device)
         wp.launch(
             fit_dot_step_kernel,

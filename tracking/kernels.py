@@ -16,8 +16,21 @@ wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 vec5d = wp.types.vector(length=5, dtype=wp.float64)
-mat55d = wp.types.matrix(shape=(5, 5), dtype=wp.float64)
-mat76d = wp.types.matrix(shape=(7, 6), dtype=wp.float64)
+mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
+
+
+@wp.struct
+class NormalEquations:
+    """Normal equations of one dot, parameters split into position and background ``(x, y, b)`` and shape
+    ``(I0, sigma)``: ``J^T J = [[p, q], [q^T, r]]``, ``J^T res = (g1, g2)``; ``h1`` is the position part
+    of ``J^T res'`` against the common-shape model image."""
+
+    p: wp.mat33d
+    q: mat32d
+    r: wp.mat22d
+    g1: wp.vec3d
+    g2: wp.vec2d
+    h1: wp.vec3d
 
 
 # --- identification: one window around one predicted position -------------------------------------
@@ -223,9 +236,10 @@ def cut_dot_map(
     chosen: int,
     bg: wp.float64,
     hc: int,
+    k: int,
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Dot map centred on the chosen peak: the blob and its one-pixel rim minus background, others zero."""
+    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero."""
     c = 2 * hc + 1
     rr = chosen // w
     rc = chosen % w
@@ -238,7 +252,7 @@ def cut_dot_map(
                 l = lab[i, qr * w + qc]
                 if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
                     val = win[i, qr * w + qc] - bg
-            dotmap[i, a, b] = val
+            dotmap[k, a, b] = val
 
 
 @wp.kernel
@@ -265,16 +279,21 @@ def measure_windows_kernel(
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map."""
+    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map.
+
+    ``win``, ``ring``, ``lab`` and ``area`` are scratch rows: thread i uses row ``i % rows`` (one row is
+    enough where threads run one after another, as on the CPU).
+    """
     i = wp.tid()
+    s = i % win.shape[0]
     w = 2 * half + 1
-    mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, i, win)
+    mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:
-        bg = edge_median(win, i, w, ring)
+        bg = edge_median(win, s, w, ring)
     thr = bg + wp.max(frac * (mm[1] - bg), floor)
-    nblobs = segment_window(win, i, w, thr, lab, area)
-    chosen = choose_blob(win, lab, area, i, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
+    nblobs = segment_window(win, s, w, thr, lab, area)
+    chosen = choose_blob(win, lab, area, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
     out_int[i, 2] = 0
@@ -282,10 +301,10 @@ def measure_windows_kernel(
     out_float[i, 1] = wp.float64(0.0)
     out_float[i, 2] = wp.float64(0.0)
     if chosen >= 0:
-        out_int[i, 2] = count_saturated(win, lab, i, w, chosen, sat)
-        out_float[i, 1] = win[i, chosen] - bg
+        out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
+        out_float[i, 1] = win[s, chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    cut_dot_map(win, lab, i, w, chosen, bg, hc, dotmap)
+    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, dotmap)
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------
@@ -331,44 +350,6 @@ def integrated_profile(
         z0 = z1
         g0 = g1
         e0 = e1
-
-
-@wp.func
-def solve_spd5(a: mat55d, g: vec5d) -> vec5d:
-    """Solution of ``a x = g`` for a symmetric positive-definite 5x5 ``a`` (Cholesky); NaN if not SPD."""
-    l = mat55d()
-    bad = int(0)
-    for j in range(5):
-        d = a[j, j]
-        for k in range(j):
-            d -= l[j, k] * l[j, k]
-        if d <= wp.float64(0.0):
-            bad = 1
-            d = wp.float64(1.0)
-        ljj = wp.sqrt(d)
-        l[j, j] = ljj
-        for r in range(j + 1, 5):
-            v = a[r, j]
-            for k in range(j):
-                v -= l[r, k] * l[j, k]
-            l[r, j] = v / ljj
-    y = vec5d()
-    for j in range(5):
-        v = g[j]
-        for k in range(j):
-            v -= l[j, k] * y[k]
-        y[j] = v / l[j, j]
-    x = vec5d()
-    for jj in range(5):
-        j = 4 - jj
-        v = y[j]
-        for k in range(j + 1, 5):
-            v -= l[k, j] * x[k]
-        x[j] = v / l[j, j]
-    if bad != 0:
-        nan = wp.float64(wp.nan)
-        x = vec5d(nan, nan, nan, nan, nan)
-    return x
 
 
 @wp.func
@@ -441,8 +422,8 @@ def normal_matrix(
     half: int,
     skip: int,
     prof: wp.array3d(dtype=wp.float64),
-) -> mat76d:
-    """Dot i's ``J^T J`` (rows 0-4, columns 0-4), ``J^T r`` (column 5) and ``J^T r'`` (row 6).
+) -> NormalEquations:
+    """Dot i's normal equations: ``J^T J`` in blocks, ``J^T r`` and ``J^T r'`` (see ``NormalEquations``).
 
     The window is the central ``2 half + 1`` part of the stamp whose profiles ``prof`` holds (``skip``
     pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
@@ -520,28 +501,15 @@ def normal_matrix(
                     h0 += j0 * res2
                     h1 += j1 * res2
                     h4 += res2
-    return mat76d(
-        s00, s01, s02, s03, s04, g0,
-        s01, s11, s12, s13, s14, g1,
-        s02, s12, s22, s23, s24, g2,
-        s03, s13, s23, s33, s34, g3,
-        s04, s14, s24, s34, s44, g4,
-        g0, g1, g2, g3, g4, zero,
-        h0, h1, zero, zero, h4, zero,
-    )  # fmt: skip
-
-
-@wp.func
-def solve_free(m: mat55d, g: vec5d, free: vec5d) -> vec5d:
-    """Gauss-Newton step for the parameters with ``free[k] = 1``; the others' step is zero."""
-    a = mat55d()
-    r = vec5d()
-    for k in range(5):
-        r[k] = g[k] * free[k]
-        for l in range(5):
-            a[k, l] = m[k, l] * free[k] * free[l]
-        a[k, k] = a[k, k] + (wp.float64(1.0) - free[k]) + wp.float64(1.0e-12)
-    return solve_spd5(a, r)
+    eps = wp.float64(1.0e-12)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(g0, g1, g4)
+    ne.g2 = wp.vec2d(g2, g3)
+    ne.h1 = wp.vec3d(h0, h1, h4)
+    return ne
 
 
 @wp.func
@@ -579,24 +547,22 @@ def fit_dot_step_kernel(
     """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
-    gram = normal_matrix(image, models, frame[i], params, i, half, render_half - half, prof)
-    m = mat55d()
-    g = vec5d()
-    h = vec5d()
-    for k in range(5):
-        g[k] = gram[k, 5]
-        h[k] = gram[6, k]
-        for l in range(5):
-            m[k, l] = gram[k, l]
-    one = wp.float64(1.0)
-    zero = wp.float64(0.0)
-    q = p + limited(solve_free(m, g, vec5d(one, one, one, one, one)))
+    ne = normal_matrix(image, models, frame[i], params, i, half, render_half - half, prof)
+    # Block elimination: the shape step from the Schur complement, then position and background.
+    pinv = wp.inverse(ne.p)
+    pq = pinv * ne.q
+    schur = ne.r - wp.transpose(ne.q) * pq
+    d2 = wp.inverse(schur) * (ne.g2 - wp.transpose(pq) * ne.g1)
+    d1 = pinv * (ne.g1 - ne.q * d2)
+    step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
+    q = p + limited(step)
     good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
     good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
     good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
     if not good:
         q = p
-    qs = limited(solve_free(m, h, vec5d(one, one, zero, zero, one)))
+    hs = pinv * ne.h1
+    qs = limited(vec5d(hs[0], hs[1], wp.float64(0.0), wp.float64(0.0), hs[2]))
     nan = wp.float64(wp.nan)
     shared_xy[i, 0] = nan
     shared_xy[i, 1] = nan
