@@ -4,7 +4,11 @@
 (predicted reference-image positions of the manufactured dots) every dot is looked for in a small window
 around its prediction, iterating on a residual image from which the dots found so far are removed;
 without one, dots are identified in each image by dynamic thresholding and paired (standard tracking).
-Displacements come both from the difference of the two centroids and from the correlation correction.
+Displacements come both from the difference of the two positions (``u, v``) and from the correction
+(``u_cc, v_cc``). By default the positions are a joint least-squares fit of the pixel-integrated dot
+model to both images and the correction is that fit with each pair's common shape
+(:mod:`tracking.dotfit`); ``TrackingSettings.paper()`` selects the paper's three-point Gaussian and
+correlation of the dot maps.
 """
 
 from __future__ import annotations
@@ -114,17 +118,21 @@ class TrackingSettings:
     centroid : {"model", "gaussian3", "centroid", "gaussian4", "lsq"}
         Sub-pixel estimator. "model" (default): least-squares fit of the pixel-integrated Gaussian dot
         model with peak, width and background free, every dot jointly with its neighbours
-        (:func:`tracking.dotfit.fit_dots`); unbiased, and at the Cramer-Rao bound under white noise. The
-        others are the estimators of Brady, Raben and Vlachos (2009) on the dot's segmented map
-        (:func:`tracking.centroid.fit_centroids`): "gaussian3" (the paper's) has a bias of up to ~0.01 px
-        on pixel-integrated 3 px dots and uses five pixels only, so its noise is 1.3-1.5x the bound; all
-        four are biased where neighbours' tails reach into the map.
+        (:func:`tracking.dotfit.fit_dots`): no bias (below 1e-3 px p95 without noise at 20 dots per
+        32x32 px) and at the Cramer-Rao bound under white noise. The others are the estimators of
+        Brady, Raben and Vlachos (2009) on the dot's segmented map (:func:`tracking.centroid.fit_centroids`).
+        On isolated pixel-integrated 3 px dots "gaussian3" (the paper's) and "lsq" are biased by less
+        than 1e-3 px, "gaussian4" by 2e-3 px and "centroid" by up to 0.01 px; in a dense pattern the
+        neighbours' tails inside the map bias all four (p95 ~0.01 px for "gaussian3" at 20 dots per
+        32x32 px), and "gaussian3", using five pixels, has ~1.35x the bound's noise.
     correction : {"model", "paper"}
-        How ``u_cc, v_cc`` are measured. "model" (default): both images are refitted with each pair's
-        common peak and width (the shift that best maps the reference dot onto the gradient dot under
-        the dot model). "paper": the correlation of the two dots' segmented maps with a three-point
-        Gaussian peak fit (Rajendran, Bane and Vlachos 2019, section 2.3); it is biased by the map's
-        cut (up to ~0.05 px without noise) and by the three-point fit.
+        How ``u_cc, v_cc`` are measured. "model" (default): the last step of the model fit taken again
+        with each pair's common peak and width, for position and background only (the shift that best
+        maps the reference dot onto the gradient dot under the dot model, its neighbours at their
+        common shapes too); at or below the bound, and never noisier than ``u, v``. "paper": the
+        correlation of the two dots' segmented maps with a three-point Gaussian peak fit (Rajendran,
+        Bane and Vlachos 2019, section 2.3); the maps' cut and the peak fit bias it (p95 ~0.04 px
+        without noise in a dense pattern), so it wins over "gaussian3" only from ~3 % noise.
     fit_iterations : int
         Gauss-Newton steps of the model fit of each image (the model correction comes with the last).
     weights : (W_A, W_I, W_dx)
