@@ -71,6 +71,12 @@ def main(argv=None):
     p.add_argument("--backend", choices=("warp", "numpy"), default="warp")
     p.add_argument("--trackpy-diameter", type=int, default=5, help="odd feature size for trackpy.locate")
     p.add_argument("--trackpy-separation", type=float, default=3.0, help="trackpy.locate minimum separation")
+    p.add_argument(
+        "--sweep-noise",
+        default="0,0.01,0.03,0.05",
+        help="noise levels of the accuracy sweep (comma-separated fractions of the peak; empty: no sweep)",
+    )
+    p.add_argument("--sweep-size", type=int, default=512, help="image size of the accuracy sweep")
     args = p.parse_args(argv)
 
     import warp as wp
@@ -167,6 +173,48 @@ def main(argv=None):
     if len(rows) == 3:
         print(f"speed ratio default / trackpy: {rows[0][1] / rows[2][1]:.2f}")
     print("x rms: reference position error per axis; u, u_cc: displacement error per axis (px).")
+    if args.sweep_noise:
+        accuracy_sweep(args, [float(v) for v in args.sweep_noise.split(",")])
+
+
+def accuracy_sweep(args, levels):
+    """p95 error and RMS against the CRLB of both procedures at several noise levels (one pattern)."""
+    rng = np.random.default_rng(args.seed + 1)
+    shape = (args.sweep_size, args.sweep_size)
+    xy = dot_pattern(rng, shape, per_32x32=args.density, min_distance=args.diameter)
+    disp = smooth_displacement(xy, shape, args.amplitude)
+    sub = slice(None, None, max(1, len(xy) // 1000))
+    unit = displacement_crlb(xy[sub], (xy + disp)[sub], shape, diameter=args.diameter, noise=1.0)
+    unit = float(np.sqrt(np.mean(unit**2)))
+    clean_r = draw_dots(shape, xy, args.diameter)
+    clean_g = draw_dots(shape, xy + disp, args.diameter)
+    print(
+        f"\naccuracy sweep: {shape[0]}x{shape[1]}, {len(xy)} dots, displacement up to {args.amplitude:g} px; "
+        "p95 |error| (px) at zero noise, RMS per axis / displacement CRLB otherwise"
+    )
+    head = (
+        f"{'noise':>6s} {'CRLB':>7s} {'tracking':>9s} {'tracking-cc':>12s} {'paper tracking':>15s} "
+        f"{'paper tracking-cc':>18s}"
+    )
+    print(head)
+    print("-" * len(head))
+    for noise in levels:
+        ref = clean_r + noise * rng.standard_normal(shape)
+        grad = clean_g + noise * rng.standard_normal(shape)
+        cells = []
+        for settings in (
+            TrackingSettings(diameter=args.diameter, backend=args.backend),
+            TrackingSettings.paper(diameter=args.diameter, backend=args.backend),
+        ):
+            res = track_pair(ref, grad, prior_xy=xy, settings=settings, device="cpu")
+            ok = is_valid(res["status"])
+            for key in ("", "_cc"):
+                e = np.r_[res["u" + key] - disp[:, 0], res["v" + key] - disp[:, 1]][np.r_[ok, ok]]
+                if noise == 0:
+                    cells.append(f"{np.percentile(np.abs(e), 95):.4f} px")
+                else:
+                    cells.append(f"{np.sqrt(np.mean(e**2)) / (noise * unit):.3f}x")
+        print(f"{noise:6.0%} {noise * unit:7.4f} {cells[0]:>9s} {cells[1]:>12s} {cells[2]:>15s} {cells[3]:>18s}")
 
 
 if __name__ == "__main__":
