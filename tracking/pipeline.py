@@ -274,7 +274,9 @@ def _saturation_level(image, level):
     return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
 
 
-def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
+def _identify(
+    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
+):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
@@ -355,7 +357,11 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         method = "gaussian3" if settings.centroid == "model" else settings.centroid
         xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
+        wild = (
+            ~(np.isfinite(xw) & np.isfinite(yw))
+            | (np.abs(xw - map_half) > 1.0)
+            | (np.abs(yw - map_half) > 1.0)
+        )
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
