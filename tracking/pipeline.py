@@ -411,13 +411,23 @@ class _Frame(NamedTuple):
     saturation: float
 
 
-def _model_start(found, eta0):
-    """Rows found and their starting parameters: the identification's estimate, nominal width."""
+def _model_start(found, sigma0):
+    """Rows found and their starting parameters: the identification's estimate, width ``sigma0``."""
     idx = np.flatnonzero(np.isfinite(found["x"]))
-    # The three-point peak is that of the pixel-broadened dot (variance eta0^2 + 1/12, same flux).
-    peak = found["i0"][idx] * (1.0 + 1.0 / (12.0 * eta0**2))
-    start = np.stack([found["x"][idx], found["y"][idx], peak, np.full(idx.size, eta0), np.zeros(idx.size)], axis=1)
+    # The three-point peak is that of the pixel-broadened dot (variance sigma0^2 + 1/12, same flux).
+    peak = found["i0"][idx] * (1.0 + 1.0 / (12.0 * sigma0**2))
+    start = np.stack(
+        [found["x"][idx], found["y"][idx], peak, np.full(idx.size, sigma0), np.zeros(idx.size)], axis=1
+    )
     return idx, start
+
+
+def _start_sigma(founds, eta0):
+    """Common starting width: the median three-point width less the pixel's own (variance 1/12)."""
+    eta = np.concatenate([f["eta"][np.isfinite(f["x"])] for f in founds])
+    if eta.size == 0:
+        return eta0
+    return float(np.sqrt(max(np.median(eta) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)))
 
 
 def _fit_models(images, founds, partner, eta0, settings, device):
@@ -429,7 +439,8 @@ def _fit_models(images, founds, partner, eta0, settings, device):
     where not matched).
     """
     half, render_half = fit_window_half(eta0)
-    starts = [_model_start(found, eta0) for found in founds]
+    sigma0 = _start_sigma(founds, eta0)
+    starts = [_model_start(found, sigma0) for found in founds]
     (idx_r, start_r), (idx_g, start_g) = starts
     # Row of each fitted dot's partner among the fitted rows of the other image.
     pos_g = np.full(len(founds[1]["x"]), -1)
