@@ -173,7 +173,7 @@ def _windows(stack, frame, ox, oy, n):
     return sliding_window_view(padded, (n, n), axis=(1, 2))[frame, oy + pad, ox + pad]
 
 
-def _step_numpy(images, models, params, start, frame, partner, *, half, max_move, sigma_range):
+def _step_numpy(images, models, params, start, frame, partner, saturation, *, half, max_move, sigma_range):
     """One Gauss-Newton step of every dot against its image minus the other dots (NumPy).
 
     ``models`` holds the free and the common-shape model images; returns the new parameters, the
@@ -186,6 +186,7 @@ def _step_numpy(images, models, params, start, frame, partner, *, half, max_move
     cols = ox[:, None] + np.arange(n)
     rows = oy[:, None] + np.arange(n)
     inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
+    inside &= _windows(images, frame, ox, oy, n) < saturation[frame][:, None, None]  # saturated: no data
     x, y, a, s, b = params.T
     px, dpx, spx = integrated_profile(x, s, ox, n)
     py, dpy, spy = integrated_profile(y, s, oy, n)
@@ -232,6 +233,12 @@ def _limited(step):
     return step * np.where(big > 0.5, 0.5 / np.where(big > 0.5, big, 1.0), 1.0)[:, None]
 
 
+def _saturation(saturation, k):
+    if saturation is None:
+        return np.full(k, np.inf)
+    return np.broadcast_to(np.asarray(saturation, dtype=np.float64), (k,)).copy()
+
+
 def _checked(images, params, frame, partner):
     stack = np.asarray(images, dtype=np.float64)
     stack = stack[None] if stack.ndim == 2 else stack
@@ -256,6 +263,7 @@ def fit_dots_numpy(
     render_half,
     frame=None,
     partner=None,
+    saturation=None,
     iterations=2,
     max_move=1.0,
     sigma_range=(0.2, 10.0),
@@ -274,6 +282,9 @@ def fit_dots_numpy(
         Image of each dot in the stack; all 0 by default.
     partner : (N,) int array, optional, keyword-only
         Row of the same dot in the other image of a pair, -1 for none.
+    saturation : float or (K,) array, optional, keyword-only
+        Saturation level of each image: pixels at or above it are left out of the fit (they only tell
+        that the intensity is at least that). None: no saturation.
     iterations : int, keyword-only
         Gauss-Newton steps; the model images are redrawn before each.
     max_move : float, keyword-only
@@ -307,6 +318,7 @@ def fit_dots_numpy(
     per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
+    sat = _saturation(saturation, len(stack))
     start = p.copy()
     ok = np.ones(len(p), dtype=bool)
     shared = np.full((len(p), 2), np.nan)
@@ -322,6 +334,7 @@ def fit_dots_numpy(
             start,
             frame,
             partner,
+            sat,
             half=half,
             max_move=max_move,
             sigma_range=sigma_range,
@@ -343,6 +356,7 @@ def fit_dots(
     render_half,
     frame=None,
     partner=None,
+    saturation=None,
     iterations=2,
     max_move=1.0,
     sigma_range=(0.2, 10.0),
@@ -370,6 +384,7 @@ def fit_dots(
     p = p[order]
     img = _on_device(stack, wp.float64, device)
     fr = _on_device(frame[order], wp.int32, device)
+    sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     models = wp.zeros((2, *stack.shape), dtype=wp.float64, device=device)
     cur = wp.array(p, dtype=wp.float64, device=device)
@@ -393,6 +408,7 @@ def fit_dots(
                 start,
                 fr,
                 pa,
+                sat,
                 int(half),
                 int(render_half),
                 float(max_move),

@@ -421,6 +421,7 @@ def normal_matrix(
     i: int,
     half: int,
     skip: int,
+    sat: wp.float64,
     prof: wp.array3d(dtype=wp.float64),
 ) -> NormalEquations:
     """Dot i's normal equations: ``J^T J`` in blocks, ``J^T r`` and ``J^T r'`` (see ``NormalEquations``).
@@ -429,7 +430,8 @@ def normal_matrix(
     pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
     this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
     against the common-shape model image ``models[1]``. ``J`` is the derivative of the model with
-    respect to x, y, I0, sigma and the background.
+    respect to x, y, I0, sigma and the background. Pixels at or above ``sat`` (saturated: they only
+    bound the intensity) take no part.
     """
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
@@ -469,7 +471,7 @@ def normal_matrix(
             apy = a * py
             for cc in range(n):
                 col = ox + cc
-                if col >= 0 and col < image.shape[2]:
+                if col >= 0 and col < image.shape[2] and image[f, row, col] < sat:
                     px = prof[i, 0, cc + skip]
                     v = image[f, row, col] - b
                     res = v - models[0, f, row, col]
@@ -529,6 +531,7 @@ def fit_dot_step_kernel(
     start: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
     half: int,
     render_half: int,
     max_move: wp.float64,
@@ -547,7 +550,8 @@ def fit_dot_step_kernel(
     """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
-    ne = normal_matrix(image, models, frame[i], params, i, half, render_half - half, prof)
+    f = frame[i]
+    ne = normal_matrix(image, models, f, params, i, half, render_half - half, saturation[f], prof)
     # Block elimination: the shape step from the Schur complement, then position and background.
     pinv = wp.inverse(ne.p)
     pq = pinv * ne.q

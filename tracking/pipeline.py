@@ -430,7 +430,7 @@ def _start_sigma(founds, eta0):
     return float(np.sqrt(max(np.median(eta) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)))
 
 
-def _fit_models(images, founds, partner, eta0, settings, device):
+def _fit_models(images, founds, partner, eta0, saturation, settings, device):
     """Joint least-squares fit of the pixel-integrated dot model to every dot found in both images.
 
     Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
@@ -460,6 +460,7 @@ def _fit_models(images, founds, partner, eta0, settings, device):
         render_half=render_half,
         frame=np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)],
         partner=pair,
+        saturation=saturation,
         iterations=settings.fit_iterations,
         sigma_range=(0.25 * eta0, 4.0 * eta0),
         **extra,
@@ -663,7 +664,8 @@ def track_pair(
             )
     fits = None
     if settings.centroid == "model" or settings.correction == "model":
-        fits = _fit_models((ref, grad), (r, g), partner, eta0, settings, device)
+        saturation = (frame_r.saturation, frame_g.saturation)
+        fits = _fit_models((ref, grad), (r, g), partner, eta0, saturation, settings, device)
     if settings.centroid == "model":
         _take_model(r, fits[0])
         _take_model(g, fits[1])
