@@ -134,7 +134,9 @@ class TrackingSettings:
         Bane and Vlachos 2019, section 2.3); the maps' cut and the peak fit bias it (p95 ~0.04 px
         without noise in a dense pattern), so it wins over "gaussian3" only from ~3 % noise.
     fit_iterations : int
-        Gauss-Newton steps of the model fit of each image (the model correction comes with the last).
+        Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
+        Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
+        ~15 % faster and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
     weights : (W_A, W_I, W_dx)
         Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
     diameter : float or None
@@ -190,7 +192,7 @@ class TrackingSettings:
 
     centroid: str = "model"
     correction: str = "model"
-    fit_iterations: int = 2
+    fit_iterations: int = 3
     weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
     diameter: float | None = None
     window_margin: float = 1.0
