@@ -386,7 +386,9 @@ def fit_dots(
     fr = _on_device(frame[order], wp.int32, device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
-    models = wp.zeros((2, *stack.shape), dtype=wp.float64, device=device)
+    # The free model image every step; the common-shape one only for the last step (the only one whose
+    # common-shape positions are kept).
+    models = wp.empty((2, *stack.shape), dtype=wp.float64, device=device)
     cur = wp.array(p, dtype=wp.float64, device=device)
     nxt = wp.array(p, dtype=wp.float64, device=device)
     start = wp.array(p, dtype=wp.float64, device=device)
@@ -395,9 +397,11 @@ def fit_dots(
     prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
     for it in range(iterations):
-        if it:
-            models.zero_()
-        wp.launch(render_dots_kernel, dim=n, inputs=[cur, fr, pa, int(render_half), prof, models], device=device)
+        last = it == iterations - 1
+        (models if last else models[0]).zero_()
+        wp.launch(
+            render_dots_kernel, dim=n, inputs=[cur, fr, pa, int(render_half), int(last), prof, models], device=device
+        )
         wp.launch(
             fit_dot_step_kernel,
             dim=n,

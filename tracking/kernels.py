@@ -383,13 +383,14 @@ def render_dots_kernel(
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
     half: int,
+    common: int,
     prof: wp.array3d(dtype=wp.float64),
     models: wp.array4d(dtype=wp.float64),
 ):
-    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's two model images.
+    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
 
-    ``models[0, f]``: ``I0 p_x p_y``; ``models[1, f]``: the same at the pair's common shape, linearised
-    in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
+    ``models[0, f]``: ``I0 p_x p_y``; if ``common``, ``models[1, f]``: the same at the pair's common
+    shape, linearised in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
     """
     i = wp.tid()
     f = frame[i]
@@ -409,7 +410,8 @@ def render_dots_kernel(
                 if col >= 0 and col < models.shape[3]:
                     px = prof[i, 0, c]
                     models[0, f, row, col] += a * py * px
-                    models[1, f, row, col] += cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                    if common != 0:
+                        models[1, f, row, col] += cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
 
 
 @wp.func
