@@ -239,9 +239,18 @@ def _saturation(saturation, k):
     return np.broadcast_to(np.asarray(saturation, dtype=np.float64), (k,)).copy()
 
 
+def _image_list(images):
+    """The images as a list of 2-D float64 arrays (no copy where they already are)."""
+    if isinstance(images, np.ndarray) and images.ndim == 2:
+        images = [images]
+    out = [np.asarray(a, dtype=np.float64) for a in images]
+    if not out or any(a.ndim != 2 or a.shape != out[0].shape for a in out):
+        raise ValueError("fit_dots needs one 2-D image or a stack of images of one shape")
+    return out
+
+
 def _checked(images, params, frame, partner):
-    stack = np.asarray(images, dtype=np.float64)
-    stack = stack[None] if stack.ndim == 2 else stack
+    stack = _image_list(images)
     p = np.array(params, dtype=np.float64).reshape(-1, 5)
     if not np.isfinite(p).all():
         raise ValueError("fit_dots needs finite starting parameters")
@@ -272,8 +281,9 @@ def fit_dots_numpy(
 
     Parameters
     ----------
-    images : (H, W) or (K, H, W) array
-        One image or a stack (the reference and gradient images of a pair).
+    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
+        One image or a stack (the reference and gradient images of a pair; :func:`fit_dots` takes at
+        most two).
     params : (N, 5) array
         Starting parameters, columns :data:`PARAMS` (finite).
     half, render_half : int, keyword-only
@@ -318,6 +328,7 @@ def fit_dots_numpy(
     per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
+    stack = np.stack(stack)
     sat = _saturation(saturation, len(stack))
     start = p.copy()
     ok = np.ones(len(p), dtype=bool)
@@ -382,13 +393,17 @@ def fit_dots(
     back = np.empty_like(order)
     back[order] = np.arange(n)
     p = p[order]
-    img = _on_device(stack, wp.float64, device)
+    # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
+    if len(stack) > 2:
+        raise ValueError(f"fit_dots takes one image or a pair, got {len(stack)}")
+    img0 = _on_device(stack[0], wp.float64, device)
+    img1 = _on_device(stack[-1], wp.float64, device)
     fr = _on_device(frame[order], wp.int32, device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    models = wp.empty((2, *stack.shape), dtype=wp.float64, device=device)
+    models = wp.empty((2, len(stack), *stack[0].shape), dtype=wp.float64, device=device)
     cur = wp.array(p, dtype=wp.float64, device=device)
     nxt = wp.array(p, dtype=wp.float64, device=device)
     start = wp.array(p, dtype=wp.float64, device=device)
@@ -406,7 +421,8 @@ def fit_dots(
             fit_dot_step_kernel,
             dim=n,
             inputs=[
-                img,
+                img0,
+                img1,
                 models,
                 cur,
                 start,

@@ -416,7 +416,7 @@ def render_dots_kernel(
 
 @wp.func
 def normal_matrix(
-    image: wp.array3d(dtype=wp.float64),
+    image: wp.array2d(dtype=wp.float64),
     models: wp.array4d(dtype=wp.float64),
     f: int,
     params: wp.array2d(dtype=wp.float64),
@@ -466,16 +466,16 @@ def normal_matrix(
     h4 = zero
     for rr in range(n):
         row = oy + rr
-        if row >= 0 and row < image.shape[1]:
+        if row >= 0 and row < image.shape[0]:
             py = prof[i, 3, rr + skip]
             dpy = a * prof[i, 4, rr + skip]
             spy = a * prof[i, 5, rr + skip]
             apy = a * py
             for cc in range(n):
                 col = ox + cc
-                if col >= 0 and col < image.shape[2] and image[f, row, col] < sat:
+                if col >= 0 and col < image.shape[1] and image[row, col] < sat:
                     px = prof[i, 0, cc + skip]
-                    v = image[f, row, col] - b
+                    v = image[row, col] - b
                     res = v - models[0, f, row, col]
                     res2 = v - models[1, f, row, col]
                     j0 = apy * prof[i, 1, cc + skip]
@@ -527,7 +527,8 @@ def limited(step: vec5d) -> vec5d:
 
 @wp.kernel
 def fit_dot_step_kernel(
-    image: wp.array3d(dtype=wp.float64),
+    image0: wp.array2d(dtype=wp.float64),
+    image1: wp.array2d(dtype=wp.float64),
     models: wp.array4d(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
@@ -546,6 +547,8 @@ def fit_dot_step_kernel(
 ):
     """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
 
+    ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
+
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
     at the new parameters ``out``. ``shared_xy`` gets the position of the step for position and
     background against the common-shape model image (NaN without a partner).
@@ -553,7 +556,11 @@ def fit_dot_step_kernel(
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
     f = frame[i]
-    ne = normal_matrix(image, models, f, params, i, half, render_half - half, saturation[f], prof)
+    ne = NormalEquations()
+    if f == 0:
+        ne = normal_matrix(image0, models, f, params, i, half, render_half - half, saturation[f], prof)
+    else:
+        ne = normal_matrix(image1, models, f, params, i, half, render_half - half, saturation[f], prof)
     # Block elimination: the shape step from the Schur complement, then position and background.
     pinv = wp.inverse(ne.p)
     pq = pinv * ne.q

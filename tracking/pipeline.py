@@ -261,7 +261,7 @@ def _check_image(name, image):
         raise SynthbosError(f"{name} image is too small ({a.shape[0]}x{a.shape[1]}), need at least 8x8")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise SynthbosError(f"{name} image must hold real numbers, got dtype {a.dtype}")
-    a = a.astype(np.float64)
+    a = np.asarray(a, dtype=np.float64)  # no copy for float64 input: the images are only read
     if not np.isfinite(a).all():
         raise SynthbosError(f"{name} image contains non-finite pixels (NaN or inf)")
     if not a.any():
@@ -456,7 +456,7 @@ def _fit_models(images, founds, partner, eta0, saturation, settings, device):
     fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
     extra = {"device": device} if settings.backend == "warp" else {}
     params, ok, shared = fit(
-        np.stack(images),
+        images,
         np.vstack([start_r, start_g]),
         half=half,
         render_half=render_half,
