@@ -136,7 +136,7 @@ class TrackingSettings:
     fit_iterations : int
         Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
         Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
-        ~15 % faster and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
+        ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
     weights : (W_A, W_I, W_dx)
         Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
     diameter : float or None
