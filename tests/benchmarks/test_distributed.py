@@ -115,31 +115,29 @@ def _start(args, log):
     return subprocess.Popen([sys.executable, "-m", *args], env=env, stdout=log, stderr=subprocess.STDOUT)
 
 
-@pytest.fixture
-def external_cluster(tmp_path):
-    """A scheduler and two single-threaded workers, each its own process on 127.0.0.1 (no nannies)."""
-    sched_file = tmp_path / "scheduler.json"
-    log = open(tmp_path / "cluster.log", "w")
+@pytest.fixture(scope="module")
+def external_cluster(tmp_path_factory):
+    """A scheduler and two single-threaded workers (with their nannies), each its own process on 127.0.0.1."""
+    tmp = tmp_path_factory.mktemp("cluster")
+    sched_file = tmp / "scheduler.json"
+    log = open(tmp / "cluster.log", "w")
     procs = [_start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                      "--scheduler-file", str(sched_file)], log)]
-    workers = [_start(["distributed.cli.dask_worker", "--scheduler-file", str(sched_file), "--host", "127.0.0.1",
-                       "--nthreads", "1", "--no-nanny", "--no-dashboard", "--name", f"w{i}",
-                       "--local-directory", str(tmp_path / f"w{i}")], log) for i in range(2)]
-    procs += workers
+    procs += [_start(["distributed.cli.dask_worker", "--scheduler-file", str(sched_file), "--host", "127.0.0.1",
+                      "--nthreads", "1", "--no-dashboard", "--name", f"w{i}", "--local-directory", str(tmp / f"w{i}")],
+                     log) for i in range(2)]
     try:
         deadline = time.monotonic() + 60
         while not sched_file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         with distributed.Client(scheduler_file=str(sched_file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=60)
-        yield sched_file, workers
-    finally:  # the workers are idle by now: no need for a graceful end
-        for p in workers:
-            p.kill()
-        procs[0].terminate()
-        for p in procs:
+        yield sched_file
+    finally:
+        for p in reversed(procs):  # workers first, then the scheduler
+            p.terminate()
             try:
-                p.wait(timeout=10)
+                p.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
@@ -147,8 +145,7 @@ def external_cluster(tmp_path):
 
 
 def test_scheduler_and_workers_as_separate_processes_match_plain_run(plain, external_cluster, tmp_path):
-    sched_file, _ = external_cluster
-    address = json.loads(sched_file.read_text())["address"]
+    address = json.loads(external_cluster.read_text())["address"]
     assert address.startswith("tcp://127.0.0.1:")
     out = tmp_path / "sweep"
     _sweep(out, "--scheduler", address)
@@ -182,21 +179,71 @@ class KillOnce(distributed.WorkerPlugin):
 
 def test_a_worker_killed_mid_campaign_loses_only_its_item(plain, external_cluster, tmp_path):
     import cloudpickle
+    import psutil
 
-    sched_file, workers = external_cluster
     out = tmp_path / "sweep"
     marker = tmp_path / "killed.json"
-    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
-    try:
-        with distributed.Client(scheduler_file=str(sched_file)) as client:
-            client.register_plugin(KillOnce(marker, out))
-    finally:
-        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-    _sweep(out, "--scheduler", str(sched_file))
+    with distributed.Client(scheduler_file=str(external_cluster)) as client:
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this module
+        try:
+            client.register_plugin(KillOnce(marker, out), name="kill-once")
+        finally:
+            cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+        try:
+            _sweep(out, "--scheduler", str(external_cluster))
+        finally:
+            client.unregister_worker_plugin("kill-once")
     killed = json.loads(marker.read_text())
-    assert [w.poll() for w in workers].count(-signal.SIGKILL) == 1
-    assert killed["pid"] in [w.pid for w in workers]
+    assert not psutil.pid_exists(killed["pid"])
     # The other worker finished the pair task in flight, and rewrote none of the files already there.
     for path in killed["done"]:
         assert Path(path).stat().st_mtime_ns <= marker.stat().st_mtime_ns
     assert_same_results(plain, out)
+
+
+def _snapshot(folder):
+    return {p: p.stat().st_mtime_ns for p in Path(folder).rglob("*") if p.is_file()}
+
+
+def _interrupt_sweep(tmp_path, scheduler, *, group):
+    """Start a longer sweep on ``scheduler``, press Ctrl-C once it has written scores; return its folder."""
+    cfg = tmp_path / "base.toml"
+    cfg.write_text(BASE_TOML)
+    out = tmp_path / "sweep"
+    args = ["synthbos", "sweep", str(cfg), "--param", "noise=0,1,2,3,4,5", "--size", "quick", "--device", "cpu",
+            "-q", "--out", str(out), "--scheduler", scheduler, "--workers", "2"]
+    proc = subprocess.Popen([sys.executable, "-m", *args], env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True, text=True)
+    deadline = time.monotonic() + 300
+    while not list(out.glob("points/*/scores/*.npz")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    # A terminal's Ctrl-C reaches its whole process group: a local cluster's workers too.
+    (os.killpg if group else os.kill)(proc.pid, signal.SIGINT)
+    output, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130, output
+    assert "interrupted" in output
+    return out
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_local_cluster_leaves_nothing_running(tmp_path):
+    import psutil
+
+    out = _interrupt_sweep(tmp_path, "local", group=True)
+    mine = [p for p in psutil.process_iter(["cmdline"]) if str(out) in " ".join(p.info["cmdline"] or [])]
+    assert not mine
+    before = _snapshot(out)
+    time.sleep(3)
+    assert _snapshot(out) == before
+    assert len(list(out.glob("points/*/scores/*.npz"))) < 6 * 10 * 3  # it did stop part-way
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(external_cluster, tmp_path):
+    out = _interrupt_sweep(tmp_path, str(external_cluster), group=False)
+    before = _snapshot(out)
+    time.sleep(3)
+    assert _snapshot(out) == before  # the workers write nothing more
+    assert len(list(out.glob("points/*/scores/*.npz"))) < 6 * 10 * 3
+    with distributed.Client(scheduler_file=str(external_cluster)) as client:
+        assert not any(client.processing().values())
