@@ -76,7 +76,7 @@ def run_scaling(spec: CampaignSpec, counts, *, device: str, gpus=None, per_gpu: 
                 client.wait_for_workers(workers)
                 warm = Path(tmp) / f"warm-{n}"
                 warm.mkdir()
-                addresses = list(client.scheduler_info(n_workers=-1)["workers"])
+                addresses = list(client.nthreads())
                 # By reference, even when this file runs as __main__: the workers import it.
                 from synthbos.benchmarks.bench_scaling import _warm_up
 

@@ -192,16 +192,17 @@ class DaskRunner:
             if address.endswith(".json") or Path(address).is_file():
                 if not Path(address).is_file():
                     raise SynthbosError(f"scheduler file {address} does not exist")
-                self.client = distributed.Client(scheduler_file=address, timeout="30s")
-            elif "://" in address or ":" in address:
-                try:
-                    self.client = distributed.Client(address, timeout="30s")
-                except OSError as err:
-                    raise SynthbosError(f"cannot reach the Dask scheduler at {address}: {err}") from None
+                where = {"scheduler_file": address}
+            elif ":" in address:
+                where = {"address": address}
             else:
                 raise SynthbosError(f"--scheduler must be 'local', tcp://HOST:PORT or a scheduler file, "
                                     f"got {address!r}")
-            n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+            try:
+                self.client = distributed.Client(**where, timeout="30s")
+            except OSError as err:  # TimeoutError included
+                raise SynthbosError(f"cannot reach the Dask scheduler at {address}: {err}") from None
+            n = len(self.client.nthreads())
             self.description = f"joined the Dask scheduler at {self.client.scheduler.address} ({n} workers)"
         print(f"dask: {self.description}; dashboard {self.client.dashboard_link}", flush=True)
         return self
@@ -226,14 +227,14 @@ class DaskRunner:
         total = distributed.system.MEMORY_LIMIT
         workers = {
             f"worker-{i}": {"cls": distributed.Nanny, "options": {
-                "nthreads": 1, "host": "127.0.0.1", "memory_limit": total // n, "silence_logs": logging.WARNING,
+                "nthreads": 1, "host": "127.0.0.1", "memory_limit": total // n, "silence_logs": logging.ERROR,
                 "env": env[i % len(env)],
             }}
             for i in range(n)
         }
         scheduler = {"cls": distributed.Scheduler,
                      "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}
-        cluster = distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.WARNING,
+        cluster = distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR,
                                           name="synthbos")
         return cluster
 

@@ -121,7 +121,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     if scheduler is None:
         per_point = [run_point(point) for point in points]
     else:
-        from concurrent.futures import ThreadPoolExecutor
+        from concurrent.futures import FIRST_EXCEPTION, CancelledError, ThreadPoolExecutor, wait
 
         from .distributed import DaskRunner
 
@@ -132,10 +132,16 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         with (runner if owned else contextlib.nullcontext()), ThreadPoolExecutor(threads, "sweep-point") as pool:
             futures = [pool.submit(run_point, point, runner) for point in points]
             try:
-                per_point = [f.result() for f in futures]
-            except BaseException:
-                runner.abort()  # the other points' tasks too
+                wait(futures, return_when=FIRST_EXCEPTION)
+            except BaseException:  # Ctrl-C
+                runner.abort()
                 raise
+            if any(f.exception() for f in futures if f.done()):
+                runner.abort()  # the other points' tasks too; then report the error that came first
+                wait(futures)
+                errors = [f.exception() for f in futures if f.exception() is not None]
+                raise next((e for e in errors if not isinstance(e, CancelledError)), errors[0])
+            per_point = [f.result() for f in futures]
     rows = [r for point_rows in per_point for r in point_rows]
     write_tables(rows, folder, stem="sweep")
     with atomic_output(folder / "sweep_params.json") as tmp:

@@ -152,6 +152,16 @@ def test_scheduler_and_workers_as_separate_processes_match_plain_run(plain, exte
     assert_same_results(plain, out)
 
 
+def test_an_error_in_a_task_stops_the_run_with_that_error(external_cluster, tmp_path, capsys):
+    cfg = tmp_path / "base.toml"
+    cfg.write_text(BASE_TOML)
+    args = ["sweep", str(cfg), "--param", "window=16,0", "--device", "cpu", "-q", "--out", str(tmp_path / "s"),
+            "--scheduler", str(external_cluster)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "window size 0" in err[0]
+
+
 class KillOnce(distributed.WorkerPlugin):
     """Kills the first worker that starts a pair task, once that task has written its first score file."""
 
