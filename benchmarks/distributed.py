@@ -27,6 +27,7 @@ Dask is imported only here, and only when a scheduler is asked for.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import threading
@@ -183,6 +184,16 @@ class DaskRunner:
         self.close()
 
     def open(self) -> DaskRunner:
+        try:
+            self._open()
+        except BaseException:  # a bad address, Ctrl-C during start-up: leave no cluster behind
+            self.close()
+            raise
+        need = "" if self.cluster is None or importlib.util.find_spec("bokeh") else " (pip install bokeh to see it)"
+        print(f"dask: {self.description}; dashboard {self.client.dashboard_link}{need}", flush=True)
+        return self
+
+    def _open(self) -> None:
         distributed = _distributed()
         if self.scheduler == "local":
             self.cluster = self._local_cluster(distributed)
@@ -204,8 +215,6 @@ class DaskRunner:
                 raise SynthbosError(f"cannot reach the Dask scheduler at {address}: {err}") from None
             n = len(self.client.nthreads())
             self.description = f"joined the Dask scheduler at {self.client.scheduler.address} ({n} workers)"
-        print(f"dask: {self.description}; dashboard {self.client.dashboard_link}", flush=True)
-        return self
 
     def _local_cluster(self, distributed):
         on_gpu = self.device is not None and str(self.device).startswith("cuda")
