@@ -216,9 +216,9 @@ class DaskRunner:
             n = len(self.client.nthreads())
             self.description = f"joined the Dask scheduler at {self.client.scheduler.address} ({n} workers)"
 
-    def _local_cluster(self, distributed):
+    def local_worker_specs(self, distributed) -> dict:
+        """The local cluster's workers: ``{name: {"cls": Nanny, "options": ...}}``; sets ``description``."""
         on_gpu = self.device is not None and str(self.device).startswith("cuda")
-        env = [{}]
         if on_gpu:
             if str(self.device) not in ("cuda", "cuda:0"):
                 raise SynthbosError(f"--device {self.device}: with --scheduler local every worker has its own GPU, "
@@ -226,26 +226,29 @@ class DaskRunner:
             gpus = self.gpus if self.gpus is not None else visible_gpus()
             if not gpus:
                 raise SynthbosError(f"--device {self.device} but no CUDA device is visible")
-            env = [{"CUDA_VISIBLE_DEVICES": g} for g in gpus]
             n = self.workers or len(gpus)
-            self.description = (f"local cluster of {n} GPU worker(s) on GPU(s) "
-                                f"{', '.join(gpus[i % len(gpus)] for i in range(n))}")
+            pinned = [gpus[i % len(gpus)] for i in range(n)]
+            names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
+            envs = [{"CUDA_VISIBLE_DEVICES": g} for g in pinned]
+            self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:
             n = self.workers or default_workers()
+            names, envs = [f"cpu{i}" for i in range(n)], [{}] * n
             self.description = f"local cluster of {n} CPU worker(s)"
-        total = distributed.system.MEMORY_LIMIT
-        workers = {
-            f"worker-{i}": {"cls": distributed.Nanny, "options": {
-                "nthreads": 1, "host": "127.0.0.1", "memory_limit": total // n, "silence_logs": logging.ERROR,
-                "env": env[i % len(env)],
+        memory = distributed.system.MEMORY_LIMIT // n
+        return {
+            name: {"cls": distributed.Nanny, "options": {
+                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": logging.ERROR, "env": env,
             }}
-            for i in range(n)
+            for name, env in zip(names, envs, strict=True)
         }
+
+    def _local_cluster(self, distributed):
+        workers = self.local_worker_specs(distributed)
         scheduler = {"cls": distributed.Scheduler,
                      "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}
-        cluster = distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR,
-                                          name="synthbos")
-        return cluster
+        return distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR,
+                                       name="synthbos")
 
     def close(self) -> None:
         if self._bar is not None:

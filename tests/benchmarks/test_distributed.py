@@ -85,6 +85,22 @@ def test_pair_tasks_group_items_by_pair():
     assert [(r is not None, [s[1] for s in items]) for r, items in tasks] == [(True, ["a", "b"]), (False, ["a", "b"])]
 
 
+def test_local_gpu_workers_are_pinned_one_per_gpu():
+    from synthbos.benchmarks.distributed import DaskRunner
+
+    def pins(**kw):
+        specs = DaskRunner("local", device="cuda:0", **kw).local_worker_specs(distributed)
+        assert all(s["options"]["nthreads"] == 1 for s in specs.values())
+        return {name: s["options"]["env"]["CUDA_VISIBLE_DEVICES"] for name, s in specs.items()}
+
+    assert pins(gpus=["0", "1", "2", "3"]) == {"gpu0": "0", "gpu1": "1", "gpu2": "2", "gpu3": "3"}
+    assert pins(gpus=["2", "3"], workers=3) == {"gpu2-0": "2", "gpu3-1": "3", "gpu2-2": "2"}
+    cpu = DaskRunner("local", device="cpu", workers=2).local_worker_specs(distributed)
+    assert list(cpu) == ["cpu0", "cpu1"] and all(not s["options"]["env"] for s in cpu.values())
+    with pytest.raises(ValueError, match="its own GPU"):
+        DaskRunner("local", device="cuda:1", gpus=["0"]).local_worker_specs(distributed)
+
+
 def test_scheduler_errors_are_one_line(tmp_path, capsys):
     cfg = tmp_path / "base.toml"
     cfg.write_text(BASE_TOML)
