@@ -273,3 +273,15 @@ def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(external_clust
     assert len(list(out.glob("points/*/scores/*.npz"))) < 6 * 10 * 3
     with distributed.Client(scheduler_file=str(external_cluster)) as client:
         assert not any(client.processing().values())
+
+
+@pytest.mark.slow
+def test_bench_scaling_smoke_on_cpu_workers(tmp_path, capsys):
+    from synthbos.benchmarks.bench_scaling import main as bench
+
+    rows = bench(["--device", "cpu", "--counts", "1,2", "--pairs-per-gpu", "5", "--pixels", "96", "--rays", "20",
+                  "--noise", "0,3", "--out", str(tmp_path)])
+    assert [(r["units"], r["pairs"]) for r in rows] == [(1, 5), (2, 10)]
+    assert all(r["identical_results"] and r["pairs_per_s"] > 0 for r in rows)
+    assert "efficiency" in (tmp_path / "scaling.md").read_text()
+    assert json.loads((tmp_path / "scaling.json").read_text())["rows"] == rows
