@@ -342,5 +342,7 @@ def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress
     """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address."""
     if isinstance(scheduler, DaskRunner):
         return scheduler.run_pairs(renders, scores)
+    if not renders and not scores:  # a finished campaign: no cluster to start
+        return 0
     with DaskRunner(scheduler, device=device, workers=workers, progress=progress) as runner:
         return runner.run_pairs(renders, scores)
