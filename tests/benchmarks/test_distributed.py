@@ -227,6 +227,14 @@ def test_a_worker_killed_mid_campaign_loses_only_its_item(plain, external_cluste
     assert_same_results(plain, out)
 
 
+@pytest.fixture
+def slow_only(request):
+    """The project's rule: ``slow`` tests run only when selected (``-m slow``)."""
+    markexpr = request.config.getoption("markexpr") or ""
+    if "slow" not in markexpr or "not slow" in markexpr:
+        pytest.skip("tens of seconds; select with -m slow")
+
+
 def _snapshot(folder):
     return {p: p.stat().st_mtime_ns for p in Path(folder).rglob("*") if p.is_file()}
 
@@ -252,7 +260,7 @@ def _interrupt_sweep(tmp_path, scheduler, *, group):
 
 
 @pytest.mark.slow
-def test_ctrl_c_on_a_local_cluster_leaves_nothing_running(tmp_path):
+def test_ctrl_c_on_a_local_cluster_leaves_nothing_running(slow_only, tmp_path):
     import psutil
 
     out = _interrupt_sweep(tmp_path, "local", group=True)
@@ -265,7 +273,7 @@ def test_ctrl_c_on_a_local_cluster_leaves_nothing_running(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(external_cluster, tmp_path):
+def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(slow_only, external_cluster, tmp_path):
     out = _interrupt_sweep(tmp_path, str(external_cluster), group=False)
     before = _snapshot(out)
     time.sleep(3)
@@ -276,7 +284,7 @@ def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(external_clust
 
 
 @pytest.mark.slow
-def test_bench_scaling_smoke_on_cpu_workers(tmp_path, capsys):
+def test_bench_scaling_smoke_on_cpu_workers(slow_only, tmp_path):
     from synthbos.benchmarks.bench_scaling import main as bench
 
     rows = bench(["--device", "cpu", "--counts", "1,2", "--pairs-per-gpu", "5", "--pixels", "96", "--rays", "20",
