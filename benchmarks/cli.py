@@ -104,7 +104,8 @@ def _paper(args):
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
-    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
+    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
+                        scheduler=args.scheduler)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -113,7 +114,8 @@ def _paper(args):
 
 def _regress(args):
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
-    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
+                                 scheduler=args.scheduler)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -130,7 +132,7 @@ def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
     rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
-                     workers=args.workers, progress=not args.quiet)
+                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
@@ -140,6 +142,12 @@ def _show_density(args):
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out} (and .pdf)")
     return 0
+
+
+def _add_scheduler_option(p) -> None:
+    p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
+                   help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
+                        "an address or a scheduler file joins a running one (needs dask[distributed])")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -172,6 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
         p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        _add_scheduler_option(p)
         p.set_defaults(func=_paper)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
@@ -179,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_regress)
 
     p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
@@ -191,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
