@@ -12,12 +12,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-import warp as wp
 from synthbos.raytrace import read_pair, render_pair, write_pair
 from synthbos.raytrace.config import read_toml
 
 import synthbos
 from synthbos import SynthbosError
+from synthbos.device import describe_device, init_warp, resolve_device
 
 from .campaign import run_campaign
 from .items import nominal_positions
@@ -39,15 +39,23 @@ def _out_path(path) -> Path:
     return out
 
 
+def _device(requested) -> str:
+    """The Warp device of a command, reported once: the one asked for, else cuda:0 when present, else cpu."""
+    device = resolve_device(requested)
+    print(describe_device(device))
+    return device
+
+
 def _render(args):
     out = _out_path(args.output)
-    pair = render_pair(args.config, device=args.device, progress=not args.quiet)
+    device = _device(args.device)
+    pair = render_pair(args.config, device=device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
     d = pair.displacement_px[v]
     mag = (d**2).sum(axis=1) ** 0.5
     print(f"wrote {out}: {pair.n_dots} dots ({int(v.sum())} valid), {pair.attrs['rays_per_dot']} rays/dot, "
-          f"M = {pair.attrs['magnification']:.4f}, device {pair.attrs['device']}, "
+          f"M = {pair.attrs['magnification']:.4f}, "
           f"{pair.attrs['render_seconds']:.2f} s")
     if len(d):
         th = (pair.theory_px[v] ** 2).sum(axis=1) ** 0.5
@@ -57,6 +65,7 @@ def _render(args):
 
 def _process(args):
     out = _out_path(args.output)
+    init_warp()  # quietly; each method runs on its settings' device
     method = get_method(args.method)
     prior = None
     attrs = {}
@@ -122,24 +131,17 @@ def _integrate(args):
     return 0
 
 
-def _device_default(device):
-    if device is not None:
-        return device
-    wp.config.quiet = True
-    wp.init()
-    return "cuda:0" if wp.is_cuda_available() else "cpu"
-
-
 def _paper(args):
-    device = _device_default(args.device)
+    device = _device(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     out = Path(args.out or f"runs/paper-{spec.name}")
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
-          f"on {device} -> {out}")
+          f"-> {out}")
     t0 = time.perf_counter()
-    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
+    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
+                        scheduler=args.scheduler)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -147,7 +149,9 @@ def _paper(args):
 
 
 def _regress(args):
-    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
+    _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
+                                 scheduler=args.scheduler)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -163,17 +167,23 @@ def _regress(args):
 def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
-    rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
-                     workers=args.workers, progress=not args.quiet)
-    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+    rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
+                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler)
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
 
 def _show_density(args):
     out = _out_path(args.output)
     plot_snapshots(out, snapshots_file=args.snapshots)
-    print(f"wrote {out}")
+    print(f"wrote {out} (and .pdf)")
     return 0
+
+
+def _add_scheduler_option(p) -> None:
+    p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
+                   help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
+                        "an address or a scheduler file joins a running one (needs dask[distributed])")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -184,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="ray-trace one BOS image pair into an HDF5 pair file")
     p.add_argument("config", nargs="?", default=None, help="TOML configuration (default: the embedded default)")
     p.add_argument("-o", "--output", required=True, help="pair file to write (HDF5)")
-    p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: Warp's default)")
+    p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render)
 
@@ -225,6 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
         p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        _add_scheduler_option(p)
         p.set_defaults(func=_paper)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
@@ -232,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_regress)
 
     p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
@@ -244,10 +256,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
-    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write")
+    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
     return parser

@@ -24,8 +24,8 @@ root attributes
     ``pixel_pitch_m``, ``principal_point_px``, ``volume_size_m``, ``volume_centre_m`` (x, y, z in the
     target frame), ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3``.
 
-Every dataset carries ``units`` and ``description`` attributes. Files written before the cone truth
-existed read with ``theory_cone_px`` and the densities set to None.
+Every dataset carries ``units`` and ``description`` attributes, from ``PAIR_DATASETS``. Files written
+before the cone truth existed read with ``theory_cone_px`` and the two densities set to None.
 
 Sign convention: the image is upright (columns grow with target x, rows with target y) and a
 displacement is gradient-image position minus reference-image position. A ray bends towards higher
@@ -43,7 +43,7 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_output
 
-__all__ = ["SIGN_CONVENTION", "Pair", "read_pair", "write_pair"]
+__all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "read_pair", "write_pair"]
 
 SIGN_CONVENTION = (
     "upright image (x = column grows with target x, y = row grows with target y); "
@@ -53,19 +53,6 @@ SIGN_CONVENTION = (
 
 _DOT_SETS = ("target_xy_m", "reference_px", "gradient_px", "displacement_px", "theory_px")
 _TRUTH_SETS = ("theory_cone_px", "density_cone_kg_m3", "density_chief_kg_m3")
-
-_DESCRIPTIONS = {
-    "target_xy_m": ("m", "dot centres on the target plane (x, y)"),
-    "reference_px": ("px", "ray-mean image position of each dot without the flow (x = column, y = row)"),
-    "gradient_px": ("px", "ray-mean image position of each dot through the flow"),
-    "displacement_px": ("px", "exact displacement: gradient_px - reference_px"),
-    "theory_px": ("px", "Eq. 4 along the chief ray: -(M Z_D / n0) * integral of grad n dz / pitch"),
-    "theory_cone_px": ("px", "Eq. 4 averaged over the rays traced for the dot (the aperture's cone)"),
-    "density_cone_kg_m3": ("kg/m^3", "depth-averaged density, averaged over the dot's cone of rays"),
-    "density_chief_kg_m3": ("kg/m^3", "depth-averaged density along the dot's chief ray"),
-    "valid": ("1", "every ray of the dot reached the sensor in both images"),
-}
-
 
 @dataclass
 class Pair:
@@ -89,6 +76,34 @@ class Pair:
         return len(self.target_xy_m)
 
 
+# The pair file's datasets: path -> (units, description). The writer attaches both to every dataset as
+# attributes; a dataset added to the file gets its row here.
+PAIR_DATASETS = {
+    "images/reference": ("a.u.", "reference image (no flow), noise-free; a lone point dot peaks at the "
+                                 "root attribute peak_intensity; row = y, column = x"),
+    "images/gradient": ("a.u.", "gradient image (through the density volume), noise-free, same scale and "
+                                "ray set as the reference image"),
+    "dots/target_xy_m": ("m", "dot centres on the target plane (x, y), z = 0, optical axis at (0, 0)"),
+    "dots/reference_px": ("px", "ray-mean image position (x = column, y = row) of each dot without the flow"),
+    "dots/gradient_px": ("px", "ray-mean image position (x = column, y = row) of each dot through the flow"),
+    "dots/displacement_px": ("px", "exact dot displacement, gradient_px - reference_px (x, y)"),
+    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray (x, y)"),
+    "dots/theory_cone_px": ("px", "Eq. 4's displacement averaged over the rays traced for the dot (its dot and "
+                                  "aperture samples, each ray straight): the aperture's cone (x, y)"),
+    "dots/density_cone_kg_m3": ("kg/m^3", "density averaged over the volume's depth and over the dot's cone of rays"),
+    "dots/density_chief_kg_m3": ("kg/m^3", "density averaged over the volume's depth along the dot's chief ray"),
+    "dots/valid": ("1", "true where every ray of the dot reached the sensor in both images"),
+}
+
+
+def describe_datasets(h5file, schema: dict) -> None:
+    """Attach ``units`` and ``description`` from ``schema`` (path -> (units, description)) to the file's datasets."""
+    for name, (units, description) in schema.items():
+        if name in h5file:
+            h5file[name].attrs["units"] = units
+            h5file[name].attrs["description"] = description
+
+
 def write_pair(path, pair: Pair) -> Path:
     """Write a pair file atomically (see ``synthbos.atomic_output``)."""
     path = Path(path)
@@ -96,19 +111,15 @@ def write_pair(path, pair: Pair) -> Path:
         img = f.create_group("images")
         img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
         img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
-        for name, ds in img.items():
-            ds.attrs["units"] = "intensity"
-            ds.attrs["description"] = f"{name} image, noise-free, upright (row = y, column = x)"
         dots = f.create_group("dots")
         for name in _DOT_SETS + _TRUTH_SETS:
             if getattr(pair, name) is not None:
                 dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
         dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
-        for name, ds in dots.items():
-            ds.attrs["units"], ds.attrs["description"] = _DESCRIPTIONS[name]
         for key, value in pair.attrs.items():
             f.attrs[key] = value
         f.attrs["sign_convention"] = SIGN_CONVENTION
+        describe_datasets(f, PAIR_DATASETS)
     return path
 
 

@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 
 import synthbos
 from synthbos import SynthbosError
+from synthbos.device import init_warp
 
 from . import kernels
 from .camera import CameraModel, camera_from_config
@@ -27,11 +28,6 @@ from .pattern import grid_pattern, random_pattern
 __all__ = ["RenderPlan", "chief_ray_truth", "cone_truth", "plan_render", "render_pair", "trace_rays"]
 
 _INT32_MAX = 2**31 - 1
-
-
-def _init_warp():
-    wp.config.quiet = True
-    wp.init()
 
 
 class RenderPlan:
@@ -156,7 +152,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     ok : (N,) bool, every ray of the dot reached the sensor
     n_tir : int, rays lost to total internal reflection
     """
-    _init_warp()
+    init_warp()
     W, H = plan.camera.pixels
     n = plan.n_dots
     medium = to_warp(plan.medium, device=device)
@@ -217,7 +213,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
         The density averaged over the volume's depth along the chief ray, kg/m^3 (the ambient density
         where the ray passes beside the volume).
     """
-    _init_warp()
+    init_warp()
     medium = to_warp(plan.medium, device=device)
     cam = _camera_struct(plan.camera)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
@@ -245,7 +241,7 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     density_cone : (N,) float64
         Mean over the dot's rays of the depth-averaged density, kg/m^3.
     """
-    _init_warp()
+    init_warp()
     n = plan.n_dots
     medium = to_warp(plan.medium, device=device)
     cam = _camera_struct(plan.camera)
@@ -278,7 +274,7 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
         Images (noise-free float32), dot positions and displacements (see ``raytrace.pairfile``).
     """
     plan = config if isinstance(config, RenderPlan) else plan_render(config)
-    _init_warp()
+    init_warp()
     device_name = str(wp.get_device(device))
     total = 2 * plan.n_dots * plan.rays_per_dot
     bar = tqdm(total=total, unit="ray", unit_scale=True, desc="render", disable=not progress)
