@@ -137,14 +137,14 @@ def geometry_from_config(cfg) -> Geometry:
 def geometry_from_pair(pair) -> Geometry:
     """The set-up stored in a pair file's attributes (older files: rebuilt from its configuration)."""
     a = pair.attrs
-    if "volume_size_m" not in a:
+    if "volume_depth_m" not in a:
         return geometry_from_config(tomllib.loads(a["config"]))
     return Geometry(
         magnification=float(a["magnification"]), pixel_pitch_m=float(a["pixel_pitch_m"]), z_d_m=float(a["z_d_m"]),
-        z_stop_m=float(a["z_stop_m"]), depth_m=float(a["volume_size_m"][2]),
+        z_stop_m=float(a["z_stop_m"]), depth_m=float(a["volume_depth_m"]),
         gladstone_dale_m3_per_kg=float(a["gladstone_dale_m3_per_kg"]), n0=float(a["n0"]),
-        principal_point_px=tuple(float(c) for c in a["principal_point_px"]),
-        volume_centre_m=tuple(float(c) for c in a["volume_centre_m"][:2]),
+        principal_point_px=(float(a["principal_point_x_px"]), float(a["principal_point_y_px"])),
+        volume_centre_m=(float(a["volume_centre_x_m"]), float(a["volume_centre_y_m"])),
         ambient_density_kg_m3=float(a["ambient_density_kg_m3"]), image_shape=tuple(pair.reference.shape),
     )
 

@@ -21,8 +21,9 @@ File layout
 root attributes
     ``config`` (the full configuration as TOML text), ``magnification``, ``version``, ``device``,
     ``render_seconds``, ``n0``, ``spot_diameter_px``, ``sign_convention``, ``z_d_m``, ``z_stop_m``,
-    ``pixel_pitch_m``, ``principal_point_px``, ``volume_size_m``, ``volume_centre_m`` (x, y, z in the
-    target frame), ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3``.
+    ``pixel_pitch_m``, ``principal_point_x_px``, ``principal_point_y_px``, ``volume_depth_m``,
+    ``volume_centre_x_m``, ``volume_centre_y_m`` (the volume's lateral offset off the optical axis),
+    ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3`` (all scalars).
 
 Every dataset carries ``units`` and ``description`` attributes, from ``PAIR_DATASETS``. Files written
 before the cone truth existed read with ``theory_cone_px`` and the two densities set to None.

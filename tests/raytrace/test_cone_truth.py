@@ -96,7 +96,8 @@ def test_pair_file_stores_the_cone_truth(tmp_path):
         assert f["dots/density_cone_kg_m3"].attrs["units"] == "kg/m^3"
         assert f["dots/theory_cone_px"].attrs["units"] == "px"
         assert "cone" in f["dots/theory_cone_px"].attrs["description"]
-        assert_allclose(f.attrs["volume_size_m"], [0.032, 0.032, 0.01])
+        assert f.attrs["volume_depth_m"] == pytest.approx(0.01)
+        assert f.attrs["principal_point_x_px"] == pytest.approx(47.5)
         assert f.attrs["ambient_density_kg_m3"] == pytest.approx(1.225)
 
 
