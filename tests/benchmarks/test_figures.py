@@ -41,10 +41,13 @@ def captured(monkeypatch):
 
 def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
     run_campaign(TINY, tmp_path, device="cpu", workers=1, progress=False)
-    for stem in ("fig4", "fig5"):
+    for stem in ("fig4", "fig5", "fig_density"):
         _assert_png_and_pdf(tmp_path / stem)
-    (_, texts4), (_, texts5) = captured
+    (_, texts4), (_, texts5), (_, texts_d) = captured
     assert any("ray-traced" in t for t in texts4)
+    assert any("over the ray cone" in t for t in texts4)
+    assert any("cone" in t and "chief" in t for t in texts_d)
+    assert any(t.startswith("noise 0% (n = ") for t in texts_d)
     assert any("own scale" in t for t in texts4)
     title5 = next(t for t in texts5 if t.startswith("Error CDFs"))
     assert "Threshold" in title5 and " px" in title5
