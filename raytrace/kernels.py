@@ -328,27 +328,13 @@ def render_rays(
 
 
 @wp.func
-def inside_box(m: Medium, p: wp.vec3):
-    """1 if the local point p lies in the box (the test ``sample_medium`` makes), else 0."""
-    nz = m.field.shape[0]
-    ny = m.field.shape[1]
-    nx = m.field.shape[2]
-    fx = (p[0] + m.half[0]) * m.inv_spacing[0]
-    fy = (p[1] + m.half[1]) * m.inv_spacing[1]
-    fz = (p[2] + m.half[2]) * m.inv_spacing[2]
-    eps = 1.0e-4
-    if fx < -eps or fy < -eps or fz < -eps:
-        return 0
-    if fx > float(nx - 1) + eps or fy > float(ny - 1) + eps or fz > float(nz - 1) + eps:
-        return 0
-    return 1
-
-
-@wp.func
-def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: int, outside: float):
+def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: int):
     """Along the straight line from ``origin`` towards ``aim``, through the depth of the box (midpoint
-    rule in z): the integral of (dn/dx, dn/dy) dz (Eq. 4's integral) and the depth average of n - 1,
-    taking n - 1 = ``outside`` where the line passes beside the box."""
+    rule in z): the integral of (dn/dx, dn/dy) dz (Eq. 4's integral) and the depth average of n - 1.
+
+    Where the line passes beside the box, n - 1 is read at the nearest point of the box's side (the
+    volume's edge density continued outwards): the renderer sees no gradient there, so no jump either.
+    """
     t = wp.normalize(aim - origin)
     z0 = m.centre[2] - m.half[2]
     dz = 2.0 * m.half[2] / float(n_samples)
@@ -359,10 +345,8 @@ def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: 
         p = origin + ((z - origin[2]) / t[2]) * t - m.centre
         s = sample_medium(m, p)
         acc = acc + wp.vec2(s[0], s[1]) * dz
-        if inside_box(m, p) == 1:
-            nm1 = nm1 + s[3]
-        else:
-            nm1 = nm1 + outside
+        edge = wp.vec3(wp.clamp(p[0], -m.half[0], m.half[0]), wp.clamp(p[1], -m.half[1], m.half[1]), p[2])
+        nm1 = nm1 + sample_medium(m, edge)[3]
     return acc, nm1 / float(n_samples)
 
 
@@ -372,7 +356,6 @@ def integrate_grad_n(
     cam: Camera,
     dots: wp.array(dtype=wp.vec2),
     n_samples: int,
-    outside: float,
     out: wp.array(dtype=wp.vec2),
     out_nm1: wp.array(dtype=float),
 ):
@@ -380,7 +363,7 @@ def integrate_grad_n(
     (dn/dx, dn/dy) dz in Eq. 4 and the depth-averaged n - 1 (see ``straight_ray_integrals``)."""
     i = wp.tid()
     origin = wp.vec3(dots[i][0], dots[i][1], 0.0)
-    acc, nm1 = straight_ray_integrals(medium, origin, wp.vec3(0.0, 0.0, cam.z_stop), n_samples, outside)
+    acc, nm1 = straight_ray_integrals(medium, origin, wp.vec3(0.0, 0.0, cam.z_stop), n_samples)
     out[i] = acc
     out_nm1[i] = nm1
 
@@ -395,7 +378,6 @@ def integrate_cone(
     rays_per_thread: int,
     seed: int,
     n_samples: int,
-    outside: float,
     out: wp.array2d(dtype=wp.vec3),
 ):
     """Eq. 4's integral and the depth-averaged n - 1 summed over the rays the renderer traces for a dot.
@@ -417,7 +399,7 @@ def integrate_cone(
         e2 = dots[dot] + sample_disk(state, dot_radius)
         a2 = sample_disk(state, cam.aperture_radius)
         origin = wp.vec3(e2[0], e2[1], 0.0)
-        g, nm1 = straight_ray_integrals(medium, origin, wp.vec3(a2[0], a2[1], cam.z_stop), n_samples, outside)
+        g, nm1 = straight_ray_integrals(medium, origin, wp.vec3(a2[0], a2[1], cam.z_stop), n_samples)
         acc = acc + wp.vec3(g[0], g[1], nm1)
     out[c, dot] = acc
 

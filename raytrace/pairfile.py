@@ -15,7 +15,8 @@ File layout
     weak-deflection limit.
 ``/dots/density_cone_kg_m3``, ``/dots/density_chief_kg_m3`` (N,)
     The density averaged over the volume's depth, averaged over the dot's cone of rays, and along its
-    chief ray (ambient density where a ray passes beside the volume).
+    chief ray (where a ray passes beside the volume, the volume's edge density continued outwards: the
+    renderer sees no gradient there).
 ``/dots/valid`` (N,) bool
     Every ray of the dot reached the sensor in both images.
 root attributes

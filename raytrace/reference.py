@@ -35,11 +35,11 @@ def sample_medium(medium: MediumData, p_local):
     return np.where(inside[..., None], out, 0.0)
 
 
-def straight_ray_integrals(medium: MediumData, origins, aims, n_samples, outside):
+def straight_ray_integrals(medium: MediumData, origins, aims, n_samples):
     """Float64 twin of ``kernels.straight_ray_integrals`` for rays (N, 3) from ``origins`` towards ``aims``.
 
     Returns the integral of (dn/dx, dn/dy) dz over the box's depth (N, 2) and the depth-mean of n - 1
-    (N,), with n - 1 = ``outside`` beside the box.
+    (N,), read at the nearest point of the box's side where a ray passes beside it.
     """
     o = np.asarray(origins, dtype=np.float64)
     t = np.asarray(aims, dtype=np.float64) - o
@@ -49,10 +49,9 @@ def straight_ray_integrals(medium: MediumData, origins, aims, n_samples, outside
     z = centre[2] - half[2] + (np.arange(n_samples) + 0.5) * dz  # (S,)
     p = o[:, None, :] + ((z[None, :] - o[:, None, 2]) / t[:, None, 2])[..., None] * t[:, None, :] - centre
     s = sample_medium(medium, p)  # (N, S, 4)
-    frac = (p + half) / np.array(medium.spacing)
-    nz, ny, nx = medium.field.shape[:3]
-    inside = np.all((frac >= -1e-4) & (frac <= np.array([nx - 1, ny - 1, nz - 1]) + 1e-4), axis=-1)
-    nm1 = np.where(inside, s[..., 3], outside).mean(axis=1)
+    edge = p.copy()
+    edge[..., :2] = np.clip(p[..., :2], -half[:2], half[:2])
+    nm1 = sample_medium(medium, edge)[..., 3].mean(axis=1)
     return s[..., :2].sum(axis=1) * dz, nm1
 
 

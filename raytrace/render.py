@@ -210,8 +210,8 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
     theory_px : (N, 2) float64
         Eq. 4: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels.
     density : (N,) float64
-        The density averaged over the volume's depth along the chief ray, kg/m^3 (the ambient density
-        where the ray passes beside the volume).
+        The density averaged over the volume's depth along the chief ray, kg/m^3 (the volume's edge
+        density continued where the ray passes beside the volume).
     """
     init_warp()
     medium = to_warp(plan.medium, device=device)
@@ -220,7 +220,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
     out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
     out_nm1 = wp.zeros(plan.n_dots, dtype=float, device=device)
     wp.launch(kernels.integrate_grad_n, dim=plan.n_dots,
-              inputs=[medium, cam, dots, _n_samples(plan, samples_per_step), plan.medium.n0 - 1.0],
+              inputs=[medium, cam, dots, _n_samples(plan, samples_per_step)],
               outputs=[out, out_nm1], device=device)
     k = plan.medium.gladstone_dale
     return _eq4_px(plan, out.numpy()), out_nm1.numpy().astype(np.float64) / k
@@ -250,7 +250,7 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
     wp.launch(kernels.integrate_cone, dim=chunks * n,
               inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
-                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), plan.medium.n0 - 1.0],
+                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step)],
               outputs=[out], device=device)
     sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
     return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale
