@@ -19,6 +19,7 @@ from synthbos.raytrace.config import read_toml
 import synthbos
 from synthbos import SynthbosError
 
+from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import run_campaign
 from .items import nominal_positions
 from .process import load_image, read_dots_csv, run_method, write_result
@@ -83,6 +84,33 @@ def _process(args):
     print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
           f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
           f"{attrs['seconds']:.2f} s")
+    return 0
+
+
+def _calibrate(args):
+    out = _out_path(args.output)
+    if args.grid is not None:
+        if args.mapping or args.target:
+            raise SynthbosError("give either --reference with --grid, or --mapping with --target, not both")
+        if not args.reference:
+            raise SynthbosError("--grid needs the grid image: --reference GRID.tif")
+        image = load_image(args.reference)
+        if args.invert:
+            image = image.max() - image
+        s = calibrate_from_grid(
+            image, args.grid, out, mapping_out=args.mapping_out, source=args.reference, order=args.order
+        )
+        print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected blobs on the grid "
+              f"fitted); mapping residual rms {s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
+              + (f"; mapping {args.mapping_out}" if args.mapping_out else ""))
+        return 0
+    if not (args.mapping and args.target):
+        raise SynthbosError("give --reference GRID.tif --grid SPACING_MM, or --mapping MAP.json --target TARGET.csv")
+    if args.mapping_out or args.reference or args.invert:
+        raise SynthbosError("--reference, --invert and --mapping-out go with --grid, not with --mapping")
+    s = dots_from_mapping(args.mapping, args.target, out)
+    print(f"wrote {out}: {s.n_dots} dots ({s.n_inside} inside the calibrated image) through {args.mapping} "
+          f"(fit residual {s.residual_rms:.4f} px)")
     return 0
 
 
@@ -160,6 +188,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
     p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
     p.set_defaults(func=_process)
+
+    p = sub.add_parser("calibrate", help="tracking prior (dots file) from a grid image, or from a mapping and a target")
+    p.add_argument("--reference", help="image of a regular square dot grid (TIFF or PNG), with --grid")
+    p.add_argument("--grid", type=float, metavar="SPACING_MM", help="grid spacing in mm")
+    p.add_argument("--mapping-out", help="also write the fitted mapping (JSON) here")
+    p.add_argument("--order", type=int, default=3, help="Soloff polynomial degree (default 3)")
+    p.add_argument("--invert", action="store_true", help="the grid has dark dots on a bright background")
+    p.add_argument("--mapping", help="mapping file (JSON) from an earlier 'calibrate --grid --mapping-out'")
+    p.add_argument("--target", help="CSV (header x_mm,y_mm) of the pattern's dot positions in the grid's frame")
+    p.add_argument("-o", "--output", required=True, help="dots file to write (CSV, header x,y, px)")
+    p.set_defaults(func=_calibrate)
 
     for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
         p = sub.add_parser(name, help=helptext)

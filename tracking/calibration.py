@@ -90,16 +90,12 @@ def fit_soloff(target_xy, image_xy, order=3):
     t = np.asarray(target_xy, dtype=np.float64)
     p = np.asarray(image_xy, dtype=np.float64)
     if t.ndim != 2 or t.shape[1] != 2 or p.shape != t.shape:
-        raise SynthbosError(
-            f"calibration needs two Nx2 position arrays of one shape, got {t.shape} and {p.shape}"
-        )
+        raise SynthbosError(f"calibration needs two Nx2 position arrays of one shape, got {t.shape} and {p.shape}")
     if not (np.isfinite(t).all() and np.isfinite(p).all()):
         raise SynthbosError("calibration correspondences contain non-finite values")
     n_terms = len(_terms(order))
     if len(t) < n_terms:
-        raise SynthbosError(
-            f"an order-{order} calibration needs at least {n_terms} correspondences, got {len(t)}"
-        )
+        raise SynthbosError(f"an order-{order} calibration needs at least {n_terms} correspondences, got {len(t)}")
     centre = 0.5 * (t.min(axis=0) + t.max(axis=0))
     scale = 0.5 * (t.max(axis=0) - t.min(axis=0))
     scale = np.where(scale > 0, scale, 1.0)
@@ -140,7 +136,7 @@ def mapping_to_dict(mapping, **extra):
 def mapping_from_dict(data):
     """Inverse of :func:`mapping_to_dict`; raises :class:`synthbos.SynthbosError` on anything malformed."""
     if not isinstance(data, dict) or data.get("format") != MAPPING_FORMAT:
-        raise SynthbosError(f"not a calibration mapping (expected \"format\": \"{MAPPING_FORMAT}\")")
+        raise SynthbosError(f'not a calibration mapping (expected "format": "{MAPPING_FORMAT}")')
     try:
         order = int(data["order"])
         cx = np.asarray(data["coef_x"], dtype=np.float64).ravel()

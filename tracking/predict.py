@@ -83,7 +83,15 @@ def _interpolate(field, node_y, node_x, xy):
 
 
 def predict_displacement(
-    reference, gradient, xy, *, window_sizes=PREDICTOR_WINDOWS, quality_window=32, mask=None, device=None
+    reference,
+    gradient,
+    xy,
+    *,
+    window_sizes=PREDICTOR_WINDOWS,
+    quality_window=32,
+    min_dots_per_window=5.0,
+    mask=None,
+    device=None,
 ):
     """Predict each dot's displacement by coarse-to-fine correlation, and say how far to trust it.
 
@@ -97,6 +105,10 @@ def predict_displacement(
         Window size of each correlation pass, coarse first (two iterations per pass, 50 % overlap).
         The first should be at least four times the largest displacement; sizes larger than the image
         are reduced to it.
+    min_dots_per_window : float, keyword-only
+        Passes whose windows would hold fewer dots than this on average (from the number of ``xy`` inside
+        the image) are replaced by one pass with the smallest window (a multiple of 8 px) that holds
+        that many: sparse patterns, calibration grids.
     quality_window : int, keyword-only
         Side of the box of the significance measure (``quality``), px; reduced to the image size.
     mask : (H, W) bool array, optional
@@ -111,7 +123,8 @@ def predict_displacement(
         correlation's separable cubic spline.
     quality : (N,) float array
         Normalised correlation coefficient of the reference image and the gradient image sampled at
-        ``x + uv`` (bilinear), over a ``quality_window`` box around each position, masked and
+        ``x + uv`` (bilinear), over a box of ``quality_window`` (or the last window, if larger) around each
+        position, masked and
         out-of-image pixels left out: about 1 where the prediction is right, about 0 for an unrelated
         gradient image (its spread there is roughly one over the square root of the number of dots in
         the box).
@@ -129,6 +142,14 @@ def predict_displacement(
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     h, w = a.shape
     side = min(h, w)
+    fin = np.isfinite(xy).all(axis=1)
+    n_in = np.count_nonzero(
+        fin
+        & (np.abs(np.where(fin, xy[:, 0], -9) - (w - 1) / 2) <= w / 2)
+        & (np.abs(np.where(fin, xy[:, 1], -9) - (h - 1) / 2) <= h / 2)
+    )
+    smallest = 8 * int(np.ceil(np.sqrt(min_dots_per_window * h * w / max(n_in, 1)) / 8.0))
+    window_sizes = [s for s in window_sizes if s > smallest] + [min(smallest, max(window_sizes))]
     sizes = []
     for s in window_sizes:
         s = int(min(s, side))
@@ -172,7 +193,8 @@ def predict_displacement(
         m = np.asarray(mask, dtype=bool)
         moved = ndimage.map_coordinates(m.astype(np.float64), [sy, sx], order=0, mode="nearest") > 0
         valid *= ~(m | moved)
-    ncc = local_normalized_correlation(a, warped, size=min(int(quality_window), side), weights=valid)
+    box = min(max(int(quality_window), sizes[-1]), side)
+    ncc = local_normalized_correlation(a, warped, size=box, weights=valid)
     r = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, h - 1)
     c = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, w - 1)
     quality = np.where(finite, ncc[r, c], np.nan)

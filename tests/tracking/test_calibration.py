@@ -32,9 +32,7 @@ def _camera(angle_deg=3.0):
         x, y = t[:, 0], t[:, 1]
         u = 7.9 * (c * x - s * y)
         v = 8.1 * (s * x + c * y)
-        return np.stack(
-            [151.3 + u + 0.02 * x**2 - 0.015 * x * y, 127.6 + v + 0.01 * y**2 + 0.012 * x**2], axis=1
-        )
+        return np.stack([151.3 + u + 0.02 * x**2 - 0.015 * x * y, 127.6 + v + 0.01 * y**2 + 0.012 * x**2], axis=1)
 
     return to_image
 
