@@ -302,7 +302,15 @@ def _load_hdf5(path, dataset):
 
 
 def load_density(
-    path, *, format=None, dataset=None, slice_index=None, axis=None, index_range=None, spacing_mm=None
+    path,
+    *,
+    format=None,
+    dataset=None,
+    slice_index=None,
+    axis=None,
+    index_range=None,
+    spacing_mm=None,
+    axis_order=None,
 ):
     """Read density data from a file, optionally one 2-D slice or a sub-volume of it.
 
@@ -326,6 +334,13 @@ def load_density(
     spacing_mm : float or sequence of float, optional
         Node spacing of the file's grid in mm, one number or ``[dx, dy]`` / ``[dx, dy, dz]`` along the
         file's axes (before slicing). Replaces the file's own spacing; ``spacing_units`` becomes "mm".
+    axis_order : str, optional
+        The physical axis of each array axis as stored, first array axis first: "zyx" (3-D) and "yx"
+        (2-D) are the conventions above and the default; "xyz" / "xy" read an array stored as
+        ``(nx, ny, nz)`` / ``(nx, ny)`` (Fortran-ordered simulation output, which would otherwise
+        render transposed); any permutation is accepted. The data are transposed to ``(nz, ny, nx)``
+        before ``index_range``, ``slice_index`` and ``axis`` apply, so those always name physical axes;
+        a file's own spacing is permuted along.
 
     Returns
     -------
@@ -363,6 +378,8 @@ def load_density(
             f"{what}: density must be 2-D (ny, nx) or 3-D (nz, ny, nx), got shape {data.shape}"
         )
     spacing = None if spacing is None else tuple(spacing)  # (dx, dy[, dz])
+    if axis_order is not None:
+        data, spacing = _reorder(data, spacing, axis_order, what)
     units = None if spacing is None else "file"
     if spacing_mm is not None:
         spacing, units = _spacing_arg(spacing_mm, data.ndim, what), "mm"
@@ -385,6 +402,22 @@ def load_density(
         dataset=dataset,
         attrs=attrs,
     )
+
+
+def _reorder(data, spacing, axis_order, what):
+    """Transpose an array stored with axes ``axis_order`` (e.g. "xyz") to the (z, y, x) convention."""
+    canon = "zyx"[3 - data.ndim :]
+    order = str(axis_order).lower()
+    if sorted(order) != sorted(canon):
+        raise SynthbosError(
+            f"{what}: axis_order must name each of the {data.ndim} axes {', '.join(sorted(canon))} once "
+            f"(e.g. {canon!r} or {canon[::-1]!r}) for data of shape {data.shape}, got {axis_order!r}"
+        )
+    if spacing is not None:
+        # a file's spacing lists the array axes last first (x fastest in the convention)
+        by_letter = dict(zip(order[::-1], spacing, strict=True))
+        spacing = tuple(by_letter[c] for c in canon[::-1])
+    return np.transpose(data, [order.index(c) for c in canon]), spacing
 
 
 def _spacing_arg(spacing_mm, ndim, what):

@@ -39,12 +39,17 @@ Data sources (the grid comes from the data; ``grid`` must be left unset):
                 array or a picked slice) is extruded along z like ``slice``; a 3-D result is used as the
                 volume. ``normalised``: "auto" (true for jhtdb, false otherwise), true (the data are
                 multiplied by ``density_scale_kg_m3``) or false (the data are kg/m^3). Ambient = mean of
-                the resulting field.
+                the resulting field. ``axis_order``: the physical axis of each stored array axis,
+                "auto" = "zyx" (3-D) / "yx" (2-D); "xyz" / "xy" for arrays stored as (nx, ny, nz) /
+                (nx, ny) (see :func:`raytrace.loaders.load_density`).
 
 Physical size of data sources: with ``spacing_mm = "auto"`` (default) the data are mapped onto
-``size_mm`` (first and last nodes on the faces). A file's own coordinates (JHTDB, NRRD) are not used
-for the size: they are in the file's units (database units for JHTDB: a 2 pi box), and are only
-reported as ``LoadedDensity.spacing`` for the user to turn into ``spacing_mm``. With ``spacing_mm``
+``size_mm`` (first and last nodes on the faces); for the ``file`` source this stretch is announced
+(a :class:`DensityNotice` warning naming the node spacing in mm that results, and the change of aspect
+ratio where the file carries its own spacing) and kept in ``DensityField.notes``. A file's own
+coordinates (JHTDB, NRRD) are not used for the size: they are in the file's units (database units for
+JHTDB: a 2 pi box), and are only reported as ``LoadedDensity.spacing`` for the user to turn into
+``spacing_mm``. With ``spacing_mm``
 given (one number, or [dx, dy, dz] along the file's x, y, z axes before any slice is taken; [dx, dy]
 for a 2-D file) the extent along each data axis is spacing x (n - 1) and ``size_mm`` is ignored along
 those axes; an extruded slice keeps ``size_mm[2]`` as its depth (e.g. a y-slice of a volume spans
@@ -55,6 +60,7 @@ dx (nx - 1) by dz (nz - 1)). ``DensityField.size_m`` always holds the extent act
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,7 +69,18 @@ from synthbos import SynthbosError
 
 from .defaults import DEFAULT_CONFIG
 
-__all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
+__all__ = [
+    "COMMON_KEYS",
+    "SOURCE_KEYS",
+    "DensityField",
+    "DensityNotice",
+    "density_from_config",
+    "node_coordinates",
+]
+
+
+class DensityNotice(UserWarning):
+    """What a data source did to the data that the configuration did not spell out (shown once)."""
 
 # Keys every source shares, with defaults. ``grid`` is [nx, ny, nz] nodes; None lets the source choose.
 # The physical defaults come from default.toml (the paper's set-up); a bare volume table is a Gaussian.
@@ -109,6 +126,7 @@ SOURCE_KEYS: dict[str, dict[str, object]] = {
         "index_range": "all",
         "spacing_mm": "auto",
         "normalised": "auto",
+        "axis_order": "auto",
     },
 }
 
@@ -129,11 +147,15 @@ class DensityField:
         Physical extent of the volume in metres.
     ambient : float
         Density of the undisturbed medium (kg/m^3), the medium of the reference image.
+    notes : tuple of str
+        What the source did that the configuration did not spell out (e.g. a file's grid stretched onto
+        ``size_mm``); also issued as :class:`DensityNotice` warnings.
     """
 
     rho: np.ndarray
     size_m: tuple[float, float, float]
     ambient: float
+    notes: tuple[str, ...] = ()
 
 
 def node_coordinates(shape_zyx, size_m):
@@ -314,6 +336,9 @@ def _file_source(p, volume, size_m):
         for i, v in enumerate(vals):
             _number(f"spacing_mm[{i}]", v, positive=True)
 
+    order = _optional(p, "axis_order", "auto")
+    if order is not None and not isinstance(order, str):
+        raise SynthbosError(f'volume.axis_order must be "auto" or a string such as "xyz", got {order!r}')
     loaded = load_density(
         path,
         format=fmt,
@@ -322,6 +347,7 @@ def _file_source(p, volume, size_m):
         axis=axis,
         index_range=rng,
         spacing_mm=spacing,
+        axis_order=order,
     )
     fmt = fmt or _inferred(path)
     if norm is None:
@@ -334,7 +360,33 @@ def _file_source(p, volume, size_m):
         ext = [sp[0] * (nx - 1), sp[1] * (ny - 1)]
         ext.append(sp[2] * (nz - 1) if data.ndim == 3 else size_m[2])
         size_m = tuple(ext)
-    return vol, size_m, float(vol.mean())
+        notes = ()
+    else:
+        notes = (_stretch_note(path, data, loaded, size_m),)
+        warnings.warn(notes[0], DensityNotice, stacklevel=4)
+    return vol, size_m, float(vol.mean()), notes
+
+
+def _stretch_note(path, data, loaded, size_m):
+    """The notice for spacing_mm = "auto": the data's nodes are stretched onto size_mm."""
+    shape = data.shape[::-1]  # (nx, ny[, nz])
+    ext = [s * 1e3 for s in size_m[: data.ndim]]
+    step = [L / (n - 1) for L, n in zip(ext, shape, strict=True)]
+    names = "xyz"[: data.ndim]
+    msg = (
+        f'volume.path {path}: spacing_mm = "auto", so its {"x".join(str(n) for n in shape)} nodes '
+        f"({', '.join(names)}) are stretched onto size_mm "
+        f"{' x '.join(f'{L:g}' for L in ext)} mm (node spacing {' x '.join(f'{d:.4g}' for d in step)} mm)"
+    )
+    if loaded.spacing is not None and loaded.spacing_units == "file" and len(loaded.spacing) == data.ndim:
+        own = [d * (n - 1) for d, n in zip(loaded.spacing, shape, strict=True)]
+        change = (ext[0] / ext[1]) / (own[0] / own[1])
+        msg += (
+            f"; the file's own spacing {' x '.join(f'{d:.4g}' for d in loaded.spacing)} (file units) "
+            f"gives an x:y aspect ratio of {own[0] / own[1]:.4g}, this one {ext[0] / ext[1]:.4g} "
+            f"(x {change:.4g} times as stretched as y)"
+        )
+    return msg + "; set volume.spacing_mm to the file's node spacing in mm to keep its proportions"
 
 
 def _inferred(path):
@@ -371,6 +423,7 @@ def density_from_config(volume: dict) -> DensityField:
     if not isinstance(size, list | tuple) or len(size) != 3:
         raise SynthbosError(f"volume.size_mm must be a list of three numbers, got {size!r}")
     size_m = tuple(_number(f"size_mm[{i}]", s, positive=True) * 1e-3 for i, s in enumerate(size))
+    notes = ()
     if source in _ANALYTIC:
         rho, ambient = _analytic(source, p, size_m, _grid(volume))
     else:
@@ -387,7 +440,7 @@ def density_from_config(volume: dict) -> DensityField:
         if source == "slice":
             rho, size_m, ambient = _slice_source(p, volume, size_m)
         else:
-            rho, size_m, ambient = _file_source(p, volume, size_m)
+            rho, size_m, ambient, notes = _file_source(p, volume, size_m)
     return DensityField(
-        rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient
+        rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient, notes=notes
     )

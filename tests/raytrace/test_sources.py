@@ -216,3 +216,44 @@ def test_file_source_bad_data_named(tmp_path):
         density_from_config(dict(COMMON_KEYS, source="file", path=str(tmp_path / "neg.npy")))
     with pytest.raises(SynthbosError, match=r"missing\.npy: density file not found"):
         density_from_config(dict(COMMON_KEYS, source="file", path=str(tmp_path / "missing.npy")))
+
+
+def test_file_source_axis_order_and_stretch_notice(tmp_path):
+    from synthbos.raytrace.config import load_config
+    from synthbos.raytrace.sources import DensityNotice
+
+    rng = np.random.default_rng(4)
+    plane = 1.0 + 0.1 * rng.random((5, 8))  # (ny, nx): 8 nodes along x
+    np.save(tmp_path / "sim.npy", plane.T)  # a simulation writing (nx, ny)
+    base = dict(COMMON_KEYS, source="file", path=str(tmp_path / "sim.npy"), size_mm=[32.0, 16.0, 4.0])
+    with pytest.warns(DensityNotice, match=r"8x5 nodes \(x, y\) are stretched onto size_mm 32 x 16 mm "
+                      r"\(node spacing 4\.571 x 4 mm\)"):
+        f = density_from_config(dict(base, axis_order="xy"))
+    assert_array_equal(f.rho[0], plane)  # not rotated
+    assert len(f.notes) == 1 and "spacing_mm" in f.notes[0]
+    with pytest.warns(DensityNotice):
+        g = density_from_config(base)
+    assert g.rho.shape == (2, 8, 5)  # the old reading: rotated
+    # with the spacing given there is nothing to announce
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        h = density_from_config(dict(base, axis_order="xy", spacing_mm=[0.5, 0.5]))
+    assert h.notes == ()
+    assert_allclose(h.size_m[:2], (3.5e-3, 2e-3))
+    # a file with its own spacing: the change of proportions is stated
+    path = tmp_path / "cut.nc"
+    with h5py.File(path, "w") as h5:
+        h5.create_dataset("Density_0001", data=np.ones((3, 4, 5, 1)))
+        for ax, n in (("xcoor", 5), ("ycoor", 4), ("zcoor", 3)):
+            h5.create_dataset(ax, data=np.arange(n) * 0.1)
+    with pytest.warns(DensityNotice, match=r"aspect ratio of 1\.333, this one 2"):
+        density_from_config(dict(COMMON_KEYS, source="file", path=str(path), size_mm=[32.0, 16.0, 4.0]))
+    # the key is part of the configuration, validated
+    cfg = load_config({"volume": {"source": "file", "path": str(tmp_path / "sim.npy"), "axis_order": "xy"}})
+    assert cfg["volume"]["axis_order"] == "xy"
+    with pytest.raises(SynthbosError, match="axis_order"):
+        density_from_config(dict(base, axis_order=3))
+    with pytest.raises(SynthbosError, match="axis_order must name each"):
+        density_from_config(dict(base, axis_order="xyz"))
