@@ -74,14 +74,6 @@ def _fill_nan(u):
     return u[tuple(idx)]
 
 
-def _interpolate(field, node_y, node_x, xy):
-    """The correlation's separable cubic spline of a node field at scattered points (x, y); constant
-    beyond the outer nodes (the edge windows are the least reliable, their extrapolation more so)."""
-    wy = spline_weights(node_y, np.clip(xy[:, 1], node_y[0], node_y[-1]))
-    wx = spline_weights(node_x, np.clip(xy[:, 0], node_x[0], node_x[-1]))
-    return np.einsum("ni,ij,nj->n", wy, field, wx)
-
-
 def predict_displacement(
     reference,
     gradient,
@@ -102,7 +94,8 @@ def predict_displacement(
     xy : (N, 2) array
         Reference-image positions (x = column, y = row) at which to predict; non-finite rows give NaN.
     window_sizes : tuple of int, keyword-only
-        Window size of each correlation pass, coarse first (two iterations per pass, 50 % overlap).
+        Window size of each correlation pass, coarse first (50 % overlap; one iteration per pass, two
+        for the last).
         The first should be at least four times the largest displacement; sizes larger than the image
         are reduced to it.
     min_dots_per_window : float, keyword-only
@@ -159,32 +152,38 @@ def predict_displacement(
     if not sizes or n == 0:
         return np.zeros((n, 2)), np.zeros(n)
     settings = CorrelationSettings(
-        window_sizes=tuple(sizes), overlaps=0.5, iterations=2, device="cpu" if device is None else device
+        window_sizes=tuple(sizes),
+        overlaps=0.5,
+        iterations=(1,) * (len(sizes) - 1) + (2,),
+        device="cpu" if device is None else device,
     )
     res = correlate_pair(a, b, settings=settings, mask=mask)
     node_y, node_x = res.y[:, 0].astype(np.float64), res.x[0, :].astype(np.float64)
     u, v = _fill_nan(res.u.astype(np.float64)), _fill_nan(res.v.astype(np.float64))
 
-    finite = np.isfinite(xy).all(axis=1)
-    pts = np.where(finite[:, None], xy, 0.0)
-    # The correlation measures the displacement at the midpoint of a dot's two positions: solve
-    # d = field(x + d / 2) for the displacement of the dot at reference position x.
-    uv = np.zeros((n, 2))
-    for _ in range(_MIDPOINT_ITERATIONS):
-        mid = pts + 0.5 * uv
-        uv = np.stack([_interpolate(u, node_y, node_x, mid), _interpolate(v, node_y, node_x, mid)], axis=1)
-    uv[~finite] = np.nan
-
-    # Significance: undo the prediction on the gradient image and correlate it with the reference locally.
     rows, cols = np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64)
+    # the correlation's separable cubic spline of the node field at every pixel, constant beyond the
+    # outer nodes (the edge windows are the least reliable, their extrapolation more so)
     wy = spline_weights(node_y, np.clip(rows, node_y[0], node_y[-1]))
     wx = spline_weights(node_x, np.clip(cols, node_x[0], node_x[-1]))
     du, dv = wy @ u @ wx.T, wy @ v @ wx.T
-    ru, rv = du, dv
-    for _ in range(_MIDPOINT_ITERATIONS - 1):
-        my, mx = rows[:, None] + 0.5 * rv, cols[None, :] + 0.5 * ru
-        ru = ndimage.map_coordinates(du, [my, mx], order=1, mode="nearest")
-        rv = ndimage.map_coordinates(dv, [my, mx], order=1, mode="nearest")
+
+    # The correlation measures the displacement at the midpoint of a dot's two positions: solve
+    # d = field(x + d / 2) for the displacement of the dot at reference position x (the field is
+    # sampled bilinearly from its values at the pixels, which it varies too slowly to notice).
+    finite = np.isfinite(xy).all(axis=1)
+    pts = np.where(finite[:, None], xy, 0.0)
+    uv = np.zeros((n, 2))
+    for _ in range(_MIDPOINT_ITERATIONS):
+        mid = [np.clip(pts[:, 1] + 0.5 * uv[:, 1], 0, h - 1), np.clip(pts[:, 0] + 0.5 * uv[:, 0], 0, w - 1)]
+        uv = np.stack([ndimage.map_coordinates(f, mid, order=1) for f in (du, dv)], axis=1)
+    uv[~finite] = np.nan
+
+    # Significance: undo the prediction on the gradient image (one midpoint step: the field varies
+    # slowly) and correlate it with the reference locally.
+    my, mx = rows[:, None] + 0.5 * dv, cols[None, :] + 0.5 * du
+    ru = ndimage.map_coordinates(du, [my, mx], order=1, mode="nearest")
+    rv = ndimage.map_coordinates(dv, [my, mx], order=1, mode="nearest")
     sy, sx = rows[:, None] + rv, cols[None, :] + ru
     inside = (sy >= 0) & (sy <= h - 1) & (sx >= 0) & (sx <= w - 1)
     warped = ndimage.map_coordinates(b, [sy, sx], order=1, mode="nearest")
