@@ -16,6 +16,8 @@ from scipy import ndimage
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.correlation.deform import spline_weights
 
+from synthbos import SynthbosError
+
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
 #: Window sizes (px) of the predictor's passes: 64 px windows find shifts up to about 16 px (a quarter of
@@ -151,13 +153,20 @@ def predict_displacement(
     n = len(xy)
     if not sizes or n == 0:
         return np.zeros((n, 2)), np.zeros(n)
-    settings = CorrelationSettings(
-        window_sizes=tuple(sizes),
-        overlaps=0.5,
-        iterations=(1,) * (len(sizes) - 1) + (2,),
-        device="cpu" if device is None else device,
-    )
-    res = correlate_pair(a, b, settings=settings, mask=mask)
+    while True:
+        settings = CorrelationSettings(
+            window_sizes=tuple(sizes),
+            overlaps=0.5,
+            iterations=(1,) * (len(sizes) - 1) + (2,),
+            device="cpu" if device is None else device,
+        )
+        try:
+            res = correlate_pair(a, b, settings=settings, mask=mask)
+            break
+        except SynthbosError:
+            if mask is None or len(sizes) == 1:
+                raise
+            sizes = sizes[1:]  # the mask covers most of every coarse window: start finer
     node_y, node_x = res.y[:, 0].astype(np.float64), res.x[0, :].astype(np.float64)
     u, v = _fill_nan(res.u.astype(np.float64)), _fill_nan(res.v.astype(np.float64))
 

@@ -199,3 +199,16 @@ def test_dark_dots_inverted_give_the_bright_dot_result(prior):
     for name in ("u_pred", "v_pred"):  # the correlation runs in float32
         assert_allclose(b[name], a[name], atol=1e-4, equal_nan=True, err_msg=name)
     assert is_valid(a["status"]).mean() > 0.97
+
+
+def test_mask_leaving_a_narrow_band():
+    # the mask excludes more than half of every 64 px window: the predictor starts at a finer pass
+    rng, xy = _dense(38)
+    ref, grad = _pair(rng, xy, xy + np.array([3.0, 0.0]))
+    mask = np.ones(SHAPE, dtype=bool)
+    mask[100:130, :] = False
+    res = track_pair(ref, grad, prior_xy=xy, mask=mask, settings=TrackingSettings(diameter=D))
+    ok = is_valid(res["status"])
+    band = (xy[:, 1] > 103) & (xy[:, 1] < 127) & (xy[:, 0] > 3) & (xy[:, 0] < SHAPE[1] - 8)
+    assert ok[band].mean() > 0.95 and not ok[(xy[:, 1] < 97) | (xy[:, 1] > 133)].any()
+    assert_allclose(res["u"][ok], 3.0, atol=0.1)
