@@ -5,6 +5,14 @@
 around its prediction, iterating on a residual image from which the dots found so far are removed;
 without one, dots are identified in each image by dynamic thresholding and paired (standard tracking).
 Displacements come both from the difference of the two centroids and from the correlation correction.
+
+Additions to the paper: with ``TrackingSettings.predictor = "correlation"`` (the default) the
+gradient-image positions are predicted by a coarse-to-fine correlation of the pair (:mod:`tracking.predict`),
+so displacements far beyond the window margin are tracked, with and without a prior, and a match is
+reported (MATCHED) only where it agrees with that prediction and the prediction is significant
+(otherwise PREDICTOR_MISMATCH, PREDICTOR_WEAK); in every mode a dot cut by the image edge (EDGE_CUT) or
+failing a median test against its neighbours (OUTLIER) is not MATCHED, and a mask excludes pixels
+(MASKED).
 """
 
 from __future__ import annotations
