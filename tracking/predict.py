@@ -201,7 +201,9 @@ def predict_displacement(
         m = np.asarray(mask, dtype=bool)
         moved = ndimage.map_coordinates(m.astype(np.float64), [sy, sx], order=0, mode="nearest") > 0
         valid *= ~(m | moved)
-    box = min(max(int(quality_window), sizes[-1]), side)
+    # the box holds at least ~20 dots: the chance correlation of unrelated images falls as 1 / sqrt(dots)
+    dense_enough = 8 * int(np.ceil(np.sqrt(20.0 * h * w / max(n_in, 1)) / 8.0))
+    box = min(max(int(quality_window), sizes[-1], dense_enough), side)
     ncc = local_normalized_correlation(a, warped, size=box, weights=valid)
     r = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, h - 1)
     c = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, w - 1)
