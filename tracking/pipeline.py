@@ -90,9 +90,9 @@ class DotStatus(enum.IntFlag):
         unrelated or decorrelated gradient image). Never MATCHED.
     EDGE_CUT
         The dot's e^-2 disk (diameter ``d``) reaches past the image edge by amounts that differ by more
-        than a quarter pixel between the two images (a dot entering or leaving the field of view), so
-        its centroids are pulled inwards by different amounts, or its centre lies within ``d / 4`` (one
-        sigma) of the image's edge in either image, where the centroid fit itself fails. Never MATCHED.
+        than half a pixel between the two images (a dot entering or leaving the field of view): its
+        two positions are pulled inwards by different amounts. Never MATCHED. (A dot cut alike in both
+        images keeps NEAR_BORDER only: its biases largely cancel, below 0.1 px with the model fit.)
     OUTLIER
         The displacement fails the normalised median test against the local linear fit of its nearest
         matched neighbours (``TrackingSettings.outlier_threshold``): probably paired with the wrong blob.
@@ -666,7 +666,7 @@ def _neighbour_outliers(xy, uv, *, neighbours, epsilon, threshold):
 #: A dot whose e^-2 disk reaches past the image edge by amounts that differ by more than this (px) between
 #: the two images is flagged EDGE_CUT: the truncation biases of its two centroids no longer cancel (the
 #: measured overshoots understate the difference, as both centroids are pulled inwards).
-_EDGE_CUT_PX = 0.25
+_EDGE_CUT_PX = 0.5
 
 
 def _overshoot(x, y, radius, shape):
@@ -957,7 +957,6 @@ def track_pair(
         _overshoot(out[cx], out[cy], d / 2.0, (h_img, w_img)) for cx, cy in (("x", "y"), ("x_gradient", "y_gradient"))
     ]
     cut = (np.abs(over[0] - over[1]) > _EDGE_CUT_PX).any(axis=1)
-    cut |= (np.maximum(over[0], over[1]) > d / 4.0).any(axis=1)  # centre within sigma of the edge
     cut &= matched
     status[cut] |= DotStatus.EDGE_CUT
     matched &= ~cut
