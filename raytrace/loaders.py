@@ -38,6 +38,8 @@ import numpy as np
 
 from synthbos import SynthbosError, data_file
 
+from .checks import check_density
+
 __all__ = [
     "DEFAULT_SNAPSHOTS",
     "FORMATS",
@@ -45,7 +47,6 @@ __all__ = [
     "infer_format",
     "load_density",
     "read_snapshots",
-    "validate_density",
     "write_snapshots",
 ]
 
@@ -106,39 +107,6 @@ def infer_format(path):
             f"{path}: cannot infer the format from extension {ext!r}; set format to one of {FORMATS}"
         )
     return table[ext]
-
-
-def validate_density(data, *, where):
-    """Check that density data are numeric, finite and strictly positive; return float64.
-
-    Parameters
-    ----------
-    data : array_like
-    where : str
-        What to name in the error message (a file, or ``volume``).
-
-    Returns
-    -------
-    float64 ndarray
-    """
-    arr = np.asarray(data)
-    if arr.dtype.kind not in "fiu":
-        raise SynthbosError(f"{where}: density must be real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if arr.size == 0:
-        raise SynthbosError(f"{where}: density array is empty")
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise SynthbosError(f"{where}: density has {int(bad.sum())} NaN/inf value(s), first at index {idx}")
-    low = arr <= 0
-    if low.any():
-        idx = tuple(int(i) for i in np.argwhere(low)[0])
-        raise SynthbosError(
-            f"{where}: density must be > 0 everywhere; {int(low.sum())} value(s) <= 0, "
-            f"minimum {arr.min():.6g} (first at index {idx})"
-        )
-    return arr
 
 
 def _h5py_open(path):
@@ -376,7 +344,7 @@ def load_density(
         data, spacing = _slice(data, spacing, slice_index, axis, what=what)
     if min(data.shape) < 2:
         raise SynthbosError(f"{what}: need at least 2 nodes along every axis, got shape {data.shape}")
-    data = validate_density(data, where=what)
+    data = check_density(data, where=what)
     return LoadedDensity(
         data=np.ascontiguousarray(data),
         spacing=spacing,
@@ -507,4 +475,4 @@ def read_snapshots(path=None):
     dens = np.asarray(dens)
     if dens.ndim != 3:
         raise SynthbosError(f"{path}: /density must be (snapshots, ny, nx), got shape {dens.shape}")
-    return validate_density(dens, where=path), np.asarray(times, dtype=np.float64), attrs
+    return check_density(dens, where=path, ndim=(3,)), np.asarray(times, dtype=np.float64), attrs

@@ -61,7 +61,17 @@ import numpy as np
 
 from synthbos import SynthbosError
 
-__all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
+from . import checks
+
+__all__ = [
+    "ANALYTIC",
+    "COMMON_KEYS",
+    "DEFAULT_GRID",
+    "SOURCE_KEYS",
+    "DensityField",
+    "density_from_config",
+    "node_coordinates",
+]
 
 # Keys every source shares, with defaults. ``grid`` is [nx, ny, nz] nodes; None lets the source choose.
 COMMON_KEYS = {
@@ -111,8 +121,8 @@ SOURCE_KEYS: dict[str, dict[str, object]] = {
     },
 }
 
-_DEFAULT_GRID = [64, 64, 16]
-_ANALYTIC = ("uniform", "linear", "gaussian", "step", "sinusoidal")
+DEFAULT_GRID = [64, 64, 16]
+ANALYTIC = ("uniform", "linear", "gaussian", "step", "sinusoidal")
 
 
 @dataclass(frozen=True)
@@ -145,14 +155,9 @@ def node_coordinates(shape_zyx, size_m):
 
 
 def _grid(volume):
-    grid = volume.get("grid") or _DEFAULT_GRID
-    if (
-        not isinstance(grid, list | tuple)
-        or len(grid) != 3
-        or any(isinstance(g, bool) or not isinstance(g, int | float) or int(g) != g or g < 2 for g in grid)
-    ):
-        raise SynthbosError(f"volume.grid must be three whole numbers >= 2 (nx, ny, nz), got {grid!r}")
-    return tuple(int(g) for g in grid)
+    grid = volume.get("grid") or DEFAULT_GRID
+    values = checks.vector("volume.grid", grid, (3,), integer=True, minimum=2, maximum=100_000)
+    return tuple(int(g) for g in values)
 
 
 def _params(volume, source):
@@ -170,20 +175,24 @@ def _params(volume, source):
     return p
 
 
-def _number(key, value, *, positive=False):
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise SynthbosError(f"volume.{key} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise SynthbosError(f"volume.{key} must be > 0, got {value!r}")
-    return float(value)
+# Sane magnitudes of the sources' own numbers (lengths in mm, densities in kg/m^3): beyond them a value
+# is a unit mistake; the density field itself is then checked by ``checks.check_density``.
+_LENGTH_MM = 1.0e6
+_DENSITY = checks.MAX_DENSITY_KG_M3
 
 
-def _vector(key, value, sizes, *, nonzero=False):
-    if not isinstance(value, list | tuple) or len(value) not in sizes:
-        raise SynthbosError(
-            f"volume.{key} must be a list of {' or '.join(map(str, sizes))} numbers, got {value!r}"
-        )
-    v = [_number(f"{key}[{i}]", x) for i, x in enumerate(value)]
+def _number(key, value, *, positive=False, bound=None):
+    """A source's number, named ``volume.<key>``: finite, |value| <= bound, > 0 if ``positive``."""
+    bounds = {} if bound is None else {"minimum": -bound, "maximum": bound}
+    if positive:
+        bounds["above"] = 0.0
+        bounds.pop("minimum", None)
+    return checks.number(f"volume.{key}", value, **bounds)
+
+
+def _vector(key, value, sizes, *, nonzero=False, bound=None):
+    bounds = {} if bound is None else {"minimum": -bound, "maximum": bound}
+    v = checks.vector(f"volume.{key}", value, sizes, **bounds)
     v = v + [0.0] * (3 - len(v))
     if nonzero and not any(v):
         raise SynthbosError(f"volume.{key} must not be the zero vector")
@@ -191,24 +200,14 @@ def _vector(key, value, sizes, *, nonzero=False):
 
 
 def _integer(key, value, *, low=None, high=None):
-    if isinstance(value, bool) or not isinstance(value, int | float) or int(value) != value:
-        raise SynthbosError(f"volume.{key} must be a whole number, got {value!r}")
-    value = int(value)
-    if (low is not None and value < low) or (high is not None and value > high):
-        raise SynthbosError(f"volume.{key} must be in {low}..{high}, got {value}")
-    return value
+    return checks.number(f"volume.{key}", value, integer=True, minimum=low, maximum=high)
 
 
 def _positive_field(rho, source):
-    low = float(rho.min())
-    if not np.isfinite(rho).all():
-        raise SynthbosError(f"volume: source {source!r} gives NaN/inf density; check its parameters")
-    if low <= 0:
-        raise SynthbosError(
-            f"volume: source {source!r} gives density down to {low:.4g} kg/m^3 inside the volume; "
-            "density must stay > 0 (reduce the gradient/amplitude/jump or raise volume.density_kg_m3)"
-        )
-    return rho
+    return checks.check_density(
+        rho, where=f"volume: source {source!r}", ndim=(3,),
+        hint="; reduce the gradient/amplitude/jump or raise volume.density_kg_m3",
+    )
 
 
 # ------------------------------------------------------------------ sources
@@ -218,31 +217,31 @@ def _analytic(source, p, size_m, grid):
     nx, ny, nz = grid
     x, y, z = node_coordinates((nz, ny, nx), size_m)
     Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    rho0 = _number("density_kg_m3", p["density_kg_m3"], positive=True)
+    rho0 = _number("density_kg_m3", p["density_kg_m3"], positive=True, bound=_DENSITY)
     if source == "uniform":
         rho = np.full((nz, ny, nx), rho0)
     elif source == "linear":
-        gx, gy, gz = _vector("gradient_kg_m4", p["gradient_kg_m4"], (2, 3))
+        gx, gy, gz = _vector("gradient_kg_m4", p["gradient_kg_m4"], (2, 3), bound=1.0e12)
         rho = rho0 + gx * X + gy * Y + gz * Z
     elif source == "gaussian":
-        cx, cy, cz = _vector("centre_mm", p["centre_mm"], (2, 3)) * 1e-3
-        s = _number("sigma_mm", p["sigma_mm"], positive=True) * 1e-3
-        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
+        cx, cy, cz = _vector("centre_mm", p["centre_mm"], (2, 3), bound=_LENGTH_MM) * 1e-3
+        s = _number("sigma_mm", p["sigma_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"], bound=_DENSITY)
         rho = rho0 + a * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) / (2 * s * s))
     elif source == "step":
-        px, py, pz = _vector("position_mm", p["position_mm"], (2, 3)) * 1e-3
-        n = _vector("normal", p["normal"], (2, 3), nonzero=True)
+        px, py, pz = _vector("position_mm", p["position_mm"], (2, 3), bound=_LENGTH_MM) * 1e-3
+        n = _vector("normal", p["normal"], (2, 3), nonzero=True, bound=1.0e12)
         n = n / np.linalg.norm(n)
-        jump = _number("jump_kg_m3", p["jump_kg_m3"])
-        delta = _number("thickness_mm", p["thickness_mm"], positive=True) * 1e-3
+        jump = _number("jump_kg_m3", p["jump_kg_m3"], bound=_DENSITY)
+        delta = _number("thickness_mm", p["thickness_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
         s = (X - px) * n[0] + (Y - py) * n[1] + (Z - pz) * n[2]
         rho = rho0 + 0.5 * jump * (1.0 + np.tanh(2.0 * s / delta))
     else:  # sinusoidal
-        d = _vector("direction", p["direction"], (2, 3), nonzero=True)
+        d = _vector("direction", p["direction"], (2, 3), nonzero=True, bound=1.0e12)
         d = d / np.linalg.norm(d)
-        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
-        lam = _number("wavelength_mm", p["wavelength_mm"], positive=True) * 1e-3
-        phase = math.radians(_number("phase_deg", p["phase_deg"]))
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"], bound=_DENSITY)
+        lam = _number("wavelength_mm", p["wavelength_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
+        phase = math.radians(_number("phase_deg", p["phase_deg"], bound=1.0e6))
         s = X * d[0] + Y * d[1] + Z * d[2]
         rho = rho0 + a * np.sin(2.0 * np.pi * s / lam + phase)
     return _positive_field(rho, source), rho0
@@ -311,7 +310,7 @@ def _file_source(p, volume, size_m):
         if not 1 <= len(vals) <= 3:
             raise SynthbosError(f'volume.spacing_mm must be "auto", a number or a list, got {spacing!r}')
         for i, v in enumerate(vals):
-            _number(f"spacing_mm[{i}]", v, positive=True)
+            _number(f"spacing_mm[{i}]", v, positive=True, bound=_LENGTH_MM)
 
     loaded = load_density(
         path,
@@ -369,8 +368,8 @@ def density_from_config(volume: dict) -> DensityField:
     size = volume.get("size_mm", COMMON_KEYS["size_mm"])
     if not isinstance(size, list | tuple) or len(size) != 3:
         raise SynthbosError(f"volume.size_mm must be a list of three numbers, got {size!r}")
-    size_m = tuple(_number(f"size_mm[{i}]", s, positive=True) * 1e-3 for i, s in enumerate(size))
-    if source in _ANALYTIC:
+    size_m = tuple(_number(f"size_mm[{i}]", s, positive=True, bound=_LENGTH_MM) * 1e-3 for i, s in enumerate(size))
+    if source in ANALYTIC:
         rho, ambient = _analytic(source, p, size_m, _grid(volume))
     else:
         if volume.get("grid") is not None:
@@ -381,6 +380,7 @@ def density_from_config(volume: dict) -> DensityField:
             "density_scale_kg_m3",
             volume.get("density_scale_kg_m3", COMMON_KEYS["density_scale_kg_m3"]),
             positive=True,
+            bound=_DENSITY,
         )
         volume = {"density_scale_kg_m3": COMMON_KEYS["density_scale_kg_m3"], **volume}
         if source == "slice":

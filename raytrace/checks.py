@@ -1,0 +1,166 @@
+"""The one home of value checks of the renderer: a configuration number, and a density field.
+
+``number`` checks every number of a configuration (``raytrace.config`` for the fixed tables,
+``raytrace.sources`` for each source's own keys); ``check_density`` checks every density array,
+whether it comes from a file (``raytrace.loaders``), a source or the medium (``raytrace.medium``).
+Both raise ``SynthbosError`` naming the key or the file.
+
+Resource limits (``[limits]`` table of a configuration) are checked here too, with ``check_memory``:
+see ``raytrace.config`` for the keys and their defaults.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from synthbos import SynthbosError
+
+__all__ = [
+    "BYTES_PER_NODE",
+    "MAX_DENSITY_KG_M3",
+    "check_density",
+    "check_memory",
+    "default_memory_gb",
+    "number",
+    "vector",
+]
+
+# Densest thing a BOS medium can be (osmium is 22.6e3 kg/m^3); beyond it a value is a unit mistake.
+MAX_DENSITY_KG_M3 = 1.0e5
+# Host memory per node of a density grid from reading to the packed medium (float64 copies of the raw,
+# scaled and extruded data, the gradient, the packed float32 field): a deliberate over-estimate.
+BYTES_PER_NODE = 128
+
+
+def _fmt(v):
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def number(name, value, *, integer=False, minimum=None, maximum=None, above=None):
+    """Check one configuration number and return it as float (or int with ``integer``).
+
+    Parameters
+    ----------
+    name : str
+        The key as the user wrote it, ``table.key`` (or ``table.key[i]``).
+    value : object
+        The value read from the configuration.
+    integer : bool
+        A whole number is required (returned as int; floats such as 3.0 are accepted).
+    minimum, maximum : float, optional
+        Inclusive bounds.
+    above : float, optional
+        Exclusive lower bound (``above=0`` for "> 0").
+
+    Raises
+    ------
+    SynthbosError
+        Not a number (booleans and strings included), not finite, not whole, or out of range; the
+        message names ``name`` and the allowed range.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise SynthbosError(f"{name} must be a number, got {value!r}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise SynthbosError(f"{name} must be finite, got {value!r}")
+    if integer and int(value) != value:
+        raise SynthbosError(f"{name} must be a whole number, got {value!r}")
+    low = ""
+    if above is not None:
+        low = f"> {_fmt(above)}"
+    elif minimum is not None:
+        low = f">= {_fmt(minimum)}"
+    rng = " and ".join(s for s in (low, f"<= {_fmt(maximum)}" if maximum is not None else "") if s)
+    bad = (
+        (above is not None and not value > above)
+        or (minimum is not None and value < minimum)
+        or (maximum is not None and value > maximum)
+    )
+    if bad:
+        raise SynthbosError(f"{name} must be {rng}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def vector(name, value, sizes, **bounds):
+    """A list of numbers of one of the lengths ``sizes``, each checked by ``number`` (as floats)."""
+    if not isinstance(value, list | tuple) or len(value) not in sizes:
+        raise SynthbosError(f"{name} must be a list of {' or '.join(map(str, sizes))} numbers, got {value!r}")
+    return [number(f"{name}[{i}]", v, **bounds) for i, v in enumerate(value)]
+
+
+def check_density(data, *, where, ndim=(2, 3), min_nodes=2, hint=""):
+    """Check density data: real numbers, the right dimensionality, finite, > 0 and physically dense at most.
+
+    Parameters
+    ----------
+    data : array_like
+    where : str
+        What to name in the error message (a file, ``volume``, a source).
+    ndim : tuple of int
+        Allowed numbers of dimensions.
+    min_nodes : int
+        Least number of nodes along every axis.
+    hint : str
+        What to change, appended to the message of a value out of range.
+
+    Returns
+    -------
+    float64 ndarray
+
+    Raises
+    ------
+    SynthbosError
+        Non-numeric, empty, wrong dimensionality, fewer than ``min_nodes`` along an axis, NaN/inf,
+        a value <= 0 or above ``MAX_DENSITY_KG_M3``; the first offending index is named.
+    """
+    arr = np.asarray(data)
+    if arr.dtype.kind not in "fiu":
+        raise SynthbosError(f"{where}: density must be real numbers, got dtype {arr.dtype}")
+    if arr.size == 0:
+        raise SynthbosError(f"{where}: density array is empty")
+    if arr.ndim not in ndim:
+        want = " or ".join(f"{n}-D" for n in ndim)
+        raise SynthbosError(f"{where}: density must be {want}, got shape {arr.shape}")
+    if min(arr.shape) < min_nodes:
+        raise SynthbosError(f"{where}: need at least {min_nodes} nodes along every axis, got shape {arr.shape}")
+    arr = arr.astype(np.float64, copy=False)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise SynthbosError(f"{where}: density has {int(bad.sum())} NaN/inf value(s), first at index {idx}")
+    low = arr <= 0
+    if low.any():
+        idx = tuple(int(i) for i in np.argwhere(low)[0])
+        raise SynthbosError(
+            f"{where}: density must be > 0 everywhere; {int(low.sum())} value(s) <= 0, "
+            f"minimum {arr.min():.6g} (first at index {idx}){hint}"
+        )
+    high = arr > MAX_DENSITY_KG_M3
+    if high.any():
+        idx = tuple(int(i) for i in np.argwhere(high)[0])
+        raise SynthbosError(
+            f"{where}: density reaches {arr.max():.6g} kg/m^3 (first at index {idx}); more than "
+            f"{MAX_DENSITY_KG_M3:g} kg/m^3 is no fluid (check the units and volume.density_scale_kg_m3){hint}"
+        )
+    return arr
+
+
+def default_memory_gb() -> float:
+    """Default ``limits.memory_gb``: 80 % of this machine's memory, at most 64 GB."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
+    except (AttributeError, OSError, ValueError):
+        total = 16.0 / 0.8
+    return min(64.0, 0.8 * total)
+
+
+def check_memory(nbytes, what, *, memory_gb=None):
+    """Refuse work whose estimated memory ``nbytes`` exceeds ``limits.memory_gb``."""
+    limit = default_memory_gb() if memory_gb is None else float(memory_gb)
+    if nbytes > limit * 1e9:
+        raise SynthbosError(
+            f"{what} needs about {nbytes / 1e9:.3g} GB of memory, over the limit of {limit:.3g} GB "
+            "(raise limits.memory_gb in the configuration if this machine has the memory)"
+        )
