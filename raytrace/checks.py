@@ -21,8 +21,11 @@ from synthbos import SynthbosError
 __all__ = [
     "BYTES_PER_NODE",
     "MAX_DENSITY_KG_M3",
+    "MAX_SPOT_PX",
     "check_density",
+    "check_device",
     "check_memory",
+    "check_render_plan",
     "default_memory_gb",
     "number",
     "vector",
@@ -39,7 +42,7 @@ def _fmt(v):
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
-def number(name, value, *, integer=False, minimum=None, maximum=None, above=None):
+def number(name, value, *, integer=False, minimum=None, maximum=None, above=None, why=""):
     """Check one configuration number and return it as float (or int with ``integer``).
 
     Parameters
@@ -54,6 +57,8 @@ def number(name, value, *, integer=False, minimum=None, maximum=None, above=None
         Inclusive bounds.
     above : float, optional
         Exclusive lower bound (``above=0`` for "> 0").
+    why : str
+        The reason for the range, appended to the message.
 
     Raises
     ------
@@ -79,7 +84,7 @@ def number(name, value, *, integer=False, minimum=None, maximum=None, above=None
         or (maximum is not None and value > maximum)
     )
     if bad:
-        raise SynthbosError(f"{name} must be {rng}, got {value!r}")
+        raise SynthbosError(f"{name} must be {rng}, got {value!r}{why}")
     return int(value) if integer else float(value)
 
 
@@ -164,3 +169,78 @@ def check_memory(nbytes, what, *, memory_gb=None):
             f"{what} needs about {nbytes / 1e9:.3g} GB of memory, over the limit of {limit:.3g} GB "
             "(raise limits.memory_gb in the configuration if this machine has the memory)"
         )
+
+
+# Largest spot (image diameter of a dot, px): beyond it a "dot" covers a whole interrogation window and
+# each ray's deposit (a (6 sigma)^2 px square) makes a render needlessly slow.
+MAX_SPOT_PX = 64.0
+
+
+def check_render_plan(plan):
+    """Checks of a resolved render plan before any ray is traced: spot size, steps per ray, total work.
+
+    Parameters
+    ----------
+    plan : raytrace.render.RenderPlan
+
+    Raises
+    ------
+    SynthbosError
+        The sensor spot (given, or the diffraction spot) exceeds ``MAX_SPOT_PX``; a ray would take
+        more than ``limits.steps_per_ray`` RK4 steps; or the render's rays x steps exceed
+        ``limits.ray_steps`` (the messages name the keys to change).
+    """
+    cfg = plan.cfg
+    limits = cfg["limits"]
+    if not plan.spot_diameter_px <= MAX_SPOT_PX:
+        given = cfg["sensor"]["spot_diameter_px"]
+        cause = (
+            f"sensor.spot_diameter_px = {given!r} gives the diffraction spot 2.44 lambda f# (1 + M) of "
+            f"camera.wavelength_nm = {cfg['camera']['wavelength_nm']:g} at camera.f_number = "
+            f"{cfg['camera']['f_number']:g}"
+        )
+        raise SynthbosError(
+            f"{cause}: {plan.spot_diameter_px:.4g} px, more than {MAX_SPOT_PX:g} px; "
+            "use a smaller f-number or a spot diameter in px"
+        )
+    steps = plan.steps_per_ray
+    depth_mm = plan.medium.size[2] * 1e3
+    step_key = "rays.step_mm" if cfg["rays"]["step_mm"] != "grid" else 'rays.step_mm = "grid" (the grid spacing)'
+    if steps > limits["steps_per_ray"]:
+        raise SynthbosError(
+            f"{step_key} = {plan.step * 1e3:.4g} mm takes {steps} RK4 steps across the volume's depth of "
+            f"{depth_mm:.4g} mm, more than limits.steps_per_ray = {limits['steps_per_ray']}; use a larger "
+            "rays.step_mm (or a coarser grid), or raise limits.steps_per_ray"
+        )
+    total = 2.0 * plan.n_dots * plan.rays_per_dot * steps * (1 + plan.aim_iterations)
+    if total > limits["ray_steps"]:
+        raise SynthbosError(
+            f"the render needs about {total:.3g} ray-steps (2 images x {plan.n_dots} dots x "
+            f"{plan.rays_per_dot} rays.per_dot x {steps} steps x {1 + plan.aim_iterations} aim passes), more "
+            f"than limits.ray_steps = {limits['ray_steps']:.3g}; use fewer rays or a larger rays.step_mm, or "
+            "raise limits.ray_steps"
+        )
+
+
+def check_device(device):
+    """Return ``device`` if Warp has it on this machine (None: Warp's default); else ``SynthbosError``.
+
+    Names the device as the user gave it (``--device``), so a typo or ``cuda:0`` on a machine without
+    a GPU gives one line before any work.
+    """
+    if device is None:
+        return None
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    name = str(device)
+    cuda = wp.is_cuda_available()
+    if name.startswith("cuda") and not cuda:
+        raise SynthbosError(f"device {name!r}: no CUDA GPU is visible to Warp on this machine; use cpu")
+    try:
+        wp.get_device(name)
+    except (ValueError, RuntimeError):
+        known = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())] if cuda else ["cpu"]
+        raise SynthbosError(f"device {name!r} is not a Warp device on this machine; use one of {known}") from None
+    return name

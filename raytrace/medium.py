@@ -60,7 +60,7 @@ def medium_from_config(cfg: dict) -> MediumData:
     """Build the medium described by the ``[volume]`` table of a validated configuration."""
     vol = cfg["volume"]
     table = {k: v for k, v in vol.items() if k != "offset_mm"}
-    density = sources.density_from_config(table)
+    density = sources.density_from_config(table, memory_gb=cfg.get("limits", {}).get("memory_gb"))
     top = vol["gladstone_dale_m3_per_kg"] * float(density.rho.max())
     if top > MAX_INDEX - 1.0:
         raise SynthbosError(

@@ -252,13 +252,13 @@ def _extrude(plane):
     return np.ascontiguousarray(np.broadcast_to(plane, (2, *plane.shape)))
 
 
-def _slice_source(p, volume, size_m):
+def _slice_source(p, volume, size_m, memory_gb=None):
     from synthbos.raytrace.loaders import read_snapshots
 
     path = p["path"]
     if not isinstance(path, str):
         raise SynthbosError(f'volume.path must be a file name (or "" for the embedded file), got {path!r}')
-    dens, _, _ = read_snapshots(path or None)
+    dens, _, _ = read_snapshots(path or None, memory_gb=memory_gb)
     k = _integer("snapshot", p["snapshot"], low=0, high=len(dens) - 1)
     scale = float(volume["density_scale_kg_m3"])
     plane = dens[k] * scale
@@ -270,7 +270,7 @@ def _optional(p, key, off):
     return None if (isinstance(v, str) and v.lower() == off) else v
 
 
-def _file_source(p, volume, size_m):
+def _file_source(p, volume, size_m, memory_gb=None):
     from synthbos.raytrace.loaders import FORMATS, load_density
 
     path = p["path"]
@@ -320,6 +320,7 @@ def _file_source(p, volume, size_m):
         axis=axis,
         index_range=rng,
         spacing_mm=spacing,
+        memory_gb=memory_gb,
     )
     fmt = fmt or _inferred(path)
     if norm is None:
@@ -341,7 +342,7 @@ def _inferred(path):
     return infer_format(path)
 
 
-def density_from_config(volume: dict) -> DensityField:
+def density_from_config(volume: dict, *, memory_gb=None) -> DensityField:
     """Build the density field described by a ``[volume]`` table.
 
     Parameters
@@ -349,6 +350,8 @@ def density_from_config(volume: dict) -> DensityField:
     volume : dict
         The ``[volume]`` table: the common keys (``COMMON_KEYS``) and the source's own keys
         (``SOURCE_KEYS[source]``); missing source keys take their defaults.
+    memory_gb : float, optional
+        ``limits.memory_gb``: a data file whose declared shape needs more is refused before reading.
 
     Returns
     -------
@@ -384,9 +387,9 @@ def density_from_config(volume: dict) -> DensityField:
         )
         volume = {"density_scale_kg_m3": COMMON_KEYS["density_scale_kg_m3"], **volume}
         if source == "slice":
-            rho, size_m, ambient = _slice_source(p, volume, size_m)
+            rho, size_m, ambient = _slice_source(p, volume, size_m, memory_gb)
         else:
-            rho, size_m, ambient = _file_source(p, volume, size_m)
+            rho, size_m, ambient = _file_source(p, volume, size_m, memory_gb)
     return DensityField(
         rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient
     )
