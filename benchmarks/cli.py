@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 from synthbos.raytrace import read_pair, render_pair, write_pair
+from synthbos.raytrace.checks import check_device
 from synthbos.raytrace.config import read_toml
 
 import synthbos
-from synthbos import SynthbosError
+from synthbos import SynthbosError, check_output_file, check_output_folder
 
 from .campaign import run_campaign
 from .items import nominal_positions
@@ -32,15 +33,9 @@ from .tables import format_summary
 __all__ = ["main"]
 
 
-def _out_path(path) -> Path:
-    out = Path(path)
-    if not out.parent.is_dir():
-        raise SynthbosError(f"output folder {out.parent} does not exist")
-    return out
-
-
 def _render(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.config], what="-o")
+    check_device(args.device)
     pair = render_pair(args.config, device=args.device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
@@ -56,7 +51,7 @@ def _render(args):
 
 
 def _process(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
     method = get_method(args.method)
     prior = None
     attrs = {}
@@ -88,7 +83,7 @@ def _process(args):
 
 def _device_default(device):
     if device is not None:
-        return device
+        return check_device(device)
     wp.config.quiet = True
     wp.init()
     return "cuda:0" if wp.is_cuda_available() else "cpu"
@@ -98,12 +93,12 @@ def _paper(args):
     device = _device_default(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
-    out = Path(args.out or f"runs/paper-{spec.name}")
+    out = check_output_folder(args.out or f"runs/paper-{spec.name}")
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"on {device} -> {out}")
     t0 = time.perf_counter()
-    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
+    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet, wait=args.wait)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -111,7 +106,8 @@ def _paper(args):
 
 
 def _regress(args):
-    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
+                                 wait=args.wait)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -127,17 +123,31 @@ def _regress(args):
 def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
+    check_output_folder(args.out)
     rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
-                     workers=args.workers, progress=not args.quiet)
+                     workers=args.workers, progress=not args.quiet, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
     return 0
 
 
 def _show_density(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.snapshots], what="-o")
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out}")
     return 0
+
+
+_WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
+
+
+def _workers(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -168,14 +178,16 @@ def build_parser() -> argparse.ArgumentParser:
         g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
         p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
-        p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         p.set_defaults(func=_paper)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
     p.add_argument("--update", action="store_true", help="rewrite the baseline on purpose")
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_regress)
 
@@ -187,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
     p.add_argument("--device", default=None)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_sweep)
 

@@ -9,10 +9,13 @@ snapshot's time and mixedness in the titles and the gradient flatness in the low
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 from synthbos.raytrace.buoyancy import flatness, gradient_magnitude
 from synthbos.raytrace.loaders import read_snapshots
+
+from synthbos import atomic_output
 
 __all__ = ["main", "plot_snapshots"]
 
@@ -95,8 +98,12 @@ def plot_snapshots(path_png, *, snapshots_file=None, dpi=120):
         f"Buoyancy-driven variable-density mixing (2-D Boussinesq, A = {atwood:.3g}, gravity down)",
         fontsize=11,
     )
-    fig.savefig(path_png, dpi=dpi)
-    plt.close(fig)
+    fmt = Path(path_png).suffix.lstrip(".").lower() or "png"
+    try:
+        with atomic_output(path_png) as tmp:  # never a truncated image under the final name
+            fig.savefig(tmp, dpi=dpi, format=fmt)
+    finally:
+        plt.close(fig)
     return stats
 
 

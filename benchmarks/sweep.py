@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
-from synthbos.raytrace import load_config
+from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
-from synthbos import SynthbosError, atomic_output
-
-from .campaign import run_campaign
+from .campaign import check_spec, run_campaign
 from .figures import sweep_figure
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
@@ -55,6 +54,9 @@ def parse_parameter(text: str):
         vals = [float(v) for v in values.split(",") if v.strip()]
     except ValueError:
         raise SynthbosError(f"sweep parameter {name}: values must be numbers, got {values!r}") from None
+    bad = [v for v in vals if not math.isfinite(v)]
+    if bad:
+        raise SynthbosError(f"sweep parameter {name}: values must be finite numbers, got {bad[0]!r}")
     if not vals:
         raise SynthbosError(f"sweep parameter {name} has no values")
     return name, vals
@@ -66,6 +68,8 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
         return replace(spec, noise_percent=(value,))
     if name == "window":
         w = int(value)
+        if w != value:
+            raise SynthbosError(f"sweep parameter window: a window is a whole number of pixels, got {value:g}")
         return replace(spec, correlation={**spec.correlation, "window_sizes": (2 * w, w)})
     if name == "magnification":
         if value <= 0:
@@ -73,7 +77,9 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
         f = spec.config.get("camera", {}).get("focal_length_mm", 105.0)
         return spec.with_config({"target": {"distance_mm": f * (1.0 + 1.0 / value)}})
     table, key = name.split(".")
-    integer_keys = {"rays.per_dot", "target.seed", "rays.seed"}
+    integer_keys = {"rays.per_dot", "target.seed", "rays.seed", "limits.steps_per_ray"}
+    if name in integer_keys and value != int(value):
+        raise SynthbosError(f"sweep parameter {name}: values must be whole numbers, got {value:g}")
     return spec.with_config({table: {key: int(value) if name in integer_keys else value}})
 
 
@@ -81,18 +87,25 @@ def _slug(name, value):
     return f"{name.replace('.', '-')}={value:g}"
 
 
-def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True):
-    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows."""
+def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
+              wait=False):
+    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
+
+    Every point is checked (configuration, settings, resource limits) before the first is run; the
+    sweep folder is locked for the sweep's life (``wait``: wait for another sweep into it to finish).
+    """
     if not 1 <= len(params) <= 2:
         raise SynthbosError("give one or two --param options")
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
+    if not isinstance(base_config, dict):
+        raise SynthbosError("the sweep's base configuration must be a table of tables")
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    check_output_folder(folder)
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
     (name1, vals1), *rest = params
     name2, vals2 = rest[0] if rest else (None, [None])
-    rows = []
+    points = []
     for v2 in vals2:
         for v1 in vals1:
             spec = apply_parameter(spec0, name1, v1)
@@ -101,15 +114,23 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                 spec = apply_parameter(spec, name2, v2)
                 label += "_" + _slug(name2, v2)
             spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
-            load_config(spec.pair_config(spec.snapshots[0], 0))  # a bad value fails before any work
+            try:
+                check_spec(spec)  # every point fails before any work
+            except SynthbosError as err:
+                raise SynthbosError(f"sweep point {label}: {err}") from None
+            points.append((v1, v2, label, spec))
+    make_folder(folder)
+    rows = []
+    with folder_lock(folder, wait=wait, what="sweep folder"):
+        for v1, v2, label, spec in points:
             if progress:
                 print(f"sweep point {label}")
             point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
-                                      progress=progress, figures=False)
+                                      progress=progress, figures=False, wait=wait)
             for r in point_rows:
                 rows.append({"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r})
-    write_tables(rows, folder, stem="sweep")
-    with atomic_output(folder / "sweep_params.json") as tmp:
-        tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
-    sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2)
+        write_tables(rows, folder, stem="sweep")
+        with atomic_output(folder / "sweep_params.json") as tmp:
+            tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
+        sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2)
     return rows
