@@ -210,7 +210,7 @@ def _merge(base, user, where=""):
         known = set(base[table]) | set(_OPTIONAL.get(table, {}))
         if table == "volume":
             source = values.get("source", base["volume"]["source"])
-            known |= set(sources.SOURCE_KEYS.get(source, {}))
+            known |= set(sources.SOURCE_KEYS.get(source, {}) if isinstance(source, str) else {})
         for key, value in values.items():
             if key not in known:
                 raise SynthbosError(f"unknown configuration key {table}.{key}{where}")
@@ -262,8 +262,9 @@ def load_config(config=None) -> dict:
         user = read_toml(path)
         where = f" in {path}"
     # A new source brings its own keys: drop the default source's keys not shared with it.
-    if "volume" in user and "source" in user["volume"]:
-        new = sources.SOURCE_KEYS.get(user["volume"]["source"], {})
+    if isinstance(user, dict) and isinstance(user.get("volume"), dict) and "source" in user["volume"]:
+        source = user["volume"]["source"]
+        new = sources.SOURCE_KEYS.get(source, {}) if isinstance(source, str) else {}
         for key in sources.SOURCE_KEYS.get(DEFAULT_CONFIG["volume"]["source"], {}):
             if key not in new:
                 cfg["volume"].pop(key, None)

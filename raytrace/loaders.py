@@ -265,6 +265,8 @@ def _load_npy(path, memory_gb=None):
             shape, _ = _npy_header(fp, path)
         _check_declared(shape, path, "", memory_gb)
         return np.load(path, allow_pickle=False), None, None, {}
+    except SynthbosError:
+        raise
     except (OSError, ValueError, EOFError) as exc:
         raise SynthbosError(f"{path}: not a readable .npy file ({_short(exc)})") from None
 
@@ -285,7 +287,9 @@ def _load_npz(path, dataset, memory_gb=None):
                 shape, _ = _npy_header(fp, path)
             _check_declared(shape, path, f"array {dataset!r}", memory_gb)
             return z[dataset], None, dataset, {}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except SynthbosError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
         raise SynthbosError(f"{path}: not a readable .npz file ({_short(exc)})") from None
 
 

@@ -365,7 +365,7 @@ def density_from_config(volume: dict, *, memory_gb=None) -> DensityField:
         density that is not finite and positive everywhere.
     """
     source = volume.get("source", COMMON_KEYS["source"])
-    if source not in SOURCE_KEYS:
+    if not isinstance(source, str) or source not in SOURCE_KEYS:
         raise SynthbosError(f"volume.source must be one of {sorted(SOURCE_KEYS)}, got {source!r}")
     p = _params(volume, source)
     size = volume.get("size_mm", COMMON_KEYS["size_mm"])
@@ -373,7 +373,8 @@ def density_from_config(volume: dict, *, memory_gb=None) -> DensityField:
         raise SynthbosError(f"volume.size_mm must be a list of three numbers, got {size!r}")
     size_m = tuple(_number(f"size_mm[{i}]", s, positive=True, bound=_LENGTH_MM) * 1e-3 for i, s in enumerate(size))
     if source in ANALYTIC:
-        rho, ambient = _analytic(source, p, size_m, _grid(volume))
+        with np.errstate(all="ignore"):  # overflow or 0/0 of extreme parameters: the field check names them
+            rho, ambient = _analytic(source, p, size_m, _grid(volume))
     else:
         if volume.get("grid") is not None:
             raise SynthbosError(
