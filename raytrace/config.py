@@ -31,6 +31,21 @@ Keys
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
+[limits] (optional; checked before any work, raise them when the machine can take it)
+  memory_gb (default: 80 % of this machine's memory, at most 64): estimated host memory of the images,
+  the dots and the density grid; a data file is refused by its declared shape before it is read.
+  ray_steps (default 1e10): 2 images x dots x rays.per_dot x RK4 steps per ray x (1 + aim iterations).
+  steps_per_ray (default 10000): RK4 steps of one ray across the volume's depth.
+
+Ranges
+------
+Every number is checked against a physical (or float32-safe) range, listed in ``_RANGES`` below; a value
+outside it is refused with the range in the message: e.g. pixel_pitch_um 0.1..1000, f_number 0.5..1000,
+wavelength_nm 100..1e5, glass_index (1, 4], dot_diameter_px and spot_diameter_px (0, 64], peak_intensity
+1e-3..1e5 (the fixed-point image accumulator), densities <= 1e5 kg/m^3, aim_iterations 0..100, step_mm
+1e-6..1e6, pixels <= 65536 a side. Seeds: target.seed 0..2^63-1 (NumPy honours all of them); rays.seed
+0..2^32-1, because Warp's ``rand_init`` takes a 32-bit seed and a larger one would repeat a smaller one.
+The medium's refractive index 1 + K rho must stay below 2.5.
 """
 
 from __future__ import annotations
