@@ -20,7 +20,7 @@ from synthbos.raytrace.config import read_toml
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
 
-from .campaign import run_campaign
+from .campaign import check_spec, run_campaign
 from .items import nominal_positions
 from .process import load_image, read_dots_csv, run_method, write_result
 from .registry import get_method, method_names
@@ -94,6 +94,7 @@ def _paper(args):
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
+    check_spec(spec)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"on {device} -> {out}")

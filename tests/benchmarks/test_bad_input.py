@@ -282,13 +282,19 @@ def test_row06_output_is_a_folder_or_in_a_missing_folder(tmp_path, capsys, pair_
     assert _listing(tmp_path) == ["cfg.toml"]
 
 
-def test_row06_no_write_permission(tmp_path, capsys):
-    if os.geteuid() == 0:
-        pytest.skip("root writes regardless of permissions")
+def test_row06_no_write_permission(tmp_path, capsys, monkeypatch):
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o555)
     cfg = _config_file(tmp_path)
+    if os.geteuid() == 0:  # root writes regardless of permissions: let the check see what a user would
+        real = os.access
+        monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == locked else real(p, mode, **kw))
     _error_line(capsys, ["render", cfg, "-o", locked / "p.h5", "-q"], "cannot write in folder")
+    _error_line(capsys, ["paper", "--quick", "--device", "cpu", "--out", locked / "camp", "-q"],
+                "(read-only or no permission)")
+    _error_line(capsys, ["paper", "--quick", "--device", "cpu", "--out", locked, "-q"],
+                "cannot write in this folder")
+    assert _listing(locked) == []
 
 
 def test_row06_and_07_read_only_file_system(tmp_path, capsys, pair_file):
@@ -505,6 +511,24 @@ def test_row20_busy_campaign_folder_is_refused(tmp_path, capsys):
         line = _error_line(capsys, ["paper", "--quick", "--device", "cpu", "--out", folder, "-q"], "is in use by")
         assert f"process {os.getpid()}" in line and "--wait" in line
     assert _listing(folder) == [".lock"]
+
+
+def test_row03_resume_removes_temporaries_of_a_killed_run(tmp_path):
+    from dataclasses import replace
+
+    from synthbos.benchmarks.campaign import run_campaign
+    from synthbos.benchmarks.spec import REGRESS
+
+    spec = replace(REGRESS, name="tiny", snapshots=(2,), noise_percent=(0.0,), methods=("correlation",),
+                   config={"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 10}})
+    folder = tmp_path / "camp"
+    run_campaign(spec, folder, device="cpu", workers=1, progress=False, figures=False)
+    done = _listing(folder)
+    # What a SIGKILL during a write leaves: a hidden temporary beside the final name.
+    (folder / "pairs" / ".s2_p00.h5.x1y2.tmp").write_bytes(b"partial")
+    (folder / "scores" / ".s2_p00_n0_correlation.npz.abcd.tmp").write_bytes(b"partial")
+    run_campaign(spec, folder, device="cpu", workers=1, progress=False, figures=False)
+    assert _listing(folder) == done
 
 
 def test_row20_wait_for_the_lock(tmp_path):
