@@ -133,6 +133,12 @@ def _sweep(args):
 
 def _show_density(args):
     out = check_output_file(args.output, inputs=[args.snapshots], what="-o")
+    from matplotlib.figure import Figure
+
+    kinds = Figure().canvas.get_supported_filetypes()
+    kind = out.suffix.lstrip(".").lower() or "png"
+    if kind not in kinds:
+        raise SynthbosError(f"-o {out}: matplotlib cannot write .{kind} images; use one of {sorted(kinds)}")
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out}")
     return 0

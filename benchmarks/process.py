@@ -67,9 +67,12 @@ def read_dots_csv(path) -> np.ndarray:
         raise SynthbosError(f"cannot read dots file {path}: {err}") from None
     if not rows or [c.strip().lower() for c in rows[0]] != ["x", "y"]:
         raise SynthbosError(f"dots file {path} must start with the header line 'x,y'")
+    for line, row in enumerate(rows[1:], start=2):
+        if row and len(row) != 2:
+            raise SynthbosError(f"dots file {path}, line {line}: expected two values x,y, got {len(row)}")
     try:
         xy = np.array([[float(a), float(b)] for a, b in (r for r in rows[1:] if r)], dtype=np.float64)
-    except ValueError as err:  # a bad number, or a row without exactly two columns
+    except ValueError as err:  # a value that is not a number
         raise SynthbosError(f"dots file {path}: {err}") from None
     if xy.size == 0 or not np.isfinite(xy).all():
         raise SynthbosError(f"dots file {path} has no dots or non-finite positions")

@@ -21,6 +21,8 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
+from synthbos.raytrace import load_config
+
 from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
 from .campaign import check_spec, run_campaign
@@ -50,6 +52,9 @@ def parse_parameter(text: str):
     if name not in SPECIAL and (name.count(".") != 1):
         raise SynthbosError(f"unknown sweep parameter {name!r}: use table.key or one of "
                             f"{sorted(ALIASES) + list(SPECIAL)}")
+    if name in ("rays.seed", "target.seed"):
+        raise SynthbosError(f"sweep parameter {name}: the campaign sets the seeds of every pair from its own "
+                            "seed, so sweeping it would change nothing")
     try:
         vals = [float(v) for v in values.split(",") if v.strip()]
     except ValueError:
@@ -98,8 +103,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         raise SynthbosError("give one or two --param options")
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
-    if not isinstance(base_config, dict):
-        raise SynthbosError("the sweep's base configuration must be a table of tables")
+    load_config(base_config)  # the base configuration alone, before any point
     folder = Path(folder)
     check_output_folder(folder)
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))

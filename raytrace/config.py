@@ -236,6 +236,8 @@ def _merge(base, user, where=""):
 def read_toml(path) -> dict:
     """Parse a TOML configuration file; a missing or malformed file raises SynthbosError."""
     path = Path(path)
+    if path.is_dir():
+        raise SynthbosError(f"configuration file {path} is a folder, not a TOML file")
     if not path.is_file():
         raise SynthbosError(f"configuration file {path} does not exist")
     try:

@@ -549,3 +549,25 @@ def test_row20_wait_for_the_lock(tmp_path):
     with folder_lock(tmp_path, wait=True, poll_s=0.05):
         assert released.is_set()
     t.join()
+
+
+# ---------------------------------------------------------------- more classes found by trying the commands
+
+
+def test_more_bad_inputs_give_one_line(tmp_path, capsys, pair_file):
+    # Seeds are set per pair by the campaign: sweeping one would silently change nothing.
+    _error_line(capsys, ["sweep", "--param", "rays.seed=1,2", "--out", tmp_path / "sw", "-q"], "rays.seed")
+    # A base configuration whose table is a number.
+    bad = tmp_path / "bad.toml"
+    bad.write_text("camera = 5\n")
+    _error_line(capsys, ["sweep", bad, "--param", "density=4", "--out", tmp_path / "sw", "-q"],
+                "[camera] must be a table of keys")
+    _error_line(capsys, ["render", tmp_path, "-o", tmp_path / "p.h5", "-q"], "is a folder, not a TOML file")
+    # An image format matplotlib cannot write.
+    _error_line(capsys, ["show-density", "-o", tmp_path / "d.xyz"], "cannot write .xyz images")
+    # A dots file with three columns.
+    dots = tmp_path / "dots.csv"
+    dots.write_text("x,y\n1,2\n3,4,5\n")
+    _error_line(capsys, ["process", pair_file, "--method", "tracking", "--dots", dots, "-o", tmp_path / "r.h5"],
+                "line 3: expected two values x,y, got 3")
+    assert _listing(tmp_path) == ["bad.toml", "dots.csv"]
