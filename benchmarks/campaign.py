@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from synthbos.raytrace import plan_render
+from synthbos.raytrace import checks, plan_render
 
 from synthbos import SynthbosError, folder_lock, make_folder
 
@@ -42,7 +42,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     """
     folder = Path(folder)
     workers = workers or default_workers()
-    check_spec(spec)  # a bad method, setting or configuration fails before any work
+    check_spec(spec, device)  # a bad method, setting or configuration fails before any work
     methods = [get_method(name) for name in spec.methods]
     make_folder(folder)
     with folder_lock(folder, wait=wait):
@@ -50,7 +50,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
                            figures=figures)
 
 
-def check_spec(spec: CampaignSpec) -> None:
+def check_spec(spec: CampaignSpec, device=None) -> None:
     """Check a campaign spec without rendering: its methods, their settings, noise levels and render plan."""
     for noise in spec.noise_percent:
         if not (isinstance(noise, int | float) and math.isfinite(noise) and 0 <= noise <= 100):
@@ -61,7 +61,7 @@ def check_spec(spec: CampaignSpec) -> None:
         if overrides:
             m.settings(overrides)
     for s, p in spec.pair_keys()[:1]:
-        plan_render(spec.pair_config(s, p))  # configuration, resource limits, field of view
+        checks.check_ray_steps(plan_render(spec.pair_config(s, p)), device)  # configuration, limits, view
 
 
 def _run_locked(spec, folder, methods, *, device, workers, progress, figures):

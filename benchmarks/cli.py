@@ -94,7 +94,7 @@ def _paper(args):
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
-    check_spec(spec)  # before the banner: an error is the only line
+    check_spec(spec, device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"on {device} -> {out}")

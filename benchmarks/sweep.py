@@ -119,7 +119,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                 label += "_" + _slug(name2, v2)
             spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
             try:
-                check_spec(spec)  # every point fails before any work
+                check_spec(spec, device)  # every point fails before any work
             except SynthbosError as err:
                 raise SynthbosError(f"sweep point {label}: {err}") from None
             points.append((v1, v2, label, spec))

@@ -25,6 +25,7 @@ __all__ = [
     "check_density",
     "check_device",
     "check_memory",
+    "check_ray_steps",
     "check_render_plan",
     "default_memory_gb",
     "number",
@@ -186,9 +187,9 @@ def check_render_plan(plan):
     Raises
     ------
     SynthbosError
-        The sensor spot (given, or the diffraction spot) exceeds ``MAX_SPOT_PX``; a ray would take
-        more than ``limits.steps_per_ray`` RK4 steps; or the render's rays x steps exceed
-        ``limits.ray_steps`` (the messages name the keys to change).
+        The sensor spot (given, or the diffraction spot) exceeds ``MAX_SPOT_PX``, or a ray would take
+        more than ``limits.steps_per_ray`` RK4 steps (the messages name the keys to change). The total
+        work, which depends on the device, is checked by ``check_ray_steps``.
     """
     cfg = plan.cfg
     limits = cfg["limits"]
@@ -212,13 +213,39 @@ def check_render_plan(plan):
             f"{depth_mm:.4g} mm, more than limits.steps_per_ray = {limits['steps_per_ray']}; use a larger "
             "rays.step_mm (or a coarser grid), or raise limits.steps_per_ray"
         )
+
+
+# Default limits.ray_steps: about 10 minutes of Warp's one-thread CPU backend (~1e7 ray-steps/s), or
+# about 3 minutes of an H200 (~5e9 ray-steps/s).
+RAY_STEPS_CPU = 1.0e10
+RAY_STEPS_CUDA = 1.0e12
+
+
+def check_ray_steps(plan, device=None):
+    """Refuse a render whose rays x RK4 steps exceed ``limits.ray_steps``.
+
+    Parameters
+    ----------
+    plan : raytrace.render.RenderPlan
+    device : str, optional
+        The Warp device that will render (Warp's default if None): the default limit is
+        ``RAY_STEPS_CUDA`` on a GPU and ``RAY_STEPS_CPU`` on the CPU.
+    """
+    limit = plan.cfg["limits"]["ray_steps"]
+    if limit is None:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        limit = RAY_STEPS_CUDA if wp.get_device(device).is_cuda else RAY_STEPS_CPU
+    steps = plan.steps_per_ray
     total = 2.0 * plan.n_dots * plan.rays_per_dot * steps * (1 + plan.aim_iterations)
-    if total > limits["ray_steps"]:
+    if total > limit:
         raise SynthbosError(
             f"the render needs about {total:.3g} ray-steps (2 images x {plan.n_dots} dots x "
             f"{plan.rays_per_dot} rays.per_dot x {steps} steps x {1 + plan.aim_iterations} aim passes), more "
-            f"than limits.ray_steps = {limits['ray_steps']:.3g}; use fewer rays or a larger rays.step_mm, or "
-            "raise limits.ray_steps"
+            f"than limits.ray_steps = {limit:.3g} on this device; use fewer rays or a larger rays.step_mm, "
+            "or raise limits.ray_steps"
         )
 
 

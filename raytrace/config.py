@@ -34,7 +34,8 @@ Keys
 [limits] (optional; checked before any work, raise them when the machine can take it)
   memory_gb (default: 80 % of this machine's memory, at most 64): estimated host memory of the images,
   the dots and the density grid; a data file is refused by its declared shape before it is read.
-  ray_steps (default 1e10): 2 images x dots x rays.per_dot x RK4 steps per ray x (1 + aim iterations).
+  ray_steps (default 1e10 on the CPU, about 10 minutes; 1e12 on a GPU): 2 images x dots x rays.per_dot
+  x RK4 steps per ray x (1 + aim iterations).
   steps_per_ray (default 10000): RK4 steps of one ray across the volume's depth.
 
 Ranges
@@ -70,7 +71,7 @@ _OPTIONAL = {
     "rays": {"chunk": 4_194_304, "aim_iterations": "auto"},
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
-    "limits": {"memory_gb": None, "ray_steps": 1.0e10, "steps_per_ray": 10_000},
+    "limits": {"memory_gb": None, "ray_steps": None, "steps_per_ray": 10_000},
 }
 
 
@@ -177,7 +178,8 @@ def _validate(cfg):
     lim = cfg["limits"]
     if lim["memory_gb"] is not None:
         lim["memory_gb"] = _num("limits.memory_gb", lim["memory_gb"])
-    lim["ray_steps"] = _num("limits.ray_steps", lim["ray_steps"])
+    if lim["ray_steps"] is not None:
+        lim["ray_steps"] = _num("limits.ray_steps", lim["ray_steps"])
     lim["steps_per_ray"] = _num("limits.steps_per_ray", lim["steps_per_ray"])
 
     if cam["focal_length_mm"] >= tgt["distance_mm"]:

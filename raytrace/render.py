@@ -231,6 +231,7 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     """
     device = checks.check_device(device)
     plan = config if isinstance(config, RenderPlan) else plan_render(config)
+    checks.check_ray_steps(plan, device)
     _init_warp()
     device_name = str(wp.get_device(device))
     total = 2 * plan.n_dots * plan.rays_per_dot

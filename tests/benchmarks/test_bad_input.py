@@ -175,8 +175,16 @@ def test_row02_limit_can_be_raised(tmp_path):
     from synthbos.raytrace.render import RenderPlan
 
     assert RenderPlan(cfg).steps_per_ray == 1000
-    with pytest.raises(SynthbosError, match=r"limits\.ray_steps = 1e\+06"):
-        RenderPlan(load_config({**BASE, "rays": {"per_dot": 20, "step_mm": 0.01}, "limits": {"ray_steps": 1e6}}))
+    with pytest.raises(SynthbosError, match=r"more than limits\.ray_steps = 1e\+06 on this device"):
+        render_pair({**BASE, "rays": {"per_dot": 20, "step_mm": 0.01}, "limits": {"ray_steps": 1e6}}, device="cpu")
+    # The default depends on the device: 1e10 ray-steps on the CPU.
+    from synthbos.raytrace import checks
+
+    big = RenderPlan(load_config({**BASE, "rays": {"per_dot": 10**6}, "limits": {"steps_per_ray": 10**6}}))
+    with pytest.raises(SynthbosError, match=r"about 2\.88e\+09 ray-steps .*limits\.ray_steps = 1e\+09"):
+        checks.check_ray_steps(RenderPlan(load_config({**BASE, "rays": {"per_dot": 10**6},
+                                                       "limits": {"ray_steps": 1e9}})), "cpu")
+    checks.check_ray_steps(big, "cpu")  # 2.88e9 < 1e10
 
 
 # ---------------------------------------------------------------- row 3: SIGKILL to paper
