@@ -193,7 +193,7 @@ def check_render_plan(plan):
     """
     cfg = plan.cfg
     limits = cfg["limits"]
-    if not plan.spot_diameter_px <= MAX_SPOT_PX:
+    if not 0.1 <= plan.spot_diameter_px <= MAX_SPOT_PX:
         given = cfg["sensor"]["spot_diameter_px"]
         cause = (
             f"sensor.spot_diameter_px = {given!r} gives the diffraction spot 2.44 lambda f# (1 + M) of "
@@ -201,8 +201,8 @@ def check_render_plan(plan):
             f"{cfg['camera']['f_number']:g}"
         )
         raise SynthbosError(
-            f"{cause}: {plan.spot_diameter_px:.4g} px, more than {MAX_SPOT_PX:g} px; "
-            "use a smaller f-number or a spot diameter in px"
+            f"{cause}: {plan.spot_diameter_px:.4g} px, outside 0.1..{MAX_SPOT_PX:g} px; "
+            "change the f-number or give the spot diameter in px"
         )
     steps = plan.steps_per_ray
     depth_mm = plan.medium.size[2] * 1e3

@@ -42,7 +42,7 @@ Ranges
 ------
 Every number is checked against a physical (or float32-safe) range, listed in ``_RANGES`` below; a value
 outside it is refused with the range in the message: e.g. pixel_pitch_um 0.1..1000, f_number 0.5..1000,
-wavelength_nm 100..1e5, glass_index (1, 4], dot_diameter_px and spot_diameter_px (0, 64], peak_intensity
+wavelength_nm 100..1e5, glass_index (1, 4], dot_diameter_px and spot_diameter_px 0.1..64, peak_intensity
 1e-3..1e5 (the fixed-point image accumulator), densities <= 1e5 kg/m^3, aim_iterations 0..100, step_mm
 1e-6..1e6, pixels <= 65536 a side. Seeds: target.seed 0..2^63-1 (NumPy honours all of them); rays.seed
 0..2^32-1, because Warp's ``rand_init`` takes a 32-bit seed and a larger one would repeat a smaller one.
@@ -88,7 +88,7 @@ _RANGES = {
     "camera.lens_thickness_mm": {"above": 0.0, "maximum": 1000.0},
     "target.distance_mm": {"above": 0.0, "maximum": 1.0e6},
     "target.dots_per_32px": {"above": 0.0, "maximum": 256.0},
-    "target.dot_diameter_px": {"above": 0.0, "maximum": checks.MAX_SPOT_PX},
+    "target.dot_diameter_px": {"minimum": 0.1, "maximum": checks.MAX_SPOT_PX},
     "target.seed": {"integer": True, "minimum": 0, "maximum": _SEED_MAX},
     "target.min_spacing_px": {"minimum": 0.0, "maximum": 1024.0},
     "volume.distance_from_target_mm": {"above": 0.0, "maximum": 1.0e6},
@@ -102,7 +102,7 @@ _RANGES = {
     "rays.chunk": {"integer": True, "minimum": 1, "maximum": 2**28},
     "rays.aim_iterations": {"integer": True, "minimum": 0, "maximum": 100},
     "rays.step_mm": {"minimum": 1.0e-6, "maximum": 1.0e6},
-    "sensor.spot_diameter_px": {"above": 0.0, "maximum": checks.MAX_SPOT_PX},
+    "sensor.spot_diameter_px": {"minimum": 0.1, "maximum": checks.MAX_SPOT_PX},
     "sensor.peak_intensity": {"minimum": 1.0e-3, "maximum": 1.0e5},
     "limits.memory_gb": {"above": 0.0, "maximum": 1.0e6},
     "limits.ray_steps": {"minimum": 1.0, "maximum": 1.0e18},

@@ -43,6 +43,7 @@ __all__ = [
     "disk_error",
     "folder_lock",
     "make_folder",
+    "write_bytes",
 ]
 
 # Errors of the file system that a user causes (or can fix): reported as one line.
@@ -67,6 +68,11 @@ def disk_error(err: OSError, path) -> SynthbosError | None:
     if err.errno not in _DISK_ERRNOS:
         return None
     reason = os.strerror(err.errno)
+    other = err.filename
+    if other is not None and Path(str(other)).name.startswith(".") and str(other).endswith(".tmp"):
+        other = None  # our own temporary file: name the output
+    if other is not None and Path(str(other)) != Path(path):
+        return SynthbosError(f"{other}: {reason} (while writing {path})")
     return SynthbosError(f"cannot write {path}: {reason}")
 
 

@@ -452,6 +452,7 @@ def test_row12_and_21_sweep_values_checked_before_any_work(tmp_path, capsys, par
         ({"rays": {"step_mm": 1e-300}}, "rays.step_mm"),
         ({"sensor": {"peak_intensity": 1e30}}, "sensor.peak_intensity"),  # 14
         ({"sensor": {"spot_diameter_px": 1e12}}, "sensor.spot_diameter_px"),
+        ({"sensor": {"spot_diameter_px": 1e-300}}, "sensor.spot_diameter_px must be >= 0.1"),
         ({"camera": {"f_number": 1e-300}}, "camera.f_number"),
         ({"camera": {"pixel_pitch_um": 1e300}}, "camera.pixel_pitch_um"),
         ({"target": {"distance_mm": 1e300}}, "target.distance_mm"),
