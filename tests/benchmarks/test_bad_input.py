@@ -255,6 +255,22 @@ def test_row04_interrupted_save_leaves_no_partial_png(tmp_path, monkeypatch):
     assert _listing(tmp_path) == []
 
 
+def test_row04_sigkill_while_saving_leaves_no_png(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "synthbos", "show-density", "-o", str(tmp_path / "x.png")],
+                            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    saving = []
+    while not saving and proc.poll() is None and time.monotonic() < deadline:
+        saving = list(tmp_path.glob(".x.png.*.tmp"))  # the save has begun
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    if not saving:
+        pytest.skip("the figure was saved before the test saw it being written")
+    assert not (tmp_path / "x.png").exists()  # never a truncated image under the final name
+
+
 def test_row04_show_density_png_is_complete(tmp_path, capsys):
     assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
     data = (tmp_path / "x.png").read_bytes()
