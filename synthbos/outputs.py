@@ -29,8 +29,10 @@ import errno
 import fcntl
 import io
 import os
+import re
 import tempfile
 import time
+from glob import escape as glob_escape
 from pathlib import Path
 
 from synthbos import SynthbosError
@@ -175,13 +177,32 @@ def _umask() -> int:
     return mask
 
 
+_TMP_TAIL = re.compile(r"(\d+)\.[A-Za-z0-9_]{8}\.tmp")
+
+
+def _remove_orphans(path: Path) -> None:
+    """Remove temporaries of ``path`` left by writers that were killed (their process no longer exists)."""
+    for tmp in path.parent.glob(f".{glob_escape(path.name)}.*.tmp"):
+        m = _TMP_TAIL.fullmatch(tmp.name[len(path.name) + 2:])  # "{pid}.{mkstemp's 8 characters}.tmp"
+        if m is None:
+            continue
+        pid = m.group(1)
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # the process exists (another user's): leave its file
+            pass
+
+
 @contextlib.contextmanager
 def atomic_output(path):
     """Yield a temporary path beside ``path``; on success rename it to ``path``, on any error remove it.
 
     Every output file of the project is written this way, so an interrupted or failed run never leaves
     a partial file under the final name. A full disk, a read-only file system or a missing permission
-    raises ``SynthbosError`` (and leaves no temporary file).
+    raises ``SynthbosError`` (and leaves no temporary file). The temporary name carries the writer's
+    process id, so the next write of ``path`` removes what a killed writer (SIGKILL) left.
     """
     path = Path(path)
     folder = path.parent
@@ -189,8 +210,9 @@ def atomic_output(path):
         raise SynthbosError(f"output folder {folder} does not exist")
     if path.is_dir():
         raise SynthbosError(f"output {path} is a folder; name a file to write")
+    _remove_orphans(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=folder)
     except OSError as err:
         e = disk_error(err, path)
         if e is None:

@@ -255,6 +255,16 @@ def test_row04_interrupted_save_leaves_no_partial_png(tmp_path, monkeypatch):
     assert _listing(tmp_path) == []
 
 
+def test_row04_next_write_removes_what_a_killed_writer_left(tmp_path):
+    (tmp_path / ".x.png.99999999.abcdefgh.tmp").write_text("a killed writer's")  # no such process
+    (tmp_path / f".x.png.{os.getpid()}.abcdefgh.tmp").write_text("a live writer's")
+    (tmp_path / ".x.png.5.png.99999999.abcdefgh.tmp").write_text("another output's (x.png.5.png)")
+    with atomic_output(tmp_path / "x.png") as tmp:
+        tmp.write_text("done")
+    assert _listing(tmp_path) == [".x.png.5.png.99999999.abcdefgh.tmp", f".x.png.{os.getpid()}.abcdefgh.tmp",
+                                  "x.png"]
+
+
 def test_row04_sigkill_while_saving_leaves_no_png(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "synthbos", "show-density", "-o", str(tmp_path / "x.png")],
@@ -269,6 +279,9 @@ def test_row04_sigkill_while_saving_leaves_no_png(tmp_path):
     if not saving:
         pytest.skip("the figure was saved before the test saw it being written")
     assert not (tmp_path / "x.png").exists()  # never a truncated image under the final name
+    # The next run removes what the killed one left, and writes the complete image.
+    assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
+    assert _listing(tmp_path) == ["x.png"]
 
 
 def test_row04_show_density_png_is_complete(tmp_path, capsys):
