@@ -16,10 +16,10 @@ from synthbos.raytrace import read_pair, render_pair, write_pair
 from synthbos.raytrace.config import read_toml
 
 import synthbos
-from synthbos import SynthbosError
+from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, init_warp, resolve_device
 
-from .campaign import run_campaign
+from .campaign import check_spec, run_campaign
 from .items import nominal_positions
 from .process import load_image, read_dots_csv, run_method, write_result
 from .registry import get_method, method_names
@@ -32,13 +32,6 @@ from .tables import format_summary
 __all__ = ["main"]
 
 
-def _out_path(path) -> Path:
-    out = Path(path)
-    if not out.parent.is_dir():
-        raise SynthbosError(f"output folder {out.parent} does not exist")
-    return out
-
-
 def _device(requested) -> str:
     """The Warp device of a command, reported once: the one asked for, else cuda:0 when present, else cpu."""
     device = resolve_device(requested)
@@ -47,7 +40,7 @@ def _device(requested) -> str:
 
 
 def _render(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.config], what="-o")
     device = _device(args.device)
     pair = render_pair(args.config, device=device, progress=not args.quiet)
     write_pair(out, pair)
@@ -64,7 +57,7 @@ def _render(args):
 
 
 def _process(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
     init_warp()  # quietly; each method runs on its settings' device
     method = get_method(args.method)
     prior = None
@@ -99,13 +92,14 @@ def _paper(args):
     device = _device(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
-    out = Path(args.out or f"runs/paper-{spec.name}")
+    out = check_output_folder(args.out or f"runs/paper-{spec.name}")
+    check_spec(spec, device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
     rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
-                        scheduler=args.scheduler)
+                        scheduler=args.scheduler, wait=args.wait)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -115,7 +109,7 @@ def _paper(args):
 def _regress(args):
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
-                                 scheduler=args.scheduler)
+                                 scheduler=args.scheduler, wait=args.wait)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -131,14 +125,21 @@ def _regress(args):
 def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
+    check_output_folder(args.out)
     rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
-                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler)
+                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
 
 def _show_density(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.snapshots], what="-o")
+    from matplotlib.figure import Figure
+
+    kinds = Figure().canvas.get_supported_filetypes()
+    kind = out.suffix.lstrip(".").lower() or "png"
+    if kind not in kinds:
+        raise SynthbosError(f"-o {out}: matplotlib cannot write .{kind} images; use one of {sorted(kinds)}")
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out} (and .pdf)")
     return 0
@@ -148,6 +149,19 @@ def _add_scheduler_option(p) -> None:
     p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
                    help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
                         "an address or a scheduler file joins a running one (needs dask[distributed])")
+
+
+_WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
+
+
+def _workers(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -178,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
         g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
         p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
-        p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         _add_scheduler_option(p)
         p.set_defaults(func=_paper)
@@ -186,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
     p.add_argument("--update", action="store_true", help="rewrite the baseline on purpose")
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
     p.set_defaults(func=_regress)
@@ -199,7 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
     p.add_argument("--device", default=None)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
     p.set_defaults(func=_sweep)

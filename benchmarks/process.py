@@ -36,7 +36,7 @@ from synthbos.correlation import multigrid
 from synthbos.raytrace.pairfile import describe_datasets
 from synthbos.tracking import DotStatus
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError, atomic_hdf5
 
 from .registry import GRID, MethodResult, get_method
 
@@ -144,13 +144,21 @@ def read_dots_csv(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise SynthbosError(f"dots file {path} does not exist")
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except UnicodeDecodeError as err:
+        raise SynthbosError(f"dots file {path} is not UTF-8 text (byte {err.start}); save it as UTF-8") from None
+    except (OSError, csv.Error) as err:
+        raise SynthbosError(f"cannot read dots file {path}: {err}") from None
     if not rows or [c.strip().lower() for c in rows[0]] != ["x", "y"]:
         raise SynthbosError(f"dots file {path} must start with the header line 'x,y'")
+    for line, row in enumerate(rows[1:], start=2):
+        if row and len(row) != 2:
+            raise SynthbosError(f"dots file {path}, line {line}: expected two values x,y, got {len(row)}")
     try:
         xy = np.array([[float(a), float(b)] for a, b in (r for r in rows[1:] if r)], dtype=np.float64)
-    except ValueError as err:
+    except ValueError as err:  # a value that is not a number
         raise SynthbosError(f"dots file {path}: {err}") from None
     if xy.size == 0 or not np.isfinite(xy).all():
         raise SynthbosError(f"dots file {path} has no dots or non-finite positions")
@@ -165,7 +173,7 @@ def run_method(method, reference, gradient, *, prior_xy=None, settings=None, dev
 def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     """Write a result file atomically (layout in the module docstring)."""
     path = Path(path)
-    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_hdf5(path) as f:
         if get_method(result.method).kind == GRID:
             for name in ("x", "y", "u", "v", "flags", "peak_ratio"):
                 f.create_dataset(name, data=np.asarray(result.table[name]))
