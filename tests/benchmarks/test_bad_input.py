@@ -281,14 +281,14 @@ def test_row04_sigkill_while_saving_leaves_no_png(tmp_path):
     assert not (tmp_path / "x.png").exists()  # never a truncated image under the final name
     # The next run removes what the killed one left, and writes the complete image.
     assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
-    assert _listing(tmp_path) == ["x.png"]
+    assert _listing(tmp_path) == ["x.pdf", "x.png"]
 
 
 def test_row04_show_density_png_is_complete(tmp_path, capsys):
     assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
     data = (tmp_path / "x.png").read_bytes()
     assert data.startswith(b"\x89PNG") and data[-8:-4] == b"IEND"
-    assert _listing(tmp_path) == ["x.png"]
+    assert _listing(tmp_path) == ["x.pdf", "x.png"]
 
 
 # ---------------------------------------------------------------- row 5: output = input
