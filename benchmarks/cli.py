@@ -11,8 +11,23 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import warp as wp
+from synthbos.raytrace import read_pair, render_pair, write_pair
+from synthbos.raytrace.config import read_toml
+
 import synthbos
 from synthbos import SynthbosError
+
+from .campaign import run_campaign
+from .items import nominal_positions
+from .process import load_image, read_dots_csv, run_method, write_result
+from .registry import get_method, method_names
+from .regress import BASELINE, run_regress
+from .show_density import plot_snapshots
+from .spec import FULL, QUICK
+from .sweep import parse_parameter, run_sweep
+from .tables import format_summary
 
 __all__ = ["main"]
 
@@ -25,8 +40,6 @@ def _out_path(path) -> Path:
 
 
 def _render(args):
-    from synthbos.raytrace import render_pair, write_pair
-
     out = _out_path(args.output)
     pair = render_pair(args.config, device=args.device, progress=not args.quiet)
     write_pair(out, pair)
@@ -43,36 +56,29 @@ def _render(args):
 
 
 def _process(args):
-    from synthbos.benchmarks.process import load_image, read_dots_csv, run_method, write_result
-
     out = _out_path(args.output)
+    method = get_method(args.method)
     prior = None
     attrs = {}
     if args.pair:
         if args.reference or args.gradient:
             raise SynthbosError("give either a pair file or --reference and --gradient, not both")
-        from synthbos.raytrace import read_pair
-
-        from .campaign import nominal_positions
-
         pair = read_pair(args.pair)
         ref, grad = pair.reference, pair.gradient
-        if args.method != "correlation":
+        if method.uses_prior:
             prior = read_dots_csv(args.dots) if args.dots else nominal_positions(pair)
         attrs["input"] = str(args.pair)
     else:
         if not (args.reference and args.gradient):
             raise SynthbosError("give a pair file, or both --reference and --gradient images")
         ref, grad = load_image(args.reference), load_image(args.gradient)
-        if args.method != "correlation" and args.dots:
+        if method.uses_prior and args.dots:
             prior = read_dots_csv(args.dots)
         attrs["input"] = f"{args.reference} {args.gradient}"
     t0 = time.perf_counter()
     res = run_method(args.method, ref, grad, prior_xy=prior)
     attrs["seconds"] = time.perf_counter() - t0
     write_result(out, res, extra_attrs=attrs)
-    import numpy as np
-
     ok = np.all(np.isfinite(res.uv), axis=1)
     print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
           f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
@@ -83,16 +89,12 @@ def _process(args):
 def _device_default(device):
     if device is not None:
         return device
-    import warp as wp
-
     wp.config.quiet = True
     wp.init()
     return "cuda:0" if wp.is_cuda_available() else "cpu"
 
 
 def _paper(args):
-    from .campaign import FULL, QUICK, format_summary, run_campaign
-
     device = _device_default(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
@@ -104,13 +106,11 @@ def _paper(args):
     rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'} ({time.perf_counter() - t0:.0f} s)")
+          f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
     return 0
 
 
 def _regress(args):
-    from .regress import BASELINE, run_regress
-
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
@@ -125,10 +125,6 @@ def _regress(args):
 
 
 def _sweep(args):
-    from synthbos.raytrace.config import read_toml
-
-    from .sweep import parse_parameter, run_sweep
-
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
     rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
@@ -138,8 +134,6 @@ def _sweep(args):
 
 
 def _show_density(args):
-    from .show_density import plot_snapshots
-
     out = _out_path(args.output)
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out}")
@@ -160,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("process", help="measure displacements: correlation or dot tracking")
     p.add_argument("pair", nargs="?", default=None, help="pair file from 'synthbos render'")
-    p.add_argument("--method", required=True, choices=("correlation", "tracking", "tracking-cc"))
+    p.add_argument("--method", required=True, choices=method_names())
     p.add_argument("--reference", help="reference (no-flow) camera image, TIFF or PNG")
     p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")

@@ -11,38 +11,57 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from synthbos.raytrace import load_config, read_pair
+from synthbos.raytrace.sources import density_from_config
 
 from synthbos import atomic_output
 
 from . import scoring
+from .registry import METHODS
+from .storage import load_scores, pair_path
+from .tables import split_masks
 
-__all__ = ["figure4", "figure5", "sweep_figure"]
+__all__ = ["FORMATS", "figure4", "figure5", "method_style", "save_figure", "sweep_figure"]
 
-METHOD_STYLE = {
-    "correlation": {"color": "tab:blue", "label": "correlation (32→16 px)"},
-    "tracking": {"color": "tab:orange", "label": "tracking"},
-    "tracking-cc": {"color": "tab:green", "label": "tracking + correlation correction"},
-}
+FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
 
 
-def _save(fig, path):
+def method_style(name: str) -> dict:
+    """Matplotlib keywords (colour, line style, marker, label) of a method, from the registry."""
+    m = METHODS.get(name)
+    if m is None:
+        return {"label": name}
+    return {"color": m.color, "ls": m.linestyle, "label": m.label}
+
+
+def save_figure(fig, path) -> list[Path]:
+    """Save ``fig`` as ``path`` with each suffix of ``FORMATS`` (atomically); return the paths written.
+
+    ``path`` may carry a suffix (``fig4.png``) or not (``fig4``); either way every format is written.
+    """
     path = Path(path)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    stem = path.with_suffix("") if path.suffix.lower() in {f".{f}" for f in FORMATS} else path
+    written = []
+    for fmt in FORMATS:
+        out = stem.with_name(f"{stem.name}.{fmt}")
+        with atomic_output(out) as tmp:
+            fig.savefig(tmp, dpi=300, bbox_inches="tight", format=fmt)
+        written.append(out)
     plt.close(fig)
+    return written
+
+
+_save = save_figure
 
 
 def figure4(spec, folder, path):
     """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4) and ray-traced
     displacement magnitude (contours), from the first pair of the snapshot."""
-    from synthbos.raytrace import load_config, read_pair
-    from synthbos.raytrace.sources import density_from_config
-
     folder = Path(folder)
     snaps = list(spec.snapshots)
     fig, axes = plt.subplots(len(snaps), 4, figsize=(13, 3.0 * len(snaps)), squeeze=False)
     for row, s in enumerate(snaps):
-        pair = read_pair(folder / "pairs" / f"s{s}_p00.h5")
+        pair = read_pair(pair_path(folder, s, 0))
         cfg = load_config(tomllib.loads(pair.attrs["config"]))
         vol = {k: v for k, v in cfg["volume"].items() if k != "offset_mm"}
         dens = density_from_config(vol)
@@ -84,8 +103,6 @@ def figure5(spec, folder, path):
     """Error CDFs on a log error axis: one row per noise level; columns: displacement below and above
     the threshold, displacement gradient below and above; all methods; the Cramér-Rao bound of the
     displacement as a dashed line."""
-    from .campaign import load_scores, split_masks
-
     noises = list(spec.noise_percent)
     cols = [("displacement", "below"), ("displacement", "above"), ("gradient", "below"), ("gradient", "above")]
     fig, axes = plt.subplots(len(noises), 4, figsize=(15, 2.9 * len(noises)), squeeze=False, sharey=True)
@@ -97,7 +114,7 @@ def figure5(spec, folder, path):
                 e = (sc["error"] if quantity == "displacement" else sc["grad_error"])[masks[split]]
                 x, y = scoring.empirical_cdf(e)
                 x = np.maximum(x, 1e-6)
-                style = METHOD_STYLE.get(method, {"label": method})
+                style = method_style(method)
                 axes[r, c].step(x, y, where="post", **style)
         for c, (quantity, split) in enumerate(cols):
             ax = axes[r, c]
@@ -126,8 +143,9 @@ def figure5(spec, folder, path):
 
 def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
     """Error percentiles (displacement, all points) and yield against the swept parameter."""
-    methods = sorted({r["method"] for r in rows}, key=list(METHOD_STYLE).index if all(
-        r["method"] in METHOD_STYLE for r in rows) else str)
+    order = list(METHODS)
+    methods = sorted({r["method"] for r in rows},
+                     key=lambda m: (m not in order, order.index(m) if m in order else 0, m))
     noises = sorted({r["noise_percent"] for r in rows})
     second = sorted({r.get("param2_value") for r in rows}, key=lambda v: (v is None, v))
     fig, axes = plt.subplots(len(noises), len(percentiles) + 1, figsize=(4.3 * (len(percentiles) + 1),
@@ -135,14 +153,16 @@ def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
     linestyles = ["-", "--", ":", "-."]
     for r, noise in enumerate(noises):
         for method in methods:
-            style = METHOD_STYLE.get(method, {"label": method})
+            style = method_style(method)
             for k, val2 in enumerate(second):
                 sel = [x for x in rows if x["method"] == method and x["noise_percent"] == noise
                        and x.get("param2_value") == val2 and x["split"] == "all" and x["quantity"] == "displacement"]
                 sel.sort(key=lambda x: x["param_value"])
                 xs = [x["param_value"] for x in sel]
                 lab = style["label"] + (f", {param2} = {val2:g}" if val2 is not None else "")
-                kw = {"color": style.get("color"), "ls": linestyles[k % 4], "marker": "o", "label": lab}
+                ls = linestyles[k % 4] if val2 is not None else style.get("ls", "-")
+                kw = {"color": style.get("color"), "ls": ls,
+                      "marker": METHODS[method].marker if method in METHODS else "o", "label": lab}
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
                 axes[r, -1].plot(xs, [x["yield"] for x in sel], **kw)

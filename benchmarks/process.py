@@ -6,9 +6,9 @@ calls them, and writes the result file atomically.
 
 Result files (HDF5)
 -------------------
-``--method correlation``: ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
+A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
 ``/peak_ratio``; the settings as root attributes.
-``--method tracking`` / ``tracking-cc``: ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
+A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, plus every other column of the tracking table under ``/dots/`` (the centroid-difference
 displacement as ``u_centroid``, ``v_centroid``); settings as attributes.
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -26,21 +25,9 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_output
 
-__all__ = ["METHODS", "MethodResult", "load_image", "read_dots_csv", "run_method", "write_result"]
+from .registry import GRID, MethodResult, get_method
 
-METHODS = ("correlation", "tracking", "tracking-cc")
-
-
-@dataclass
-class MethodResult:
-    """What a method measured: points (px), displacements (px), and method-specific extras."""
-
-    method: str
-    xy: np.ndarray  # (N, 2) measurement points (window centres or reference dot positions)
-    uv: np.ndarray  # (N, 2) displacements, NaN where nothing was measured
-    grid_shape: tuple | None  # (ny, nx) for correlation, None for scattered dots
-    table: dict  # every array the method returned, for the result file
-    settings: dict
+__all__ = ["load_image", "read_dots_csv", "run_method", "write_result"]
 
 
 def load_image(path) -> np.ndarray:
@@ -85,42 +72,16 @@ def read_dots_csv(path) -> np.ndarray:
     return xy.reshape(-1, 2)
 
 
-def run_method(method, reference, gradient, *, prior_xy=None, correlation_settings=None, tracking_settings=None):
-    """Run one processing method on an image pair and return its ``MethodResult``."""
-    if method not in METHODS:
-        raise SynthbosError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if method == "correlation":
-        from synthbos.correlation import correlate_pair
-
-        res = correlate_pair(reference, gradient, settings=correlation_settings)
-        xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
-        uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
-        table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio}
-        return MethodResult(method, xy, uv, tuple(res.u.shape), table, _settings_dict(res.settings))
-    from synthbos.tracking import track_pair
-
-    tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=tracking_settings)
-    xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
-    u, v = (tab["u_cc"], tab["v_cc"]) if method == "tracking-cc" else (tab["u"], tab["v"])
-    uv = np.stack([u, v], axis=1).astype(np.float64)
-    table = {name: tab[name] for name in tab.dtype.names}
-    settings = _settings_dict(tracking_settings) if tracking_settings is not None else {}
-    return MethodResult(method, xy, uv, None, table, settings)
-
-
-def _settings_dict(settings):
-    if settings is None:
-        return {}
-    if hasattr(settings, "as_dict"):
-        return settings.as_dict()
-    return dict(settings)
+def run_method(method, reference, gradient, *, prior_xy=None, settings=None, device=None) -> MethodResult:
+    """Run the registered method ``method`` on an image pair and return its ``MethodResult``."""
+    return get_method(method).run(reference, gradient, prior_xy=prior_xy, settings=settings, device=device)
 
 
 def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     """Write a result file atomically (layout in the module docstring)."""
     path = Path(path)
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
-        if result.method == "correlation":
+        if get_method(result.method).kind == GRID:
             for name in ("x", "y", "u", "v", "flags", "peak_ratio"):
                 f.create_dataset(name, data=np.asarray(result.table[name]))
         else:

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from synthbos import SynthbosError, atomic_output, data_file
 
-from .campaign import REGRESS, run_campaign
+from .campaign import run_campaign
+from .spec import REGRESS
 
 __all__ = ["ATOL", "BASELINE", "RTOL", "YIELD_DROP", "compare_to_baseline", "run_regress"]
 

@@ -20,9 +20,14 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+from synthbos.raytrace import load_config
+
 from synthbos import SynthbosError, atomic_output
 
-from .campaign import FULL, QUICK, REGRESS, CampaignSpec, run_campaign
+from .campaign import run_campaign
+from .figures import sweep_figure
+from .spec import FULL, QUICK, REGRESS, CampaignSpec
+from .storage import write_tables
 
 __all__ = ["ALIASES", "apply_parameter", "parse_parameter", "run_sweep"]
 
@@ -78,11 +83,6 @@ def _slug(name, value):
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True):
     """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows."""
-    from synthbos.raytrace import load_config
-
-    from .campaign import write_tables
-    from .figures import sweep_figure
-
     if not 1 <= len(params) <= 2:
         raise SynthbosError("give one or two --param options")
     if size not in SIZES:
@@ -108,9 +108,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                                       progress=progress, figures=False)
             for r in point_rows:
                 rows.append({"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r})
-    write_tables(rows, folder)
-    for ext in ("csv", "json"):
-        (folder / f"results.{ext}").replace(folder / f"sweep.{ext}")
+    write_tables(rows, folder, stem="sweep")
     with atomic_output(folder / "sweep_params.json") as tmp:
         tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
     sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2)

@@ -38,22 +38,16 @@ from __future__ import annotations
 import copy
 import math
 import tomllib
-from importlib import resources
 from pathlib import Path
 
 from synthbos import SynthbosError
 
 from . import sources
+from .defaults import DEFAULT_CONFIG
 
 __all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 
 
-def _default():
-    text = resources.files("synthbos.raytrace").joinpath("default.toml").read_text()
-    return tomllib.loads(text)
-
-
-DEFAULT_CONFIG = _default()
 
 # Keys allowed beyond the defaults, with their defaults.
 _OPTIONAL = {

@@ -61,15 +61,16 @@ import numpy as np
 
 from synthbos import SynthbosError
 
+from .defaults import DEFAULT_CONFIG
+
 __all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
 
 # Keys every source shares, with defaults. ``grid`` is [nx, ny, nz] nodes; None lets the source choose.
+# The physical defaults come from default.toml (the paper's set-up); a bare volume table is a Gaussian.
 COMMON_KEYS = {
     "source": "gaussian",
-    "distance_from_target_mm": 250.0,
-    "size_mm": [32.0, 32.0, 10.0],
-    "gladstone_dale_m3_per_kg": 2.25e-4,
-    "density_scale_kg_m3": 1.225,
+    **{k: DEFAULT_CONFIG["volume"][k] for k in
+       ("distance_from_target_mm", "size_mm", "gladstone_dale_m3_per_kg", "density_scale_kg_m3")},
     "grid": None,
 }
 

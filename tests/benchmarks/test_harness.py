@@ -6,8 +6,9 @@ from dataclasses import replace
 import h5py
 import numpy as np
 import pytest
-from synthbos.benchmarks.campaign import REGRESS, run_campaign
+from synthbos.benchmarks.campaign import run_campaign
 from synthbos.benchmarks.cli import main
+from synthbos.benchmarks.spec import REGRESS
 from synthbos.raytrace import read_pair, render_pair, write_pair
 
 TINY_CONFIG = {

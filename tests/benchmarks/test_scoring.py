@@ -33,7 +33,7 @@ def test_threshold_is_half_the_std_of_theoretical_magnitudes_and_splits():
     theory = np.stack([mags * np.cos(ang), mags * np.sin(ang)], axis=1)
     t = scoring.split_threshold(theory)
     assert_allclose(t, 0.5 * 2 / np.sqrt(12), rtol=0.01)  # std of U(0, 2) is 2 / sqrt(12)
-    from synthbos.benchmarks.campaign import split_masks
+    from synthbos.benchmarks.tables import split_masks
 
     masks = split_masks({"true_mag": np.array([0.1, 0.5, 0.2886, 0.3]), "threshold": np.full(4, t)})
     np.testing.assert_array_equal(masks["below"], [True, False, t > 0.2886, False])

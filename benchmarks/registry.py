@@ -1,0 +1,152 @@
+"""The method registry: one table maps each processing method's name to everything the harness needs.
+
+The command line (``--method``), ``synthbos process``, the campaign, the scoring and the figures read
+this table and never switch on a method's name. Adding a method takes its algorithm module and one
+``Method`` entry in ``METHODS`` below (its ``run`` adapter turns the algorithm's output into a
+:class:`MethodResult`).
+
+Styles use the Okabe-Ito colour-blind-safe palette, with a distinct line style and marker per method,
+so the curves stay apart in grey-scale print too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+from synthbos.correlation import CorrelationSettings, correlate_pair
+from synthbos.tracking import TrackingSettings, is_valid, track_pair
+
+from synthbos import SynthbosError
+
+__all__ = ["METHODS", "Method", "MethodResult", "get_method", "method_names", "settings_dict"]
+
+GRID = "grid"  # a vector on a regular grid of window centres
+DOTS = "dots"  # a vector at each tracked dot's reference position
+
+
+@dataclass
+class MethodResult:
+    """What a method measured: points (px), displacements (px), and method-specific extras."""
+
+    method: str
+    xy: np.ndarray  # (N, 2) measurement points (window centres or reference dot positions)
+    uv: np.ndarray  # (N, 2) displacements, NaN where nothing was measured
+    grid_shape: tuple | None  # (ny, nx) for grid methods, None for scattered dots
+    table: dict  # every array the method returned, for the result file
+    settings: dict
+    valid: np.ndarray | None = None  # (N,) bool: a measured, unflagged vector
+
+
+@dataclass(frozen=True)
+class Method:
+    """One processing method.
+
+    Attributes
+    ----------
+    name : str
+        What ``--method`` and the campaign call it.
+    kind : {"grid", "dots"}
+        Vectors on a grid of windows, or at scattered dots (decides how results are stored and scored).
+    settings_class : type
+        The frozen dataclass of the method's settings (its fields are the keys users may set).
+    run : callable
+        ``run(reference, gradient, *, prior_xy, settings, device) -> MethodResult``.
+    label, color, linestyle, marker : str
+        How figures draw it.
+    uses_prior : bool
+        Whether the method takes predicted reference-image dot positions.
+    settings_key : str
+        The table of a process configuration (and the campaign spec's field) holding its settings;
+        methods that share a settings class share it.
+    """
+
+    name: str
+    kind: str
+    settings_class: type
+    run: Callable
+    label: str
+    color: str
+    linestyle: str
+    marker: str
+    uses_prior: bool = False
+    settings_key: str = ""
+
+    def settings(self, overrides: dict | None = None):
+        """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
+        overrides = dict(overrides or {})
+        known = {f for f in self.settings_class.__dataclass_fields__}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise SynthbosError(f"unknown {self.name} setting(s) {', '.join(unknown)}; "
+                                f"known: {', '.join(sorted(known))}")
+        try:
+            return self.settings_class(**overrides)
+        except (TypeError, ValueError) as err:
+            raise SynthbosError(f"{self.name} settings: {err}") from None
+
+
+def settings_dict(settings) -> dict:
+    """A settings object as a plain dict (for result files and campaign specs)."""
+    if settings is None:
+        return {}
+    if hasattr(settings, "as_dict"):
+        return settings.as_dict()
+    return dict(settings)
+
+
+def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None):
+    if device is not None:  # the processing device travels in the correlation settings
+        settings = replace(settings or CorrelationSettings(), device=str(device))
+    res = correlate_pair(reference, gradient, settings=settings)
+    xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
+    uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
+    table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio}
+    outlier = (np.asarray(res.flags).ravel() & 1) != 0
+    valid = np.all(np.isfinite(uv), axis=1) & ~outlier
+    return MethodResult("correlation", xy, uv, tuple(res.u.shape), table, settings_dict(res.settings), valid)
+
+
+def _tracker(columns: tuple[str, str], name: str):
+    def run(reference, gradient, *, prior_xy=None, settings=None, device=None):
+        tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device)
+        xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
+        uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
+        table = {c: tab[c] for c in tab.dtype.names}
+        valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1)
+        return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid)
+
+    run.__name__ = f"_run_{name.replace('-', '_')}"
+    run.__doc__ = f"Dot tracking; the displacement is the table's ({columns[0]}, {columns[1]})."
+    return run
+
+
+# Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00.
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("correlation", GRID, CorrelationSettings, _run_correlation,
+               label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
+               settings_key="correlation"),
+        Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
+               label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,
+               settings_key="tracking"),
+        Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
+               label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
+               uses_prior=True, settings_key="tracking"),
+    )
+}
+
+
+def method_names() -> tuple[str, ...]:
+    """The registered method names, in the registry's order."""
+    return tuple(METHODS)
+
+
+def get_method(name: str) -> Method:
+    """The registry entry of ``name``; a one-line error naming the choices otherwise."""
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise SynthbosError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}") from None
