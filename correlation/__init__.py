@@ -7,6 +7,7 @@ The entry point is :func:`correlate_pair` with :class:`CorrelationSettings`; the
 from .multigrid import (
     FLAG_BORDER,
     FLAG_DISAGREE,
+    FLAG_ISOLATED,
     FLAG_MASKED,
     FLAG_MEDIAN,
     FLAG_PEAK_RATIO,
@@ -21,6 +22,7 @@ from .multigrid import (
 __all__ = [
     "FLAG_BORDER",
     "FLAG_DISAGREE",
+    "FLAG_ISOLATED",
     "FLAG_MASKED",
     "FLAG_MEDIAN",
     "FLAG_PEAK_RATIO",
