@@ -21,7 +21,7 @@ from synthbos import SynthbosError
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
-from .validation import normalized_median_test, replace_outliers
+from .validation import neighbour_median, normalized_median_test, replace_outliers
 from .windows import extract_windows, window_starts, window_step
 from .xcorr import cross_correlate, robust_phase_correlate
 
@@ -134,6 +134,10 @@ def count_vectors(flags):
 #: The vectors of deformed iterations are therefore located at window centre + 1/4 px.
 SAMPLING_OFFSET = 0.25
 
+#: A vector that fails the median test is confirmed (kept) only if its peak correlation coefficient is
+#: at least this fraction of its valid neighbours' median (and the previous iteration measured it alike).
+CONFIRM_CORRELATION = 0.7
+
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0
 
@@ -183,7 +187,8 @@ class CorrelationSettings:
     confirm_tolerance : float
         A vector that fails the median test in an iteration after the first of its pass is kept when
         the previous iteration, whose windows were deformed differently, measured the same vector to
-        within this many pixels (1 px) and none of its neighbours failed: two measurements agree,
+        within this many pixels (1 px) and its correlation coefficient is at least 0.7 times its
+        neighbours' (``CONFIRM_CORRELATION``): two measurements agree,
         and the median of the neighbours is off because the field varies faster than the vector
         grid resolves (turbulent fields, 16 px windows without overlap: on the benchmark's
         random-phase fields the median test rejects 20 % of such vectors, whose errors are a third
@@ -439,21 +444,19 @@ def _isolated(measured, unmasked):
     return measured & (n_open >= 3) & (n_meas < 2)
 
 
-def _confirmed(u, v, raw, failed, tolerance):
-    """Vectors that the previous iteration measured alike and that have no failed neighbour.
+def _confirmed(u, v, raw, coef, valid, tolerance):
+    """Vectors that the previous iteration measured alike and that correlate about as well as their neighbours.
 
-    The second condition keeps a window that is partly filled with something else (a reflection, an
-    edge of the pattern, next to windows that failed) from being confirmed: it measures the same
-    biased vector every time.
+    The second condition (a correlation coefficient at least ``CONFIRM_CORRELATION`` times the
+    median of the valid neighbours') keeps a window partly filled with something else (a reflection,
+    the edge of the pattern, a patch of unrelated texture) or one with too few dots to pin the peak
+    down from being confirmed: it measures the same biased vector every time, but correlates worse.
     """
-    same = np.hypot(u - raw[0], v - raw[1]) <= tolerance
-    f = np.pad(failed, 1)
-    ny, nx = failed.shape
-    near_failed = np.zeros_like(failed)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            near_failed |= f[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
-    return same & ~near_failed
+    ok = np.hypot(u - raw[0], v - raw[1]) <= tolerance
+    if not np.all(np.isnan(coef)):  # RPC has no coefficients
+        nb_coef, count = neighbour_median(coef, valid)
+        ok &= (count == 0) | (coef >= CONFIRM_CORRELATION * nb_coef)
+    return ok
 
 
 def _edge_weights(du, dv, rows, cols, shape, margin):
@@ -610,8 +613,7 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
                 u, v, epsilon=settings.median_epsilon, threshold=settings.median_threshold, valid=flags == 0
             )
             if raw is not None and settings.confirm_tolerance > 0:
-                failed = (flags & int(FAILED_BITS)) != 0
-                outliers &= ~_confirmed(u, v, raw, failed, settings.confirm_tolerance)
+                outliers &= ~_confirmed(u, v, raw, coef, flags == 0, settings.confirm_tolerance)
             flags |= np.where(outliers, FLAG_MEDIAN, 0).astype(np.int32)
             flags |= np.where(_isolated(flags == 0, ~masked), FLAG_ISOLATED, 0).astype(np.int32)
             raw = (u, v)
