@@ -26,6 +26,7 @@ from .process import load_image, process_pair, process_settings, read_dots_csv, 
 from .registry import get_method, method_names
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
+from .show_result import plot_result
 from .spec import FULL, QUICK
 from .sweep import parse_parameter, run_sweep
 from .tables import format_summary
@@ -163,6 +164,13 @@ def _show_density(args):
     return 0
 
 
+def _show_result(args):
+    out = _out_path(args.output)
+    summary = plot_result(args.result, out)
+    print(f"wrote {out}\n{summary}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="synthbos", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"synthbos {synthbos.__version__}")
@@ -230,6 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
+
+    p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
+    p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
+    p.add_argument("-o", "--output", required=True, help="figure to write (PNG, PDF or SVG by suffix)")
+    p.set_defaults(func=_show_result)
     return parser
 
 
