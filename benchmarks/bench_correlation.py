@@ -71,8 +71,9 @@ def random_phase_field(shape, *, seed, max_displacement=3.0, shortest_wavelength
 
     The stream function is a sum of the image's periodic Fourier modes with wave numbers from 2 (half the
     image) to ``size / shortest_wavelength`` cycles per image, amplitudes ``k^((slope - 3) / 2)``
-    (so the displacement spectrum, summed over rings of wave number, falls as ``k^slope``) and random phases; ``u = dpsi/dy``,
-    ``v = -dpsi/dx``, scaled so that the largest displacement on the pixel grid is ``max_displacement``.
+    (so the displacement spectrum, summed over rings of wave number, falls as ``k^slope``) and random
+    phases; ``u = dpsi/dy``, ``v = -dpsi/dx``, scaled so that the largest displacement on the pixel grid
+    is ``max_displacement``.
     """
     rng = np.random.default_rng(seed)
     h, w = shape
@@ -86,14 +87,21 @@ def random_phase_field(shape, *, seed, max_displacement=3.0, shortest_wavelength
     fx, fy = 2 * np.pi * kx / w, 2 * np.pi * ky / h
 
     def raw(x, y):
-        x = np.asarray(x, float)
-        y = np.asarray(y, float)
-        arg = x[..., None] * fx + y[..., None] * fy + phase
-        s = -amp * np.sin(arg)  # d/d(arg) of amp cos(arg)
-        return s @ fy, -(s @ fx)
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        px, py = x.ravel(), y.ravel()
+        u, v = np.empty(px.size), np.empty(px.size)
+        for i in range(0, px.size, 2048):  # bounded memory: 2048 points x the modes at a time
+            s = -amp * np.sin(px[i : i + 2048, None] * fx + py[i : i + 2048, None] * fy + phase)
+            u[i : i + 2048], v[i : i + 2048] = s @ fy, -(s @ fx)
+        return u.reshape(x.shape), v.reshape(x.shape)
 
-    gy, gx = np.mgrid[0 : h : 2, 0 : w : 2]
-    u0, v0 = raw(gx, gy)
+    # the same sums on the whole pixel grid, by one inverse FFT each, for the scale
+    spec_u = np.zeros((h, w), complex)
+    spec_v = np.zeros((h, w), complex)
+    iy, ix = ky.astype(int) % h, kx.astype(int) % w
+    np.add.at(spec_u, (iy, ix), 1j * amp * fy * np.exp(1j * phase) * h * w)
+    np.add.at(spec_v, (iy, ix), -1j * amp * fx * np.exp(1j * phase) * h * w)
+    u0, v0 = np.fft.ifft2(spec_u).real, np.fft.ifft2(spec_v).real
     scale = max_displacement / float(np.hypot(u0, v0).max())
 
     def field(x, y):
