@@ -4,9 +4,10 @@ The processor of Scarano (Meas. Sci. Technol. 13 (2002) R1) as PIV and BOS pract
 sequence of passes with decreasing window size, each made of one or more iterations; every iteration
 after the first carries the current displacement estimate (the predictor) to every pixel, deforms both
 images symmetrically by half of it, correlates the deformed windows in one batched real FFT, adds the
-residual found by the three-point Gaussian fit to the predictor, validates the field by the normalised
-median test and a peak-ratio check, and replaces the outliers by the local median before the next
-iteration.
+residual found by the three-point Gaussian fit to the predictor, validates the field (significance of
+the correlation peak, agreement with the coarser pass, the normalised median test), and replaces the
+rejected vectors by the local median before the next iteration. Every vector ends up measured,
+replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
 """
 
 from __future__ import annotations
@@ -519,9 +520,14 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     Each iteration correlates ``A(x - d(x)/2)`` with ``B(x + d(x)/2)``, where ``d`` is the predictor
     interpolated to every pixel by a separable not-a-knot cubic spline of the previous field; the
     vector is ``d(x_c) + r`` with ``r`` the residual peak position from the three-point fit (Scarano
-    2002, eqs. 13-15, symmetric "central difference" deformation). Validation: normalised median test
-    (Westerweel and Scarano 2005, eq. 2), peak ratio (Keane and Adrian 1992), peak-on-border check;
-    rejected vectors are replaced by the median of their valid neighbours.
+    2002, eqs. 13-15, symmetric "central difference" deformation). Validation, in every iteration:
+    a vector *fails* when its peak is not significant (peak ratio, Keane and Adrian 1992, below
+    ``peak_ratio_min``, or peak correlation coefficient below ``min_correlation``), lies on the plane's
+    border, differs from the previous pass's field by more than ``max_disagreement`` times the window
+    size, or has fewer than two measured neighbours; the others go through the normalised median test
+    (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
+    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors get the median of
+    their valid neighbours. The images are first brought to zero mean and unit variance.
     """
     if settings is None:
         settings = CorrelationSettings()
