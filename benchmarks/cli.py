@@ -107,6 +107,10 @@ def _process(args):
         print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
               file=sys.stderr)
         return 1
+    if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
+        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); displacements "
+              "beyond a quarter of the first correlation window need larger windows (--windows 64,32,16), "
+              "tracking may need --max-displacement or --diameter")
     return 0
 
 

@@ -217,3 +217,36 @@ def test_colour_image_becomes_luminance_with_a_note(tmp_path):
 def test_process_settings_defaults():
     settings, options = process_settings("correlation")
     assert settings == CorrelationSettings() and options.invert == "auto" and options.mask is None
+
+
+def test_nothing_measured_exits_1_and_says_so(tmp_path, capsys):
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        tifffile.imwrite(tmp_path / f"{name}.tif", (rng.random(SHAPE) * 4000).astype(np.uint16))
+    out = tmp_path / "r.h5"
+    assert _run((tmp_path / "a.tif", tmp_path / "b.tif"), out) == 1
+    captured = capsys.readouterr()
+    assert "64 vectors: 0 measured, 0 replaced, 64 failed, 0 masked" in captured.out
+    assert "nothing was measured" in captured.err
+    with h5py.File(out) as f:  # the result is kept: its flags say why
+        assert json.loads(f.attrs["counts"])["failed"] == 64
+
+
+def test_mostly_failed_gives_a_hint(tmp_path, capsys):
+    import tifffile
+
+    a, b = _pair(shift=(20.0, 0.0))
+    for name, img in (("a", a), ("b", b)):
+        tifffile.imwrite(tmp_path / f"{name}.tif", (img * 1000).astype(np.uint16))
+    out = tmp_path / "r.h5"
+    code = _run((tmp_path / "a.tif", tmp_path / "b.tif"), out)
+    printed = capsys.readouterr().out
+    assert code in (0, 1)
+    assert code == 1 or "--windows 64,32,16" in printed
+    assert _run((tmp_path / "a.tif", tmp_path / "b.tif"), out, "--windows", "64,32,16") == 0
+    with h5py.File(out) as f:
+        ok = f["flags"][()] == 0
+        assert ok.mean() > 0.9
+        assert_allclose(f["u"][()][ok], 20.0, atol=0.1)  # edge windows lose 20 px of their dots
