@@ -19,6 +19,8 @@ import numpy as np
 import warp as wp
 from synthbos.raytrace import render
 
+from synthbos.device import init_warp
+
 PREDECESSOR_RAYS_PER_S = 2e6
 
 
@@ -70,8 +72,7 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", help="write the results here too")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
-    wp.init()
+    init_warp()
     rows = []
     for dev in args.devices:
         rays = args.cpu_rays if dev == "cpu" else args.rays

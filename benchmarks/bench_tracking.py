@@ -23,6 +23,8 @@ from synthbos.benchmarks.timing import best_time  # noqa: E402
 from synthbos.raytrace.dots import draw_dots  # noqa: E402
 from synthbos.tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 
+from synthbos.device import init_warp  # noqa: E402
+
 
 def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=2.0):
     """Random dot centres with a minimum distance (later points of close pairs dropped)."""
@@ -71,9 +73,7 @@ def main(argv=None):
     p.add_argument("--trackpy-separation", type=float, default=3.0, help="trackpy.locate minimum separation")
     args = p.parse_args(argv)
 
-    import warp as wp
-
-    wp.config.quiet = True
+    init_warp()
     rng = np.random.default_rng(args.seed)
     shape = (args.size, args.size)
     xy = dot_pattern(rng, shape, per_32x32=args.density, min_distance=args.diameter)

@@ -13,12 +13,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-import warp as wp
 from synthbos.raytrace import read_pair, render_pair, write_pair
 from synthbos.raytrace.config import read_toml
 
 import synthbos
 from synthbos import SynthbosError
+from synthbos.device import describe_device, init_warp, resolve_device
 
 from .campaign import run_campaign
 from .items import nominal_positions
@@ -41,15 +41,23 @@ def _out_path(path) -> Path:
     return out
 
 
+def _device(requested) -> str:
+    """The Warp device of a command, reported once: the one asked for, else cuda:0 when present, else cpu."""
+    device = resolve_device(requested)
+    print(describe_device(device))
+    return device
+
+
 def _render(args):
     out = _out_path(args.output)
-    pair = render_pair(args.config, device=args.device, progress=not args.quiet)
+    device = _device(args.device)
+    pair = render_pair(args.config, device=device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
     d = pair.displacement_px[v]
     mag = (d**2).sum(axis=1) ** 0.5
     print(f"wrote {out}: {pair.n_dots} dots ({int(v.sum())} valid), {pair.attrs['rays_per_dot']} rays/dot, "
-          f"M = {pair.attrs['magnification']:.4f}, device {pair.attrs['device']}, "
+          f"M = {pair.attrs['magnification']:.4f}, "
           f"{pair.attrs['render_seconds']:.2f} s")
     if len(d):
         th = (pair.theory_px[v] ** 2).sum(axis=1) ** 0.5
@@ -59,6 +67,7 @@ def _render(args):
 
 def _process(args):
     out = _out_path(args.output)
+    init_warp()  # quietly; each method runs on its settings' device
     method = get_method(args.method)
     invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
     settings, options = process_settings(
@@ -114,22 +123,14 @@ def _process(args):
     return 0
 
 
-def _device_default(device):
-    if device is not None:
-        return device
-    wp.config.quiet = True
-    wp.init()
-    return "cuda:0" if wp.is_cuda_available() else "cpu"
-
-
 def _paper(args):
-    device = _device_default(args.device)
+    device = _device(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     out = Path(args.out or f"runs/paper-{spec.name}")
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
-          f"on {device} -> {out}")
+          f"-> {out}")
     t0 = time.perf_counter()
     rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
     print(format_summary(rows))
@@ -139,6 +140,7 @@ def _paper(args):
 
 
 def _regress(args):
+    _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
@@ -155,16 +157,16 @@ def _regress(args):
 def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
-    rows = run_sweep(base, params, args.out, size=args.size, device=_device_default(args.device),
+    rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
                      workers=args.workers, progress=not args.quiet)
-    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
 
 def _show_density(args):
     out = _out_path(args.output)
     plot_snapshots(out, snapshots_file=args.snapshots)
-    print(f"wrote {out}")
+    print(f"wrote {out} (and .pdf)")
     return 0
 
 
@@ -183,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="ray-trace one BOS image pair into an HDF5 pair file")
     p.add_argument("config", nargs="?", default=None, help="TOML configuration (default: the embedded default)")
     p.add_argument("-o", "--output", required=True, help="pair file to write (HDF5)")
-    p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: Warp's default)")
+    p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render)
 
@@ -239,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
-    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write")
+    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
 

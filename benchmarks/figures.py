@@ -11,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 from synthbos.raytrace import load_config, read_pair
 from synthbos.raytrace.sources import density_from_config
 
@@ -54,12 +55,26 @@ def save_figure(fig, path) -> list[Path]:
 _save = save_figure
 
 
+def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
+    """Contour levels from 0 to at least ``vmax`` at round steps (0.05, 0.1, 0.2, ...)."""
+    return MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, max(float(vmax), 1e-9))
+
+
 def figure4(spec, folder, path):
     """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4) and ray-traced
-    displacement magnitude (contours), from the first pair of the snapshot."""
+    displacement magnitude (filled contours), from the first pair of the snapshot.
+
+    Each displacement panel has its own colour scale: the ray-traced displacement is the aperture's
+    average of Eq. 4's and several times weaker, so a shared scale would leave it dark.
+    """
     folder = Path(folder)
     snaps = list(spec.snapshots)
-    fig, axes = plt.subplots(len(snaps), 4, figsize=(13, 3.0 * len(snaps)), squeeze=False)
+    fig, axes = plt.subplots(len(snaps), 4, figsize=(14.0, 2.9 * len(snaps) + 0.9), squeeze=False,
+                             layout="constrained")
+    titles = ("density ρ", "density gradient |∇ρ|", "|ΔX|, theory (Eq. 4)", "|ΔX|, ray-traced")
+    for c, title in enumerate(titles):
+        axes[0, c].set_title(title, fontsize=11)
+    counts = []
     for row, s in enumerate(snaps):
         pair = read_pair(pair_path(folder, s, 0))
         cfg = load_config(tomllib.loads(pair.attrs["config"]))
@@ -71,111 +86,186 @@ def figure4(spec, folder, path):
         gy, gx = np.gradient(rho, ly * 1e-3 / (rho.shape[0] - 1), lx * 1e-3 / (rho.shape[1] - 1))
         ax = axes[row]
         im = ax[0].imshow(rho, extent=extent, cmap="viridis")
-        fig.colorbar(im, ax=ax[0], label="ρ (kg/m³)")
+        fig.colorbar(im, ax=ax[0], label="ρ (kg/m³)", ticks=MaxNLocator(5))
         im = ax[1].imshow(np.hypot(gx, gy), extent=extent, cmap="magma")
-        fig.colorbar(im, ax=ax[1], label="|∇ρ| (kg/m⁴)")
+        fig.colorbar(im, ax=ax[1], label="|∇ρ| (kg/m⁴)", ticks=MaxNLocator(5))
         ok = pair.valid
+        counts.append((int(ok.sum()), pair.n_dots))
         xy = pair.reference_px[ok]
-        th = np.hypot(*pair.theory_px[ok].T)
-        rt = np.hypot(*pair.displacement_px[ok].T)
-        levels = np.linspace(0, max(th.max(), rt.max(), 1e-9), 12)
-        for k, (vals, title) in enumerate(((th, "theory, Eq. 4"), (rt, "ray-traced")), start=2):
+        for k, vals in ((2, np.hypot(*pair.theory_px[ok].T)), (3, np.hypot(*pair.displacement_px[ok].T))):
+            levels = _nice_levels(vals.max())
             cs = ax[k].tricontourf(xy[:, 0], xy[:, 1], vals, levels=levels, cmap="cividis")
+            cs.set_rasterized(True)  # thousands of contour polygons: pixels in the PDF, axes and text stay vector
             ax[k].set_xlim(0, pair.reference.shape[1])
             ax[k].set_ylim(pair.reference.shape[0], 0)
             ax[k].set_aspect("equal")
-            fig.colorbar(cs, ax=ax[k], label="|ΔX| (px)")
-            ax[k].set_title(f"snapshot {s}: {title}", fontsize=9)
-        ax[0].set_title(f"snapshot {s}: density", fontsize=9)
-        ax[1].set_title(f"snapshot {s}: density gradient", fontsize=9)
+            fig.colorbar(cs, ax=ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
+            ax[k].set_xlabel("x (px)")
+            ax[k].set_ylabel("y (px)")
         for a in ax[:2]:
             a.set_xlabel("x (mm)")
             a.set_ylabel("y (mm)")
-        for a in ax[2:]:
-            a.set_xlabel("x (px)")
-            a.set_ylabel("y (px)")
-    fig.suptitle(f"Campaign '{spec.name}': density fields and dot displacements", y=1.0)
-    fig.tight_layout()
+        ax[0].set_ylabel(f"snapshot {s}\ny (mm)")
+    used = sum(c[0] for c in counts)
+    total = sum(c[1] for c in counts)
+    fig.suptitle(f"Campaign '{spec.name}', first pair of each snapshot: density at the volume's mid-plane and "
+                 f"dot displacement magnitude\n({used:,} of {total:,} dots valid, "
+                 f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
+                 fontsize=10)
     _save(fig, path)
+
+
+def _threshold_text(thresholds: np.ndarray) -> str:
+    t = np.unique(thresholds[np.isfinite(thresholds)])
+    if len(t) == 0:
+        return "no threshold"
+    if np.ptp(t) < 5e-4:
+        return f"{t[0]:.3f} px"
+    return f"{t.min():.3f} to {t.max():.3f} px"
+
+
+def _log_limits(arrays, *, low_quantile=0.005, margin=1.25):
+    """Log-axis limits that fit the data: from the ``low_quantile`` of the positive values to their maximum."""
+    e = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in arrays] or [np.zeros(0)])
+    e = e[np.isfinite(e) & (e > 0)]
+    if len(e) == 0:
+        return 1e-3, 1.0
+    return float(np.quantile(e, low_quantile)) / margin, float(e.max()) * margin
+
+
+def _log_axis(axis, lo, hi):
+    """A log axis whose labelled ticks suit its span: decades over two decades or more, else 1, 2, 5 x 10^k,
+    and every integer multiple below one decade (so a narrow axis still has numbers)."""
+    axis.axes.set_xscale("log") if axis.axis_name == "x" else axis.axes.set_yscale("log")
+    span = hi / lo if lo > 0 else np.inf
+    if span >= 100:
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0,)))
+    else:
+        subs = (1.0, 2.0, 5.0) if span >= 10 else (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
+        axis.set_major_locator(LogLocator(base=10, subs=subs))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def figure5(spec, folder, path):
-    """Error CDFs on a log error axis: one row per noise level; columns: displacement below and above
-    the threshold, displacement gradient below and above; all methods; the Cramér-Rao bound of the
-    displacement as a dashed line."""
+    """Error CDFs on a log error axis: one row per noise level; columns: displacement error below and
+    above the threshold, displacement-gradient error below and above; all methods; the Cramér-Rao bound
+    of the displacement as a dashed line.
+
+    The threshold (half the standard deviation of Eq. 4's displacement magnitudes, per pair) is stated in
+    the title, the number of points of each method in each panel; each panel's error axis spans its data
+    (the smallest 0.5 % of the errors sit at its left edge).
+    """
     noises = list(spec.noise_percent)
     cols = [("displacement", "below"), ("displacement", "above"), ("gradient", "below"), ("gradient", "above")]
-    fig, axes = plt.subplots(len(noises), 4, figsize=(15, 2.9 * len(noises)), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(len(noises), 4, figsize=(15, 2.7 * len(noises) + 1.0), squeeze=False, sharey=True,
+                             layout="constrained")
+    thresholds = None
     for r, noise in enumerate(noises):
+        curves = {c: [] for c in range(len(cols))}
         for method in spec.methods:
             sc = load_scores(spec, folder, method, noise)
+            thresholds = sc["threshold"] if thresholds is None else thresholds
             masks = split_masks(sc)
             for c, (quantity, split) in enumerate(cols):
                 e = (sc["error"] if quantity == "displacement" else sc["grad_error"])[masks[split]]
-                x, y = scoring.empirical_cdf(e)
-                x = np.maximum(x, 1e-6)
-                style = method_style(method)
-                axes[r, c].step(x, y, where="post", **style)
+                curves[c].append((method, e))
         for c, (quantity, split) in enumerate(cols):
             ax = axes[r, c]
-            ax.set_xscale("log")
-            ax.set_xlim(1e-5 if quantity == "displacement" else 1e-6, 10 if quantity == "displacement" else 1)
-            ax.grid(True, which="both", alpha=0.3)
+            lo, hi = _log_limits([e for _, e in curves[c]])
+            crb = scoring.cramer_rao_displacement(noise) if quantity == "displacement" and noise > 0 else None
+            if crb is not None:
+                lo, hi = min(lo, crb / 1.25), max(hi, crb * 1.25)
+            counts = []
+            for method, e in curves[c]:
+                x, y = scoring.empirical_cdf(e)
+                if len(x):  # start each curve at zero on the left edge
+                    x, y = np.concatenate([[lo], np.maximum(x, lo)]), np.concatenate([[0.0], y])
+                ax.step(x, y, where="post", **method_style(method))
+                counts.append((method, int(np.isfinite(e).sum())))
+            if crb is not None:
+                ax.axvline(crb, color="k", ls=":", lw=1.2)
+            _log_axis(ax.xaxis, lo, hi)
+            ax.set_xlim(lo, hi)
+            ax.set_ylim(0, 1.02)
+            ax.grid(True, which="major", alpha=0.3)
+            for k, (method, n) in enumerate(reversed(counts)):  # listed top to bottom as in the legend
+                ax.text(0.97, 0.05 + 0.1 * k, f"n = {n:,}", transform=ax.transAxes, ha="right", va="bottom",
+                        fontsize=8, color=method_style(method).get("color", "k"))
             unit = "px" if quantity == "displacement" else "px/px"
-            ax.set_title(f"noise {noise:g}%: {quantity} error, {split} threshold", fontsize=9)
-            ax.set_xlabel(f"error ({unit})")
-            if quantity == "displacement" and noise > 0:
-                crb = scoring.cramer_rao_displacement(noise)
-                ax.axvline(crb, color="k", ls="--", lw=1, label=f"Cramér-Rao bound {crb:.3g} px")
-        axes[r, 0].set_ylabel("CDF")
-    handles, labels = [], []
-    for ax in axes.ravel():
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            if lab not in labels and not lab.startswith("Cramér"):
-                handles.append(h)
-                labels.append(lab)
-    handles.append(plt.Line2D([], [], color="k", ls="--", lw=1))
+            ax.set_xlabel(f"{quantity} error ({unit})")
+            if r == 0:
+                what = "displacement" if quantity == "displacement" else "displacement gradient"
+                ax.set_title(f"{what},\n|ΔX| {'<' if split == 'below' else '≥'} threshold", fontsize=10)
+        axes[r, 0].set_ylabel(f"noise {noise:g} %\nCDF")
+    handles = [plt.Line2D([], [], **method_style(m)) for m in spec.methods]
+    labels = [method_style(m)["label"] for m in spec.methods]
+    handles.append(plt.Line2D([], [], color="k", ls=":", lw=1.2))
     labels.append("Cramér-Rao bound (displacement)")
-    fig.legend(handles, labels, loc="upper center", ncol=len(labels), bbox_to_anchor=(0.5, 1.02))
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), frameon=False)
+    fig.suptitle(f"Error CDFs, campaign '{spec.name}' ({len(spec.pair_keys())} pairs). Threshold: half the standard "
+                 f"deviation of Eq. 4's |ΔX| in each pair, {_threshold_text(thresholds)}; "
+                 "n: points scored per method", fontsize=10)
     _save(fig, path)
 
 
-def sweep_figure(rows, path, *, param, param2=None, percentiles=(50, 90)):
-    """Error percentiles (displacement, all points) and yield against the swept parameter."""
+def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_label=None, percentiles=(50, 90)):
+    """Error percentiles (displacement, all points) and yield against the swept parameter.
+
+    One row of panels per noise level (one row in all when noise is swept); colour and marker per method
+    (from the registry); with a second parameter, one line style per value of it. ``param_label`` and
+    ``param2_label`` are the axis words with units (the parameter keys otherwise).
+    """
+    label1, label2 = param_label or param, param2_label or param2
     order = list(METHODS)
     methods = sorted({r["method"] for r in rows},
                      key=lambda m: (m not in order, order.index(m) if m in order else 0, m))
-    noises = sorted({r["noise_percent"] for r in rows})
+    by_noise = "noise" not in (param, param2)
+    noises = sorted({r["noise_percent"] for r in rows}) if by_noise else [None]
     second = sorted({r.get("param2_value") for r in rows}, key=lambda v: (v is None, v))
-    fig, axes = plt.subplots(len(noises), len(percentiles) + 1, figsize=(4.3 * (len(percentiles) + 1),
-                             3.0 * len(noises)), squeeze=False)
-    linestyles = ["-", "--", ":", "-."]
+    ncols = len(percentiles) + 1
+    fig, axes = plt.subplots(len(noises), ncols, figsize=(4.4 * ncols, 3.0 * len(noises) + 1.2), squeeze=False,
+                             layout="constrained")
+    dashes = ["-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1))]
     for r, noise in enumerate(noises):
         for method in methods:
             style = method_style(method)
             for k, val2 in enumerate(second):
-                sel = [x for x in rows if x["method"] == method and x["noise_percent"] == noise
+                sel = [x for x in rows if x["method"] == method and (noise is None or x["noise_percent"] == noise)
                        and x.get("param2_value") == val2 and x["split"] == "all" and x["quantity"] == "displacement"]
                 sel.sort(key=lambda x: x["param_value"])
                 xs = [x["param_value"] for x in sel]
-                lab = style["label"] + (f", {param2} = {val2:g}" if val2 is not None else "")
-                ls = linestyles[k % 4] if val2 is not None else style.get("ls", "-")
-                kw = {"color": style.get("color"), "ls": ls,
-                      "marker": METHODS[method].marker if method in METHODS else "o", "label": lab}
+                kw = {"color": style.get("color"), "marker": METHODS[method].marker if method in METHODS else "o",
+                      "ls": dashes[k % len(dashes)] if val2 is not None else style.get("ls", "-"), "ms": 5}
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
                 axes[r, -1].plot(xs, [x["yield"] for x in sel], **kw)
-        for c, p in enumerate(percentiles):
-            axes[r, c].set_yscale("log")
-            axes[r, c].set_ylabel(f"{p}th percentile error (px)")
-            axes[r, c].set_title(f"noise {noise:g}%", fontsize=9)
-        axes[r, -1].set_ylabel("yield")
-        axes[r, -1].set_title(f"noise {noise:g}%", fontsize=9)
+        for c in range(len(percentiles)):
+            lines = [ln.get_ydata() for ln in axes[r, c].get_lines()]
+            lo, hi = _log_limits(lines, low_quantile=0.0, margin=1.1)
+            _log_axis(axes[r, c].yaxis, lo, hi)
+            axes[r, c].set_ylim(lo, hi)
+            axes[r, c].set_ylabel("error (px)")
+        axes[r, -1].set_ylabel("fraction of points measured")
+        if noise is not None:
+            axes[r, 0].set_ylabel(f"noise {noise:g} %\n" + axes[r, 0].get_ylabel())
         for ax in axes[r]:
-            ax.set_xlabel(param)
+            ax.set_xlabel(label1)
             ax.grid(True, alpha=0.3)
-    h, lab = axes[0, 0].get_legend_handles_labels()
-    fig.legend(h, lab, loc="upper center", ncol=min(len(lab), 3), bbox_to_anchor=(0.5, 1.04))
-    fig.tight_layout()
+    for c, p in enumerate(percentiles):
+        axes[0, c].set_title(f"displacement error, {'median' if p == 50 else f'{p}th percentile'}", fontsize=10)
+    axes[0, -1].set_title("yield", fontsize=10)
+    marker = {m: METHODS[m].marker if m in METHODS else "o" for m in methods}
+    if param2 is None:
+        handles = [plt.Line2D([], [], marker=marker[m], **method_style(m)) for m in methods]
+    else:  # the line style tells the second parameter's value: a legend of its own, at the right
+        handles = [plt.Line2D([], [], color=method_style(m).get("color"), marker=marker[m]) for m in methods]
+        fig.legend([plt.Line2D([], [], color="k", ls=dashes[k % len(dashes)]) for k in range(len(second))],
+                   [f"{v:g}" for v in second], title=label2.replace(" (", "\n("), loc="outside right center",
+                   frameon=False)
+    fig.legend(handles, [method_style(m)["label"] for m in methods], loc="outside lower center",
+               ncol=len(methods), frameon=False)
+    what = label1 if param2 is None else f"{label1} and {label2}"
+    fig.suptitle(f"Sweep of {what}: displacement error over all scored points, and yield", fontsize=11)
     _save(fig, path)
+

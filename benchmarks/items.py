@@ -11,6 +11,8 @@ import numpy as np
 from synthbos.raytrace import add_noise, load_config, read_pair, render_pair, write_pair
 from synthbos.raytrace.camera import camera_from_config
 
+from synthbos.device import init_warp
+
 from . import scoring
 from .registry import GRID, get_method
 from .storage import save_scores
@@ -20,6 +22,7 @@ __all__ = ["nominal_positions", "render_item", "score_item", "score_pair"]
 
 def render_item(config: dict, out: str, device) -> str:
     """Render one pair from ``config`` into the pair file ``out``."""
+    init_warp()  # items may run in fresh worker processes: start Warp there quietly too
     write_pair(out, render_pair(config, device=device))
     return out
 
@@ -79,6 +82,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
 
 def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict, device=None) -> str:
     """Score one (pair, method, noise) item into ``out`` (.npz)."""
+    init_warp()
     m = get_method(method)
     settings = m.settings(overrides) if overrides else None
     scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds, settings=settings,

@@ -28,38 +28,58 @@ Command-line flags override the file.
 
 Result files (HDF5)
 -------------------
-A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``
-(bits described by the attribute ``flag_bits``), ``/peak_ratio``, ``/correlation``.
+A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
+``/peak_ratio``, ``/correlation``.
 A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, ``/dots/masked``, plus every other column of the tracking table under ``/dots/`` (the
 centroid-difference displacement as ``u_centroid``, ``v_centroid``).
-Root attributes: ``method``, ``settings`` (JSON of the settings used), ``image`` (JSON of the image
-options used: mask, its polarity, whether the images were inverted and why), ``counts`` (JSON:
-measured, replaced, failed, masked, total), ``input``, ``seconds``.
+Root attributes: ``method``, ``kind``, ``settings`` (JSON of the settings used), ``image`` (JSON of the
+image options used: mask, its polarity, whether the images were inverted and why), ``counts`` (JSON:
+measured, replaced, failed, masked, total), ``config`` (the configuration file's text, when one was
+given), ``input``, ``seconds``.
+
+Every dataset carries ``units`` and ``description`` attributes (``RESULT_DATASETS``); the bit-flag
+datasets (``/flags``, ``/dots/status``) also carry ``flag_bits``, a JSON object mapping each bit's value
+to its name and meaning, generated from the documentation of the flags in ``correlation`` and
+``tracking`` (``FLAG_BITS``).
 """
 
 from __future__ import annotations
 
 import csv
+import enum
+import inspect
 import json
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import h5py
+import imageio.v3 as iio
 import numpy as np
+import tifffile
+from synthbos.correlation import multigrid
+from synthbos.raytrace.pairfile import describe_datasets
+from synthbos.tracking import DotStatus
 
 from synthbos import SynthbosError, atomic_output
 
 from .registry import GRID, METHODS, MethodResult, get_method
 
 __all__ = [
+    "FLAG_BITS",
+    "RESULT_DATASETS",
+    "SHORT_FLAGS",
     "ImageOptions",
     "apply_invert",
     "decide_invert",
+    "flag_bits",
     "image_options_dict",
     "load_image",
     "load_mask",
+    "process_pair",
+    "process_settings",
     "read_dots_csv",
     "read_process_config",
     "run_method",
@@ -70,6 +90,84 @@ __all__ = [
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 MASK_POLARITIES = ("dark", "bright")
+
+
+def _int_flag_bits(flag_class: type[enum.IntFlag]) -> dict[int, tuple[str, str]]:
+    """Bit -> (name, meaning) of an IntFlag whose docstring lists ``NAME[, NAME]`` lines, each followed
+    by its indented meaning (numpydoc style)."""
+    meaning, names = {}, []
+    for line in inspect.cleandoc(flag_class.__doc__ or "").splitlines():
+        heads = [h.strip() for h in line.split(",")]
+        if line and not line[0].isspace() and all(h in flag_class.__members__ for h in heads):
+            names = heads
+            continue
+        if names and line.startswith((" ", "\t")):
+            for n in names:
+                meaning[n] = f"{meaning.get(n, '')} {line.strip()}".strip()
+        elif not line.strip():
+            continue
+        else:
+            names = []
+    return {int(m.value): (name, meaning.get(name, "")) for name, m in flag_class.__members__.items()}
+
+
+def _constant_flag_bits(module, prefix: str = "FLAG_") -> dict[int, tuple[str, str]]:
+    """Bit -> (name, meaning) of a module's ``FLAG_X = bit`` constants, each documented by a ``#:`` comment."""
+    source = inspect.getsource(module)
+    bits = {}
+    for doc, name, value in re.findall(rf"^#: *(.*)\n({prefix}\w+) *= *(\d+)", source, flags=re.M):
+        bits[int(value)] = (name, doc.strip())
+    return bits
+
+
+def flag_bits(bits: dict[int, tuple[str, str]]) -> str:
+    """The ``flag_bits`` attribute: JSON ``{"<bit>": {"name": ..., "description": ...}}``."""
+    return json.dumps({str(b): {"name": n, "description": d} for b, (n, d) in sorted(bits.items())})
+
+
+def _module_flag_bits(module) -> dict[int, tuple[str, str]]:
+    """A module's flags: its documented ``FLAG_X`` constants, else the members of an IntFlag it defines."""
+    bits = _constant_flag_bits(module)
+    if not bits:
+        for value in vars(module).values():
+            if isinstance(value, type) and issubclass(value, enum.IntFlag) and value.__module__ == module.__name__:
+                bits.update(_int_flag_bits(value))
+    return bits
+
+
+# Bit-flag columns of the methods' tables, described from their own documentation.
+FLAG_BITS = {
+    "flags": _module_flag_bits(multigrid),
+    "status": _int_flag_bits(DotStatus),
+}
+
+# The result file's datasets: path -> (units, description); written on each dataset as attributes.
+_UV = "the method's measured displacement from the reference to the gradient image"
+RESULT_DATASETS = {
+    "x": ("px", "window centre x (column; pixel centres at integers)"),
+    "y": ("px", "window centre y (row)"),
+    "u": ("px", f"x component of {_UV}; the local median where replaced or failed, NaN where masked"),
+    "v": ("px", f"y component of {_UV}; the local median where replaced or failed, NaN where masked"),
+    "flags": ("1", "bit flags of each window, 0 = measured (bits in the attribute flag_bits)"),
+    "peak_ratio": ("1", "correlation peak ratio (highest over second-highest peak) of the last pass"),
+    "correlation": ("1", "correlation coefficient of the two deformed windows at the peak, last pass"),
+    "dots/x": ("px", "dot position x (column) in the reference image"),
+    "dots/y": ("px", "dot position y (row) in the reference image"),
+    "dots/u": ("px", f"x component of {_UV} (see the root attribute method)"),
+    "dots/v": ("px", f"y component of {_UV} (see the root attribute method)"),
+    "dots/u_centroid": ("px", "x displacement by centroid difference"),
+    "dots/v_centroid": ("px", "y displacement by centroid difference"),
+    "dots/u_cc": ("px", "x displacement with the correlation correction"),
+    "dots/v_cc": ("px", "y displacement with the correlation correction"),
+    "dots/x_gradient": ("px", "dot position x (column) in the gradient image"),
+    "dots/y_gradient": ("px", "dot position y (row) in the gradient image"),
+    "dots/diameter": ("px", "estimated dot diameter"),
+    "dots/peak": ("a.u.", "dot peak intensity in the reference image (image units)"),
+    "dots/status": ("1", "bit flags of each dot (bits in the attribute flag_bits); MATCHED marks a valid dot"),
+    "dots/iteration": ("1", "identification iteration that found the dot in the reference image"),
+    "dots/iteration_gradient": ("1", "identification iteration that found the dot in the gradient image"),
+    "dots/masked": ("1", "1 where the dot's reference position lies in the mask (its u, v are NaN)"),
+}
 
 
 @dataclass(frozen=True)
@@ -157,12 +255,8 @@ def load_image(path, *, notes=None) -> np.ndarray:
         raise SynthbosError(f"image {path} does not exist")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
             img = tifffile.imread(path)
         else:
-            import imageio.v3 as iio
-
             img = iio.imread(path)
     except Exception as err:  # the readers raise many types for unreadable files
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
@@ -322,10 +416,7 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
         if method.kind == GRID:
             for name, values in result.table.items():
-                ds = f.create_dataset(name, data=np.asarray(values))
-                ds.attrs["units"], ds.attrs["description"] = _GRID_COLUMNS.get(name, ("", name))
-            if "flags" in f and result.flag_bits:
-                f["flags"].attrs["flag_bits"] = result.flag_bits
+                f.create_dataset(name, data=np.asarray(values))
         else:
             g = f.create_group("dots")
             g.create_dataset("x", data=result.xy[:, 0])
@@ -337,31 +428,36 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
                     g.create_dataset(f"{name}_centroid", data=np.asarray(values))
                 elif name not in ("x", "y"):
                     g.create_dataset(name, data=np.asarray(values))
-            for name in ("x", "y", "u", "v"):
-                g[name].attrs["units"] = "px"
-            if result.flag_bits:
-                g["status"].attrs["flag_bits"] = result.flag_bits
         f.attrs["method"] = result.method
         f.attrs["kind"] = method.kind
         f.attrs["settings"] = json.dumps(result.settings, default=str)
-        if result.flag_bits:
-            f.attrs["flag_bits"] = result.flag_bits
         if result.counts:
             f.attrs["counts"] = json.dumps(result.counts)
         for key, value in (extra_attrs or {}).items():
             f.attrs[key] = value
+        _describe(f)
     return path
 
 
-_GRID_COLUMNS = {
-    "x": ("px", "window centre, column (pixel centres at integers)"),
-    "y": ("px", "window centre, row"),
-    "u": ("px", "displacement along x, reference to gradient image; NaN in masked windows"),
-    "v": ("px", "displacement along y"),
-    "flags": ("", "vector flag bits, see the attribute flag_bits; 0 = measured"),
-    "peak_ratio": ("", "correlation peak ratio, last iteration"),
-    "correlation": ("", "correlation coefficient at the peak, last iteration"),
-}
+def _describe(f) -> None:
+    """Units, description and flag bits on every dataset of a result file (a column the schema does not
+    know yet gets a generic description rather than none)."""
+    describe_datasets(f, RESULT_DATASETS)
+    for name, obj in _datasets(f):
+        column = name.rpartition("/")[2]
+        if column in FLAG_BITS:
+            obj.attrs["flag_bits"] = flag_bits(FLAG_BITS[column])
+        if "units" not in obj.attrs:
+            obj.attrs["units"] = ""
+            obj.attrs["description"] = f"column {column!r} of the {f.attrs['method']} table (see its documentation)"
+
+
+def _datasets(group, prefix=""):
+    for key, obj in group.items():
+        if isinstance(obj, h5py.Dataset):
+            yield f"{prefix}{key}", obj
+        else:
+            yield from _datasets(obj, f"{prefix}{key}/")
 
 
 def image_options_dict(options: ImageOptions, inverted: bool, reason: str) -> dict:

@@ -15,8 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from synthbos.correlation import CorrelationSettings, correlate_pair, describe_flags
-from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
+from synthbos.correlation import CorrelationSettings, correlate_pair
+from synthbos.tracking import TrackingSettings, is_valid, track_pair
 
 from synthbos import SynthbosError
 
@@ -38,7 +38,6 @@ class MethodResult:
     settings: dict
     valid: np.ndarray | None = None  # (N,) bool: a measured, unflagged vector
     counts: dict | None = None  # measured, replaced, failed, masked, total
-    flag_bits: str = ""  # what the bits of the flags (or status) column mean, one line per bit
 
 
 @dataclass(frozen=True)
@@ -109,14 +108,7 @@ def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, devic
              "correlation": res.correlation}
     valid = np.all(np.isfinite(uv), axis=1) & (np.asarray(res.flags).ravel() == 0)
     return MethodResult("correlation", xy, uv, tuple(res.u.shape), table, settings_dict(res.settings), valid,
-                        counts=res.counts(), flag_bits=describe_flags())
-
-
-def _status_bits():
-    return "\n".join(f"{int(b)} {b.name}" for b in DotStatus) + (
-        "\nthe displacement is valid where MATCHED is set; the column 'masked' marks dots whose reference "
-        "position lies in the mask (their u, v are NaN)"
-    )
+                        counts=res.counts())
 
 
 def _masked_dots(xy, mask):
@@ -144,7 +136,7 @@ def _tracker(columns: tuple[str, str], name: str):
         counts = {"measured": int(valid.sum()), "replaced": 0, "failed": int((~valid & ~masked).sum()),
                   "masked": int(masked.sum()), "total": len(valid)}
         return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid,
-                            counts=counts, flag_bits=_status_bits())
+                            counts=counts)
 
     run.__name__ = f"_run_{name.replace('-', '_')}"
     run.__doc__ = f"Dot tracking; the displacement is the table's ({columns[0]}, {columns[1]})."

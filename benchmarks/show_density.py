@@ -10,35 +10,32 @@ from __future__ import annotations
 
 import argparse
 
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.colors import LogNorm
 from synthbos.raytrace.buoyancy import flatness, gradient_magnitude
 from synthbos.raytrace.loaders import read_snapshots
+
+from .figures import save_figure
 
 __all__ = ["main", "plot_snapshots"]
 
 
-def plot_snapshots(path_png, *, snapshots_file=None, dpi=120):
+def plot_snapshots(path_png, *, snapshots_file=None):
     """Draw the density and |grad rho| of every snapshot in one figure and save it.
 
     Parameters
     ----------
     path_png : str or Path
-        Output image (any format matplotlib writes; PNG by extension).
+        Output image: a 300 dpi PNG, with a PDF of the same name beside it (``figures.save_figure``).
     snapshots_file : str or Path, optional
         A snapshot file (``raytrace.loaders.write_snapshots`` schema); the embedded one by default.
-    dpi : int
 
     Returns
     -------
     list of dict
         Per snapshot: ``time``, ``min``, ``max``, ``grad_flatness`` (flatness of |grad rho|).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-
     dens, times, attrs = read_snapshots(snapshots_file)
     m, ny, nx = dens.shape
     box = float(attrs.get("box", 2.0 * np.pi))
@@ -95,8 +92,7 @@ def plot_snapshots(path_png, *, snapshots_file=None, dpi=120):
         f"Buoyancy-driven variable-density mixing (2-D Boussinesq, A = {atwood:.3g}, gravity down)",
         fontsize=11,
     )
-    fig.savefig(path_png, dpi=dpi)
-    plt.close(fig)
+    save_figure(fig, path_png)
     return stats
 
 

@@ -20,7 +20,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from synthbos.raytrace import load_config
+from synthbos.raytrace import DEFAULT_CONFIG, load_config
 
 from synthbos import SynthbosError, atomic_output
 
@@ -29,7 +29,7 @@ from .figures import sweep_figure
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
 
-__all__ = ["ALIASES", "apply_parameter", "parse_parameter", "run_sweep"]
+__all__ = ["ALIASES", "LABELS", "apply_parameter", "parameter_label", "parse_parameter", "run_sweep"]
 
 ALIASES = {
     "density": "target.dots_per_32px",
@@ -39,6 +39,36 @@ ALIASES = {
     "rays": "rays.per_dot",
 }
 SPECIAL = ("noise", "magnification", "window")
+
+# How a figure names a parameter: words and units. Other configuration keys are worded from the key.
+LABELS = {
+    "target.dots_per_32px": "dot density (dots per 32 × 32 px)",
+    "target.dot_diameter_px": "dot diameter (px)",
+    "target.distance_mm": "target distance from the lens (mm)",
+    "camera.f_number": "f-number",
+    "camera.focal_length_mm": "focal length (mm)",
+    "camera.pixel_pitch_um": "pixel pitch (µm)",
+    "volume.distance_from_target_mm": "volume distance from the target, Z_D (mm)",
+    "rays.per_dot": "rays per dot",
+    "noise": "noise (% of the dot peak)",
+    "magnification": "magnification M",
+    "window": "final correlation window (px)",
+}
+_UNIT_SUFFIXES = {"mm": "mm", "um": "µm", "nm": "nm", "px": "px", "m": "m", "kg_m3": "kg/m³", "kg_m4": "kg/m⁴",
+                  "m3_per_kg": "m³/kg", "deg": "°", "s": "s"}
+
+
+def parameter_label(name: str) -> str:
+    """Words and units for a sweep parameter: ``camera.f_number`` -> ``f-number``,
+    ``volume.density_scale_kg_m3`` -> ``volume density scale (kg/m³)``."""
+    if name in LABELS:
+        return LABELS[name]
+    table, _, key = name.rpartition(".")
+    for suffix in sorted(_UNIT_SUFFIXES, key=len, reverse=True):
+        if key.endswith(f"_{suffix}"):
+            words = key[: -len(suffix) - 1].replace("_", " ")
+            return f"{table} {words} ({_UNIT_SUFFIXES[suffix]})".strip()
+    return f"{table} {key.replace('_', ' ')}".strip()
 SIZES = {"regress": REGRESS, "quick": QUICK, "full": FULL}
 
 
@@ -70,7 +100,7 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
     if name == "magnification":
         if value <= 0:
             raise SynthbosError(f"magnification must be > 0, got {value:g}")
-        f = spec.config.get("camera", {}).get("focal_length_mm", 105.0)
+        f = spec.config.get("camera", {}).get("focal_length_mm", DEFAULT_CONFIG["camera"]["focal_length_mm"])
         return spec.with_config({"target": {"distance_mm": f * (1.0 + 1.0 / value)}})
     table, key = name.split(".")
     integer_keys = {"rays.per_dot", "target.seed", "rays.seed"}
@@ -111,5 +141,6 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     write_tables(rows, folder, stem="sweep")
     with atomic_output(folder / "sweep_params.json") as tmp:
         tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
-    sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2)
+    sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2, param_label=parameter_label(name1),
+                 param2_label=parameter_label(name2) if name2 else None)
     return rows

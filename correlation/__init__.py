@@ -16,7 +16,6 @@ from .multigrid import (
     VectorFlag,
     correlate_pair,
     count_vectors,
-    describe_flags,
 )
 
 __all__ = [
@@ -31,5 +30,4 @@ __all__ = [
     "VectorFlag",
     "correlate_pair",
     "count_vectors",
-    "describe_flags",
 ]

@@ -38,7 +38,6 @@ __all__ = [
     "VectorFlag",
     "correlate_pair",
     "count_vectors",
-    "describe_flags",
 ]
 
 
@@ -47,25 +46,32 @@ class VectorFlag(enum.IntFlag):
 
     A vector is *replaced* when its window gave a significant correlation peak that the normalised
     median test rejected (``MEDIAN`` alone); it *failed* when its window gave no usable measurement
-    (``PEAK``, ``BORDER`` or ``DISAGREE``). Both carry the median of their valid neighbours in
-    ``u``, ``v``, so that the field stays continuous for integration; NaN where nothing was measured
-    anywhere. ``MASKED`` windows are NaN.
+    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry the median of their valid
+    neighbours in ``u``, ``v``, so that the field stays continuous for integration (NaN where nothing
+    was measured anywhere). ``MASKED`` windows are NaN. :func:`count_vectors` counts them.
+
+    MEDIAN
+        Replaced by the median of its valid neighbours: failed the normalised median test.
+    PEAK
+        Failed: correlation peak not significant (peak ratio below peak_ratio_min, or peak correlation
+        coefficient below min_correlation).
+    BORDER
+        Failed: the correlation peak lay on the border of the correlation plane.
+    MASKED
+        Window more than half covered by the mask; u, v are NaN.
+    DISAGREE
+        Failed: differs from the previous pass's field (an independent, coarser estimate) by more than
+        max_disagreement times the window size.
+    ISOLATED
+        Failed: fewer than two of its (at least three unmasked) neighbours were measured, so nothing
+        confirms it; a lone vector among failed ones is as likely a chance peak.
     """
 
-    #: Replaced by the median of its valid neighbours: failed the normalised median test.
     MEDIAN = 1
-    #: Failed: correlation peak not significant (peak ratio below ``peak_ratio_min`` or peak
-    #: correlation coefficient below ``min_correlation``).
     PEAK = 2
-    #: Failed: the correlation peak lay on the border of the correlation plane.
     BORDER = 4
-    #: Window more than half covered by the mask; ``u``, ``v`` are NaN.
     MASKED = 8
-    #: Failed: differs from the previous pass's field (an independent, coarser estimate) by more
-    #: than ``max_disagreement`` times the window size.
     DISAGREE = 16
-    #: Failed: fewer than two of its (at least three unmasked) neighbours were measured, so nothing
-    #: confirms it; a lone vector among failed ones is as likely a chance peak.
     ISOLATED = 32
 
 
@@ -78,25 +84,6 @@ FLAG_BORDER = int(VectorFlag.BORDER)
 FLAG_MASKED = int(VectorFlag.MASKED)
 FLAG_DISAGREE = int(VectorFlag.DISAGREE)
 FLAG_ISOLATED = int(VectorFlag.ISOLATED)
-
-
-def describe_flags():
-    """One line per flag bit, ``"1 MEDIAN: replaced by ..."``, for result-file attributes."""
-    lines = []
-    for bit in VectorFlag:
-        doc = {
-            VectorFlag.MEDIAN: "replaced by the median of valid neighbours: failed the normalised median test",
-            VectorFlag.PEAK: "failed: correlation peak not significant (peak ratio or peak correlation too low)",
-            VectorFlag.BORDER: "failed: correlation peak on the border of the correlation plane",
-            VectorFlag.MASKED: "window more than half masked; u, v are NaN",
-            VectorFlag.DISAGREE: "failed: differs from the previous (coarser) pass by more than max_disagreement "
-            "x window size",
-            VectorFlag.ISOLATED: "failed: fewer than 2 of its unmasked neighbours were measured",
-        }[bit]
-        lines.append(f"{int(bit)} {bit.name}: {doc}")
-    lines.append("0: measured in its own window and accepted; failed and replaced vectors carry the median of "
-                 "their valid neighbours")
-    return "\n".join(lines)
 
 
 def count_vectors(flags):

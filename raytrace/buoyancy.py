@@ -44,6 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
+from tqdm import tqdm
+
+from .loaders import write_snapshots
 
 __all__ = [
     "DEFAULT_PARAMS",
@@ -284,8 +287,6 @@ def run_buoyancy(
     w_hat = np.zeros_like(r_hat)  # at rest
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(
             total=float(times[-1]),
             unit="t",
@@ -374,8 +375,6 @@ def phase_randomised(field, *, seed):
 
 def main(argv=None):
     """Regenerate the embedded snapshot file: ``python3 -m synthbos.raytrace.buoyancy -o FILE.h5``."""
-    from synthbos.raytrace.loaders import write_snapshots
-
     ap = argparse.ArgumentParser(prog="python3 -m synthbos.raytrace.buoyancy", description=main.__doc__)
     ap.add_argument("-o", "--output", required=True, help="HDF5 file to write")
     ap.add_argument("--n", type=int, default=DEFAULT_PARAMS["n"], help="grid points per side")

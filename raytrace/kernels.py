@@ -13,8 +13,7 @@ reference trace, whatever its density.
 
 import warp as wp
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+wp.config.log_level = wp.LOG_WARNING  # no banner or module-load lines from library code
 
 LENS_THIN = wp.constant(0)
 LENS_THICK = wp.constant(1)

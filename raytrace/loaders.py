@@ -31,9 +31,12 @@ from __future__ import annotations
 
 import os
 import re
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import h5py
+import nrrd
 import numpy as np
 
 from synthbos import SynthbosError, data_file
@@ -142,8 +145,6 @@ def validate_density(data, *, where):
 
 
 def _h5py_open(path):
-    import h5py
-
     try:
         return h5py.File(path, "r")
     except OSError as exc:  # truncated, not HDF5, permissions
@@ -155,16 +156,12 @@ def _short(exc):
 
 
 def _datasets(h5):
-    import h5py
-
     names = []
     h5.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
     return names
 
 
 def _read_h5_array(h5, name, path):
-    import h5py
-
     obj = h5.get(name)
     if not isinstance(obj, h5py.Dataset):
         avail = _datasets(h5)
@@ -242,8 +239,6 @@ def _load_jhtdb(path, dataset):
 
 
 def _load_nrrd(path):
-    import nrrd
-
     try:
         data, header = nrrd.read(str(path), index_order="C")
     except Exception as exc:  # pynrrd raises NRRDError, OSError, ValueError on bad files
@@ -270,8 +265,6 @@ def _load_npy(path):
 
 
 def _load_npz(path, dataset):
-    import zipfile
-
     try:
         with np.load(path, allow_pickle=False) as z:
             names = list(z.files)
@@ -454,8 +447,6 @@ def write_snapshots(path, snaps):
     included, as root attributes, plus ``format``, ``times`` and ``description``. Written to a
     temporary name and renamed.
     """
-    import h5py
-
     path = Path(path)
     dens = np.asarray(snaps.density, dtype=np.float64)
     dens = (dens / dens.mean(axis=(1, 2), keepdims=True)).astype(np.float32)

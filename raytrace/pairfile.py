@@ -15,6 +15,8 @@ root attributes
     ``config`` (the full configuration as TOML text), ``magnification``, ``version``, ``device``,
     ``render_seconds``, ``n0``, ``spot_diameter_px``, ``sign_convention``.
 
+Every dataset carries ``units`` and ``description`` attributes, from ``PAIR_DATASETS``.
+
 Sign convention: the image is upright (columns grow with target x, rows with target y) and a
 displacement is gradient-image position minus reference-image position. A ray bends towards higher
 density, so a dot appears shifted *down* the density gradient: Eq. 4 reads
@@ -31,7 +33,7 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_output
 
-__all__ = ["SIGN_CONVENTION", "Pair", "read_pair", "write_pair"]
+__all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "read_pair", "write_pair"]
 
 SIGN_CONVENTION = (
     "upright image (x = column grows with target x, y = row grows with target y); "
@@ -61,6 +63,30 @@ class Pair:
         return len(self.target_xy_m)
 
 
+# The pair file's datasets: path -> (units, description). The writer attaches both to every dataset as
+# attributes; a dataset added to the file gets its row here.
+PAIR_DATASETS = {
+    "images/reference": ("a.u.", "reference image (no flow), noise-free; a lone point dot peaks at the "
+                                 "root attribute peak_intensity; row = y, column = x"),
+    "images/gradient": ("a.u.", "gradient image (through the density volume), noise-free, same scale and "
+                                "ray set as the reference image"),
+    "dots/target_xy_m": ("m", "dot centres on the target plane (x, y), z = 0, optical axis at (0, 0)"),
+    "dots/reference_px": ("px", "ray-mean image position (x = column, y = row) of each dot without the flow"),
+    "dots/gradient_px": ("px", "ray-mean image position (x = column, y = row) of each dot through the flow"),
+    "dots/displacement_px": ("px", "exact dot displacement, gradient_px - reference_px (x, y)"),
+    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray (x, y)"),
+    "dots/valid": ("1", "true where every ray of the dot reached the sensor in both images"),
+}
+
+
+def describe_datasets(h5file, schema: dict) -> None:
+    """Attach ``units`` and ``description`` from ``schema`` (path -> (units, description)) to the file's datasets."""
+    for name, (units, description) in schema.items():
+        if name in h5file:
+            h5file[name].attrs["units"] = units
+            h5file[name].attrs["description"] = description
+
+
 def write_pair(path, pair: Pair) -> Path:
     """Write a pair file atomically (see ``synthbos.atomic_output``)."""
     path = Path(path)
@@ -75,6 +101,7 @@ def write_pair(path, pair: Pair) -> Path:
         for key, value in pair.attrs.items():
             f.attrs[key] = value
         f.attrs["sign_convention"] = SIGN_CONVENTION
+        describe_datasets(f, PAIR_DATASETS)
     return path
 
 

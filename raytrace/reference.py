@@ -7,6 +7,7 @@ check that the Warp kernels compute the same thing on every device.
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import erf
 
 from .medium import MediumData
 
@@ -71,8 +72,6 @@ def trace_volume(medium: MediumData, origins, tangents, step):
 
 def deposit_gaussian(shape, px, energy, sigma_px, half_width):
     """Float64 twin of ``kernels.deposit_gaussian`` for spots at pixel positions (N, 2)."""
-    from scipy.special import erf
-
     img = np.zeros(shape)
     inv = 1.0 / (np.sqrt(2.0) * sigma_px)
     for (x, y), e in zip(np.asarray(px, float), np.broadcast_to(energy, (len(px),)), strict=True):

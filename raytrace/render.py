@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 
 import synthbos
 from synthbos import SynthbosError
+from synthbos.device import init_warp
 
 from . import kernels
 from .camera import CameraModel, camera_from_config
@@ -27,11 +28,6 @@ from .pattern import grid_pattern, random_pattern
 __all__ = ["RenderPlan", "plan_render", "render_pair", "trace_rays"]
 
 _INT32_MAX = 2**31 - 1
-
-
-def _init_warp():
-    wp.config.quiet = True
-    wp.init()
 
 
 class RenderPlan:
@@ -156,7 +152,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     ok : (N,) bool, every ray of the dot reached the sensor
     n_tir : int, rays lost to total internal reflection
     """
-    _init_warp()
+    init_warp()
     W, H = plan.camera.pixels
     n = plan.n_dots
     medium = to_warp(plan.medium, device=device)
@@ -198,7 +194,7 @@ def fixed_to_image(fixed):
 
 def theory_displacement(plan: RenderPlan, *, device=None, samples_per_step=1):
     """Eq. 4 at each dot: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels."""
-    _init_warp()
+    init_warp()
     medium = to_warp(plan.medium, device=device)
     cam = _camera_struct(plan.camera)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
@@ -229,7 +225,7 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
         Images (noise-free float32), dot positions and displacements (see ``raytrace.pairfile``).
     """
     plan = config if isinstance(config, RenderPlan) else plan_render(config)
-    _init_warp()
+    init_warp()
     device_name = str(wp.get_device(device))
     total = 2 * plan.n_dots * plan.rays_per_dot
     bar = tqdm(total=total, unit="ray", unit_scale=True, desc="render", disable=not progress)

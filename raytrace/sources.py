@@ -62,6 +62,7 @@ import numpy as np
 from synthbos import SynthbosError
 
 from .defaults import DEFAULT_CONFIG
+from .loaders import FORMATS, infer_format, load_density, read_snapshots
 
 __all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
 
@@ -255,8 +256,6 @@ def _extrude(plane):
 
 
 def _slice_source(p, volume, size_m):
-    from synthbos.raytrace.loaders import read_snapshots
-
     path = p["path"]
     if not isinstance(path, str):
         raise SynthbosError(f'volume.path must be a file name (or "" for the embedded file), got {path!r}')
@@ -273,8 +272,6 @@ def _optional(p, key, off):
 
 
 def _file_source(p, volume, size_m):
-    from synthbos.raytrace.loaders import FORMATS, load_density
-
     path = p["path"]
     if not isinstance(path, str) or not path:
         raise SynthbosError(f"volume.path must name a density file, got {path!r}")
@@ -338,8 +335,6 @@ def _file_source(p, volume, size_m):
 
 
 def _inferred(path):
-    from synthbos.raytrace.loaders import infer_format
-
     return infer_format(path)
 
 

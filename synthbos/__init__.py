@@ -41,7 +41,8 @@ def atomic_output(path):
     """Yield a temporary path beside ``path``; on success rename it to ``path``, on any error remove it.
 
     Every output file of the project is written this way, so an interrupted or failed run never leaves
-    a partial file under the final name.
+    a partial file under the final name. The file gets the permissions a plain ``open`` would give it
+    (``0o666`` less the user's umask), not ``mkstemp``'s private ``0o600``.
     """
     path = Path(path)
     folder = path.parent
@@ -49,12 +50,20 @@ def atomic_output(path):
         raise SynthbosError(f"output folder {folder} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; the final file gets the user's umask
     try:
         yield Path(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """The process umask (read by setting it and putting it back; there is no read-only call)."""
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
 
 
 def data_file(*parts):

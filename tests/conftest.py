@@ -1,13 +1,13 @@
 """Shared pytest fixtures: the Warp devices every Warp-based test runs on."""
 
 import pytest
+import warp as wp
+
+from synthbos.device import init_warp
 
 
 def _warp_devices():
-    import warp as wp
-
-    wp.config.quiet = True
-    wp.init()
+    init_warp()
     devices = ["cpu"]
     if wp.is_cuda_available():
         devices.append("cuda:0")
@@ -26,9 +26,7 @@ def pytest_generate_tests(metafunc):
 
 def pytest_collection_modifyitems(config, items):
     try:
-        import warp as wp
-
-        wp.config.quiet = True
+        init_warp()
         has_cuda = wp.is_cuda_available()
     except Exception:
         has_cuda = False

@@ -60,7 +60,10 @@ def test_config_keys_take_effect_and_are_written(tmp_path, images, capsys):
         assert json.loads(f.attrs["image"])["invert"] is False
         assert "window_sizes = [64, 32]" in f.attrs["config"]
         assert json.loads(f.attrs["counts"])["measured"] == 49
-        assert "MEDIAN" in f.attrs["flag_bits"] and f["u"].attrs["units"] == "px"
+        bits = json.loads(f["flags"].attrs["flag_bits"])
+        assert bits["1"]["name"] == "MEDIAN" and "median test" in bits["1"]["description"]
+        assert bits["32"]["name"] == "ISOLATED" and f["u"].attrs["units"] == "px"
+        assert f["correlation"].attrs["units"] == "1"
         assert_allclose(f["u"][()], SHIFT[0], atol=0.05)
         assert_allclose(f["v"][()], SHIFT[1], atol=0.05)
     # flags override the file

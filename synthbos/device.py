@@ -1,0 +1,83 @@
+"""Warp start-up without noise, and the device a command runs on.
+
+Warp's native library probes for the CUDA driver when ``wp.init()`` first runs and, on a machine
+without one, writes "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver ..." straight to
+file descriptor 2, which no Python setting silences. ``init_warp`` runs that first initialisation with
+descriptor 2 caught in a temporary file and passes on everything except that one line, so a real
+error still shows. Worker processes call it too (each spawned process initialises Warp afresh).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+
+import warp as wp
+
+from synthbos import SynthbosError
+
+__all__ = ["describe_device", "init_warp", "resolve_device"]
+
+# What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+_initialised = False
+
+
+@contextlib.contextmanager
+def _filtered_native_stderr(drop: str):
+    """Catch what native code writes to descriptor 2; write it back without the lines containing ``drop``."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 (a detached process): nothing to filter
+        yield
+        return
+    with tempfile.TemporaryFile(mode="w+b") as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            text = caught.read().decode(errors="replace")
+            kept = [line for line in text.splitlines(keepends=True) if drop not in line]
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
+
+
+def init_warp() -> None:
+    """Initialise Warp once, quietly: no greeting, no module-load lines, no missing-driver warning."""
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:  # Warp releases before log levels
+        wp.config.quiet = True
+    global _initialised
+    if _initialised:
+        return
+    with _filtered_native_stderr(_NO_DRIVER):
+        wp.init()  # a no-op if Warp was initialised already
+    _initialised = True
+
+
+def resolve_device(device=None) -> str:
+    """The Warp device to use: ``device`` if given (checked), else ``cuda:0`` when present, else ``cpu``."""
+    init_warp()
+    if device is None:
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    try:
+        return str(wp.get_device(device))
+    except (RuntimeError, ValueError) as err:
+        raise SynthbosError(f"Warp device {device!r} is not available: {err}") from None
+
+
+def describe_device(device: str) -> str:
+    """One line for a command's output: ``device: cpu (no CUDA device found)``, ``device: cuda:0 (NVIDIA H100)``."""
+    init_warp()
+    if device == "cpu":
+        return "device: cpu" if wp.is_cuda_available() else "device: cpu (no CUDA device found)"
+    return f"device: {device} ({wp.get_device(device).name})"

@@ -1,0 +1,64 @@
+"""Figures a reviewer accepts: full-colour 300 dpi PNG beside a vector PDF, the threshold and counts
+stated, sweep axes in words."""
+
+from dataclasses import replace
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from PIL import Image
+from synthbos.benchmarks import figures
+from synthbos.benchmarks.campaign import run_campaign
+from synthbos.benchmarks.registry import METHODS
+from synthbos.benchmarks.spec import REGRESS
+from synthbos.benchmarks.sweep import parameter_label
+
+TINY = replace(REGRESS, name="tiny-fig", snapshots=(2,), noise_percent=(0.0, 3.0),
+               config={"camera": {"pixels": [96, 96]}, "target": {"dots_per_32px": 12.0}, "rays": {"per_dot": 10}})
+
+
+def _assert_png_and_pdf(stem):
+    png, pdf = stem.with_suffix(".png"), stem.with_suffix(".pdf")
+    assert pdf.read_bytes()[:5] == b"%PDF-"
+    with Image.open(png) as im:
+        assert im.mode in ("RGB", "RGBA")  # no palette reduction
+        assert round(im.info["dpi"][0]) == 300
+
+
+@pytest.fixture
+def captured(monkeypatch):
+    """The figures a function saves, kept open for inspection (and still written)."""
+    figs = []
+    save = figures.save_figure
+
+    def keep(fig, path):
+        figs.append((fig, [t.get_text() for t in fig.findobj(plt.Text)]))
+        return save(fig, path)
+
+    monkeypatch.setattr(figures, "_save", keep)
+    return figs
+
+
+def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
+    run_campaign(TINY, tmp_path, device="cpu", workers=1, progress=False)
+    for stem in ("fig4", "fig5"):
+        _assert_png_and_pdf(tmp_path / stem)
+    (_, texts4), (_, texts5) = captured
+    assert any("ray-traced" in t for t in texts4)
+    assert any("own scale" in t for t in texts4)
+    title5 = next(t for t in texts5 if t.startswith("Error CDFs"))
+    assert "Threshold" in title5 and " px" in title5
+    assert sum(t.startswith("n = ") for t in texts5) == 4 * len(TINY.noise_percent) * len(TINY.methods)
+    assert all(m.label in texts5 for m in METHODS.values())
+
+
+def test_log_limits_fit_the_data():
+    lo, hi = figures._log_limits([np.array([1e-3, 2e-3, 0.05, np.nan, 0.0])], low_quantile=0.0, margin=1.25)
+    assert lo == pytest.approx(1e-3 / 1.25) and hi == pytest.approx(0.05 * 1.25)
+
+
+def test_sweep_parameters_are_named_in_words_with_units():
+    assert parameter_label("camera.f_number") == "f-number"
+    assert parameter_label("target.dots_per_32px") == "dot density (dots per 32 × 32 px)"
+    assert parameter_label("volume.density_scale_kg_m3") == "volume density scale (kg/m³)"
+    assert parameter_label("noise").endswith("(% of the dot peak)")

@@ -1,0 +1,21 @@
+"""Warp starts quietly: its missing-driver line is dropped, anything else on stderr is kept."""
+
+import os
+
+from synthbos.device import _filtered_native_stderr, describe_device, resolve_device
+
+
+def test_native_stderr_filter_drops_only_the_named_line(capfd):
+    with _filtered_native_stderr("no driver here"):
+        os.write(2, b"Warp CUDA warning: no driver here, fine.\nsomething real went wrong\n")
+    err = capfd.readouterr().err
+    assert "no driver here" not in err
+    assert "something real went wrong" in err
+
+
+def test_device_is_resolved_and_described_once():
+    device = resolve_device(None)
+    assert device in ("cpu", "cuda:0")
+    line = describe_device(device)
+    assert line.startswith(f"device: {device}")
+    assert resolve_device("cpu") == "cpu"
