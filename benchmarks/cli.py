@@ -173,7 +173,7 @@ def _show_density(args):
 def _show_result(args):
     out = _out_path(args.output)
     summary = plot_result(args.result, out)
-    print(f"wrote {out}\n{summary}")
+    print(f"wrote {out} (and .pdf)\n{summary}")
     return 0
 
 
@@ -247,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
     p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
-    p.add_argument("-o", "--output", required=True, help="figure to write (PNG, PDF or SVG by suffix)")
+    p.add_argument("-o", "--output", required=True, help="PNG to write (a PDF beside it)")
     p.set_defaults(func=_show_result)
     return parser
 

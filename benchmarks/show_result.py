@@ -1,9 +1,10 @@
 """``synthbos show-result RESULT.h5 -o FIG.png``: a figure and a short summary of one result file.
 
-The figure shows the displacement magnitude (a colour map of the vector grid, or coloured dots), the
-vectors as arrows, and marks the points that were replaced (orange circles), failed (vermillion
-crosses) or masked (grey); the title states the counts. The summary (returned and printed) gives
-the counts and the median and largest displacement of the measured points.
+The figure (a 300 dpi PNG and a PDF beside it) shows the displacement magnitude (a colour map of the
+vector grid, or coloured dots), the vectors as arrows, and marks the points that were replaced
+(orange circles), failed (vermillion crosses) or masked (grey); the title states the counts. The
+summary (returned and printed) gives the counts and the median and largest displacement of the
+measured points.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError
 
+from .figures import save_figure
 from .registry import GRID, get_method
 
 __all__ = ["plot_result", "read_result"]
@@ -86,14 +88,15 @@ def summary_line(res) -> str:
 
 
 def plot_result(path, out, *, max_arrows=40) -> str:
-    """Draw a result file (module docstring) into ``out`` (format by suffix, 300 dpi) and return the summary.
+    """Draw a result file (module docstring) and return the summary.
 
     Parameters
     ----------
     path : str or Path
         Result file of ``synthbos process``.
     out : str or Path
-        Figure to write, atomically.
+        Figure to write: a 300 dpi PNG and a PDF of the same name beside it
+        (``figures.save_figure``), atomically.
     max_arrows : int
         At most this many arrows along each axis (a regular subset of the points).
     """
@@ -152,8 +155,5 @@ def plot_result(path, out, *, max_arrows=40) -> str:
     fig.colorbar(im, ax=ax, label="|displacement| [px]", shrink=0.85)
     if ax.get_legend_handles_labels()[0]:
         fig.legend(loc="outside lower center", ncols=3, fontsize=8, frameon=False)
-    out = Path(out)
-    with atomic_output(out) as tmp:
-        fig.savefig(tmp, dpi=300, format=out.suffix.lstrip(".").lower() or "png")
-    plt.close(fig)
+    save_figure(fig, out)
     return summary
