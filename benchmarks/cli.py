@@ -23,7 +23,7 @@ from synthbos.device import describe_device, init_warp, resolve_device
 from .campaign import run_campaign
 from .items import nominal_positions
 from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
-from .registry import get_method, method_names
+from .registry import GRID, get_method, method_names
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
 from .show_result import plot_result
@@ -108,7 +108,7 @@ def _process(args):
     c = res.counts or {}
     ok = res.valid if res.valid is not None else np.all(np.isfinite(res.uv), axis=1)
     med = np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float("nan")
-    noun = "vectors" if method.kind == "grid" else "dots"
+    noun = "vectors" if method.kind == GRID else "dots"
     print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
