@@ -24,8 +24,13 @@ from .tables import summarise
 __all__ = ["run_campaign"]
 
 
-def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True):
+def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
+                 scheduler=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
+
+    With ``scheduler`` (``"local"``, a Dask scheduler address or file, or an open
+    ``distributed.DaskRunner``) the items run on a Dask cluster, one task per pair (``distributed``);
+    the files and the summary are the same.
 
     Returns
     -------
@@ -33,7 +38,6 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         One row per method, noise level, split and quantity (see ``tables.summarise``).
     """
     folder = Path(folder)
-    workers = workers or default_workers()
     methods = [get_method(name) for name in spec.methods]  # an unknown method fails before any work
     for s, p in spec.pair_keys()[:1]:  # so does a bad configuration
         load_config(spec.pair_config(s, p))
@@ -44,7 +48,6 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         for s, p in spec.pair_keys()
         if not pair_path(folder, s, p).exists()
     ]
-    run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)
     scores = []
     for s, p in spec.pair_keys():
         for noise in spec.noise_percent:
@@ -54,7 +57,14 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
                 if not out.exists():
                     scores.append((str(pair_path(folder, s, p)), m.name, noise, seeds, str(out),
                                    spec.overrides_for(m)))
-    run_items(scores, score_item, workers=workers, desc="process", progress=progress)
+    if scheduler is not None:  # Dask: each pair is rendered and scored by one task, on one worker
+        from .distributed import run_pairs
+
+        run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress)
+    else:
+        workers = workers or default_workers()
+        run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)
+        run_items(scores, score_item, workers=workers, desc="process", progress=progress)
     rows = summarise(spec, folder)
     write_tables(rows, folder)
     if figures:

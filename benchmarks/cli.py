@@ -132,7 +132,8 @@ def _paper(args):
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
-    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet)
+    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
+                        scheduler=args.scheduler)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -141,7 +142,8 @@ def _paper(args):
 
 def _regress(args):
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
-    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet)
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
+                                 scheduler=args.scheduler)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -158,7 +160,7 @@ def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
     rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
-                     workers=args.workers, progress=not args.quiet)
+                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
@@ -175,6 +177,12 @@ def _show_result(args):
     summary = plot_result(args.result, out)
     print(f"wrote {out} (and .pdf)\n{summary}")
     return 0
+
+
+def _add_scheduler_option(p) -> None:
+    p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
+                   help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
+                        "an address or a scheduler file joins a running one (needs dask[distributed])")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -219,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
         p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        _add_scheduler_option(p)
         p.set_defaults(func=_paper)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
@@ -226,6 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_regress)
 
     p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
@@ -238,6 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("-q", "--quiet", action="store_true")
+    _add_scheduler_option(p)
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")

@@ -56,14 +56,17 @@ def compare_to_baseline(rows, baseline_rows):
     return problems
 
 
-def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True):
+def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True, scheduler=None):
     """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead."""
     baseline = Path(baseline)
     if not update and not baseline.is_file():
         raise SynthbosError(f"no regression baseline at {baseline}; create it with 'synthbos regress --update'")
+    if isinstance(scheduler, str) and scheduler != "local" and out is None:
+        raise SynthbosError("with a joined --scheduler give --out: a folder the workers see at the same path")
     with tempfile.TemporaryDirectory(prefix="synthbos-regress-") as tmp:
         folder = Path(out) if out else Path(tmp)
-        rows = run_campaign(REGRESS, folder, device="cpu", workers=workers, progress=progress, figures=False)
+        rows = run_campaign(REGRESS, folder, device="cpu", workers=workers, progress=progress, figures=False,
+                            scheduler=scheduler)
     if update:
         baseline.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(baseline) as tmp_file:

@@ -15,6 +15,7 @@ Parameters are named by a configuration key, ``table.key`` (e.g. ``target.dots_p
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 from dataclasses import replace
@@ -111,8 +112,13 @@ def _slug(name, value):
     return f"{name.replace('.', '-')}={value:g}"
 
 
-def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True):
-    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows."""
+def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
+              scheduler=None):
+    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
+
+    With ``scheduler`` (see ``run_campaign``) one Dask client serves the whole sweep and all its points
+    run together, so every worker stays busy however few pairs a point has.
+    """
     if not 1 <= len(params) <= 2:
         raise SynthbosError("give one or two --param options")
     if size not in SIZES:
@@ -122,7 +128,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
     (name1, vals1), *rest = params
     name2, vals2 = rest[0] if rest else (None, [None])
-    rows = []
+    points = []
     for v2 in vals2:
         for v1 in vals1:
             spec = apply_parameter(spec0, name1, v1)
@@ -132,12 +138,41 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                 label += "_" + _slug(name2, v2)
             spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
             load_config(spec.pair_config(spec.snapshots[0], 0))  # a bad value fails before any work
-            if progress:
-                print(f"sweep point {label}")
-            point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
-                                      progress=progress, figures=False)
-            for r in point_rows:
-                rows.append({"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r})
+            points.append((v1, v2, label, spec))
+
+    def run_point(point, runner=None):
+        v1, v2, label, spec = point
+        if progress and runner is None:
+            print(f"sweep point {label}")
+        point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
+                                  progress=progress, figures=False, scheduler=runner)
+        return [{"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r} for r in point_rows]
+
+    if scheduler is None:
+        per_point = [run_point(point) for point in points]
+    else:
+        from concurrent.futures import FIRST_EXCEPTION, CancelledError, ThreadPoolExecutor, wait
+
+        from .distributed import DaskRunner
+
+        owned = not isinstance(scheduler, DaskRunner)
+        runner = DaskRunner(scheduler, device=device, workers=workers, progress=progress) if owned else scheduler
+        # One thread per point submits its pair tasks and waits for them; the cluster runs them all together.
+        threads = min(len(points), 64)
+        with (runner if owned else contextlib.nullcontext()), ThreadPoolExecutor(threads, "sweep-point") as pool:
+            futures = [pool.submit(run_point, point, runner) for point in points]
+            try:
+                wait(futures, return_when=FIRST_EXCEPTION)
+            except BaseException:  # Ctrl-C
+                runner.abort()
+                raise
+            if any(f.exception() for f in futures if f.done()):
+                runner.abort()  # the other points' tasks too; then report the error that came first
+                wait(futures)
+                errors = [f.exception() for f in futures if f.exception() is not None]
+                raise next((e for e in errors if not isinstance(e, CancelledError)), errors[0])
+            per_point = [f.result() for f in futures]
+    rows = [r for point_rows in per_point for r in point_rows]
     write_tables(rows, folder, stem="sweep")
     with atomic_output(folder / "sweep_params.json") as tmp:
         tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))

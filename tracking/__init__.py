@@ -14,7 +14,9 @@ from .centroid import (
     fit_centroids,
 )
 from .correction import correlation_correction
+from .crlb import displacement_crlb, position_crlb
 from .diameter import estimate_dot_diameter
+from .dotfit import fit_dots, fit_dots_numpy
 from .identify import (
     blob_properties,
     blob_score,
@@ -41,14 +43,18 @@ __all__ = [
     "centroid_intensity_weighted",
     "centroid_lsq_gaussian",
     "correlation_correction",
+    "displacement_crlb",
     "dynamic_threshold_identification",
     "estimate_dot_diameter",
     "estimate_noise",
     "fit_centroids",
+    "fit_dots",
+    "fit_dots_numpy",
     "fit_soloff",
     "is_valid",
     "match_multiparametric",
     "match_nearest",
+    "position_crlb",
     "render_gaussians",
     "segment_windows",
     "static_threshold_identification",

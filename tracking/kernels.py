@@ -1,17 +1,39 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of dot tracking: one thread measures the window around one predicted dot position.
+"""Warp kernels of dot tracking.
 
-Kernels only; the host code that allocates and launches is :mod:`tracking.windows`, whose NumPy
-reference (``measure_windows_numpy``) defines what the kernel computes.
+Kernels and ``@wp.func`` steps only; the host code that allocates and launches lives next to it:
+:mod:`tracking.windows` (identification: one thread measures the window around one predicted dot) and
+:mod:`tracking.dotfit` (the joint least-squares fit of the pixel-integrated dot model: one thread per
+dot). Their NumPy references (``measure_windows_numpy``, ``fit_dots_numpy``) define what the kernels
+compute. Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 """
 
 import warp as wp
 
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
-wp.config.quiet = True
+vec5d = wp.types.vector(length=5, dtype=wp.float64)
+mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
+
+
+@wp.struct
+class NormalEquations:
+    """Normal equations of one dot, parameters split into position and background ``(x, y, b)`` and shape
+    ``(I0, sigma)``: ``J^T J = [[p, q], [q^T, r]]``, ``J^T res = (g1, g2)``; ``h1`` is the position part
+    of ``J^T res'`` against the common-shape model image."""
+
+    p: wp.mat33d
+    q: mat32d
+    r: wp.mat22d
+    g1: wp.vec3d
+    g2: wp.vec2d
+    h1: wp.vec3d
+
+
+# --- identification: one window around one predicted position -------------------------------------
 
 
 @wp.func
@@ -26,6 +48,211 @@ def ring_pixel(k: int, w: int) -> int:
     if k2 % 2 == 0:
         return row * w
     return row * w + (w - 1)
+
+
+@wp.func
+def load_window(
+    image: wp.array2d(dtype=wp.float64),
+    fill: wp.float64,
+    ox: int,
+    oy: int,
+    w: int,
+    i: int,
+    win: wp.array2d(dtype=wp.float64),
+) -> wp.vec2d:
+    """Copy the window at column ``ox``, row ``oy`` into ``win[i]`` (``fill`` outside); return (min, max)."""
+    vmin = wp.float64(1.0e300)
+    vmax = wp.float64(-1.0e300)
+    for p in range(w * w):
+        y = oy + p // w
+        x = ox + p % w
+        v = fill
+        if y >= 0 and y < image.shape[0] and x >= 0 and x < image.shape[1]:
+            v = image[y, x]
+        win[i, p] = v
+        vmin = wp.min(vmin, v)
+        vmax = wp.max(vmax, v)
+    return wp.vec2d(vmin, vmax)
+
+
+@wp.func
+def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
+    """Median of the window's edge pixels (insertion sort in ``ring[i]``; ``4 (w - 1)`` is small)."""
+    n = 4 * (w - 1)
+    for j in range(n):
+        ring[i, j] = win[i, ring_pixel(j, w)]
+    for j in range(1, n):
+        v = ring[i, j]
+        k = j - 1
+        while k >= 0 and ring[i, k] > v:
+            ring[i, k + 1] = ring[i, k]
+            k -= 1
+        ring[i, k + 1] = v
+    return (ring[i, n / 2 - 1] + ring[i, n / 2]) / wp.float64(2.0)
+
+
+@wp.func
+def uphill_neighbour(win: wp.array2d(dtype=wp.float64), i: int, w: int, p: int) -> int:
+    """The brightest of pixel p and its 8 neighbours (ties: the higher index)."""
+    pr = p // w
+    pc = p % w
+    best = p
+    bv = win[i, p]
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = pr + dy
+            c = pc + dx
+            if r >= 0 and r < w and c >= 0 and c < w:
+                q = r * w + c
+                vq = win[i, q]
+                if vq > bv or (vq == bv and q > best):
+                    best = q
+                    bv = vq
+    return best
+
+
+@wp.func
+def segment_window(
+    win: wp.array2d(dtype=wp.float64),
+    i: int,
+    w: int,
+    thr: wp.float64,
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+) -> int:
+    """Label each pixel above ``thr`` with its blob's peak pixel by steepest ascent (-1 below).
+
+    Fills ``area[i, root]`` with each blob's pixel count and returns the number of blobs.
+    """
+    for p in range(w * w):
+        area[i, p] = 0
+        lab[i, p] = -1
+        if win[i, p] > thr:
+            lab[i, p] = uphill_neighbour(win, i, w, p)
+    nblobs = int(0)
+    for p in range(w * w):
+        if lab[i, p] >= 0:
+            r = lab[i, p]
+            while lab[i, r] != r:
+                r = lab[i, r]
+            lab[i, p] = r
+            area[i, r] = area[i, r] + 1
+            if r == p:
+                nblobs += 1
+    return nblobs
+
+
+@wp.func
+def peak_distance(p: int, w: int, lx: wp.float64, ly: wp.float64) -> wp.float64:
+    """Distance of window pixel p from the point (lx, ly) in window coordinates."""
+    ddx = wp.float64(p % w) - lx
+    ddy = wp.float64(p // w) - ly
+    return wp.sqrt(ddx * ddx + ddy * ddy)
+
+
+@wp.func
+def choose_blob(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    bg: wp.float64,
+    lx: wp.float64,
+    ly: wp.float64,
+    radius: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+) -> int:
+    """Peak pixel of the blob with the best Eq. 1 score among those within ``radius``; -1 if none.
+
+    Eq. 1 of Rajendran, Bane and Vlachos (2019); area, peak and distance are scaled by their maxima
+    over the candidates, and the first best wins.
+    """
+    ma = wp.float64(-1.0e300)
+    mi = wp.float64(-1.0e300)
+    md = wp.float64(-1.0e300)
+    for p in range(w * w):
+        if lab[i, p] == p:
+            dist = peak_distance(p, w, lx, ly)
+            if dist <= radius:
+                ma = wp.max(ma, wp.float64(area[i, p]))
+                mi = wp.max(mi, win[i, p] - bg)
+                md = wp.max(md, dist)
+    chosen = int(-1)
+    best = wp.float64(-1.0e300)
+    for p in range(w * w):
+        if lab[i, p] == p:
+            dist = peak_distance(p, w, lx, ly)
+            if dist <= radius:
+                ta = wp.float64(1.0)
+                ti = wp.float64(1.0)
+                td = wp.float64(1.0)
+                if ma > wp.float64(0.0):
+                    ta = wp.float64(area[i, p]) / ma
+                if mi > wp.float64(0.0):
+                    ti = (win[i, p] - bg) / mi
+                if md > wp.float64(0.0):
+                    td = wp.float64(1.0) - dist / md
+                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+                if score > best:
+                    best = score
+                    chosen = p
+    return chosen
+
+
+@wp.func
+def count_saturated(
+    win: wp.array2d(dtype=wp.float64), lab: wp.array2d(dtype=wp.int32), i: int, w: int, chosen: int, sat: wp.float64
+) -> int:
+    """Pixels of the chosen blob at or above the saturation level."""
+    nsat = int(0)
+    for p in range(w * w):
+        if lab[i, p] == chosen and win[i, p] >= sat:
+            nsat += 1
+    return nsat
+
+
+@wp.func
+def touches_blob(lab: wp.array2d(dtype=wp.int32), i: int, w: int, qr: int, qc: int, blob: int) -> bool:
+    """True where pixel (qr, qc) or one of its 8 neighbours belongs to ``blob``."""
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            r = qr + dy
+            c = qc + dx
+            if r >= 0 and r < w and c >= 0 and c < w:
+                if lab[i, r * w + c] == blob:
+                    return True
+    return False
+
+
+@wp.func
+def cut_dot_map(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    chosen: int,
+    bg: wp.float64,
+    hc: int,
+    k: int,
+    dotmap: wp.array3d(dtype=wp.float64),
+):
+    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero."""
+    c = 2 * hc + 1
+    rr = chosen // w
+    rc = chosen % w
+    for a in range(c):
+        for b in range(c):
+            qr = rr + a - hc
+            qc = rc + b - hc
+            val = wp.float64(0.0)
+            if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+                l = lab[i, qr * w + qc]
+                if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
+                    val = win[i, qr * w + qc] - bg
+            dotmap[k, a, b] = val
 
 
 @wp.kernel
@@ -52,149 +279,310 @@ def measure_windows_kernel(
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
+    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map.
+
+    ``win``, ``ring``, ``lab`` and ``area`` are scratch rows: thread i uses row ``i % rows`` (one row is
+    enough where threads run one after another, as on the CPU).
+    """
     i = wp.tid()
+    s = i % win.shape[0]
     w = 2 * half + 1
-    ww = w * w
-    nrow = image.shape[0]
-    ncol = image.shape[1]
-    ox = origin[i, 0]
-    oy = origin[i, 1]
-    vmax = wp.float64(-1.0e300)
-    vmin = wp.float64(1.0e300)
-    for p in range(ww):
-        y = oy + p // w
-        x = ox + p % w
-        v = fill
-        if y >= 0 and y < nrow and x >= 0 and x < ncol:
-            v = image[y, x]
-        win[i, p] = v
-        vmax = wp.max(vmax, v)
-        vmin = wp.min(vmin, v)
-        area[i, p] = 0
-    # Background: the median of the window's edge pixels (or the window minimum).
-    bg = vmin
+    mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
+    bg = mm[0]
     if use_min == 0:
-        n = 4 * (w - 1)
-        for j in range(n):
-            ring[i, j] = win[i, ring_pixel(j, w)]
-        # Insertion sort of the edge pixels (n <= 4 (w - 1) is small), then the two middle values.
-        for j in range(1, n):
-            v = ring[i, j]
-            k = j - 1
-            while k >= 0 and ring[i, k] > v:
-                ring[i, k + 1] = ring[i, k]
-                k -= 1
-            ring[i, k + 1] = v
-        m1 = ring[i, n / 2 - 1]
-        m2 = ring[i, n / 2]
-        bg = (m1 + m2) / wp.float64(2.0)
-    thr = bg + wp.max(frac * (vmax - bg), floor)
-    # Steepest ascent: each foreground pixel points to its brightest 8-neighbour (ties: higher index).
-    for p in range(ww):
-        vp = win[i, p]
-        if vp > thr:
-            pr = p // w
-            pc = p % w
-            best = p
-            bv = vp
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    r = pr + dy
-                    c = pc + dx
-                    if r >= 0 and r < w and c >= 0 and c < w:
-                        q = r * w + c
-                        vq = win[i, q]
-                        if vq > bv or (vq == bv and q > best):
-                            best = q
-                            bv = vq
-            lab[i, p] = best
-        else:
-            lab[i, p] = -1
-    for p in range(ww):
-        if lab[i, p] >= 0:
-            r = lab[i, p]
-            while lab[i, r] != r:
-                r = lab[i, r]
-            lab[i, p] = r
-            area[i, r] = area[i, r] + 1
-    lx = local[i, 0]
-    ly = local[i, 1]
-    ma = wp.float64(-1.0e300)
-    mi = wp.float64(-1.0e300)
-    md = wp.float64(-1.0e300)
-    nblobs = int(0)  # a dynamic Warp variable
-    for p in range(ww):
-        if lab[i, p] == p:
-            nblobs += 1
-            ddx = wp.float64(p % w) - lx
-            ddy = wp.float64(p // w) - ly
-            dist = wp.sqrt(ddx * ddx + ddy * ddy)
-            if dist <= radius:
-                ma = wp.max(ma, wp.float64(area[i, p]))
-                mi = wp.max(mi, win[i, p] - bg)
-                md = wp.max(md, dist)
-    # Eq. 1 of Rajendran, Bane and Vlachos (2019) over the candidate blobs; the first best wins.
-    chosen = int(-1)  # a dynamic Warp variable
-    best_score = wp.float64(-1.0e300)
-    best_dist = wp.float64(0.0)
-    for p in range(ww):
-        if lab[i, p] == p:
-            ddx = wp.float64(p % w) - lx
-            ddy = wp.float64(p // w) - ly
-            dist = wp.sqrt(ddx * ddx + ddy * ddy)
-            if dist <= radius:
-                ta = wp.float64(1.0)
-                ti = wp.float64(1.0)
-                td = wp.float64(1.0)
-                if ma > wp.float64(0.0):
-                    ta = wp.float64(area[i, p]) / ma
-                if mi > wp.float64(0.0):
-                    ti = (win[i, p] - bg) / mi
-                if md > wp.float64(0.0):
-                    td = wp.float64(1.0) - dist / md
-                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
-                if score > best_score:
-                    best_score = score
-                    chosen = p
-                    best_dist = dist
+        bg = edge_median(win, s, w, ring)
+    thr = bg + wp.max(frac * (mm[1] - bg), floor)
+    nblobs = segment_window(win, s, w, thr, lab, area)
+    chosen = choose_blob(win, lab, area, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
+    out_int[i, 2] = 0
     out_float[i, 0] = bg
-    c = 2 * hc + 1
-    if chosen < 0:
-        out_int[i, 2] = 0
-        out_float[i, 1] = wp.float64(0.0)
-        out_float[i, 2] = wp.float64(0.0)
-        for a in range(c):
-            for b in range(c):
-                dotmap[i, a, b] = wp.float64(0.0)
-        return
-    out_float[i, 1] = win[i, chosen] - bg
-    out_float[i, 2] = best_dist
-    nsat = int(0)  # a dynamic Warp variable
-    for p in range(ww):
-        if lab[i, p] == chosen and win[i, p] >= sat:
-            nsat += 1
-    out_int[i, 2] = nsat
-    # Dot map around the peak: the chosen blob and its rim, minus background; other blobs zeroed.
-    rr = chosen // w
-    rc = chosen % w
-    for a in range(c):
-        for b in range(c):
-            qr = rr + a - hc
-            qc = rc + b - hc
-            val = wp.float64(0.0)
-            if qr >= 0 and qr < w and qc >= 0 and qc < w:
-                l = lab[i, qr * w + qc]
-                keep = l == chosen
-                if l < 0:
-                    for dy in range(-1, 2):
-                        for dx in range(-1, 2):
-                            r = qr + dy
-                            cc = qc + dx
-                            if r >= 0 and r < w and cc >= 0 and cc < w:
-                                if lab[i, r * w + cc] == chosen:
-                                    keep = True
-                if keep:
-                    val = win[i, qr * w + qc] - bg
-            dotmap[i, a, b] = val
+    out_float[i, 1] = wp.float64(0.0)
+    out_float[i, 2] = wp.float64(0.0)
+    if chosen >= 0:
+        out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
+        out_float[i, 1] = win[s, chosen] - bg
+        out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
+    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, dotmap)
+
+
+# --- the pixel-integrated dot model and its joint fit ---------------------------------------------
+
+
+@wp.func
+def erf_from_gauss(x: wp.float64, g: wp.float64) -> wp.float64:
+    """``erf(x)`` given ``g = exp(-x^2)``: Abramowitz and Stegun 7.1.26 (absolute error below 1.5e-7)."""
+    t = wp.float64(1.0) / (wp.float64(1.0) + wp.float64(0.3275911) * wp.abs(x))
+    poly = wp.float64(1.061405429) * t - wp.float64(1.453152027)
+    poly = poly * t + wp.float64(1.421413741)
+    poly = poly * t - wp.float64(0.284496736)
+    poly = poly * t + wp.float64(0.254829592)
+    e = wp.float64(1.0) - poly * t * g
+    if x < wp.float64(0.0):
+        return -e
+    return e
+
+
+@wp.func
+def integrated_profile(
+    first: int, n: int, c: wp.float64, s: wp.float64, i: int, row: int, prof: wp.array3d(dtype=wp.float64)
+):
+    """1-D pixel profile of a unit-peak Gaussian and its c- and s-derivatives into ``prof[i, row:row + 3]``.
+
+    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
+    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``.
+    """
+    inv = wp.float64(1.0) / s
+    k0 = wp.float64(0.7071067811865476)
+    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+    z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
+    g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
+    e0 = erf_from_gauss(z0 * k0, g0)
+    for k in range(n):
+        z1 = z0 + inv
+        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = erf_from_gauss(z1 * k0, g1)
+        p = scale * (e1 - e0)
+        prof[i, row, k] = p
+        prof[i, row + 1, k] = g0 - g1
+        prof[i, row + 2, k] = z0 * g0 - z1 * g1 + p * inv
+        z0 = z1
+        g0 = g1
+        e0 = e1
+
+
+@wp.func
+def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Both axes' profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel (rows 0-5)."""
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    integrated_profile(ox, 2 * half + 1, params[i, 0], params[i, 3], i, 0, prof)
+    integrated_profile(oy, 2 * half + 1, params[i, 1], params[i, 3], i, 3, prof)
+
+
+@wp.kernel
+def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Profiles of every dot on its stamp (see ``dot_profiles``)."""
+    dot_profiles(params, wp.tid(), half, prof)
+
+
+@wp.func
+def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.vec2d:
+    """(I0, sigma) of dot i shared with its partner in the other image: the mean of both (own if none)."""
+    j = partner[i]
+    if j < 0:
+        return wp.vec2d(params[i, 2], params[i, 3])
+    half = wp.float64(0.5)
+    return wp.vec2d(half * (params[i, 2] + params[j, 2]), half * (params[i, 3] + params[j, 3]))
+
+
+@wp.kernel
+def render_dots_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    half: int,
+    common: int,
+    prof: wp.array3d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
+):
+    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
+
+    ``models[0, f]``: ``I0 p_x p_y``; if ``common``, ``models[1, f]``: the same at the pair's common
+    shape, linearised in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
+    """
+    i = wp.tid()
+    f = frame[i]
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    cs = common_shape(params, partner, i)
+    ds = cs[1] - params[i, 3]
+    for r in range(n):
+        row = oy + r
+        if row >= 0 and row < models.shape[2]:
+            py = prof[i, 3, r]
+            spy = prof[i, 5, r]
+            for c in range(n):
+                col = ox + c
+                if col >= 0 and col < models.shape[3]:
+                    px = prof[i, 0, c]
+                    models[0, f, row, col] += a * py * px
+                    if common != 0:
+                        models[1, f, row, col] += cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+
+
+@wp.func
+def normal_matrix(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    sat: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+) -> NormalEquations:
+    """Dot i's normal equations: ``J^T J`` in blocks, ``J^T r`` and ``J^T r'`` (see ``NormalEquations``).
+
+    The window is the central ``2 half + 1`` part of the stamp whose profiles ``prof`` holds (``skip``
+    pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
+    this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
+    against the common-shape model image ``models[1]``. ``J`` is the derivative of the model with
+    respect to x, y, I0, sigma and the background. Pixels at or above ``sat`` (saturated: they only
+    bound the intensity) take no part.
+    """
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    s00 = zero
+    s01 = zero
+    s02 = zero
+    s03 = zero
+    s04 = zero
+    s11 = zero
+    s12 = zero
+    s13 = zero
+    s14 = zero
+    s22 = zero
+    s23 = zero
+    s24 = zero
+    s33 = zero
+    s34 = zero
+    s44 = zero
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
+    for rr in range(n):
+        row = oy + rr
+        if row >= 0 and row < image.shape[0]:
+            py = prof[i, 3, rr + skip]
+            dpy = a * prof[i, 4, rr + skip]
+            spy = a * prof[i, 5, rr + skip]
+            apy = a * py
+            for cc in range(n):
+                col = ox + cc
+                if col >= 0 and col < image.shape[1] and image[row, col] < sat:
+                    px = prof[i, 0, cc + skip]
+                    v = image[row, col] - b
+                    res = v - models[0, f, row, col]
+                    res2 = v - models[1, f, row, col]
+                    j0 = apy * prof[i, 1, cc + skip]
+                    j1 = dpy * px
+                    j2 = py * px
+                    j3 = spy * px + apy * prof[i, 2, cc + skip]
+                    s00 += j0 * j0
+                    s01 += j0 * j1
+                    s02 += j0 * j2
+                    s03 += j0 * j3
+                    s04 += j0
+                    s11 += j1 * j1
+                    s12 += j1 * j2
+                    s13 += j1 * j3
+                    s14 += j1
+                    s22 += j2 * j2
+                    s23 += j2 * j3
+                    s24 += j2
+                    s33 += j3 * j3
+                    s34 += j3
+                    s44 += wp.float64(1.0)
+                    g0 += j0 * res
+                    g1 += j1 * res
+                    g2 += j2 * res
+                    g3 += j3 * res
+                    g4 += res
+                    h0 += j0 * res2
+                    h1 += j1 * res2
+                    h4 += res2
+    eps = wp.float64(1.0e-12)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(g0, g1, g4)
+    ne.g2 = wp.vec2d(g2, g3)
+    ne.h1 = wp.vec3d(h0, h1, h4)
+    return ne
+
+
+@wp.func
+def limited(step: vec5d) -> vec5d:
+    """The step scaled so that the position moves at most half a pixel per axis."""
+    big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
+    if big > wp.float64(0.5):
+        return step * (wp.float64(0.5) / big)
+    return step
+
+
+@wp.kernel
+def fit_dot_step_kernel(
+    image0: wp.array2d(dtype=wp.float64),
+    image1: wp.array2d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.float64),
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    half: int,
+    render_half: int,
+    max_move: wp.float64,
+    smin: wp.float64,
+    smax: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
+
+    ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
+
+    ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
+    at the new parameters ``out``. ``shared_xy`` gets the position of the step for position and
+    background against the common-shape model image (NaN without a partner).
+    """
+    i = wp.tid()
+    p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
+    f = frame[i]
+    ne = NormalEquations()
+    if f == 0:
+        ne = normal_matrix(image0, models, f, params, i, half, render_half - half, saturation[f], prof)
+    else:
+        ne = normal_matrix(image1, models, f, params, i, half, render_half - half, saturation[f], prof)
+    # Block elimination: the shape step from the Schur complement, then position and background.
+    pinv = wp.inverse(ne.p)
+    pq = pinv * ne.q
+    schur = ne.r - wp.transpose(ne.q) * pq
+    d2 = wp.inverse(schur) * (ne.g2 - wp.transpose(pq) * ne.g1)
+    d1 = pinv * (ne.g1 - ne.q * d2)
+    step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
+    q = p + limited(step)
+    good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
+    good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
+    good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
+    if not good:
+        q = p
+    hs = pinv * ne.h1
+    qs = limited(vec5d(hs[0], hs[1], wp.float64(0.0), wp.float64(0.0), hs[2]))
+    nan = wp.float64(wp.nan)
+    shared_xy[i, 0] = nan
+    shared_xy[i, 1] = nan
+    if partner[i] >= 0:
+        shared_xy[i, 0] = p[0] + qs[0]
+        shared_xy[i, 1] = p[1] + qs[1]
+    for k in range(5):
+        out[i, k] = q[k]
+    ok[i] = int(good)
+    dot_profiles(out, i, render_half, prof)

@@ -9,9 +9,11 @@ reference that defines the result and that the tests compare the kernel with.
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .identify import blob_score, segment_windows
+from .kernels import measure_windows_kernel
 
 __all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy"]
 
@@ -157,10 +159,6 @@ def measure_windows(
 
     Other parameters and the result are those of :func:`measure_windows_numpy`.
     """
-    import warp as wp
-
-    from .kernels import measure_windows_kernel
-
     n = len(origin)
     w = 2 * half + 1
     c = 2 * map_half + 1
@@ -179,13 +177,24 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
-    img = wp.array(np.ascontiguousarray(image, dtype=np.float64), dtype=wp.float64, device=device)
-    org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
-    loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
-    win = wp.empty((n, w * w), dtype=wp.float64, device=device)
-    ring = wp.empty((n, 4 * (w - 1)), dtype=wp.float64, device=device)
-    lab = wp.empty((n, w * w), dtype=wp.int32, device=device)
-    area = wp.empty((n, w * w), dtype=wp.int32, device=device)
+    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels.
+    order = np.lexsort((origin[:, 0], origin[:, 1] // 8))
+    back = np.empty_like(order)
+    back[order] = np.arange(n)
+    img = wp.array(
+        np.ascontiguousarray(image, dtype=np.float64),
+        dtype=wp.float64,
+        device=device,
+        copy=not wp.get_device(device).is_cpu,  # on the CPU, share the NumPy array's memory
+    )
+    org = wp.array(np.ascontiguousarray(origin[order], dtype=np.int32), dtype=wp.int32, device=device)
+    loc = wp.array(np.ascontiguousarray(local[order], dtype=np.float64), dtype=wp.float64, device=device)
+    # Per-thread scratch; CPU threads run one after another, so one row serves them all.
+    rows = 1 if wp.get_device(device).is_cpu else n
+    win = wp.empty((rows, w * w), dtype=wp.float64, device=device)
+    ring = wp.empty((rows, 4 * (w - 1)), dtype=wp.float64, device=device)
+    lab = wp.empty((rows, w * w), dtype=wp.int32, device=device)
+    area = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
     out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
     dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
@@ -218,7 +227,7 @@ def measure_windows(
         ],
         device=device,
     )
-    oi, of = out_i.numpy(), out_f.numpy()
+    oi, of = out_i.numpy()[back], out_f.numpy()[back]
     return {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
@@ -226,5 +235,5 @@ def measure_windows(
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy(),
+        "dotmap": dotmap.numpy()[back],
     }

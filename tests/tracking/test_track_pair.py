@@ -167,14 +167,19 @@ def test_saturated_dots_are_flagged():
     res = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings(diameter=D))
     ok = _check_no_nan_in_valid(res)
     sat = (res["status"] & DotStatus.SATURATED) != 0
+    paper = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings.paper(diameter=D))
+    ok_p = _check_no_nan_in_valid(paper)
     print(
         f"clipped at half the peak: yield {ok.mean():.4f}, saturated flag on {sat.mean():.3f}, "
-        f"u rms {_rms(res, disp, ok, 'centroid'):.4f}"
+        f"u rms {_rms(res, disp, ok, 'centroid'):.4f} "
+        f"(paper's procedure {_rms(paper, disp, ok_p, 'centroid'):.4f})"
     )
     assert ok.mean() > 0.99
     assert sat.mean() > 0.9
+    # The model fit leaves the saturated pixels out and fits the flanks: still accurate.
+    assert _rms(res, disp, ok, "centroid") < 0.02
     # Flat tops defeat the three-point fit (equal samples give no offset): flagged, finite, but coarse.
-    assert _rms(res, disp, ok, "centroid") < 0.3
+    assert _rms(paper, disp, ok_p, "centroid") < 0.3
 
 
 def test_prior_partly_outside_image():
@@ -262,10 +267,15 @@ def test_numpy_and_warp_backends_agree(device):
 
 def test_settings_as_dict():
     d = TrackingSettings(diameter=3.0).as_dict()
-    assert d["centroid"] == "gaussian3" and d["cc_threshold"] == 0.5 and d["threshold"] == "auto"
+    assert d["centroid"] == "model" and d["correction"] == "model"
+    assert d["cc_threshold"] == 0.5 and d["threshold"] == "auto"
+    p = TrackingSettings.paper(diameter=3.0)
+    assert (p.centroid, p.correction, p.diameter) == ("gaussian3", "paper", 3.0)
     assert_allclose(d["weights"], [1 / 3] * 3)
     with pytest.raises(SynthbosError):
         TrackingSettings(centroid="median")
+    with pytest.raises(SynthbosError):
+        TrackingSettings(correction="fft")
 
 
 @pytest.mark.parametrize("centroid", ["centroid", "gaussian4", "lsq"])
