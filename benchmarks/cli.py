@@ -7,6 +7,7 @@ Each subcommand parses its arguments here and calls a library function; user err
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -21,10 +22,11 @@ from synthbos.device import describe_device, init_warp, resolve_device
 
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
-from .process import load_image, read_dots_csv, run_method, write_result
-from .registry import get_method, method_names
+from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
+from .registry import GRID, get_method, method_names
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
+from .show_result import plot_result
 from .spec import FULL, QUICK
 from .sweep import parse_parameter, run_sweep
 from .tables import format_summary
@@ -60,8 +62,17 @@ def _process(args):
     out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
     init_warp()  # quietly; each method runs on its settings' device
     method = get_method(args.method)
+    invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
+    settings, options = process_settings(
+        args.method,
+        config=args.config,
+        flags={"windows": args.windows, "overlap": args.overlap, "diameter": args.diameter,
+               "max_displacement": args.max_displacement},
+        image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
+    )
     prior = None
     attrs = {}
+    notes = []
     if args.pair:
         if args.reference or args.gradient:
             raise SynthbosError("give either a pair file or --reference and --gradient, not both")
@@ -73,18 +84,35 @@ def _process(args):
     else:
         if not (args.reference and args.gradient):
             raise SynthbosError("give a pair file, or both --reference and --gradient images")
-        ref, grad = load_image(args.reference), load_image(args.gradient)
+        ref, grad = load_image(args.reference, notes=notes), load_image(args.gradient, notes=notes)
         if method.uses_prior and args.dots:
             prior = read_dots_csv(args.dots)
         attrs["input"] = f"{args.reference} {args.gradient}"
     t0 = time.perf_counter()
-    res = run_method(args.method, ref, grad, prior_xy=prior)
+    res, image_used = process_pair(args.method, ref, grad, settings=settings, options=options, prior_xy=prior,
+                                   notes=notes)
     attrs["seconds"] = time.perf_counter() - t0
+    attrs["image"] = json.dumps(image_used)
+    if args.config:
+        attrs["config"] = Path(args.config).read_text()
+    for note in notes:
+        print(f"note: {note}")
     write_result(out, res, extra_attrs=attrs)
-    ok = np.all(np.isfinite(res.uv), axis=1)
-    print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
-          f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
-          f"{attrs['seconds']:.2f} s")
+    c = res.counts or {}
+    ok = res.valid if res.valid is not None else np.all(np.isfinite(res.uv), axis=1)
+    med = np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float("nan")
+    noun = "vectors" if method.kind == GRID else "dots"
+    print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
+          f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
+          f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
+    if not ok.any():
+        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
+              file=sys.stderr)
+        return 1
+    if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
+        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); displacements "
+              "beyond a quarter of the first correlation window need larger windows (--windows 64,32,16), "
+              "tracking may need --max-displacement or --diameter")
     return 0
 
 
@@ -145,6 +173,13 @@ def _show_density(args):
     return 0
 
 
+def _show_result(args):
+    out = _out_path(args.output)
+    summary = plot_result(args.result, out)
+    print(f"wrote {out} (and .pdf)\n{summary}")
+    return 0
+
+
 def _add_scheduler_option(p) -> None:
     p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
                    help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
@@ -183,6 +218,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
     p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
+    p.add_argument("--config", help="process configuration (TOML) with [correlation], [tracking] and [image] "
+                   "tables; the flags below override it")
+    p.add_argument("--mask", help="mask image of the camera images' size; see --mask-excludes")
+    p.add_argument("--mask-excludes", choices=("dark", "bright"), default=None,
+                   help="which mask pixels are left out: dark (default: white marks the region to measure) "
+                        "or bright")
+    p.add_argument("--invert", choices=("auto", "true", "false"), default=None,
+                   help="invert the images so the dots are bright (default auto: from the background level)")
+    p.add_argument("--windows", help="correlation window sizes per pass, e.g. 64,32,16")
+    p.add_argument("--overlap", type=float, help="correlation window overlap fraction, e.g. 0.5")
+    p.add_argument("--diameter", type=float, help="tracking: dot diameter in pixels")
+    p.add_argument("--max-displacement", type=float, help="tracking: largest displacement in pixels")
     p.set_defaults(func=_process)
 
     for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
@@ -225,6 +272,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
+
+    p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
+    p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
+    p.add_argument("-o", "--output", required=True, help="PNG to write (a PDF beside it)")
+    p.set_defaults(func=_show_result)
     return parser
 
 
