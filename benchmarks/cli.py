@@ -174,7 +174,7 @@ def _show_density(args):
 
 
 def _show_result(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.result], what="-o")
     summary = plot_result(args.result, out)
     print(f"wrote {out} (and .pdf)\n{summary}")
     return 0
