@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from synthbos.device import describe_device, init_warp, resolve_device
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
 from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
-from .registry import GRID, get_method, method_names
+from .registry import GRID, default_methods, get_method, method_names
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
 from .show_result import plot_result
@@ -120,6 +121,8 @@ def _paper(args):
     device = _device(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
+    if args.methods:
+        spec = replace(spec, methods=_method_list(args.methods))
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
     check_spec(spec, device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
@@ -178,6 +181,16 @@ def _show_result(args):
     summary = plot_result(args.result, out)
     print(f"wrote {out} (and .pdf)\n{summary}")
     return 0
+
+
+def _method_list(text: str) -> tuple[str, ...]:
+    """``--methods a,b,c``: registered method names, checked."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names:
+        raise SynthbosError("--methods: name at least one method")
+    for n in names:
+        get_method(n)
+    return names
 
 
 def _add_scheduler_option(p) -> None:
@@ -241,6 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
         p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
         p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
+        p.add_argument("--methods", default=None, metavar="A,B,...",
+                       help=f"methods to run (default: {','.join(default_methods())}; also: "
+                            f"{','.join(n for n in method_names() if n not in default_methods())})")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         _add_scheduler_option(p)
         p.set_defaults(func=_paper)

@@ -412,8 +412,10 @@ def run_method(method, reference, gradient, *, prior_xy=None, settings=None, dev
 
     ``mask`` (bool, True = left out) goes to the method's run function.
     """
-    return get_method(method).run(
-        reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask
+    m = get_method(method)
+    return m.run(
+        reference, gradient, prior_xy=prior_xy, settings=m.settings() if settings is None else settings,
+        device=device, mask=mask
     )
 
 

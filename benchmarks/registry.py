@@ -20,7 +20,7 @@ from synthbos.tracking import TrackingSettings, is_valid, track_pair
 
 from synthbos import SynthbosError
 
-__all__ = ["METHODS", "Method", "MethodResult", "get_method", "method_names", "settings_dict"]
+__all__ = ["METHODS", "Method", "MethodResult", "default_methods", "get_method", "method_names", "settings_dict"]
 
 GRID = "grid"  # a vector on a regular grid of window centres
 DOTS = "dots"  # a vector at each tracked dot's reference position
@@ -62,6 +62,12 @@ class Method:
     settings_key : str
         The table of a process configuration (and the campaign spec's field) holding its settings;
         methods that share a settings class share it.
+    make_settings : callable or None
+        Builds the settings from overrides (default: ``settings_class``): how one algorithm is registered
+        a second time with another procedure, e.g. the paper's exact tracking procedure
+        (``TrackingSettings.paper``).
+    in_default_campaign : bool
+        Whether ``paper``, ``sweep`` and ``regress`` run it unless methods are named.
     """
 
     name: str
@@ -74,6 +80,8 @@ class Method:
     marker: str
     uses_prior: bool = False
     settings_key: str = ""
+    make_settings: Callable | None = None
+    in_default_campaign: bool = True
 
     def settings(self, overrides: dict | None = None):
         """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
@@ -84,7 +92,7 @@ class Method:
             raise SynthbosError(f"unknown {self.name} setting(s) {', '.join(unknown)}; "
                                 f"known: {', '.join(sorted(known))}")
         try:
-            return self.settings_class(**overrides)
+            return (self.make_settings or self.settings_class)(**overrides)
         except (TypeError, ValueError) as err:
             raise SynthbosError(f"{self.name} settings: {err}") from None
 
@@ -156,6 +164,16 @@ METHODS: dict[str, Method] = {
         Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
                label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
                uses_prior=True, settings_key="tracking"),
+        # The exact procedure of Rajendran, Bane & Vlachos (2019): three-point Gaussian centroids and the
+        # correlation of the segmented dot maps, kept so the paper's comparison can be run as published.
+        Method("tracking-paper", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking-paper"),
+               label="tracking, paper's procedure", color="#E69F00", linestyle=":", marker="v",
+               uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
+               in_default_campaign=False),
+        Method("tracking-cc-paper", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc-paper"),
+               label="tracking + cc, paper's procedure", color="#CC79A7", linestyle=(0, (3, 1, 1, 1, 1, 1)),
+               marker="D", uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
+               in_default_campaign=False),
     )
 }
 
@@ -163,6 +181,11 @@ METHODS: dict[str, Method] = {
 def method_names() -> tuple[str, ...]:
     """The registered method names, in the registry's order."""
     return tuple(METHODS)
+
+
+def default_methods() -> tuple[str, ...]:
+    """The methods a campaign runs unless it names others."""
+    return tuple(name for name, m in METHODS.items() if m.in_default_campaign)
 
 
 def get_method(name: str) -> Method:
