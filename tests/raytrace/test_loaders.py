@@ -5,7 +5,8 @@ import nrrd
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
-from synthbos.raytrace.loaders import infer_format, load_density, read_snapshots, validate_density
+from synthbos.raytrace.checks import check_density as validate_density
+from synthbos.raytrace.loaders import infer_format, load_density, read_snapshots
 
 from synthbos import SynthbosError
 

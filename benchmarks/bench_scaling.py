@@ -1,0 +1,176 @@
+"""Throughput of a campaign on 1, 2, 4 ... GPUs through ``--scheduler local``: pairs per second and efficiency.
+
+For each GPU count N the benchmark starts a local Dask cluster of one worker per GPU (the first N of
+``--gpus``, each pinned to its GPU), warms every worker up (imports, Warp kernels, one tiny pair
+rendered and scored), then runs the paper's campaign (five snapshots, every method at every noise
+level) in a fresh folder, every pair rendered, processed and scored, exactly as
+``synthbos paper --scheduler local`` does. Throughput is pairs per second of that campaign (cluster
+start-up and warm-up excluded; the rate with them is reported too). Speed-up is against the first
+count; efficiency is speed-up / (N / N_first).
+
+By default the campaign grows with N (``--pairs-per-gpu``, weak scaling: every count runs as long, so
+start-up effects weigh the same); ``--pairs`` fixes it instead (strong scaling). Seeds depend only on
+the snapshot and pair index, so the pairs every count has in common must have bit-identical scores:
+the benchmark checks it (and the result tables, when the campaigns are the same).
+
+    python -m synthbos.benchmarks.bench_scaling --gpus 0,1,2,3 --counts 1,2,4 --pairs-per-gpu 20 --out scaling
+    python -m synthbos.benchmarks.bench_scaling --device cpu --counts 1,2 --pairs-per-gpu 5 --pixels 96 --rays 20
+
+(the second line is a smoke run on CPU workers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from synthbos import atomic_output
+
+from .campaign import run_campaign
+from .distributed import DaskRunner, visible_gpus
+from .spec import FULL, CampaignSpec
+
+__all__ = ["campaign_spec", "main", "run_scaling"]
+
+
+def campaign_spec(pairs: int, *, pixels: int = 512, rays: int = 1000, noise=(0.0, 1.0, 3.0, 5.0)) -> CampaignSpec:
+    """The paper's campaign (five snapshots, every method) with ``pairs`` pairs in all (rounded up to 5)."""
+    config = {"rays": {"per_dot": rays}}
+    if pixels != 512:
+        config["camera"] = {"pixels": [pixels, pixels]}
+    return replace(FULL, name=f"scaling-{pairs}", pairs_per_snapshot=max(1, math.ceil(pairs / len(FULL.snapshots))),
+                   noise_percent=tuple(noise), config=config)
+
+
+def _warm_up(device: str, folder: str) -> float:
+    """On a worker: render and score one tiny pair, so imports and kernels are loaded before timing."""
+    from .items import render_item, score_item
+    from .registry import default_methods
+
+    t0 = time.perf_counter()
+    pair = str(Path(folder) / f"warm-{time.monotonic_ns()}.h5")
+    render_item({"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 10}}, pair, device)
+    for m in default_methods():
+        score_item(pair, m, 1.0, (1, 2), pair.replace(".h5", f"-{m}.npz"), {})
+    return time.perf_counter() - t0
+
+
+def _same_scores(first: Path, other: Path) -> bool:
+    """Whether every score file of ``first`` has bit-identical arrays in ``other``."""
+    for path in sorted((first / "scores").glob("*.npz")):
+        with np.load(path) as a, np.load(other / "scores" / path.name) as b:
+            if sorted(a.files) != sorted(b.files) or any(a[k].tobytes() != b[k].tobytes() for k in a.files):
+                return False
+    return True
+
+
+def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None, per_gpu: int = 1, folder=None,
+                progress=False, **spec_options) -> list[dict]:
+    """Time the campaign on each count of ``counts`` (GPUs, or CPU workers); return one row per count."""
+    rows, outs = [], []
+    on_gpu = device.startswith("cuda")
+    with tempfile.TemporaryDirectory(prefix="synthbos-scaling-") as tmp:
+        base = Path(folder or tmp)
+        base.mkdir(parents=True, exist_ok=True)
+        for n in counts:
+            spec = campaign_spec(pairs or pairs_per_gpu * n, **spec_options)
+            t0 = time.perf_counter()
+            workers = n * per_gpu if on_gpu else n
+            runner = DaskRunner("local", device=device, gpus=gpus[:n] if on_gpu else None, workers=workers,
+                                progress=progress)
+            with runner:
+                client = runner.client
+                client.wait_for_workers(workers)
+                warm = Path(tmp) / f"warm-{n}"
+                warm.mkdir()
+                # By reference, even when this file runs as __main__: the workers import it.
+                from synthbos.benchmarks.bench_scaling import _warm_up
+
+                client.gather([client.submit(_warm_up, device, str(warm), workers=[a], pure=False)
+                               for a in client.nthreads()])
+                t1 = time.perf_counter()
+                out = base / f"{n}-{'gpu' if on_gpu else 'cpu'}"
+                run_campaign(spec, out, device=device, scheduler=runner, progress=progress, figures=False)
+                t2 = time.perf_counter()
+            outs.append(out)
+            n_pairs = len(spec.pair_keys())
+            rows.append({"units": n, "workers": workers, "pairs": n_pairs, "startup_s": t1 - t0,
+                         "campaign_s": t2 - t1, "pairs_per_s": n_pairs / (t2 - t1),
+                         "pairs_per_s_with_startup": n_pairs / (t2 - t0)})
+        small = min(range(len(rows)), key=lambda i: rows[i]["pairs"])  # its pairs are in every campaign
+        for r, out in zip(rows, outs, strict=True):
+            r["speedup"] = r["pairs_per_s"] / rows[0]["pairs_per_s"]
+            r["efficiency"] = r["speedup"] / (r["units"] / rows[0]["units"])
+            same = _same_scores(outs[small], out)
+            if r["pairs"] == rows[0]["pairs"]:
+                same = same and (out / "results.json").read_bytes() == (outs[0] / "results.json").read_bytes()
+            r["identical_results"] = same
+    return rows
+
+
+def format_table(rows, unit: str) -> str:
+    lines = [f"| {unit}s | workers | pairs | start-up + warm-up s | campaign s | pairs/s | pairs/s with start-up "
+             f"| speed-up | efficiency | common pairs bit-identical |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        lines.append(f"| {r['units']} | {r['workers']} | {r['pairs']} | {r['startup_s']:.1f} | {r['campaign_s']:.1f} "
+                     f"| {r['pairs_per_s']:.3f} | {r['pairs_per_s_with_startup']:.3f} | {r['speedup']:.2f} "
+                     f"| {r['efficiency']:.2f} | {'yes' if r['identical_results'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda:0", help="cuda:0 (each worker's own GPU) or cpu (CPU workers)")
+    parser.add_argument("--gpus", default=None, help="GPUs to pin workers to, e.g. 0,1,2,3 (default: all visible)")
+    parser.add_argument("--counts", default="1,2,4", help="GPU (or CPU worker) counts to time, e.g. 1,2,4")
+    parser.add_argument("--per-gpu", type=int, default=1, help="workers per GPU")
+    parser.add_argument("--pairs-per-gpu", type=int, default=20, help="pairs per GPU (or CPU worker): weak scaling")
+    parser.add_argument("--pairs", type=int, default=None, help="pairs in every campaign instead: strong scaling")
+    parser.add_argument("--pixels", type=int, default=512)
+    parser.add_argument("--rays", type=int, default=1000, help="rays per dot")
+    parser.add_argument("--noise", default="0,1,3,5", help="noise levels, percent of the dot peak")
+    parser.add_argument("--out", default=None, help="write scaling.json and scaling.md here")
+    parser.add_argument("--keep", default=None, help="keep the campaign folders here (default: a temporary folder)")
+    parser.add_argument("--progress", action="store_true")
+    args = parser.parse_args(argv)
+    counts = [int(c) for c in args.counts.split(",")]
+    on_gpu = args.device.startswith("cuda")
+    gpus = (args.gpus.split(",") if args.gpus else visible_gpus()) if on_gpu else None
+    if on_gpu and max(counts) > len(gpus):
+        parser.error(f"--counts asks for {max(counts)} GPUs but only {len(gpus)} are available: {gpus}")
+    noise = [float(v) for v in args.noise.split(",")]
+    name = "cpu"
+    if on_gpu:
+        import warp as wp
+
+        name = wp.get_device("cuda:0").name
+    size = f"{args.pairs} pairs" if args.pairs else f"{args.pairs_per_gpu} pairs per {'GPU' if on_gpu else 'worker'}"
+    print(f"scaling: {size} of {args.pixels} x {args.pixels} px, {args.rays} rays/dot, noise {args.noise} %, "
+          f"every method; {name}; counts {counts}", flush=True)
+    rows = run_scaling(counts, device=args.device, pairs=args.pairs, pairs_per_gpu=args.pairs_per_gpu, gpus=gpus,
+                       per_gpu=args.per_gpu, folder=args.keep, progress=args.progress, pixels=args.pixels,
+                       rays=args.rays, noise=noise)
+    table = format_table(rows, "GPU" if on_gpu else "CPU worker")
+    date = time.strftime("%Y-%m-%d", time.gmtime())
+    print(f"\n{date}, {name}\n{table}")
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        meta = {"date": date, "device": name, "args": vars(args), "rows": rows}
+        with atomic_output(out / "scaling.json") as tmp:
+            tmp.write_text(json.dumps(meta, indent=1))
+        with atomic_output(out / "scaling.md") as tmp:
+            tmp.write_text(f"{date}, {name}\n\n{table}\n")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,348 @@
+"""Campaigns and sweeps on a Dask cluster: the GPUs of one node, or many nodes through a scheduler.
+
+``--scheduler local`` starts a local Dask cluster (a ``distributed.SpecCluster``, the class that
+``LocalCluster`` builds on) with one single-threaded worker process per GPU, each pinned to its GPU
+through ``CUDA_VISIBLE_DEVICES`` so that its ``cuda:0`` is that GPU (dask-cuda's rule), or ``--workers``
+CPU workers when the campaign renders on the CPU. ``--scheduler tcp://HOST:PORT`` or
+``--scheduler FILE.json`` (a scheduler file) joins a running cluster instead (``dask scheduler`` and
+``dask worker`` by hand, dask-jobqueue on SLURM or PBS, dask-cuda's ``LocalCUDACluster``); its workers
+must import this same synthbos and see the campaign folder at the same path.
+
+The unit of work is the pair: one task renders a pair (when its file is missing) and then processes
+and scores it with every method at every noise level on the same worker, reading the pair file it has
+just written, so images never travel through the scheduler; only file paths, settings and item counts
+do. Every file is written atomically by the worker that makes it, and finished files are skipped, so
+the folder layout and the resume are those of a run in one process, and since every seed comes from
+the campaign spec the results are byte-identical to it whatever the number and kind of workers.
+
+Failures: a worker that dies loses only the item it was writing; the scheduler hands its task to
+another worker, which skips the files already there. Interrupting the client (Ctrl-C) cancels every
+task: a cluster this module started is shut down with its worker processes; on a cluster that was
+joined, each worker stops after the item it is writing (an atomic write, seconds on a GPU), and the
+client waits for that before it returns, so no task is left writing into the folder (a second Ctrl-C
+stops waiting).
+
+Dask is imported only here, and only when a scheduler is asked for.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import threading
+import time
+import uuid
+from collections import defaultdict
+from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from synthbos import SynthbosError
+
+from .items import render_item, score_item
+from .scheduling import default_workers
+
+__all__ = ["DaskRunner", "pair_task", "run_pairs", "visible_gpus"]
+
+DASHBOARD_ADDRESS = ":8787"
+TASK_PREFIX = "synthbos-pair"
+
+# Worker-process state: the runs told to stop, and the runs with an item in flight (run token -> count).
+_STOPPED: set[str] = set()
+_IN_FLIGHT: dict[str, int] = defaultdict(int)
+_LOCK = threading.Lock()
+
+
+def _distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise SynthbosError("--scheduler needs Dask: pip install 'dask[distributed]' "
+                            "(or synthbos with its 'dask' extra)") from None
+    return distributed
+
+
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use, as ``CUDA_VISIBLE_DEVICES`` entries (indices or UUIDs)."""
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    n = wp.get_cuda_device_count()
+    listed = [d.strip() for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
+    if "CUDA_VISIBLE_DEVICES" in os.environ:
+        return listed[:n]
+    return [str(i) for i in range(n)]
+
+
+# --- what runs on a worker -------------------------------------------------------------------------
+
+
+def pair_task(render, scores, token: str) -> int:
+    """Render one pair (``render`` args, or None when its file exists) and score it (``scores`` args).
+
+    Runs on a worker; skips every output that exists and stops between items once the run ``token``
+    is told to stop. Returns the number of items it wrote.
+    """
+    done = 0
+    with _LOCK:
+        _IN_FLIGHT[token] += 1
+    try:
+        if render is not None and not Path(render[1]).exists() and token not in _STOPPED:
+            render_item(*render)
+            done += 1
+        for args in scores:
+            if token in _STOPPED:
+                break
+            if not Path(args[4]).exists():
+                score_item(*args)
+                done += 1
+    finally:
+        with _LOCK:
+            _IN_FLIGHT[token] -= 1
+    return done
+
+
+def _stop_run(token: str) -> int:
+    """On a worker: let no task of run ``token`` start another item; return how many are in flight."""
+    with _LOCK:
+        _STOPPED.add(token)
+        return _IN_FLIGHT[token]
+
+
+def _in_flight(token: str) -> int:
+    with _LOCK:
+        return _IN_FLIGHT[token]
+
+
+# --- the client side -------------------------------------------------------------------------------
+
+
+def _pair_tasks(renders, scores):
+    """Group the campaign's items by pair file: [(render args or None, [score args])], in campaign order."""
+    by_pair: dict[str, list] = {}
+    for args in renders:
+        by_pair[str(args[1])] = [args, []]
+    for args in scores:
+        by_pair.setdefault(str(args[0]), [None, []])[1].append(args)
+    return [(r, s) for r, s in by_pair.values()]
+
+
+def _remove_stale_temporaries(paths) -> None:
+    """Temporary files of finished outputs (left by a worker that died while writing one)."""
+    for folder in {Path(p).parent for p in paths}:
+        for tmp in folder.glob(".*.tmp"):
+            final = tmp.name[1:-len(".tmp")].rsplit(".", 1)[0]
+            if (folder / final).exists():
+                tmp.unlink(missing_ok=True)
+
+
+class DaskRunner:
+    """A Dask client for a campaign or a sweep: a local cluster it starts, or a cluster it joins.
+
+    Parameters
+    ----------
+    scheduler : str
+        ``"local"``, a scheduler address (``tcp://host:port``) or a scheduler file (JSON).
+    device : str, optional
+        The campaign's Warp device: a ``cuda`` device makes a local cluster one worker per GPU.
+    workers : int, optional
+        Local cluster: how many workers (default one per GPU, or every CPU core for CPU workers);
+        with more workers than GPUs they share the GPUs in turn.
+    gpus : sequence of str, optional
+        Local cluster: the GPUs to pin workers to (default every visible one).
+    progress : bool
+        Show a tqdm bar over the pair tasks.
+    dashboard_address : str
+        Local cluster: where its dashboard listens.
+    """
+
+    def __init__(self, scheduler: str, *, device=None, workers=None, gpus=None, progress=True,
+                 dashboard_address=DASHBOARD_ADDRESS):
+        self.scheduler = str(scheduler)
+        self.device = device
+        self.workers = workers
+        self.gpus = None if gpus is None else [str(g) for g in gpus]
+        self.progress = progress
+        self.dashboard_address = dashboard_address
+        self.cluster = None
+        self.client = None
+        self.description = ""
+        self._bar = None
+        self._futures: set = set()
+        self._lock = threading.Lock()
+        self._tokens: set[str] = set()
+
+    # opening and closing
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def open(self) -> DaskRunner:
+        try:
+            self._open()
+        except BaseException:  # a bad address, Ctrl-C during start-up: leave no cluster behind
+            self.close()
+            raise
+        need = "" if self.cluster is None or importlib.util.find_spec("bokeh") else " (pip install bokeh to see it)"
+        print(f"dask: {self.description}; dashboard {self.client.dashboard_link}{need}", flush=True)
+        return self
+
+    def _open(self) -> None:
+        distributed = _distributed()
+        if self.scheduler == "local":
+            self.cluster = self._local_cluster(distributed)
+            self.client = distributed.Client(self.cluster)
+        else:
+            address = self.scheduler
+            if address.endswith(".json") or Path(address).is_file():
+                if not Path(address).is_file():
+                    raise SynthbosError(f"scheduler file {address} does not exist")
+                where = {"scheduler_file": address}
+            elif ":" in address:
+                where = {"address": address}
+            else:
+                raise SynthbosError(f"--scheduler must be 'local', tcp://HOST:PORT or a scheduler file, "
+                                    f"got {address!r}")
+            try:
+                self.client = distributed.Client(**where, timeout="30s")
+            except OSError as err:  # TimeoutError included
+                raise SynthbosError(f"cannot reach the Dask scheduler at {address}: {err}") from None
+            n = len(self.client.nthreads())
+            self.description = f"joined the Dask scheduler at {self.client.scheduler.address} ({n} workers)"
+
+    def local_worker_specs(self, distributed) -> dict:
+        """The local cluster's workers: ``{name: {"cls": Nanny, "options": ...}}``; sets ``description``."""
+        on_gpu = self.device is not None and str(self.device).startswith("cuda")
+        if on_gpu:
+            if str(self.device) not in ("cuda", "cuda:0"):
+                raise SynthbosError(f"--device {self.device}: with --scheduler local every worker has its own GPU, "
+                                    "its cuda:0; choose the GPUs with CUDA_VISIBLE_DEVICES")
+            gpus = self.gpus if self.gpus is not None else visible_gpus()
+            if not gpus:
+                raise SynthbosError(f"--device {self.device} but no CUDA device is visible")
+            n = self.workers or len(gpus)
+            pinned = [gpus[i % len(gpus)] for i in range(n)]
+            names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
+            envs = [{"CUDA_VISIBLE_DEVICES": g} for g in pinned]
+            self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
+        else:
+            n = self.workers or default_workers()
+            names, envs = [f"cpu{i}" for i in range(n)], [{}] * n
+            self.description = f"local cluster of {n} CPU worker(s)"
+        memory = distributed.system.MEMORY_LIMIT // n
+        return {
+            name: {"cls": distributed.Nanny, "options": {
+                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": logging.ERROR, "env": env,
+            }}
+            for name, env in zip(names, envs, strict=True)
+        }
+
+    def _local_cluster(self, distributed):
+        workers = self.local_worker_specs(distributed)
+        scheduler = {"cls": distributed.Scheduler,
+                     "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}
+        return distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.ERROR,
+                                       name="synthbos")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        if self.cluster is not None:  # ours: its worker processes end with it
+            self.cluster.close()
+            self.cluster = None
+
+    # running
+
+    def _progress_bar(self, n: int):
+        with self._lock:
+            if self._bar is None:
+                self._bar = tqdm(total=n, desc="render+process", unit="pair", disable=not self.progress)
+            else:
+                self._bar.total += n
+                self._bar.refresh()
+            return self._bar
+
+    def run_pairs(self, renders, scores) -> int:
+        """Run a campaign's render and score items as one task per pair; return the items written.
+
+        Safe to call from several threads at once (a sweep runs its points together).
+        """
+        distributed = _distributed()
+        tasks = _pair_tasks(renders, scores)
+        if not tasks:
+            return 0
+        token = uuid.uuid4().hex
+        with self._lock:
+            self._tokens.add(token)
+        futures = [
+            self.client.submit(pair_task, render, items, token, pure=False, retries=0,
+                               key=f"{TASK_PREFIX}-{Path(render[1] if render else items[0][0]).stem}-{token[:8]}")
+            for render, items in tasks
+        ]
+        with self._lock:
+            self._futures.update(futures)
+        bar = self._progress_bar(len(futures))
+        written = 0
+        try:
+            for fut in distributed.as_completed(futures):
+                try:
+                    written += fut.result()
+                except distributed.KilledWorker as err:
+                    raise SynthbosError(f"a pair task took several workers down with it (out of memory?): "
+                                        f"{err}") from None
+                bar.update(1)
+        except BaseException:
+            self.abort()
+            raise
+        finally:
+            with self._lock:
+                self._futures.difference_update(futures)
+        _remove_stale_temporaries([r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items])
+        return written
+
+    def abort(self) -> None:
+        """Cancel every task; on a joined cluster, wait until no worker writes an item of ours."""
+        with self._lock:
+            futures, tokens = list(self._futures), list(self._tokens)
+            self._futures.clear()
+        if self.client is None:
+            return
+        try:
+            if self.cluster is None:
+                for token in tokens:
+                    self.client.run(_stop_run, token, on_error="ignore")
+            self.client.cancel(futures, force=True)
+            if self.cluster is not None:  # ours: closing it ends its workers
+                return
+            waited = time.monotonic()
+            while True:
+                busy = sum(sum(self.client.run(_in_flight, t, on_error="ignore").values()) for t in tokens)
+                if not busy:
+                    return
+                if time.monotonic() - waited > 2:
+                    print(f"dask: waiting for {busy} item(s) in flight to finish writing "
+                          "(Ctrl-C again to leave them)", flush=True)
+                    waited = float("inf")
+                time.sleep(0.2)
+        except OSError:  # the scheduler is gone (CommClosedError is an OSError): nothing of ours can run
+            pass
+
+
+def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True) -> int:
+    """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address."""
+    if isinstance(scheduler, DaskRunner):
+        return scheduler.run_pairs(renders, scores)
+    if not renders and not scores:  # a finished campaign: no cluster to start
+        return 0
+    with DaskRunner(scheduler, device=device, workers=workers, progress=progress) as runner:
+        return runner.run_pairs(renders, scores)

@@ -1,0 +1,295 @@
+"""Campaigns on a Dask cluster give the files of a run in one process, byte for byte, and survive a dead worker.
+
+Every test runs the same tiny sweep (two noise levels, each point a campaign of two 96 x 96 pairs and
+all three methods) and compares its folder with the same sweep run in this process: the tables byte
+for byte, every score array and every pair dataset bit for bit. (Pair files store the render's wall
+time and score files are zip archives stamped with their write time, so those two kinds of file are
+compared by content, not as raw bytes.)
+"""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+from synthbos.benchmarks.cli import main  # noqa: E402
+from synthbos.benchmarks.distributed import TASK_PREFIX, _pair_tasks  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+BASE_TOML = '[camera]\npixels = [96, 96]\n[rays]\nper_dot = 20\n[target]\ndots_per_32px = 12.0\n'
+FIGURES = (".png", ".pdf", ".svg")  # drawings, stamped with their creation date
+SWEEP = ["--param", "noise=0,3", "--size", "regress", "--device", "cpu", "-q"]
+
+
+def _sweep(folder, *extra):
+    cfg = Path(folder).parent / "base.toml"
+    cfg.write_text(BASE_TOML)
+    assert main(["sweep", str(cfg), *SWEEP, "--out", str(folder), *extra]) == 0
+
+
+@pytest.fixture(scope="module")
+def plain(tmp_path_factory):
+    """The sweep run in this process, one item after the other: the reference."""
+    folder = tmp_path_factory.mktemp("plain") / "sweep"
+    _sweep(folder, "--workers", "1")
+    return folder
+
+
+def _pair_datasets(path):
+    with h5py.File(path) as f:
+        out = {}
+        f.visititems(lambda name, obj: out.update({name: obj[()]}) if isinstance(obj, h5py.Dataset) else None)
+        attrs = {k: v for k, v in f.attrs.items() if k != "render_seconds"}
+    return out, attrs
+
+
+def assert_same_results(a: Path, b: Path) -> None:
+    """Folder ``b`` holds exactly the results of folder ``a``."""
+    for name in ("sweep.csv", "sweep.json"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    files_a = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.suffix not in FIGURES)
+    files_b = sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.suffix not in FIGURES)
+    assert files_a == files_b  # the same layout, and no temporary file left behind
+    assert any(p.suffix == ".npz" for p in files_a) and any(p.suffix == ".h5" for p in files_a)
+    for rel in files_a:
+        if rel.suffix == ".npz":
+            with np.load(a / rel) as za, np.load(b / rel) as zb:
+                assert sorted(za.files) == sorted(zb.files)
+                for k in za.files:
+                    assert za[k].dtype == zb[k].dtype and za[k].tobytes() == zb[k].tobytes(), (rel, k)
+        elif rel.suffix == ".h5":
+            (da, attrs_a), (db, attrs_b) = _pair_datasets(a / rel), _pair_datasets(b / rel)
+            assert attrs_a == attrs_b and sorted(da) == sorted(db)
+            for k in da:
+                assert da[k].dtype == db[k].dtype and da[k].tobytes() == db[k].tobytes(), (rel, k)
+        else:  # campaign.json, results.csv, results.json, sweep_params.json
+            assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
+
+
+def test_pair_tasks_group_items_by_pair():
+    renders = [({"c": 1}, "/f/pairs/s1_p00.h5", "cpu")]
+    scores = [(f"/f/pairs/s{s}_p00.h5", m, 0.0, (1, 2), f"/f/scores/s{s}_{m}.npz", {}) for s in (1, 2)
+              for m in ("a", "b")]
+    tasks = _pair_tasks(renders, scores)
+    assert [(r is not None, [s[1] for s in items]) for r, items in tasks] == [(True, ["a", "b"]), (False, ["a", "b"])]
+
+
+def test_local_gpu_workers_are_pinned_one_per_gpu():
+    from synthbos.benchmarks.distributed import DaskRunner
+
+    def pins(**kw):
+        specs = DaskRunner("local", device="cuda:0", **kw).local_worker_specs(distributed)
+        assert all(s["options"]["nthreads"] == 1 for s in specs.values())
+        return {name: s["options"]["env"]["CUDA_VISIBLE_DEVICES"] for name, s in specs.items()}
+
+    assert pins(gpus=["0", "1", "2", "3"]) == {"gpu0": "0", "gpu1": "1", "gpu2": "2", "gpu3": "3"}
+    assert pins(gpus=["2", "3"], workers=3) == {"gpu2-0": "2", "gpu3-1": "3", "gpu2-2": "2"}
+    cpu = DaskRunner("local", device="cpu", workers=2).local_worker_specs(distributed)
+    assert list(cpu) == ["cpu0", "cpu1"] and all(not s["options"]["env"] for s in cpu.values())
+    with pytest.raises(ValueError, match="its own GPU"):
+        DaskRunner("local", device="cuda:1", gpus=["0"]).local_worker_specs(distributed)
+
+
+def test_scheduler_errors_are_one_line(tmp_path, capsys):
+    cfg = tmp_path / "base.toml"
+    cfg.write_text(BASE_TOML)
+    for scheduler, message in (("nonsense", "--scheduler must be"), (str(tmp_path / "no.json"), "does not exist")):
+        assert main(["sweep", str(cfg), *SWEEP, "--out", str(tmp_path / "s"), "--scheduler", scheduler]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0]
+
+
+def test_synthbos_imports_without_dask():
+    code = "import sys, synthbos.benchmarks.cli; sys.exit('distributed' in sys.modules or 'dask' in sys.modules)"
+    subprocess.run([sys.executable, "-c", code], check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def test_local_cluster_of_two_workers_matches_plain_run_and_resumes(plain, tmp_path):
+    out = tmp_path / "sweep"
+    shutil.copytree(plain, out)  # a sweep stopped part-way: one pair and some scores are missing
+    for p in (out / "sweep.json", out / "sweep.csv", next((out / "points").glob("noise=3/pairs/*.h5"))):
+        p.unlink()
+    for p in sorted((out / "points").glob("*/scores/*.npz"))[::2]:
+        p.unlink()
+    _sweep(out, "--scheduler", "local", "--workers", "2")
+    assert_same_results(plain, out)
+
+
+def _start(args, log):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", *args], env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+@pytest.fixture(scope="module")
+def external_cluster(tmp_path_factory):
+    """A scheduler and two single-threaded workers (with their nannies), each its own process on 127.0.0.1."""
+    tmp = tmp_path_factory.mktemp("cluster")
+    sched_file = tmp / "scheduler.json"
+    log = open(tmp / "cluster.log", "w")
+    procs = [_start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                     "--scheduler-file", str(sched_file)], log)]
+    procs += [_start(["distributed.cli.dask_worker", "--scheduler-file", str(sched_file), "--host", "127.0.0.1",
+                      "--nthreads", "1", "--no-dashboard", "--name", f"w{i}", "--local-directory", str(tmp / f"w{i}")],
+                     log) for i in range(2)]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        with distributed.Client(scheduler_file=str(sched_file), timeout="60s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield sched_file
+    finally:
+        for p in reversed(procs):  # workers first, then the scheduler
+            p.terminate()
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        log.close()
+
+
+def test_scheduler_and_workers_as_separate_processes_match_plain_run(plain, external_cluster, tmp_path):
+    address = json.loads(external_cluster.read_text())["address"]
+    assert address.startswith("tcp://127.0.0.1:")
+    out = tmp_path / "sweep"
+    _sweep(out, "--scheduler", address)
+    assert_same_results(plain, out)
+
+
+def test_an_error_in_a_task_stops_the_run_with_that_error(external_cluster, tmp_path, capsys):
+    cfg = tmp_path / "base.toml"
+    cfg.write_text(BASE_TOML)
+    args = ["sweep", str(cfg), "--param", "window=16,0", "--device", "cpu", "-q", "--out", str(tmp_path / "s"),
+            "--scheduler", str(external_cluster)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "window size 0" in err[0]
+
+
+class KillOnce(distributed.WorkerPlugin):
+    """Kills the first worker that starts a pair task, once that task has written its first score file."""
+
+    def __init__(self, marker, folder):
+        self.marker, self.folder = str(marker), Path(folder)
+
+    def transition(self, key, start, finish, **kwargs):
+        if finish != "executing" or not str(key).startswith(TASK_PREFIX):
+            return
+        try:
+            os.close(os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return
+        stem = str(key)[len(TASK_PREFIX) + 1:].rsplit("-", 1)[0]  # the task's pair, s{S}_p{P}
+        before = set(self.folder.glob("points/*/scores/*.npz"))
+        threading.Thread(target=self._kill_after_first_score, args=(stem, before), daemon=True).start()
+
+    def _kill_after_first_score(self, stem, before):
+        while not (set(self.folder.glob(f"points/*/scores/{stem}_*.npz")) - before):
+            time.sleep(0.002)
+        done = [str(p) for p in self.folder.glob("points/*/*/*") if p.suffix in (".npz", ".h5")]
+        Path(self.marker).write_text(json.dumps({"pid": os.getpid(), "done": done}))
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_a_worker_killed_mid_campaign_loses_only_its_item(plain, external_cluster, tmp_path):
+    import cloudpickle
+    import psutil
+
+    out = tmp_path / "sweep"
+    marker = tmp_path / "killed.json"
+    with distributed.Client(scheduler_file=str(external_cluster)) as client:
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this module
+        try:
+            client.register_plugin(KillOnce(marker, out), name="kill-once")
+        finally:
+            cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+        try:
+            _sweep(out, "--scheduler", str(external_cluster))
+        finally:
+            client.unregister_worker_plugin("kill-once")
+    killed = json.loads(marker.read_text())
+    assert not psutil.pid_exists(killed["pid"])
+    # The other worker finished the pair task in flight, and rewrote none of the files already there.
+    for path in killed["done"]:
+        assert Path(path).stat().st_mtime_ns <= marker.stat().st_mtime_ns
+    assert_same_results(plain, out)
+
+
+@pytest.fixture
+def slow_only(request):
+    """The project's rule: ``slow`` tests run only when selected (``-m slow``)."""
+    markexpr = request.config.getoption("markexpr") or ""
+    if "slow" not in markexpr or "not slow" in markexpr:
+        pytest.skip("tens of seconds; select with -m slow")
+
+
+def _snapshot(folder):
+    return {p: p.stat().st_mtime_ns for p in Path(folder).rglob("*") if p.is_file()}
+
+
+def _interrupt_sweep(tmp_path, scheduler, *, group):
+    """Start a longer sweep on ``scheduler``, press Ctrl-C once it has written scores; return its folder."""
+    cfg = tmp_path / "base.toml"
+    cfg.write_text(BASE_TOML)
+    out = tmp_path / "sweep"
+    args = ["synthbos", "sweep", str(cfg), "--param", "noise=0,1,2,3,4,5", "--size", "quick", "--device", "cpu",
+            "-q", "--out", str(out), "--scheduler", scheduler, "--workers", "2"]
+    proc = subprocess.Popen([sys.executable, "-m", *args], env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True, text=True)
+    deadline = time.monotonic() + 300
+    while not list(out.glob("points/*/scores/*.npz")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    # A terminal's Ctrl-C reaches its whole process group: a local cluster's workers too.
+    (os.killpg if group else os.kill)(proc.pid, signal.SIGINT)
+    output, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130, output
+    assert "interrupted" in output
+    return out
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_local_cluster_leaves_nothing_running(slow_only, tmp_path):
+    import psutil
+
+    out = _interrupt_sweep(tmp_path, "local", group=True)
+    mine = [p for p in psutil.process_iter(["cmdline"]) if str(out) in " ".join(p.info["cmdline"] or [])]
+    assert not mine
+    before = _snapshot(out)
+    time.sleep(3)
+    assert _snapshot(out) == before
+    assert len(list(out.glob("points/*/scores/*.npz"))) < 6 * 10 * 3  # it did stop part-way
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_a_joined_cluster_waits_for_the_items_in_flight(slow_only, external_cluster, tmp_path):
+    out = _interrupt_sweep(tmp_path, str(external_cluster), group=False)
+    before = _snapshot(out)
+    time.sleep(3)
+    assert _snapshot(out) == before  # the workers write nothing more
+    assert len(list(out.glob("points/*/scores/*.npz"))) < 6 * 10 * 3
+    with distributed.Client(scheduler_file=str(external_cluster)) as client:
+        assert not any(client.processing().values())
+
+
+@pytest.mark.slow
+def test_bench_scaling_smoke_on_cpu_workers(slow_only, tmp_path):
+    from synthbos.benchmarks.bench_scaling import main as bench
+
+    rows = bench(["--device", "cpu", "--counts", "1,2", "--pairs-per-gpu", "5", "--pixels", "96", "--rays", "20",
+                  "--noise", "0,3", "--out", str(tmp_path)])
+    assert [(r["units"], r["pairs"]) for r in rows] == [(1, 5), (2, 10)]
+    assert all(r["identical_results"] and r["pairs_per_s"] > 0 for r in rows)
+    assert "efficiency" in (tmp_path / "scaling.md").read_text()
+    assert json.loads((tmp_path / "scaling.json").read_text())["rows"] == rows
