@@ -36,7 +36,7 @@ def test_paper_entry_runs_the_paper_procedure():
     xy = rng.uniform(8, 88, size=(60, 2))
     xy = xy[np.min(np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(60) * 99, axis=1) > 3.5]
     ref = draw_dots(shape, xy, 3.0)
-    grad = draw_dots(shape, xy + [0.3, -0.2], 3.0)
+    grad = draw_dots(shape, xy + np.array([0.3, -0.2]), 3.0)
     m = get_method("tracking-cc-paper")
     res = m.run(ref, grad, prior_xy=xy, settings=m.settings())
     tab = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings.paper())
