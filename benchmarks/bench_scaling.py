@@ -52,12 +52,12 @@ def campaign_spec(pairs: int, *, pixels: int = 512, rays: int = 1000, noise=(0.0
 def _warm_up(device: str, folder: str) -> float:
     """On a worker: render and score one tiny pair, so imports and kernels are loaded before timing."""
     from .items import render_item, score_item
-    from .registry import method_names
+    from .registry import default_methods
 
     t0 = time.perf_counter()
     pair = str(Path(folder) / f"warm-{time.monotonic_ns()}.h5")
     render_item({"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 10}}, pair, device)
-    for m in method_names():
+    for m in default_methods():
         score_item(pair, m, 1.0, (1, 2), pair.replace(".h5", f"-{m}.npz"), {})
     return time.perf_counter() - t0
 

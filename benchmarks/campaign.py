@@ -9,9 +9,12 @@ in progress.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
-from synthbos.raytrace import load_config
+from synthbos.raytrace import checks, plan_render
+
+from synthbos import SynthbosError, folder_lock, make_folder
 
 from .figures import figure4, figure5, figure_density
 from .items import render_item, score_item
@@ -21,12 +24,16 @@ from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import summarise
 
-__all__ = ["run_campaign"]
+__all__ = ["check_spec", "run_campaign"]
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
-                 scheduler=None):
+                 scheduler=None, wait=False):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
+
+    Everything a user can get wrong (the configuration, the methods and their settings, the folder) is
+    checked before any work starts. The folder is locked (``folder/.lock``) for the campaign's life: a
+    second campaign into it is refused at once, or waits for the first with ``wait=True``.
 
     With ``scheduler`` (``"local"``, a Dask scheduler address or file, or an open
     ``distributed.DaskRunner``) the items run on a Dask cluster, one task per pair (``distributed``);
@@ -38,10 +45,34 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         One row per method, noise level, split and quantity (see ``tables.summarise``).
     """
     folder = Path(folder)
-    methods = [get_method(name) for name in spec.methods]  # an unknown method fails before any work
-    for s, p in spec.pair_keys()[:1]:  # so does a bad configuration
-        load_config(spec.pair_config(s, p))
+    check_spec(spec, device)  # a bad method, setting or configuration fails before any work
+    methods = [get_method(name) for name in spec.methods]
+    make_folder(folder)
+    with folder_lock(folder, wait=wait):
+        return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
+                           figures=figures, scheduler=scheduler)
+
+
+def check_spec(spec: CampaignSpec, device=None) -> None:
+    """Check a campaign spec without rendering: its methods, their settings, noise levels and render plan."""
+    for noise in spec.noise_percent:
+        if not (isinstance(noise, int | float) and math.isfinite(noise) and 0 <= noise <= 100):
+            raise SynthbosError(f"noise level must be a percentage in 0..100, got {noise!r}")
+    for name in spec.methods:
+        m = get_method(name)
+        overrides = spec.overrides_for(m)
+        if overrides:
+            m.settings(overrides)
+    for s, p in spec.pair_keys()[:1]:
+        checks.check_ray_steps(plan_render(spec.pair_config(s, p)), device)  # configuration, limits, view
+
+
+def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler):
     check_folder(folder, spec)
+    # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
+    for sub in (folder, folder / "pairs", folder / "scores"):
+        for stale in sub.glob(".*.tmp"):
+            stale.unlink(missing_ok=True)
     on_gpu = device is not None and str(device).startswith("cuda")
     renders = [
         (spec.pair_config(s, p), str(pair_path(folder, s, p)), device)

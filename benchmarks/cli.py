@@ -7,8 +7,10 @@ Each subcommand parses its arguments here and calls a library function; user err
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,27 +18,22 @@ from synthbos.raytrace import read_pair, render_pair, write_pair
 from synthbos.raytrace.config import read_toml
 
 import synthbos
-from synthbos import SynthbosError
+from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, init_warp, resolve_device
 
-from .campaign import run_campaign
+from .calibrate import calibrate_from_grid, dots_from_mapping
+from .campaign import check_spec, run_campaign
 from .items import nominal_positions
-from .process import load_image, read_dots_csv, run_method, write_result
-from .registry import get_method, method_names
+from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
+from .registry import GRID, default_methods, get_method, method_names
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
+from .show_result import plot_result
 from .spec import FULL, QUICK
 from .sweep import parse_parameter, run_sweep
 from .tables import format_summary
 
 __all__ = ["main"]
-
-
-def _out_path(path) -> Path:
-    out = Path(path)
-    if not out.parent.is_dir():
-        raise SynthbosError(f"output folder {out.parent} does not exist")
-    return out
 
 
 def _device(requested) -> str:
@@ -47,7 +44,7 @@ def _device(requested) -> str:
 
 
 def _render(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.config], what="-o")
     device = _device(args.device)
     pair = render_pair(args.config, device=device, progress=not args.quiet)
     write_pair(out, pair)
@@ -64,11 +61,20 @@ def _render(args):
 
 
 def _process(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
     init_warp()  # quietly; each method runs on its settings' device
     method = get_method(args.method)
+    invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
+    settings, options = process_settings(
+        args.method,
+        config=args.config,
+        flags={"windows": args.windows, "overlap": args.overlap, "diameter": args.diameter,
+               "max_displacement": args.max_displacement},
+        image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
+    )
     prior = None
     attrs = {}
+    notes = []
     if args.pair:
         if args.reference or args.gradient:
             raise SynthbosError("give either a pair file or --reference and --gradient, not both")
@@ -81,19 +87,66 @@ def _process(args):
     else:
         if not (args.reference and args.gradient):
             raise SynthbosError("give a pair file, or both --reference and --gradient images")
-        ref, grad = load_image(args.reference), load_image(args.gradient)
+        ref, grad = load_image(args.reference, notes=notes), load_image(args.gradient, notes=notes)
         if method.uses_prior and args.dots:
             prior = read_dots_csv(args.dots)
         attrs["input"] = f"{args.reference} {args.gradient}"
     attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
     t0 = time.perf_counter()
-    res = run_method(args.method, ref, grad, prior_xy=prior)
+    res, image_used = process_pair(args.method, ref, grad, settings=settings, options=options, prior_xy=prior,
+                                   notes=notes)
     attrs["seconds"] = time.perf_counter() - t0
+    attrs["image"] = json.dumps(image_used)
+    if args.config:
+        attrs["config"] = Path(args.config).read_text()
+    for note in notes:
+        print(f"note: {note}")
     write_result(out, res, extra_attrs=attrs)
-    ok = np.all(np.isfinite(res.uv), axis=1)
-    print(f"wrote {out}: {args.method}, {int(ok.sum())} of {len(ok)} points measured, "
-          f"median |displacement| {np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float('nan'):.4f} px, "
-          f"{attrs['seconds']:.2f} s")
+    c = res.counts or {}
+    ok = res.valid if res.valid is not None else np.all(np.isfinite(res.uv), axis=1)
+    med = np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float("nan")
+    noun = "vectors" if method.kind == GRID else "dots"
+    print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
+          f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
+          f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
+    if not ok.any():
+        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
+              file=sys.stderr)
+        return 1
+    if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
+        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); displacements "
+              "beyond a quarter of the first correlation window need larger windows (--windows 64,32,16), "
+              "tracking may need --max-displacement or --diameter")
+    return 0
+
+
+def _calibrate(args):
+    inputs = [args.reference, args.mapping, args.target]
+    out = check_output_file(args.output, inputs=inputs, what="-o")
+    if args.mapping_out is not None:
+        check_output_file(args.mapping_out, inputs=[*inputs, out], what="--mapping-out")
+    if args.grid is not None:
+        if args.mapping or args.target:
+            raise SynthbosError("give either --reference with --grid, or --mapping with --target, not both")
+        if not args.reference:
+            raise SynthbosError("--grid needs the grid image: --reference GRID.tif")
+        image = load_image(args.reference)
+        if args.invert:
+            image = image.max() - image
+        s = calibrate_from_grid(
+            image, args.grid, out, mapping_out=args.mapping_out, source=args.reference, order=args.order
+        )
+        print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected blobs on the grid "
+              f"fitted); mapping residual rms {s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
+              + (f"; mapping {args.mapping_out}" if args.mapping_out else ""))
+        return 0
+    if not (args.mapping and args.target):
+        raise SynthbosError("give --reference GRID.tif --grid SPACING_MM, or --mapping MAP.json --target TARGET.csv")
+    if args.mapping_out or args.reference or args.invert:
+        raise SynthbosError("--reference, --invert and --mapping-out go with --grid, not with --mapping")
+    s = dots_from_mapping(args.mapping, args.target, out)
+    print(f"wrote {out}: {s.n_dots} dots ({s.n_inside} inside the calibrated image) through {args.mapping} "
+          f"(fit residual {s.residual_rms:.4f} px)")
     return 0
 
 
@@ -110,7 +163,7 @@ def _floats(text, n, what):
 def _integrate(args):
     from .integrate import integrate_file
 
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.result, args.pair, args.config], what="-o")
     region = _floats(args.reference_region, 4, "--reference-region") if args.reference_region else None
     mask = _floats(args.mask_region, 4, "--mask-region") if args.mask_region else None
     if args.pair and args.config:
@@ -135,13 +188,16 @@ def _paper(args):
     device = _device(args.device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
-    out = Path(args.out or f"runs/paper-{spec.name}")
+    if args.methods:
+        spec = replace(spec, methods=_method_list(args.methods))
+    out = check_output_folder(args.out or f"runs/paper-{spec.name}")
+    check_spec(spec, device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
     rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
-                        scheduler=args.scheduler)
+                        scheduler=args.scheduler, wait=args.wait)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -151,7 +207,7 @@ def _paper(args):
 def _regress(args):
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
-                                 scheduler=args.scheduler)
+                                 scheduler=args.scheduler, wait=args.wait)
     if args.update:
         print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
         return 0
@@ -167,23 +223,60 @@ def _regress(args):
 def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
+    check_output_folder(args.out)
     rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
-                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler)
+                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
 
 def _show_density(args):
-    out = _out_path(args.output)
+    out = check_output_file(args.output, inputs=[args.snapshots], what="-o")
+    from matplotlib.figure import Figure
+
+    kinds = Figure().canvas.get_supported_filetypes()
+    kind = out.suffix.lstrip(".").lower() or "png"
+    if kind not in kinds:
+        raise SynthbosError(f"-o {out}: matplotlib cannot write .{kind} images; use one of {sorted(kinds)}")
     plot_snapshots(out, snapshots_file=args.snapshots)
     print(f"wrote {out} (and .pdf)")
     return 0
+
+
+def _show_result(args):
+    out = check_output_file(args.output, inputs=[args.result], what="-o")
+    summary = plot_result(args.result, out)
+    print(f"wrote {out} (and .pdf)\n{summary}")
+    return 0
+
+
+def _method_list(text: str) -> tuple[str, ...]:
+    """``--methods a,b,c``: registered method names, checked."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names:
+        raise SynthbosError("--methods: name at least one method")
+    for n in names:
+        get_method(n)
+    return names
 
 
 def _add_scheduler_option(p) -> None:
     p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
                    help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
                         "an address or a scheduler file joins a running one (needs dask[distributed])")
+
+
+_WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
+
+
+def _workers(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -205,6 +298,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
     p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
+    p.add_argument("--config", help="process configuration (TOML) with [correlation], [tracking] and [image] "
+                   "tables; the flags below override it")
+    p.add_argument("--mask", help="mask image of the camera images' size; see --mask-excludes")
+    p.add_argument("--mask-excludes", choices=("dark", "bright"), default=None,
+                   help="which mask pixels are left out: dark (default: white marks the region to measure) "
+                        "or bright")
+    p.add_argument("--invert", choices=("auto", "true", "false"), default=None,
+                   help="invert the images so the dots are bright (default auto: from the background level)")
+    p.add_argument("--windows", help="correlation window sizes per pass, e.g. 64,32,16")
+    p.add_argument("--overlap", type=float, help="correlation window overlap fraction, e.g. 0.5")
+    p.add_argument("--diameter", type=float, help="tracking: dot diameter in pixels")
+    p.add_argument("--max-displacement", type=float, help="tracking: largest displacement in pixels")
     p.set_defaults(func=_process)
 
     p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
@@ -226,6 +331,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="density file to write (HDF5)")
     p.set_defaults(func=_integrate)
 
+    p = sub.add_parser("calibrate", help="tracking prior (dots file) from a grid image, or from a mapping and a target")
+    p.add_argument("--reference", help="image of a regular square dot grid (TIFF or PNG), with --grid")
+    p.add_argument("--grid", type=float, metavar="SPACING_MM", help="grid spacing in mm")
+    p.add_argument("--mapping-out", help="also write the fitted mapping (JSON) here")
+    p.add_argument("--order", type=int, default=3, help="Soloff polynomial degree (default 3)")
+    p.add_argument("--invert", action="store_true", help="the grid has dark dots on a bright background")
+    p.add_argument("--mapping", help="mapping file (JSON) from an earlier 'calibrate --grid --mapping-out'")
+    p.add_argument("--target", help="CSV (header x_mm,y_mm) of the pattern's dot positions in the grid's frame")
+    p.add_argument("-o", "--output", required=True, help="dots file to write (CSV, header x,y, px)")
+    p.set_defaults(func=_calibrate)
+
     for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
         p = sub.add_parser(name, help=helptext)
         g = p.add_mutually_exclusive_group()
@@ -233,7 +349,11 @@ def build_parser() -> argparse.ArgumentParser:
         g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
         p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
         p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
-        p.add_argument("--workers", type=int, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
+        p.add_argument("--methods", default=None, metavar="A,B,...",
+                       help=f"methods to run (default: {','.join(default_methods())}; also: "
+                            f"{','.join(n for n in method_names() if n not in default_methods())})")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         _add_scheduler_option(p)
         p.set_defaults(func=_paper)
@@ -241,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
     p.add_argument("--update", action="store_true", help="rewrite the baseline on purpose")
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
     p.set_defaults(func=_regress)
@@ -254,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
     p.add_argument("--device", default=None)
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
     p.set_defaults(func=_sweep)
@@ -263,6 +385,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
     p.set_defaults(func=_show_density)
+
+    p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
+    p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
+    p.add_argument("-o", "--output", required=True, help="PNG to write (a PDF beside it)")
+    p.set_defaults(func=_show_result)
     return parser
 
 

@@ -53,6 +53,7 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
     prior = nominal_positions(pair) if m.uses_prior else None
+    settings = m.settings() if settings is None else settings
     res = m.run(ref, grad, prior_xy=prior, settings=settings, device=device)
     if m.kind == GRID:
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
@@ -86,7 +87,7 @@ def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overr
     """Score one (pair, method, noise) item into ``out`` (.npz)."""
     init_warp()
     m = get_method(method)
-    settings = m.settings(overrides) if overrides else None
+    settings = m.settings(overrides)
     scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds, settings=settings,
                         device=device)
     save_scores(out, scores)

@@ -1,20 +1,46 @@
 """``synthbos process``: run a processing method on a pair file or on two camera images.
 
 The library functions ``correlation.correlate_pair`` and ``tracking.track_pair`` do the work; this
-module reads the inputs (pair files, 8/16-bit TIFF or PNG images, a CSV of predicted dot positions),
-calls them, and writes the result file atomically.
+module reads the inputs (pair files, camera images, a mask image, a CSV of predicted dot positions, a
+process configuration), prepares the images (luminance, inversion of dark-dot images), calls the
+registered method, and writes the result file atomically.
+
+Process configuration (``--config PROCESS.toml``)
+-------------------------------------------------
+One table per settings class of the method registry, whose keys are that class's fields (unknown
+keys are refused, values checked by the class), and an ``[image]`` table::
+
+    [correlation]              # correlation.CorrelationSettings
+    window_sizes = [64, 32, 16]
+    overlaps = 0.5
+
+    [tracking]                 # tracking.TrackingSettings
+    diameter = 4.0
+    max_displacement = 6.0
+
+    [image]
+    mask = "mask.png"          # relative to the configuration file
+    mask_excludes = "dark"     # "dark": black mask pixels are left out (white = measured);
+                               # "bright": white mask pixels are left out
+    invert = "auto"            # "auto" | true | false: make the dots bright on a dark background
+
+Command-line flags override the file.
 
 Result files (HDF5)
 -------------------
 A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
-``/peak_ratio``; the settings as root attributes.
+``/peak_ratio``, ``/correlation``.
 A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
-``/dots/status``, plus every other column of the tracking table under ``/dots/`` (the centroid-difference
-displacement as ``u_centroid``, ``v_centroid``); settings as attributes.
+``/dots/status``, ``/dots/masked``, plus every other column of the tracking table under ``/dots/`` (the
+centroid-difference displacement as ``u_centroid``, ``v_centroid``).
+Root attributes: ``method``, ``kind``, ``settings`` (JSON of the settings used), ``image`` (JSON of the
+image options used: mask, its polarity, whether the images were inverted and why), ``counts`` (JSON:
+measured, replaced, failed, masked, total), ``config`` (the configuration file's text, when one was
+given), ``input``, ``seconds``.
 Both: ``valid`` (``/valid`` or ``/dots/valid``), the vectors the method counts as measured and unflagged;
-root attributes ``method``, ``settings`` (JSON) and, from the command line, ``input``, ``seconds``,
-``image_shape`` (H, W) and, for a pair file, its ``magnification``. ``read_result`` reads it back.
+from the command line also ``image_shape`` (H, W) and, for a pair file, its ``magnification``.
+``read_result`` reads a result file back.
 
 Every dataset carries ``units`` and ``description`` attributes (``RESULT_DATASETS``); the bit-flag
 datasets (``/flags``, ``/dots/status``) also carry ``flag_bits``, a JSON object mapping each bit's value
@@ -29,6 +55,7 @@ import enum
 import inspect
 import json
 import re
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import h5py
@@ -39,20 +66,34 @@ from synthbos.correlation import multigrid
 from synthbos.raytrace.pairfile import describe_datasets
 from synthbos.tracking import DotStatus
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError, atomic_hdf5
 
-from .registry import GRID, MethodResult, get_method
+from .registry import GRID, METHODS, MethodResult, get_method
 
 __all__ = [
     "FLAG_BITS",
     "RESULT_DATASETS",
+    "SHORT_FLAGS",
+    "ImageOptions",
+    "apply_invert",
+    "decide_invert",
     "flag_bits",
+    "image_options_dict",
     "load_image",
+    "load_mask",
+    "process_pair",
+    "process_settings",
     "read_dots_csv",
+    "read_process_config",
     "read_result",
     "run_method",
     "write_result",
 ]
+
+#: Rec. 709 luminance weights of linear R, G, B.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+MASK_POLARITIES = ("dark", "bright")
 
 
 def _int_flag_bits(flag_class: type[enum.IntFlag]) -> dict[int, tuple[str, str]]:
@@ -109,11 +150,12 @@ _UV = "the method's measured displacement from the reference to the gradient ima
 RESULT_DATASETS = {
     "x": ("px", "window centre x (column; pixel centres at integers)"),
     "y": ("px", "window centre y (row)"),
-    "u": ("px", f"x component of {_UV}; replaced by the local median where flagged"),
-    "v": ("px", f"y component of {_UV}; replaced by the local median where flagged"),
-    "flags": ("1", "bit flags of each window, 0 = valid (bits in the attribute flag_bits)"),
+    "u": ("px", f"x component of {_UV}; the local median where replaced or failed, NaN where masked"),
+    "v": ("px", f"y component of {_UV}; the local median where replaced or failed, NaN where masked"),
+    "flags": ("1", "bit flags of each window, 0 = measured (bits in the attribute flag_bits)"),
     "peak_ratio": ("1", "correlation peak ratio (highest over second-highest peak) of the last pass"),
     "valid": ("1", "true where the window's vector was measured and not flagged as an outlier"),
+    "correlation": ("1", "correlation coefficient of the two deformed windows at the peak, last pass"),
     "dots/x": ("px", "dot position x (column) in the reference image"),
     "dots/y": ("px", "dot position y (row) in the reference image"),
     "dots/u": ("px", f"x component of {_UV} (see the root attribute method)"),
@@ -130,11 +172,90 @@ RESULT_DATASETS = {
     "dots/iteration": ("1", "identification iteration that found the dot in the reference image"),
     "dots/iteration_gradient": ("1", "identification iteration that found the dot in the gradient image"),
     "dots/valid": ("1", "true where the dot was matched in both images and its displacement is finite"),
+    "dots/masked": ("1", "1 where the dot's reference position lies in the mask (its u, v are NaN)"),
 }
 
 
-def load_image(path) -> np.ndarray:
-    """Read one camera image (TIFF through tifffile, PNG and others through imageio) as float64."""
+@dataclass(frozen=True)
+class ImageOptions:
+    """How camera images are prepared: the ``[image]`` table of a process configuration.
+
+    Attributes
+    ----------
+    mask : str or None
+        Path of a mask image of the same size as the camera images.
+    mask_excludes : {"dark", "bright"}
+        Which mask pixels are left out of the processing: "dark" (the default; a white mask marks
+        the region to measure) or "bright" (a white mask marks what to leave out). The mask is split
+        at the midpoint of its own range, so 0/1, 0/255 and 0/65535 masks all work.
+    invert : "auto", True or False
+        Invert the images (dark dots on a bright background become bright dots on a dark one), as
+        dot tracking expects. "auto" inverts when the reference image's background (its median) is
+        nearer to its bright end (99th percentile) than to its dark end (1st percentile).
+        Correlation is unaffected by inversion.
+    """
+
+    mask: str | None = None
+    mask_excludes: str = "dark"
+    invert: str | bool = "auto"
+
+    def __post_init__(self):
+        if self.mask is not None and not isinstance(self.mask, str):
+            raise SynthbosError(f"image option mask must be a path, got {self.mask!r}")
+        if self.mask_excludes not in MASK_POLARITIES:
+            raise SynthbosError(
+                f"image option mask_excludes must be one of {', '.join(MASK_POLARITIES)}, got {self.mask_excludes!r}"
+            )
+        if not (isinstance(self.invert, bool) or self.invert == "auto"):
+            raise SynthbosError(f'image option invert must be "auto", true or false, got {self.invert!r}')
+
+
+def _to_2d(img, path, notes):
+    img = np.asarray(img)
+    if img.ndim == 3 and img.shape[-1] in (3, 4):  # colour, samples last
+        if notes is not None:
+            notes.append(f"{path}: colour image ({img.shape[-1]} channels) converted to luminance "
+                         "(0.2126 R + 0.7152 G + 0.0722 B)")
+        img = img[..., :3].astype(np.float64) @ LUMINANCE
+    elif img.ndim == 3 and img.shape[0] in (3, 4) and min(img.shape[1:]) > 4:  # planar colour
+        if notes is not None:
+            notes.append(f"{path}: planar colour image ({img.shape[0]} channels) converted to luminance")
+        img = np.tensordot(LUMINANCE, img[:3].astype(np.float64), axes=1)
+    elif img.ndim == 3 and img.shape[0] == 1:
+        img = img[0]
+    if img.ndim != 2:
+        raise SynthbosError(f"image {path} must be a single 2-D frame, got shape {img.shape}")
+    if img.dtype.kind not in "biuf":
+        raise SynthbosError(f"image {path} has pixel type {img.dtype}; expected integer or floating-point pixels")
+    img = img.astype(np.float64)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        raise SynthbosError(f"image {path} has {int(bad.sum())} non-finite pixels (NaN or infinity)")
+    return img
+
+
+def load_image(path, *, notes=None) -> np.ndarray:
+    """Read one camera image as a float64 array.
+
+    Parameters
+    ----------
+    path : str or Path
+        TIFF (every compression tifffile reads, LZW and Deflate through imagecodecs; 8-, 12-, 16-,
+        32-bit integer or floating-point pixels) or PNG, BMP, JPEG through imageio.
+    notes : list, optional
+        Messages for the user are appended here (a colour image converted to luminance).
+
+    Returns
+    -------
+    (H, W) float64 array
+        The pixel values as stored (no rescaling: a 12-bit image keeps 0 to 4095). Colour images
+        become their luminance.
+
+    Raises
+    ------
+    synthbos.SynthbosError
+        Missing or unreadable file, more than one frame, non-finite pixels.
+    """
     path = Path(path)
     if not path.is_file():
         raise SynthbosError(f"image {path} does not exist")
@@ -144,13 +265,126 @@ def load_image(path) -> np.ndarray:
         else:
             img = iio.imread(path)
     except Exception as err:  # the readers raise many types for unreadable files
-        raise SynthbosError(f"cannot read image {path}: {err}") from None
-    img = np.asarray(img)
-    if img.ndim == 3 and img.shape[-1] in (3, 4):  # colour: luminance of the RGB channels
-        img = img[..., :3].astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
-    if img.ndim != 2:
-        raise SynthbosError(f"image {path} must be a single 2-D frame, got shape {img.shape}")
-    return img.astype(np.float64)
+        message = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise SynthbosError(f"cannot read image {path}: {message}") from None
+    return _to_2d(img, path, notes)
+
+
+def load_mask(path, shape, *, excludes="dark") -> np.ndarray:
+    """Read a mask image as a boolean array, True on the pixels to leave out.
+
+    Parameters
+    ----------
+    path : str or Path
+        Mask image (any format :func:`load_image` reads; colour is reduced to luminance).
+    shape : (H, W)
+        The camera images' shape; the mask must have it.
+    excludes : {"dark", "bright"}
+        Which side of the midpoint of the mask's range is left out (see :class:`ImageOptions`).
+        A constant mask leaves out everything or nothing: 0 counts as dark, anything else as bright.
+
+    Returns
+    -------
+    (H, W) bool array
+    """
+    if excludes not in MASK_POLARITIES:
+        raise SynthbosError(f"mask polarity must be one of {', '.join(MASK_POLARITIES)}, got {excludes!r}")
+    m = load_image(path)
+    if m.shape != tuple(shape):
+        raise SynthbosError(f"mask {path} has shape {m.shape} but the images are {tuple(shape)}")
+    lo, hi = m.min(), m.max()
+    dark = m == 0 if lo == hi else m < 0.5 * (lo + hi)
+    excluded = dark if excludes == "dark" else ~dark
+    if excluded.all():
+        raise SynthbosError(f"mask {path} leaves out every pixel (mask_excludes = {excludes!r}); "
+                            "is its polarity the other way round?")
+    return excluded
+
+
+def decide_invert(image, *, invert="auto"):
+    """Whether to invert an image pair so that its dots are bright, and why.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        The reference image.
+    invert : "auto", True or False
+
+    Returns
+    -------
+    (bool, str)
+        The decision and a one-line reason for the result file and the user.
+    """
+    if isinstance(invert, bool):
+        return invert, "set by the user"
+    lo, med, hi = np.percentile(image, [1, 50, 99])
+    if hi <= lo:
+        return False, "auto: the image has no contrast"
+    level = (med - lo) / (hi - lo)
+    if level > 0.5:
+        return True, f"auto: bright background (median at {level:.0%} of the 1-99 % range), dark dots"
+    return False, f"auto: dark background (median at {level:.0%} of the 1-99 % range), bright dots"
+
+
+def apply_invert(reference, gradient):
+    """``c - image`` for both images with one ``c``, their common maximum: dark dots become bright."""
+    c = max(float(np.max(reference)), float(np.max(gradient)))
+    return c - reference, c - gradient
+
+
+def _table_key(method):
+    return method.settings_key or method.name
+
+
+def _settings_tables():
+    """Table name -> a registered method that reads it (the first one in the registry)."""
+    tables = {}
+    for m in METHODS.values():
+        tables.setdefault(_table_key(m), m)
+    return tables
+
+
+def read_process_config(path) -> dict:
+    """Read and check a process configuration (the tables in the module docstring).
+
+    Returns
+    -------
+    dict
+        ``{"image": ImageOptions, <settings table>: {field: value}, ...}``: every settings table is
+        checked by building its settings class, so unknown keys and bad values fail here; a mask
+        path is made relative to the configuration file's folder.
+    """
+    from synthbos.raytrace.config import read_toml
+
+    path = Path(path)
+    raw = read_toml(path)
+    tables = _settings_tables()
+    known = ["image", *tables]
+    unknown = sorted(set(raw) - set(known))
+    if unknown:
+        raise SynthbosError(f"process configuration {path}: unknown table(s) {', '.join(unknown)}; "
+                            f"known: {', '.join(known)}")
+    out = {}
+    for name, method in tables.items():
+        values = raw.get(name, {})
+        if not isinstance(values, dict):
+            raise SynthbosError(f"process configuration {path}: {name} must be a table")
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        method.settings(values)  # refuses unknown keys and bad values
+        out[name] = values
+    image = raw.get("image", {})
+    if not isinstance(image, dict):
+        raise SynthbosError(f"process configuration {path}: image must be a table")
+    fields = set(ImageOptions.__dataclass_fields__)
+    bad = sorted(set(image) - fields)
+    if bad:
+        raise SynthbosError(f"process configuration {path}: unknown [image] key(s) {', '.join(bad)}; "
+                            f"known: {', '.join(sorted(fields))}")
+    image = dict(image)
+    if isinstance(image.get("mask"), str):
+        image["mask"] = str(path.parent / image["mask"])
+    out["image"] = ImageOptions(**image)
+    return out
 
 
 def read_dots_csv(path) -> np.ndarray:
@@ -158,31 +392,47 @@ def read_dots_csv(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise SynthbosError(f"dots file {path} does not exist")
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except UnicodeDecodeError as err:
+        raise SynthbosError(f"dots file {path} is not UTF-8 text (byte {err.start}); save it as UTF-8") from None
+    except (OSError, csv.Error) as err:
+        raise SynthbosError(f"cannot read dots file {path}: {err}") from None
     if not rows or [c.strip().lower() for c in rows[0]] != ["x", "y"]:
         raise SynthbosError(f"dots file {path} must start with the header line 'x,y'")
+    for line, row in enumerate(rows[1:], start=2):
+        if row and len(row) != 2:
+            raise SynthbosError(f"dots file {path}, line {line}: expected two values x,y, got {len(row)}")
     try:
         xy = np.array([[float(a), float(b)] for a, b in (r for r in rows[1:] if r)], dtype=np.float64)
-    except ValueError as err:
+    except ValueError as err:  # a value that is not a number
         raise SynthbosError(f"dots file {path}: {err}") from None
     if xy.size == 0 or not np.isfinite(xy).all():
         raise SynthbosError(f"dots file {path} has no dots or non-finite positions")
     return xy.reshape(-1, 2)
 
 
-def run_method(method, reference, gradient, *, prior_xy=None, settings=None, device=None) -> MethodResult:
-    """Run the registered method ``method`` on an image pair and return its ``MethodResult``."""
-    return get_method(method).run(reference, gradient, prior_xy=prior_xy, settings=settings, device=device)
+def run_method(method, reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None) -> MethodResult:
+    """Run the registered method ``method`` on an image pair and return its ``MethodResult``.
+
+    ``mask`` (bool, True = left out) goes to the method's run function.
+    """
+    m = get_method(method)
+    return m.run(
+        reference, gradient, prior_xy=prior_xy, settings=m.settings() if settings is None else settings,
+        device=device, mask=mask
+    )
 
 
 def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     """Write a result file atomically (layout in the module docstring)."""
     path = Path(path)
-    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
-        if get_method(result.method).kind == GRID:
-            for name in ("x", "y", "u", "v", "flags", "peak_ratio"):
-                f.create_dataset(name, data=np.asarray(result.table[name]))
+    method = get_method(result.method)
+    with atomic_hdf5(path) as f:
+        if method.kind == GRID:
+            for name, values in result.table.items():
+                f.create_dataset(name, data=np.asarray(values))
             if result.valid is not None:
                 f.create_dataset("valid", data=np.asarray(result.valid, bool).reshape(np.shape(result.table["u"])))
         else:
@@ -199,7 +449,10 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
             if result.valid is not None:
                 g.create_dataset("valid", data=np.asarray(result.valid, bool))
         f.attrs["method"] = result.method
+        f.attrs["kind"] = method.kind
         f.attrs["settings"] = json.dumps(result.settings, default=str)
+        if result.counts:
+            f.attrs["counts"] = json.dumps(result.counts)
         for key, value in (extra_attrs or {}).items():
             f.attrs[key] = value
         _describe(f)
@@ -276,3 +529,100 @@ def _datasets(group, prefix=""):
             yield f"{prefix}{key}", obj
         else:
             yield from _datasets(obj, f"{prefix}{key}/")
+
+
+def image_options_dict(options: ImageOptions, inverted: bool, reason: str) -> dict:
+    """The image options used, for the ``image`` attribute of a result file."""
+    return {**asdict(options), "inverted": bool(inverted), "invert_reason": reason}
+
+
+#: Short command-line flags: flag name -> (settings table, field, parser of the flag's text).
+def _int_list(text):
+    try:
+        return tuple(int(t) for t in str(text).split(",") if t.strip())
+    except ValueError:
+        raise SynthbosError(f"--windows takes whole numbers separated by commas, e.g. 64,32,16; got {text!r}") from None
+
+
+SHORT_FLAGS = {
+    "windows": ("correlation", "window_sizes", _int_list),
+    "overlap": ("correlation", "overlaps", float),
+    "diameter": ("tracking", "diameter", float),
+    "max_displacement": ("tracking", "max_displacement", float),
+}
+
+
+def process_settings(method, *, config=None, flags=None, image=None):
+    """The settings object and image options of one run, from a configuration file and flags.
+
+    Parameters
+    ----------
+    method : str
+        A registered method.
+    config : str or Path, optional
+        Process configuration (module docstring).
+    flags : dict, optional
+        Values of the short flags (:data:`SHORT_FLAGS` names; None = not given). They override the
+        file; a flag of a settings table the method does not read is refused.
+    image : dict, optional
+        ``[image]`` options given on the command line (``mask``, ``mask_excludes``, ``invert``;
+        None = not given), overriding the file's.
+
+    Returns
+    -------
+    settings, ImageOptions
+    """
+    m = get_method(method)
+    table = _table_key(m)
+    cfg = read_process_config(config) if config is not None else {"image": ImageOptions()}
+    values = dict(cfg.get(table, {}))
+    for name, given in (flags or {}).items():
+        if given is None:
+            continue
+        flag_table, field, parse = SHORT_FLAGS[name]
+        if flag_table != table:
+            raise SynthbosError(f"--{name.replace('_', '-')} is a {flag_table} setting; "
+                                f"--method {method} reads [{table}]")
+        values[field] = parse(given)
+    settings = m.settings(values)
+    options = cfg["image"]
+    given = {k: v for k, v in (image or {}).items() if v is not None}
+    if given:
+        options = ImageOptions(**{**asdict(options), **given})
+    return settings, options
+
+
+def process_pair(method, reference, gradient, *, settings=None, options=None, prior_xy=None, device=None,
+                 notes=None):
+    """Prepare an image pair (mask, inversion) and run a registered method on it.
+
+    Parameters
+    ----------
+    method : str
+    reference, gradient : (H, W) arrays
+    settings : the method's settings object, optional
+    options : ImageOptions, optional
+    prior_xy : (N, 2) array, optional
+        Predicted reference-image dot positions (methods that use a prior).
+    device : str, optional
+    notes : list, optional
+        One-line messages for the user are appended (the inversion decision).
+
+    Returns
+    -------
+    MethodResult, dict
+        The result and the image options used (:func:`image_options_dict`).
+    """
+    options = options or ImageOptions()
+    if np.shape(reference) != np.shape(gradient):
+        raise SynthbosError(f"images differ in shape: reference {np.shape(reference)}, gradient {np.shape(gradient)}")
+    mask = None
+    if options.mask is not None:
+        mask = load_mask(options.mask, np.shape(reference), excludes=options.mask_excludes)
+    inverted, reason = decide_invert(reference, invert=options.invert)
+    if inverted:
+        reference, gradient = apply_invert(np.asarray(reference, float), np.asarray(gradient, float))
+        if notes is not None:
+            notes.append(f"images inverted ({reason})")
+    res = run_method(method, reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
+    return res, image_options_dict(options, inverted, reason)

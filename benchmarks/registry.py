@@ -20,7 +20,7 @@ from synthbos.tracking import TrackingSettings, is_valid, track_pair
 
 from synthbos import SynthbosError
 
-__all__ = ["METHODS", "Method", "MethodResult", "get_method", "method_names", "settings_dict"]
+__all__ = ["METHODS", "Method", "MethodResult", "default_methods", "get_method", "method_names", "settings_dict"]
 
 GRID = "grid"  # a vector on a regular grid of window centres
 DOTS = "dots"  # a vector at each tracked dot's reference position
@@ -37,6 +37,7 @@ class MethodResult:
     table: dict  # every array the method returned, for the result file
     settings: dict
     valid: np.ndarray | None = None  # (N,) bool: a measured, unflagged vector
+    counts: dict | None = None  # measured, replaced, failed, masked, total
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,8 @@ class Method:
     settings_class : type
         The frozen dataclass of the method's settings (its fields are the keys users may set).
     run : callable
-        ``run(reference, gradient, *, prior_xy, settings, device) -> MethodResult``.
+        ``run(reference, gradient, *, prior_xy, settings, device, mask) -> MethodResult``; ``mask`` is a
+        bool image, True on pixels to leave out, or None.
     label, color, linestyle, marker : str
         How figures draw it.
     uses_prior : bool
@@ -60,6 +62,12 @@ class Method:
     settings_key : str
         The table of a process configuration (and the campaign spec's field) holding its settings;
         methods that share a settings class share it.
+    make_settings : callable or None
+        Builds the settings from overrides (default: ``settings_class``): how one algorithm is registered
+        a second time with another procedure, e.g. the paper's exact tracking procedure
+        (``TrackingSettings.paper``).
+    in_default_campaign : bool
+        Whether ``paper``, ``sweep`` and ``regress`` run it unless methods are named.
     """
 
     name: str
@@ -72,6 +80,8 @@ class Method:
     marker: str
     uses_prior: bool = False
     settings_key: str = ""
+    make_settings: Callable | None = None
+    in_default_campaign: bool = True
 
     def settings(self, overrides: dict | None = None):
         """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
@@ -82,7 +92,7 @@ class Method:
             raise SynthbosError(f"unknown {self.name} setting(s) {', '.join(unknown)}; "
                                 f"known: {', '.join(sorted(known))}")
         try:
-            return self.settings_class(**overrides)
+            return (self.make_settings or self.settings_class)(**overrides)
         except (TypeError, ValueError) as err:
             raise SynthbosError(f"{self.name} settings: {err}") from None
 
@@ -96,26 +106,45 @@ def settings_dict(settings) -> dict:
     return dict(settings)
 
 
-def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None):
+def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
     if device is not None:  # the processing device travels in the correlation settings
         settings = replace(settings or CorrelationSettings(), device=str(device))
-    res = correlate_pair(reference, gradient, settings=settings)
+    res = correlate_pair(reference, gradient, settings=settings, mask=mask)
     xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
     uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
-    table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio}
-    outlier = (np.asarray(res.flags).ravel() & 1) != 0
-    valid = np.all(np.isfinite(uv), axis=1) & ~outlier
-    return MethodResult("correlation", xy, uv, tuple(res.u.shape), table, settings_dict(res.settings), valid)
+    table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio,
+             "correlation": res.correlation}
+    valid = np.all(np.isfinite(uv), axis=1) & (np.asarray(res.flags).ravel() == 0)
+    return MethodResult("correlation", xy, uv, tuple(res.u.shape), table, settings_dict(res.settings), valid,
+                        counts=res.counts())
+
+
+def _masked_dots(xy, mask):
+    """True for dots whose reference position (rounded to the nearest pixel) lies in the mask."""
+    if mask is None or len(xy) == 0:
+        return np.zeros(len(xy), dtype=bool)
+    h, w = mask.shape
+    c = np.clip(np.rint(xy[:, 0]), 0, w - 1).astype(int)
+    r = np.clip(np.rint(xy[:, 1]), 0, h - 1).astype(int)
+    return np.asarray(mask, dtype=bool)[r, c]
 
 
 def _tracker(columns: tuple[str, str], name: str):
-    def run(reference, gradient, *, prior_xy=None, settings=None, device=None):
+    def run(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
         tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device)
         xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
         uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
         table = {c: tab[c] for c in tab.dtype.names}
-        valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1)
-        return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid)
+        # the mask is applied to the tracked dots here: dots whose reference position is masked are
+        # dropped from the measurement (NaN) and marked in the column "masked"
+        masked = _masked_dots(xy, mask)
+        uv[masked] = np.nan
+        table["masked"] = masked
+        valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1) & ~masked
+        counts = {"measured": int(valid.sum()), "replaced": 0, "failed": int((~valid & ~masked).sum()),
+                  "masked": int(masked.sum()), "total": len(valid)}
+        return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid,
+                            counts=counts)
 
     run.__name__ = f"_run_{name.replace('-', '_')}"
     run.__doc__ = f"Dot tracking; the displacement is the table's ({columns[0]}, {columns[1]})."
@@ -135,6 +164,16 @@ METHODS: dict[str, Method] = {
         Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
                label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
                uses_prior=True, settings_key="tracking"),
+        # The exact procedure of Rajendran, Bane & Vlachos (2019): three-point Gaussian centroids and the
+        # correlation of the segmented dot maps, kept so the paper's comparison can be run as published.
+        Method("tracking-paper", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking-paper"),
+               label="tracking, paper's procedure", color="#E69F00", linestyle=":", marker="v",
+               uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
+               in_default_campaign=False),
+        Method("tracking-cc-paper", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc-paper"),
+               label="tracking + cc, paper's procedure", color="#CC79A7", linestyle=(0, (3, 1, 1, 1, 1, 1)),
+               marker="D", uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
+               in_default_campaign=False),
     )
 }
 
@@ -142,6 +181,11 @@ METHODS: dict[str, Method] = {
 def method_names() -> tuple[str, ...]:
     """The registered method names, in the registry's order."""
     return tuple(METHODS)
+
+
+def default_methods() -> tuple[str, ...]:
+    """The methods a campaign runs unless it names others."""
+    return tuple(name for name, m in METHODS.items() if m.in_default_campaign)
 
 
 def get_method(name: str) -> Method:

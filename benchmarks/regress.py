@@ -16,7 +16,7 @@ import math
 import tempfile
 from pathlib import Path
 
-from synthbos import SynthbosError, atomic_output, data_file
+from synthbos import SynthbosError, atomic_output, check_output_folder, data_file
 
 from .campaign import run_campaign
 from .spec import REGRESS
@@ -57,17 +57,20 @@ def compare_to_baseline(rows, baseline_rows):
     return problems
 
 
-def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True, scheduler=None):
+def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True, scheduler=None,
+                wait=False):
     """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead."""
     baseline = Path(baseline)
     if not update and not baseline.is_file():
         raise SynthbosError(f"no regression baseline at {baseline}; create it with 'synthbos regress --update'")
     if isinstance(scheduler, str) and scheduler != "local" and out is None:
         raise SynthbosError("with a joined --scheduler give --out: a folder the workers see at the same path")
+    if out is not None:
+        check_output_folder(out)
     with tempfile.TemporaryDirectory(prefix="synthbos-regress-") as tmp:
         folder = Path(out) if out else Path(tmp)
         rows = run_campaign(REGRESS, folder, device="cpu", workers=workers, progress=progress, figures=False,
-                            scheduler=scheduler)
+                            scheduler=scheduler, wait=wait)
     if update:
         baseline.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(baseline) as tmp_file:

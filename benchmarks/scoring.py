@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import cKDTree
+from synthbos.tracking.crlb import position_crlb
 
 __all__ = [
     "PERCENTILES",
@@ -140,14 +141,19 @@ def scattered_gradient(xy, disp, *, neighbours=8):
     return out
 
 
-def cramer_rao_displacement(noise_percent, *, peak=1.0):
-    """Cramér-Rao bound of a displacement (px) for Gaussian dots of peak ``peak`` under pixel noise.
+def cramer_rao_displacement(noise_percent, *, peak=1.0, diameter=3.0):
+    """Cramér-Rao bound of one axis of a displacement (px) of an isolated dot under pixel noise.
 
-    The position bound of a Gaussian dot of peak I0 under Gaussian noise sigma_n is about
-    0.8 sigma_n / I0; a displacement is the difference of two independent positions, so sqrt(2) times it.
+    The position bound is that of the pixel-integrated Gaussian dot model with its peak, width and
+    background unknown (``tracking.crlb.position_crlb``; about 0.92 sigma_n / I0 per axis for a 3 px
+    dot); a displacement is the difference of two independent positions, so sqrt(2) times it.
     """
     sigma_n = noise_percent / 100.0 * peak
-    return np.sqrt(2.0) * 0.8 * sigma_n / peak
+    if sigma_n == 0:
+        return 0.0
+    centre = np.array([[16.3, 16.6]])  # an isolated dot off the pixel grid, well inside a 33 x 33 image
+    pos = position_crlb(centre, (33, 33), diameter=diameter, noise=sigma_n, peak=peak)[0, 0]
+    return float(np.sqrt(2.0) * pos)
 
 
 def density_errors(density, truth, *, region=None, percentiles=(50, 90, 95, 99)):

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 from synthbos.raytrace import DEFAULT_CONFIG
 
-from .registry import method_names
+from .registry import default_methods
 
 __all__ = ["FULL", "QUICK", "REGRESS", "CampaignSpec"]
 
@@ -30,7 +30,7 @@ class CampaignSpec:
     snapshots: tuple = (0, 1, 2, 3, 4)
     pairs_per_snapshot: int = 10
     noise_percent: tuple = (0.0, 1.0, 3.0, 5.0)
-    methods: tuple = field(default_factory=method_names)
+    methods: tuple = field(default_factory=default_methods)
     config: dict = field(default_factory=lambda: {"rays": {"per_dot": 10_000}})
     seed: int = 2019
     correlation: dict = field(default_factory=dict)  # CorrelationSettings overrides

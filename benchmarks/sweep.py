@@ -18,14 +18,17 @@ from __future__ import annotations
 import contextlib
 import copy
 import json
+import math
+from concurrent.futures import FIRST_EXCEPTION, CancelledError, ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from dataclasses import replace
 from pathlib import Path
 
 from synthbos.raytrace import DEFAULT_CONFIG, load_config
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
-from .campaign import run_campaign
+from .campaign import check_spec, run_campaign
 from .figures import sweep_figure
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
@@ -82,10 +85,16 @@ def parse_parameter(text: str):
     if name not in SPECIAL and (name.count(".") != 1):
         raise SynthbosError(f"unknown sweep parameter {name!r}: use table.key or one of "
                             f"{sorted(ALIASES) + list(SPECIAL)}")
+    if name in ("rays.seed", "target.seed"):
+        raise SynthbosError(f"sweep parameter {name}: the campaign sets the seeds of every pair from its own "
+                            "seed, so sweeping it would change nothing")
     try:
         vals = [float(v) for v in values.split(",") if v.strip()]
     except ValueError:
         raise SynthbosError(f"sweep parameter {name}: values must be numbers, got {values!r}") from None
+    bad = [v for v in vals if not math.isfinite(v)]
+    if bad:
+        raise SynthbosError(f"sweep parameter {name}: values must be finite numbers, got {bad[0]!r}")
     if not vals:
         raise SynthbosError(f"sweep parameter {name} has no values")
     return name, vals
@@ -97,6 +106,8 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
         return replace(spec, noise_percent=(value,))
     if name == "window":
         w = int(value)
+        if w != value:
+            raise SynthbosError(f"sweep parameter window: a window is a whole number of pixels, got {value:g}")
         return replace(spec, correlation={**spec.correlation, "window_sizes": (2 * w, w)})
     if name == "magnification":
         if value <= 0:
@@ -104,7 +115,9 @@ def apply_parameter(spec: CampaignSpec, name: str, value: float) -> CampaignSpec
         f = spec.config.get("camera", {}).get("focal_length_mm", DEFAULT_CONFIG["camera"]["focal_length_mm"])
         return spec.with_config({"target": {"distance_mm": f * (1.0 + 1.0 / value)}})
     table, key = name.split(".")
-    integer_keys = {"rays.per_dot", "target.seed", "rays.seed"}
+    integer_keys = {"rays.per_dot", "target.seed", "rays.seed", "limits.steps_per_ray"}
+    if name in integer_keys and value != int(value):
+        raise SynthbosError(f"sweep parameter {name}: values must be whole numbers, got {value:g}")
     return spec.with_config({table: {key: int(value) if name in integer_keys else value}})
 
 
@@ -113,9 +126,11 @@ def _slug(name, value):
 
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
-              scheduler=None):
+              scheduler=None, wait=False):
     """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
 
+    Every point is checked (configuration, settings, resource limits) before the first is run; the
+    sweep folder is locked for the sweep's life (``wait``: wait for another sweep into it to finish).
     With ``scheduler`` (see ``run_campaign``) one Dask client serves the whole sweep and all its points
     run together, so every worker stays busy however few pairs a point has.
     """
@@ -123,8 +138,9 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         raise SynthbosError("give one or two --param options")
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
+    load_config(base_config)  # the base configuration alone, before any point
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    check_output_folder(folder)
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
     (name1, vals1), *rest = params
     name2, vals2 = rest[0] if rest else (None, [None])
@@ -137,7 +153,10 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                 spec = apply_parameter(spec, name2, v2)
                 label += "_" + _slug(name2, v2)
             spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
-            load_config(spec.pair_config(spec.snapshots[0], 0))  # a bad value fails before any work
+            try:
+                check_spec(spec, device)  # every point fails before any work
+            except SynthbosError as err:
+                raise SynthbosError(f"sweep point {label}: {err}") from None
             points.append((v1, v2, label, spec))
 
     def run_point(point, runner=None):
@@ -145,37 +164,42 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         if progress and runner is None:
             print(f"sweep point {label}")
         point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
-                                  progress=progress, figures=False, scheduler=runner)
+                                  progress=progress, figures=False, scheduler=runner, wait=wait)
         return [{"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r} for r in point_rows]
 
-    if scheduler is None:
-        per_point = [run_point(point) for point in points]
-    else:
-        from concurrent.futures import FIRST_EXCEPTION, CancelledError, ThreadPoolExecutor, wait
-
-        from .distributed import DaskRunner
-
-        owned = not isinstance(scheduler, DaskRunner)
-        runner = DaskRunner(scheduler, device=device, workers=workers, progress=progress) if owned else scheduler
-        # One thread per point submits its pair tasks and waits for them; the cluster runs them all together.
-        threads = min(len(points), 64)
-        with (runner if owned else contextlib.nullcontext()), ThreadPoolExecutor(threads, "sweep-point") as pool:
-            futures = [pool.submit(run_point, point, runner) for point in points]
-            try:
-                wait(futures, return_when=FIRST_EXCEPTION)
-            except BaseException:  # Ctrl-C
-                runner.abort()
-                raise
-            if any(f.exception() for f in futures if f.done()):
-                runner.abort()  # the other points' tasks too; then report the error that came first
-                wait(futures)
-                errors = [f.exception() for f in futures if f.exception() is not None]
-                raise next((e for e in errors if not isinstance(e, CancelledError)), errors[0])
-            per_point = [f.result() for f in futures]
-    rows = [r for point_rows in per_point for r in point_rows]
-    write_tables(rows, folder, stem="sweep")
-    with atomic_output(folder / "sweep_params.json") as tmp:
-        tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
-    sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2, param_label=parameter_label(name1),
-                 param2_label=parameter_label(name2) if name2 else None)
+    make_folder(folder)
+    with folder_lock(folder, wait=wait, what="sweep folder"):
+        per_point = _run_points(points, run_point, scheduler=scheduler, device=device, workers=workers,
+                                progress=progress)
+        rows = [r for point_rows in per_point for r in point_rows]
+        write_tables(rows, folder, stem="sweep")
+        with atomic_output(folder / "sweep_params.json") as tmp:
+            tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
+        sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2, param_label=parameter_label(name1),
+                     param2_label=parameter_label(name2) if name2 else None)
     return rows
+
+
+def _run_points(points, run_point, *, scheduler, device, workers, progress):
+    """Every point's rows, one point after another, or all together on one Dask client."""
+    if scheduler is None:
+        return [run_point(point) for point in points]
+    from .distributed import DaskRunner  # dask only when a scheduler is asked for
+
+    owned = not isinstance(scheduler, DaskRunner)
+    runner = DaskRunner(scheduler, device=device, workers=workers, progress=progress) if owned else scheduler
+    # One thread per point submits its pair tasks and waits for them; the cluster runs them all together.
+    threads = min(len(points), 64)
+    with (runner if owned else contextlib.nullcontext()), ThreadPoolExecutor(threads, "sweep-point") as pool:
+        futures = [pool.submit(run_point, point, runner) for point in points]
+        try:
+            wait_for(futures, return_when=FIRST_EXCEPTION)
+        except BaseException:  # Ctrl-C
+            runner.abort()
+            raise
+        if any(f.exception() for f in futures if f.done()):
+            runner.abort()  # the other points' tasks too; then report the error that came first
+            wait_for(futures)
+            errors = [f.exception() for f in futures if f.exception() is not None]
+            raise next((e for e in errors if not isinstance(e, CancelledError)), errors[0])
+        return [f.result() for f in futures]

@@ -6,20 +6,28 @@ The entry point is :func:`correlate_pair` with :class:`CorrelationSettings`; the
 
 from .multigrid import (
     FLAG_BORDER,
+    FLAG_DISAGREE,
+    FLAG_ISOLATED,
     FLAG_MASKED,
     FLAG_MEDIAN,
     FLAG_PEAK_RATIO,
     CorrelationResult,
     CorrelationSettings,
+    VectorFlag,
     correlate_pair,
+    count_vectors,
 )
 
 __all__ = [
     "FLAG_BORDER",
+    "FLAG_DISAGREE",
+    "FLAG_ISOLATED",
     "FLAG_MASKED",
     "FLAG_MEDIAN",
     "FLAG_PEAK_RATIO",
     "CorrelationResult",
     "CorrelationSettings",
+    "VectorFlag",
     "correlate_pair",
+    "count_vectors",
 ]

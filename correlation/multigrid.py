@@ -4,13 +4,15 @@ The processor of Scarano (Meas. Sci. Technol. 13 (2002) R1) as PIV and BOS pract
 sequence of passes with decreasing window size, each made of one or more iterations; every iteration
 after the first carries the current displacement estimate (the predictor) to every pixel, deforms both
 images symmetrically by half of it, correlates the deformed windows in one batched real FFT, adds the
-residual found by the three-point Gaussian fit to the predictor, validates the field by the normalised
-median test and a peak-ratio check, and replaces the outliers by the local median before the next
-iteration.
+residual found by the three-point Gaussian fit to the predictor, validates the field (significance of
+the correlation peak, agreement with the coarser pass, the normalised median test), and replaces the
+rejected vectors by the local median before the next iteration. Every vector ends up measured,
+replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
 """
 
 from __future__ import annotations
 
+import enum
 import numbers
 from dataclasses import dataclass, field
 
@@ -20,28 +22,96 @@ from synthbos import SynthbosError
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
-from .validation import normalized_median_test, replace_outliers
+from .validation import neighbour_median, normalized_median_test, replace_outliers
 from .windows import extract_windows, window_starts, window_step
 from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = [
     "FLAG_BORDER",
+    "FLAG_DISAGREE",
+    "FLAG_ISOLATED",
     "FLAG_MASKED",
     "FLAG_MEDIAN",
     "FLAG_PEAK_RATIO",
     "CorrelationResult",
     "CorrelationSettings",
+    "VectorFlag",
     "correlate_pair",
+    "count_vectors",
 ]
 
-#: Vector replaced by the local median: it failed the normalised median test.
-FLAG_MEDIAN = 1
-#: Vector replaced by the local median: its peak ratio was below ``peak_ratio_min``.
-FLAG_PEAK_RATIO = 2
-#: Vector replaced by the local median: its correlation peak lay on the window border.
-FLAG_BORDER = 4
-#: Window more than half covered by the mask; ``u``, ``v`` are NaN there.
-FLAG_MASKED = 8
+
+class VectorFlag(enum.IntFlag):
+    """Bits of :attr:`CorrelationResult.flags`; 0 is a vector measured in its own window and accepted.
+
+    A vector is *replaced* when its window gave a significant correlation peak that the normalised
+    median test rejected (``MEDIAN`` alone); it *failed* when its window gave no usable measurement
+    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry the median of their valid
+    neighbours in ``u``, ``v``, so that the field stays continuous for integration (NaN where nothing
+    was measured anywhere). ``MASKED`` windows are NaN. :func:`count_vectors` counts them.
+
+    MEDIAN
+        Replaced by the median of its valid neighbours: failed the normalised median test.
+    PEAK
+        Failed: correlation peak not significant (peak ratio below peak_ratio_min, or peak correlation
+        coefficient below min_correlation).
+    BORDER
+        Failed: the correlation peak lay on the border of the correlation plane.
+    MASKED
+        Window more than half covered by the mask; u, v are NaN.
+    DISAGREE
+        Failed: differs from the previous pass's field (an independent, coarser estimate) by more than
+        max_disagreement times the window size.
+    ISOLATED
+        Failed: fewer than two of its (at least three unmasked) neighbours were measured, so nothing
+        confirms it; a lone vector among failed ones is as likely a chance peak.
+    """
+
+    MEDIAN = 1
+    PEAK = 2
+    BORDER = 4
+    MASKED = 8
+    DISAGREE = 16
+    ISOLATED = 32
+
+
+#: Bits meaning that a window gave no usable measurement.
+FAILED_BITS = VectorFlag.PEAK | VectorFlag.BORDER | VectorFlag.DISAGREE | VectorFlag.ISOLATED
+
+FLAG_MEDIAN = int(VectorFlag.MEDIAN)
+FLAG_PEAK_RATIO = int(VectorFlag.PEAK)
+FLAG_BORDER = int(VectorFlag.BORDER)
+FLAG_MASKED = int(VectorFlag.MASKED)
+FLAG_DISAGREE = int(VectorFlag.DISAGREE)
+FLAG_ISOLATED = int(VectorFlag.ISOLATED)
+
+
+def count_vectors(flags):
+    """Measured, replaced, failed and masked vectors of a flag array.
+
+    Parameters
+    ----------
+    flags : int array
+        :class:`VectorFlag` bits.
+
+    Returns
+    -------
+    dict
+        ``measured`` (flag 0), ``replaced`` (failed only the median test), ``failed`` (no usable
+        peak: ``PEAK``, ``BORDER`` or ``DISAGREE``), ``masked``, and ``total``; the first four add up
+        to ``total``.
+    """
+    f = np.asarray(flags, dtype=np.int64)
+    masked = (f & FLAG_MASKED) != 0
+    failed = ~masked & ((f & int(FAILED_BITS)) != 0)
+    replaced = ~masked & ~failed & (f != 0)
+    return {
+        "measured": int(np.sum(f == 0)),
+        "replaced": int(replaced.sum()),
+        "failed": int(failed.sum()),
+        "masked": int(masked.sum()),
+        "total": int(f.size),
+    }
 
 #: Deformed windows are sampled on pixel grids moved by this much (px, along x and y). The shift error
 #: of a symmetric interpolation kernel at fractional position f, b(f), is odd about 0 and about 1/2;
@@ -51,6 +121,10 @@ FLAG_MASKED = 8
 #: sin(2 pi k (1/4 + d/2)) = sin(2 pi k (1/4 - d/2)) for odd k, leaving the much smaller even ones.
 #: The vectors of deformed iterations are therefore located at window centre + 1/4 px.
 SAMPLING_OFFSET = 0.25
+
+#: A vector that fails the median test is confirmed (kept) only if its peak correlation coefficient is
+#: at least this fraction of its valid neighbours' median (and the previous iteration measured it alike).
+CONFIRM_CORRELATION = 0.7
 
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0
@@ -97,10 +171,29 @@ class CorrelationSettings:
         convolution (a = -1/2, 4x4 taps straight on the pixels: no prefilter, faster, a little less
         accurate) or Lanczos-3 windowed sinc.
     median_epsilon, median_threshold : float
-        Normalised median test (Westerweel and Scarano 2005): 0.1 px and 2.
+        Normalised median test (Westerweel and Scarano 2005) on the 3x3 neighbourhood: 0.1 px and 2.
+    confirm_tolerance : float
+        A vector that fails the median test in an iteration after the first of its pass is kept when
+        the previous iteration, whose windows were deformed differently, measured the same vector to
+        within this many pixels (1 px) and its correlation coefficient is at least 0.7 times its
+        neighbours' (``CONFIRM_CORRELATION``): two measurements agree,
+        and the median of the neighbours is off because the field varies faster than the vector
+        grid resolves (turbulent fields, 16 px windows without overlap: on the benchmark's
+        random-phase fields the median test rejects 20 % of such vectors, whose errors are a third
+        of their replacements'). 0 replaces every vector that fails the test.
     peak_ratio_min : float
-        Vectors whose peak ratio (:func:`correlation.peak.peak_ratio`) is below this are replaced;
-        1 disables the check.
+        Vectors whose peak ratio (:func:`correlation.peak.peak_ratio`) is below this failed (flag
+        ``PEAK``); 1 disables the check.
+    min_correlation : float
+        Vectors whose correlation peak, as a correlation coefficient of the two (deformed) windows,
+        is below this failed (flag ``PEAK``): 0.5. Unrelated 16 px windows of 3 px dots reach 0.4
+        in the median and pure noise 0.2; matched windows of the same images 0.9 and more, 0.6 at
+        5 % noise. 0 disables the check; not applied with ``rpc`` (its planes are not
+        coefficients).
+    max_disagreement : float
+        In every pass after the first, vectors that differ from the previous pass's field by more
+        than this fraction of the window size failed (flag ``DISAGREE``): 0.25, the one-quarter rule
+        for the displacement left after the deformation by the coarser pass.
     rpc : bool
         Use robust phase correlation (Eckstein and Vlachos 2009) instead of the standard one.
     rpc_diameter : float
@@ -118,7 +211,10 @@ class CorrelationSettings:
     interpolator: str = "cubic"
     median_epsilon: float = 0.1
     median_threshold: float = 2.0
+    confirm_tolerance: float = 1.0
     peak_ratio_min: float = 1.05
+    min_correlation: float = 0.5
+    max_disagreement: float = 0.25
     rpc: bool = False
     rpc_diameter: float = 2.8
     workers: int = 1
@@ -149,12 +245,26 @@ class CorrelationSettings:
             raise SynthbosError(
                 f"interpolator {self.interpolator!r} is not one of {', '.join(INTERPOLATORS)}"
             )
-        for name in ("median_epsilon", "median_threshold", "peak_ratio_min", "rpc_diameter"):
+        for name in (
+            "median_epsilon",
+            "median_threshold",
+            "confirm_tolerance",
+            "peak_ratio_min",
+            "min_correlation",
+            "max_disagreement",
+            "rpc_diameter",
+        ):
             value = getattr(self, name)
             if not isinstance(value, numbers.Real) or not np.isfinite(value) or value < 0:
                 raise SynthbosError(f"correlation setting {name} must be a finite number >= 0, got {value!r}")
-        if self.median_threshold <= 0 or self.rpc_diameter <= 0:
-            raise SynthbosError("correlation settings median_threshold and rpc_diameter must be positive")
+        if self.median_threshold <= 0 or self.rpc_diameter <= 0 or self.max_disagreement <= 0:
+            raise SynthbosError(
+                "correlation settings median_threshold, max_disagreement and rpc_diameter must be positive"
+            )
+        if self.min_correlation > 1:
+            raise SynthbosError(
+                f"correlation setting min_correlation is a correlation coefficient <= 1, got {self.min_correlation!r}"
+            )
         if not isinstance(self.workers, numbers.Integral) or self.workers == 0:
             raise SynthbosError(
                 f"correlation setting workers must be a non-zero integer, got {self.workers!r}"
@@ -174,7 +284,10 @@ class CorrelationSettings:
             "interpolator": self.interpolator,
             "median_epsilon": float(self.median_epsilon),
             "median_threshold": float(self.median_threshold),
+            "confirm_tolerance": float(self.confirm_tolerance),
             "peak_ratio_min": float(self.peak_ratio_min),
+            "min_correlation": float(self.min_correlation),
+            "max_disagreement": float(self.max_disagreement),
             "rpc": bool(self.rpc),
             "rpc_diameter": float(self.rpc_diameter),
             "workers": int(self.workers),
@@ -195,10 +308,12 @@ class CorrelationResult:
         the window is masked.
     peak_ratio : (ny, nx) float array
         Correlation peak ratio of the last iteration.
+    correlation : (ny, nx) float array
+        Correlation coefficient of the two deformed windows at the peak, last iteration (NaN with
+        ``rpc``).
     flags : (ny, nx) int32 array
-        Bit flags: 1 (``FLAG_MEDIAN``) failed the normalised median test, 2 (``FLAG_PEAK_RATIO``)
-        peak ratio below the minimum, 4 (``FLAG_BORDER``) peak on the window border, all three
-        replaced by the median of their valid neighbours; 8 (``FLAG_MASKED``) masked window. 0 = valid.
+        :class:`VectorFlag` bits: 0 measured, ``MEDIAN`` replaced, ``PEAK``, ``BORDER``,
+        ``DISAGREE`` failed, ``MASKED``; :func:`count_vectors` counts them.
     settings : CorrelationSettings
     """
 
@@ -209,6 +324,11 @@ class CorrelationResult:
     peak_ratio: np.ndarray
     flags: np.ndarray
     settings: CorrelationSettings = field(default_factory=CorrelationSettings)
+    correlation: np.ndarray | None = None
+
+    def counts(self):
+        """Measured, replaced, failed and masked vectors (:func:`count_vectors`)."""
+        return count_vectors(self.flags)
 
 
 def _checked_image(image, name):
@@ -219,12 +339,17 @@ def _checked_image(image, name):
         raise SynthbosError(f"{name} has shape {arr.shape}; expected a 2-D image")
     if arr.size == 0:
         raise SynthbosError(f"{name} is empty (shape {arr.shape})")
-    arr = arr.astype(np.float32)
+    arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
         raise SynthbosError(f"{name} has {int(np.sum(~np.isfinite(arr)))} non-finite pixels")
     if arr.max() == arr.min():
         raise SynthbosError(f"{name} is constant (value {arr.flat[0]:g}): there is nothing to correlate")
-    return arr
+    # zero mean, unit standard deviation: the correlation is linear in each image, so this changes
+    # nothing but keeps float32 sums of squares finite for images of any scale (1e-30 to 1e38)
+    arr -= arr.mean()
+    arr /= np.abs(arr).max()  # first to [-1, 1], so that the squares below cannot overflow
+    arr /= np.std(arr)
+    return arr.astype(np.float32)
 
 
 def _checked_mask(mask, shape):
@@ -254,21 +379,72 @@ def _mean_subtracted(wa, wb, valid):
     return wa, wb
 
 
+def _energies(wa, wb):
+    """``sqrt(sum a^2 sum b^2)`` of (K, N, N) window stacks (float64)."""
+    ea = np.einsum("kij,kij->k", wa, wa, dtype=np.float64)
+    eb = np.einsum("kij,kij->k", wb, wb, dtype=np.float64)
+    return np.sqrt(ea * eb)
+
+
 def _correlate_windows(wa, wb, valid, settings):
-    """Correlation planes of (K, N, N) window stacks; ``valid`` weights pixels (1 in, 0 out) or is None."""
+    """Correlation planes of (K, N, N) window stacks; ``valid`` weights pixels (1 in, 0 out) or is None.
+
+    Returns the planes and, per window pair, the norm that turns a plane value into a correlation
+    coefficient (``sqrt(sum a'^2 sum b'^2)`` of the mean-subtracted windows; None with RPC).
+    """
     if valid is None:
         # plain mean subtraction: done in the spectrum (the DC bin), no copy of the windows
         if settings.rpc:
             return robust_phase_correlate(
                 wa, wb, diameter=settings.rpc_diameter, subtract_mean=True, workers=settings.workers
-            )
-        return cross_correlate(wa, wb, subtract_mean=True, workers=settings.workers)
+            ), None
+        n = wa.shape[-1] * wa.shape[-2]
+        ma = wa.mean(axis=(-2, -1), dtype=np.float64)
+        mb = wb.mean(axis=(-2, -1), dtype=np.float64)
+        ea = np.einsum("kij,kij->k", wa, wa, dtype=np.float64) - n * ma * ma
+        eb = np.einsum("kij,kij->k", wb, wb, dtype=np.float64) - n * mb * mb
+        norm = np.sqrt(np.maximum(ea, 0.0) * np.maximum(eb, 0.0))
+        return cross_correlate(wa, wb, subtract_mean=True, workers=settings.workers), norm
     wa, wb = _mean_subtracted(wa, wb, valid)
     if settings.rpc:
         return robust_phase_correlate(
             wa, wb, diameter=settings.rpc_diameter, subtract_mean=False, workers=settings.workers
-        )
-    return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers)
+        ), None
+    return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers), _energies(wa, wb)
+
+
+def _peak_coefficient(planes, norm):
+    """Plane maximum as a correlation coefficient; NaN where the norm is None (RPC) or zero."""
+    if norm is None:
+        return np.full(len(planes), np.nan)
+    peak = planes.reshape(len(planes), -1).max(axis=1).astype(np.float64)
+    return np.divide(peak, norm, out=np.zeros_like(peak), where=norm > 0)
+
+
+def _isolated(measured, unmasked):
+    """Measured nodes with fewer than two measured neighbours among at least three unmasked ones."""
+    m = np.pad(measured, 1).astype(np.int32)
+    k = np.pad(unmasked, 1).astype(np.int32)
+    ny, nx = measured.shape
+    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    n_meas = sum(m[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in shifts)
+    n_open = sum(k[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in shifts)
+    return measured & (n_open >= 3) & (n_meas < 2)
+
+
+def _confirmed(u, v, raw, coef, valid, tolerance):
+    """Vectors that the previous iteration measured alike and that correlate about as well as their neighbours.
+
+    The second condition (a correlation coefficient at least ``CONFIRM_CORRELATION`` times the
+    median of the valid neighbours') keeps a window partly filled with something else (a reflection,
+    the edge of the pattern, a patch of unrelated texture) or one with too few dots to pin the peak
+    down from being confirmed: it measures the same biased vector every time, but correlates worse.
+    """
+    ok = np.hypot(u - raw[0], v - raw[1]) <= tolerance
+    if not np.all(np.isnan(coef)):  # RPC has no coefficients
+        nb_coef, count = neighbour_median(coef, valid)
+        ok &= (count == 0) | (coef >= CONFIRM_CORRELATION * nb_coef)
+    return ok
 
 
 def _edge_weights(du, dv, rows, cols, shape, margin):
@@ -331,9 +507,14 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     Each iteration correlates ``A(x - d(x)/2)`` with ``B(x + d(x)/2)``, where ``d`` is the predictor
     interpolated to every pixel by a separable not-a-knot cubic spline of the previous field; the
     vector is ``d(x_c) + r`` with ``r`` the residual peak position from the three-point fit (Scarano
-    2002, eqs. 13-15, symmetric "central difference" deformation). Validation: normalised median test
-    (Westerweel and Scarano 2005, eq. 2), peak ratio (Keane and Adrian 1992), peak-on-border check;
-    rejected vectors are replaced by the median of their valid neighbours.
+    2002, eqs. 13-15, symmetric "central difference" deformation). Validation, in every iteration:
+    a vector *fails* when its peak is not significant (peak ratio, Keane and Adrian 1992, below
+    ``peak_ratio_min``, or peak correlation coefficient below ``min_correlation``), lies on the plane's
+    border, differs from the previous pass's field by more than ``max_disagreement`` times the window
+    size, or has fewer than two measured neighbours; the others go through the normalised median test
+    (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
+    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors get the median of
+    their valid neighbours. The images are first brought to zero mean and unit variance.
     """
     if settings is None:
         settings = CorrelationSettings()
@@ -352,8 +533,8 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
 
     coefs = None  # interpolant of each image, made at the first deformation
     prev = None  # (node_y, node_x, u, v) of the latest iteration
-    for size, overlap, n_iter in zip(
-        settings.window_sizes, settings.overlaps, settings.iterations, strict=True
+    for pass_index, (size, overlap, n_iter) in enumerate(
+        zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
     ):
         step = window_step(size, overlap)
         sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
@@ -368,7 +549,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             masked = (win_valid.mean(axis=(-2, -1)) < 0.5).reshape(ny, nx)
             if masked.all():
                 raise SynthbosError(f"the mask covers every {size} px window: no vector can be measured")
-        for _ in range(n_iter):
+        coarse = None  # the previous pass's field at this pass's nodes
+        raw = None  # the measured (unreplaced) field of the previous iteration of this pass
+        for iteration in range(n_iter):
             pix_valid = win_valid
             if prev is None:
                 img_a, img_b, origin = a, b, (r0, c0)
@@ -385,6 +568,8 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
                 node_y, node_x = yc + q, xc + q
                 du, dv = grid_to_pixels((u_old, v_old), py, px, rows + q, cols + q)
                 pu, pv = grid_to_pixels((u_old, v_old), py, px, node_y, node_x).astype(np.float64)
+                if iteration == 0 and pass_index > 0:
+                    coarse = (pu, pv)
                 img_a, img_b = deform_pair(
                     *coefs,
                     du,
@@ -400,24 +585,40 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
                     pix_valid = edge if win_valid is None else edge * win_valid
             wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
             wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
-            planes = _correlate_windows(wa, wb, pix_valid, settings)
+            planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
             prow, pcol, border = subpixel_peak(
                 planes, method=settings.subpixel, weights=overlap_weights((size, size))
             )
             ratio = peak_ratio(planes).reshape(ny, nx)
+            coef = _peak_coefficient(planes, norm).reshape(ny, nx)
             u = pu + (pcol - size // 2).reshape(ny, nx)
             v = pv + (prow - size // 2).reshape(ny, nx)
             flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
-            flags |= np.where(ratio < settings.peak_ratio_min, FLAG_PEAK_RATIO, 0).astype(np.int32)
+            weak = ratio < settings.peak_ratio_min
+            if norm is not None:
+                weak |= coef < settings.min_correlation
+            flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
+            if coarse is not None:
+                far = np.hypot(u - coarse[0], v - coarse[1]) > settings.max_disagreement * size
+                flags |= np.where(far, FLAG_DISAGREE, 0).astype(np.int32)
             flags |= np.where(masked, FLAG_MASKED, 0).astype(np.int32)
             outliers = normalized_median_test(
                 u, v, epsilon=settings.median_epsilon, threshold=settings.median_threshold, valid=flags == 0
             )
+            if raw is not None and settings.confirm_tolerance > 0:
+                outliers &= ~_confirmed(u, v, raw, coef, flags == 0, settings.confirm_tolerance)
             flags |= np.where(outliers, FLAG_MEDIAN, 0).astype(np.int32)
+            flags |= np.where(_isolated(flags == 0, ~masked), FLAG_ISOLATED, 0).astype(np.int32)
+            raw = (u, v)
             u, v = replace_outliers(u, v, flags != 0)
             prev = (node_y, node_x, u, v)
 
+    if not np.any(flags == 0):  # nothing measured anywhere: there is nothing to fill from
+        u = np.full_like(u, np.nan)
+        v = np.full_like(v, np.nan)
     u = np.where(masked, np.nan, u)
     v = np.where(masked, np.nan, v)
     x, y = np.meshgrid(node_x, node_y)
-    return CorrelationResult(x=x, y=y, u=u, v=v, peak_ratio=ratio, flags=flags, settings=settings)
+    return CorrelationResult(
+        x=x, y=y, u=u, v=v, peak_ratio=ratio, flags=flags, settings=settings, correlation=coef
+    )

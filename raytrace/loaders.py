@@ -41,6 +41,8 @@ import numpy as np
 
 from synthbos import SynthbosError, data_file
 
+from .checks import check_density
+
 __all__ = [
     "DEFAULT_SNAPSHOTS",
     "FORMATS",
@@ -48,7 +50,6 @@ __all__ = [
     "infer_format",
     "load_density",
     "read_snapshots",
-    "validate_density",
     "write_snapshots",
 ]
 
@@ -111,37 +112,27 @@ def infer_format(path):
     return table[ext]
 
 
-def validate_density(data, *, where):
-    """Check that density data are numeric, finite and strictly positive; return float64.
+def _check_declared(shape, path, name, memory_gb):
+    """Refuse data whose declared shape would not fit in memory, before reading it."""
+    from .checks import BYTES_PER_NODE, check_memory
 
-    Parameters
-    ----------
-    data : array_like
-    where : str
-        What to name in the error message (a file, or ``volume``).
+    nodes = float(np.prod([float(n) for n in shape])) if len(shape) else 1.0
+    what = f"{path}: {name + ' ' if name else ''}of shape {tuple(int(n) for n in shape)}"
+    check_memory(nodes * BYTES_PER_NODE, what, memory_gb=memory_gb)
 
-    Returns
-    -------
-    float64 ndarray
-    """
-    arr = np.asarray(data)
-    if arr.dtype.kind not in "fiu":
-        raise SynthbosError(f"{where}: density must be real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if arr.size == 0:
-        raise SynthbosError(f"{where}: density array is empty")
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise SynthbosError(f"{where}: density has {int(bad.sum())} NaN/inf value(s), first at index {idx}")
-    low = arr <= 0
-    if low.any():
-        idx = tuple(int(i) for i in np.argwhere(low)[0])
-        raise SynthbosError(
-            f"{where}: density must be > 0 everywhere; {int(low.sum())} value(s) <= 0, "
-            f"minimum {arr.min():.6g} (first at index {idx})"
-        )
-    return arr
+
+def _npy_header(fp, path):
+    """(shape, dtype) from the header of an open .npy stream, without reading the data."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fp)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(fp)
+        else:
+            shape, _, dtype = fmt.read_array_header_2_0(fp)
+    except (ValueError, EOFError, OSError) as exc:
+        raise SynthbosError(f"{path}: not a readable .npy array ({_short(exc)})") from None
+    return shape, dtype
 
 
 def _h5py_open(path):
@@ -161,11 +152,12 @@ def _datasets(h5):
     return names
 
 
-def _read_h5_array(h5, name, path):
+def _read_h5_array(h5, name, path, memory_gb=None):
     obj = h5.get(name)
     if not isinstance(obj, h5py.Dataset):
         avail = _datasets(h5)
         raise SynthbosError(f"{path}: no dataset {name!r} in the file (it has {avail[:8]})")
+    _check_declared(obj.shape or (), path, f"dataset {name!r}", memory_gb)
     try:
         return obj[()], {k: _attr(v) for k, v in obj.attrs.items()}
     except (OSError, ValueError, TypeError) as exc:
@@ -202,7 +194,7 @@ def _is_jhtdb(h5):
     return "xcoor" in h5 and any(_JHTDB_VAR.match(k) and k.lower().startswith("density") for k in h5)
 
 
-def _load_jhtdb(path, dataset):
+def _load_jhtdb(path, dataset, memory_gb=None):
     with _h5py_open(path) as h5:
         if dataset is None:
             cands = sorted(k for k in h5 if _JHTDB_VAR.match(k) and k.lower().startswith("density"))
@@ -211,7 +203,7 @@ def _load_jhtdb(path, dataset):
             if len(cands) > 1:
                 raise SynthbosError(f"{path}: several time steps {cands}; choose one with dataset")
             dataset = cands[0]
-        data, dattrs = _read_h5_array(h5, dataset, path)
+        data, dattrs = _read_h5_array(h5, dataset, path, memory_gb)
         spacing = []
         for ax in ("xcoor", "ycoor", "zcoor"):
             if ax not in h5:
@@ -238,7 +230,12 @@ def _load_jhtdb(path, dataset):
     return data, spacing, dataset, attrs
 
 
-def _load_nrrd(path):
+def _load_nrrd(path, memory_gb=None):
+    try:
+        sizes = nrrd.read_header(str(path)).get("sizes", ())
+    except Exception as exc:  # pynrrd raises NRRDError, OSError, ValueError on bad files
+        raise SynthbosError(f"{path}: not a readable NRRD file ({_short(exc)})") from None
+    _check_declared(tuple(sizes), path, "", memory_gb)
     try:
         data, header = nrrd.read(str(path), index_order="C")
     except Exception as exc:  # pynrrd raises NRRDError, OSError, ValueError on bad files
@@ -257,14 +254,19 @@ def _load_nrrd(path):
     return data, spacing, None, attrs
 
 
-def _load_npy(path):
+def _load_npy(path, memory_gb=None):
     try:
+        with open(path, "rb") as fp:
+            shape, _ = _npy_header(fp, path)
+        _check_declared(shape, path, "", memory_gb)
         return np.load(path, allow_pickle=False), None, None, {}
+    except SynthbosError:
+        raise
     except (OSError, ValueError, EOFError) as exc:
         raise SynthbosError(f"{path}: not a readable .npy file ({_short(exc)})") from None
 
 
-def _load_npz(path, dataset):
+def _load_npz(path, dataset, memory_gb=None):
     try:
         with np.load(path, allow_pickle=False) as z:
             names = list(z.files)
@@ -274,12 +276,17 @@ def _load_npz(path, dataset):
                 dataset = names[0]
             if dataset not in names:
                 raise SynthbosError(f"{path}: no array {dataset!r} in the file (it has {names})")
+            with z.zip.open(f"{dataset}.npy") as fp:
+                shape, _ = _npy_header(fp, path)
+            _check_declared(shape, path, f"array {dataset!r}", memory_gb)
             return z[dataset], None, dataset, {}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except SynthbosError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
         raise SynthbosError(f"{path}: not a readable .npz file ({_short(exc)})") from None
 
 
-def _load_hdf5(path, dataset):
+def _load_hdf5(path, dataset, memory_gb=None):
     with _h5py_open(path) as h5:
         jhtdb = dataset is None and _is_jhtdb(h5)
         if dataset is None and not jhtdb:
@@ -288,14 +295,23 @@ def _load_hdf5(path, dataset):
                 raise SynthbosError(f"{path}: holds datasets {names[:8]}; choose one with dataset")
             dataset = names[0]
         if not jhtdb:
-            data, attrs = _read_h5_array(h5, dataset, path)
+            data, attrs = _read_h5_array(h5, dataset, path, memory_gb)
     if jhtdb:
-        return _load_jhtdb(path, None)
+        return _load_jhtdb(path, None, memory_gb)
     return data, None, dataset, attrs
 
 
 def load_density(
-    path, *, format=None, dataset=None, slice_index=None, axis=None, index_range=None, spacing_mm=None
+    path,
+    *,
+    format=None,
+    dataset=None,
+    slice_index=None,
+    axis=None,
+    index_range=None,
+    spacing_mm=None,
+    axis_order=None,
+    memory_gb=None,
 ):
     """Read density data from a file, optionally one 2-D slice or a sub-volume of it.
 
@@ -319,6 +335,16 @@ def load_density(
     spacing_mm : float or sequence of float, optional
         Node spacing of the file's grid in mm, one number or ``[dx, dy]`` / ``[dx, dy, dz]`` along the
         file's axes (before slicing). Replaces the file's own spacing; ``spacing_units`` becomes "mm".
+    axis_order : str, optional
+        The physical axis of each array axis as stored, first array axis first: "zyx" (3-D) and "yx"
+        (2-D) are the conventions above and the default; "xyz" / "xy" read an array stored as
+        ``(nx, ny, nz)`` / ``(nx, ny)`` (Fortran-ordered simulation output, which would otherwise
+        render transposed); any permutation is accepted. The data are transposed to ``(nz, ny, nx)``
+        before ``index_range``, ``slice_index`` and ``axis`` apply, so those always name physical axes;
+        a file's own spacing is permuted along.
+    memory_gb : float, optional
+        Memory limit (``limits.memory_gb``; default ``raytrace.checks.default_memory_gb()``): a file
+        whose declared shape would need more is refused before its data are read.
 
     Returns
     -------
@@ -340,15 +366,15 @@ def load_density(
     if fmt in ("npy", "nrrd") and dataset is not None:
         raise SynthbosError(f"{path}: format {fmt!r} holds one array; dataset does not apply")
     if fmt == "jhtdb":
-        data, spacing, dataset, attrs = _load_jhtdb(path, dataset)
+        data, spacing, dataset, attrs = _load_jhtdb(path, dataset, memory_gb)
     elif fmt == "nrrd":
-        data, spacing, dataset, attrs = _load_nrrd(path)
+        data, spacing, dataset, attrs = _load_nrrd(path, memory_gb)
     elif fmt == "npy":
-        data, spacing, dataset, attrs = _load_npy(path)
+        data, spacing, dataset, attrs = _load_npy(path, memory_gb)
     elif fmt == "npz":
-        data, spacing, dataset, attrs = _load_npz(path, dataset)
+        data, spacing, dataset, attrs = _load_npz(path, dataset, memory_gb)
     else:
-        data, spacing, dataset, attrs = _load_hdf5(path, dataset)
+        data, spacing, dataset, attrs = _load_hdf5(path, dataset, memory_gb)
     data = np.asarray(data)
     what = path if dataset is None else f"{path} [{dataset}]"
     if data.ndim not in (2, 3):
@@ -356,6 +382,8 @@ def load_density(
             f"{what}: density must be 2-D (ny, nx) or 3-D (nz, ny, nx), got shape {data.shape}"
         )
     spacing = None if spacing is None else tuple(spacing)  # (dx, dy[, dz])
+    if axis_order is not None:
+        data, spacing = _reorder(data, spacing, axis_order, what)
     units = None if spacing is None else "file"
     if spacing_mm is not None:
         spacing, units = _spacing_arg(spacing_mm, data.ndim, what), "mm"
@@ -369,7 +397,7 @@ def load_density(
         data, spacing = _slice(data, spacing, slice_index, axis, what=what)
     if min(data.shape) < 2:
         raise SynthbosError(f"{what}: need at least 2 nodes along every axis, got shape {data.shape}")
-    data = validate_density(data, where=what)
+    data = check_density(data, where=what)
     return LoadedDensity(
         data=np.ascontiguousarray(data),
         spacing=spacing,
@@ -378,6 +406,22 @@ def load_density(
         dataset=dataset,
         attrs=attrs,
     )
+
+
+def _reorder(data, spacing, axis_order, what):
+    """Transpose an array stored with axes ``axis_order`` (e.g. "xyz") to the (z, y, x) convention."""
+    canon = "zyx"[3 - data.ndim :]
+    order = str(axis_order).lower()
+    if sorted(order) != sorted(canon):
+        raise SynthbosError(
+            f"{what}: axis_order must name each of the {data.ndim} axes {', '.join(sorted(canon))} once "
+            f"(e.g. {canon!r} or {canon[::-1]!r}) for data of shape {data.shape}, got {axis_order!r}"
+        )
+    if spacing is not None:
+        # a file's spacing lists the array axes last first (x fastest in the convention)
+        by_letter = dict(zip(order[::-1], spacing, strict=True))
+        spacing = tuple(by_letter[c] for c in canon[::-1])
+    return np.transpose(data, [order.index(c) for c in canon]), spacing
 
 
 def _spacing_arg(spacing_mm, ndim, what):
@@ -475,7 +519,7 @@ def write_snapshots(path, snaps):
     os.replace(tmp, path)
 
 
-def read_snapshots(path=None):
+def read_snapshots(path=None, *, memory_gb=None):
     """Read a snapshot file written by :func:`write_snapshots` (the embedded one by default).
 
     Returns
@@ -490,7 +534,7 @@ def read_snapshots(path=None):
     if not os.path.isfile(path):
         raise SynthbosError(f"{path}: snapshot file not found")
     with _h5py_open(path) as h5:
-        dens, _ = _read_h5_array(h5, "density", path)
+        dens, _ = _read_h5_array(h5, "density", path, memory_gb)
         times = (
             _read_h5_array(h5, "time", path)[0] if "time" in h5 else np.arange(len(dens), dtype=np.float64)
         )
@@ -498,4 +542,4 @@ def read_snapshots(path=None):
     dens = np.asarray(dens)
     if dens.ndim != 3:
         raise SynthbosError(f"{path}: /density must be (snapshots, ny, nx), got shape {dens.shape}")
-    return validate_density(dens, where=path), np.asarray(times, dtype=np.float64), attrs
+    return check_density(dens, where=path, ndim=(3,)), np.asarray(times, dtype=np.float64), attrs

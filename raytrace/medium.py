@@ -15,8 +15,9 @@ import warp as wp
 from synthbos import SynthbosError
 
 from . import kernels, sources
+from .checks import check_density
 
-__all__ = ["MediumData", "check_density", "medium_from_config", "medium_from_density", "to_warp"]
+__all__ = ["MAX_INDEX", "MediumData", "medium_from_config", "medium_from_density", "to_warp"]
 
 
 @dataclass(frozen=True)
@@ -36,28 +37,13 @@ class MediumData:
         return tuple(L / (n - 1) for L, n in zip(self.size, (nx, ny, nz), strict=True))
 
 
-def check_density(rho, *, what="density"):
-    """Reject densities the renderer cannot use: non-finite, zero or negative, or not 3-D."""
-    rho = np.asarray(rho)
-    if rho.ndim != 3:
-        raise SynthbosError(f"{what} must be a 3-D array (nz, ny, nx), got shape {rho.shape}")
-    if min(rho.shape) < 2:
-        raise SynthbosError(f"{what} needs at least 2 nodes along every axis, got shape {rho.shape}")
-    bad = ~np.isfinite(rho)
-    if bad.any():
-        k, j, i = np.argwhere(bad)[0]
-        raise SynthbosError(f"{what} has {int(bad.sum())} non-finite value(s), first at node (z={k}, y={j}, x={i})")
-    if (rho <= 0).any():
-        k, j, i = np.argwhere(rho <= 0)[0]
-        raise SynthbosError(
-            f"{what} must be positive everywhere; found {rho[k, j, i]:g} kg/m^3 at node (z={k}, y={j}, x={i})"
-        )
+# Largest refractive index a medium may reach: liquids and gases stay far below; more is a unit mistake.
+MAX_INDEX = 2.5
 
 
 def medium_from_density(density: sources.DensityField, *, gladstone_dale, centre) -> MediumData:
     """Refractive index data for a density field placed with its centre at ``centre`` (metres)."""
-    check_density(density.rho)
-    rho = np.asarray(density.rho, dtype=np.float64)
+    rho = check_density(density.rho, where="volume", ndim=(3,))
     nz, ny, nx = rho.shape
     size = tuple(float(s) for s in density.size_m)
     spacing = [L / (n - 1) for L, n in zip(size, (nx, ny, nz), strict=True)]
@@ -74,7 +60,14 @@ def medium_from_config(cfg: dict) -> MediumData:
     """Build the medium described by the ``[volume]`` table of a validated configuration."""
     vol = cfg["volume"]
     table = {k: v for k, v in vol.items() if k != "offset_mm"}
-    density = sources.density_from_config(table)
+    density = sources.density_from_config(table, memory_gb=cfg.get("limits", {}).get("memory_gb"))
+    top = vol["gladstone_dale_m3_per_kg"] * float(density.rho.max())
+    if top > MAX_INDEX - 1.0:
+        raise SynthbosError(
+            f"volume: refractive index 1 + K rho reaches {1.0 + top:.4g} (K = volume.gladstone_dale_m3_per_kg = "
+            f"{vol['gladstone_dale_m3_per_kg']:g}, rho up to {float(density.rho.max()):.4g} kg/m^3); "
+            f"it must stay below {MAX_INDEX:g}"
+        )
     ox, oy = (o * 1e-3 for o in vol["offset_mm"])
     return medium_from_density(
         density, gladstone_dale=vol["gladstone_dale_m3_per_kg"],

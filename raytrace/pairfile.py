@@ -43,7 +43,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from synthbos import SynthbosError, atomic_output
+from synthbos import SynthbosError, atomic_hdf5
 
 __all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "read_pair", "write_pair"]
 
@@ -107,9 +107,9 @@ def describe_datasets(h5file, schema: dict) -> None:
 
 
 def write_pair(path, pair: Pair) -> Path:
-    """Write a pair file atomically (see ``synthbos.atomic_output``)."""
+    """Write a pair file atomically (built in memory, see ``synthbos.atomic_hdf5``)."""
     path = Path(path)
-    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_hdf5(path) as f:
         img = f.create_group("images")
         img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
         img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
@@ -136,6 +136,7 @@ def read_pair(path) -> Pair:
             missing += [f"/dots/{n}" for n in (*_DOT_SETS, "valid") if f"dots/{n}" not in f]
             if missing:
                 raise SynthbosError(f"{path} is not a synthbos pair file: missing {', '.join(missing)}")
+            _check_layout(f, path)
             kwargs = {n: f[f"dots/{n}"][()] for n in _DOT_SETS}
             kwargs.update({n: (f[f"dots/{n}"][()] if f"dots/{n}" in f else None) for n in _TRUTH_SETS})
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
@@ -145,3 +146,40 @@ def read_pair(path) -> Pair:
             )
     except OSError as err:
         raise SynthbosError(f"cannot read pair file {path}: {err}") from None
+
+
+def _check_layout(f, path):
+    """Shapes, types and the ``config`` attribute of an open pair file, before anything is read."""
+    import tomllib
+
+    def dataset(name):
+        obj = f[name]
+        if not isinstance(obj, h5py.Dataset):
+            raise SynthbosError(f"{path} is not a synthbos pair file: /{name} is a group, not a dataset")
+        if obj.dtype.kind not in "fiub":
+            raise SynthbosError(f"{path}: /{name} holds {obj.dtype}, not numbers")
+        return obj
+
+    ref, grad = dataset("images/reference"), dataset("images/gradient")
+    if ref.ndim != 2 or ref.shape != grad.shape or min(ref.shape) < 2:
+        raise SynthbosError(
+            f"{path}: /images/reference and /images/gradient must be 2-D images of one shape, "
+            f"got {ref.shape} and {grad.shape}"
+        )
+    n = None
+    for name in _DOT_SETS:
+        obj = dataset(f"dots/{name}")
+        if obj.ndim != 2 or obj.shape[1] != 2 or (n is not None and obj.shape[0] != n):
+            raise SynthbosError(f"{path}: /dots/{name} must be (N, 2) like the other dot sets, got shape {obj.shape}")
+        n = obj.shape[0]
+    if dataset("dots/valid").shape != (n,):
+        raise SynthbosError(f"{path}: /dots/valid must be ({n},), got shape {f['dots/valid'].shape}")
+    config = f.attrs.get("config")
+    if isinstance(config, bytes):
+        config = config.decode("utf-8", "replace")
+    if not isinstance(config, str):
+        raise SynthbosError(f"{path} is not a synthbos pair file: its 'config' attribute is missing or not text")
+    try:
+        tomllib.loads(config)
+    except tomllib.TOMLDecodeError as err:
+        raise SynthbosError(f"{path}: its 'config' attribute is not valid TOML ({err})") from None

@@ -16,9 +16,9 @@ from tqdm.auto import tqdm
 
 import synthbos
 from synthbos import SynthbosError
-from synthbos.device import init_warp
+from synthbos.device import check_device, init_warp
 
-from . import kernels
+from . import checks, kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
 from .medium import MediumData, medium_from_config, to_warp
@@ -74,6 +74,7 @@ class RenderPlan:
                 f"{self.n_dots} dots x {self.rays_per_dot} rays exceeds 2^31 rays per image; use fewer rays.per_dot"
             )
         self._check_field_of_view()
+        checks.check_render_plan(self)
 
     @property
     def n_dots(self) -> int:
@@ -273,7 +274,9 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     Pair
         Images (noise-free float32), dot positions and displacements (see ``raytrace.pairfile``).
     """
+    device = check_device(device)
     plan = config if isinstance(config, RenderPlan) else plan_render(config)
+    checks.check_ray_steps(plan, device)
     init_warp()
     device_name = str(wp.get_device(device))
     total = 2 * plan.n_dots * plan.rays_per_dot
@@ -291,6 +294,10 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
             f"{tir_ref + tir_grad} rays met total internal reflection in the thick lens; "
             "reduce the aperture (camera.f_number) or the field of view"
         )
+    if not (np.isfinite(ref_img).all() and np.isfinite(grad_img).all()) or not ref_img.max() > 0:
+        raise SynthbosError("the render deposited no light or non-finite intensities; check sensor.peak_intensity")
+    # A dot is valid only where every number of its ground truth is finite.
+    finite = np.all(np.isfinite(theory), axis=1) & np.all(np.isfinite(grad_px - ref_px), axis=1)
     attrs = {
         "config": config_to_toml(plan.cfg),
         "magnification": plan.camera.magnification,
@@ -316,6 +323,6 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     return Pair(
         reference=ref_img, gradient=grad_img, target_xy_m=plan.target_xy, reference_px=ref_px,
         gradient_px=grad_px, displacement_px=grad_px - ref_px, theory_px=theory,
-        valid=ref_ok & grad_ok, theory_cone_px=theory_cone, density_cone_kg_m3=density_cone,
+        valid=ref_ok & grad_ok & finite, theory_cone_px=theory_cone, density_cone_kg_m3=density_cone,
         density_chief_kg_m3=density_chief, attrs=attrs,
     )

@@ -41,8 +41,8 @@ def add_noise(image, *, percent, seed, peak=None, bit_depth=0, full_scale=None):
     img = np.asarray(image, dtype=np.float64)
     if not np.isfinite(img).all():
         raise SynthbosError("image has non-finite pixels")
-    if percent < 0:
-        raise SynthbosError(f"noise percent must be >= 0, got {percent}")
+    if not np.isfinite(percent) or percent < 0:
+        raise SynthbosError(f"noise percent must be a finite number >= 0, got {percent}")
     ref = float(img.max()) if peak is None else float(peak)
     rng = np.random.default_rng(seed)
     noisy = img + rng.normal(0.0, percent / 100.0 * ref, size=img.shape) if percent > 0 else img.copy()

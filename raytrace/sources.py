@@ -39,12 +39,17 @@ Data sources (the grid comes from the data; ``grid`` must be left unset):
                 array or a picked slice) is extruded along z like ``slice``; a 3-D result is used as the
                 volume. ``normalised``: "auto" (true for jhtdb, false otherwise), true (the data are
                 multiplied by ``density_scale_kg_m3``) or false (the data are kg/m^3). Ambient = mean of
-                the resulting field.
+                the resulting field. ``axis_order``: the physical axis of each stored array axis,
+                "auto" = "zyx" (3-D) / "yx" (2-D); "xyz" / "xy" for arrays stored as (nx, ny, nz) /
+                (nx, ny) (see :func:`raytrace.loaders.load_density`).
 
 Physical size of data sources: with ``spacing_mm = "auto"`` (default) the data are mapped onto
-``size_mm`` (first and last nodes on the faces). A file's own coordinates (JHTDB, NRRD) are not used
-for the size: they are in the file's units (database units for JHTDB: a 2 pi box), and are only
-reported as ``LoadedDensity.spacing`` for the user to turn into ``spacing_mm``. With ``spacing_mm``
+``size_mm`` (first and last nodes on the faces); for the ``file`` source this stretch is announced
+(a :class:`DensityNotice` warning naming the node spacing in mm that results, and the change of aspect
+ratio where the file carries its own spacing) and kept in ``DensityField.notes``. A file's own
+coordinates (JHTDB, NRRD) are not used for the size: they are in the file's units (database units for
+JHTDB: a 2 pi box), and are only reported as ``LoadedDensity.spacing`` for the user to turn into
+``spacing_mm``. With ``spacing_mm``
 given (one number, or [dx, dy, dz] along the file's x, y, z axes before any slice is taken; [dx, dy]
 for a 2-D file) the extent along each data axis is spacing x (n - 1) and ``size_mm`` is ignored along
 those axes; an extruded slice keeps ``size_mm[2]`` as its depth (e.g. a y-slice of a volume spans
@@ -55,16 +60,31 @@ dx (nx - 1) by dz (nz - 1)). ``DensityField.size_m`` always holds the extent act
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from synthbos import SynthbosError
 
+from . import checks
 from .defaults import DEFAULT_CONFIG
 from .loaders import FORMATS, infer_format, load_density, read_snapshots
 
-__all__ = ["COMMON_KEYS", "SOURCE_KEYS", "DensityField", "density_from_config", "node_coordinates"]
+__all__ = [
+    "ANALYTIC",
+    "COMMON_KEYS",
+    "DEFAULT_GRID",
+    "SOURCE_KEYS",
+    "DensityField",
+    "DensityNotice",
+    "density_from_config",
+    "node_coordinates",
+]
+
+
+class DensityNotice(UserWarning):
+    """What a data source did to the data that the configuration did not spell out (shown once)."""
 
 # Keys every source shares, with defaults. ``grid`` is [nx, ny, nz] nodes; None lets the source choose.
 # The physical defaults come from default.toml (the paper's set-up); a bare volume table is a Gaussian.
@@ -110,11 +130,12 @@ SOURCE_KEYS: dict[str, dict[str, object]] = {
         "index_range": "all",
         "spacing_mm": "auto",
         "normalised": "auto",
+        "axis_order": "auto",
     },
 }
 
-_DEFAULT_GRID = [64, 64, 16]
-_ANALYTIC = ("uniform", "linear", "gaussian", "step", "sinusoidal")
+DEFAULT_GRID = [64, 64, 16]
+ANALYTIC = ("uniform", "linear", "gaussian", "step", "sinusoidal")
 
 
 @dataclass(frozen=True)
@@ -130,11 +151,15 @@ class DensityField:
         Physical extent of the volume in metres.
     ambient : float
         Density of the undisturbed medium (kg/m^3), the medium of the reference image.
+    notes : tuple of str
+        What the source did that the configuration did not spell out (e.g. a file's grid stretched onto
+        ``size_mm``); also issued as :class:`DensityNotice` warnings.
     """
 
     rho: np.ndarray
     size_m: tuple[float, float, float]
     ambient: float
+    notes: tuple[str, ...] = ()
 
 
 def node_coordinates(shape_zyx, size_m):
@@ -147,14 +172,9 @@ def node_coordinates(shape_zyx, size_m):
 
 
 def _grid(volume):
-    grid = volume.get("grid") or _DEFAULT_GRID
-    if (
-        not isinstance(grid, list | tuple)
-        or len(grid) != 3
-        or any(isinstance(g, bool) or not isinstance(g, int | float) or int(g) != g or g < 2 for g in grid)
-    ):
-        raise SynthbosError(f"volume.grid must be three whole numbers >= 2 (nx, ny, nz), got {grid!r}")
-    return tuple(int(g) for g in grid)
+    grid = volume.get("grid") or DEFAULT_GRID
+    values = checks.vector("volume.grid", grid, (3,), integer=True, minimum=2, maximum=100_000)
+    return tuple(int(g) for g in values)
 
 
 def _params(volume, source):
@@ -172,20 +192,24 @@ def _params(volume, source):
     return p
 
 
-def _number(key, value, *, positive=False):
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise SynthbosError(f"volume.{key} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise SynthbosError(f"volume.{key} must be > 0, got {value!r}")
-    return float(value)
+# Sane magnitudes of the sources' own numbers (lengths in mm, densities in kg/m^3): beyond them a value
+# is a unit mistake; the density field itself is then checked by ``checks.check_density``.
+_LENGTH_MM = 1.0e6
+_DENSITY = checks.MAX_DENSITY_KG_M3
 
 
-def _vector(key, value, sizes, *, nonzero=False):
-    if not isinstance(value, list | tuple) or len(value) not in sizes:
-        raise SynthbosError(
-            f"volume.{key} must be a list of {' or '.join(map(str, sizes))} numbers, got {value!r}"
-        )
-    v = [_number(f"{key}[{i}]", x) for i, x in enumerate(value)]
+def _number(key, value, *, positive=False, bound=None):
+    """A source's number, named ``volume.<key>``: finite, |value| <= bound, > 0 if ``positive``."""
+    bounds = {} if bound is None else {"minimum": -bound, "maximum": bound}
+    if positive:
+        bounds["above"] = 0.0
+        bounds.pop("minimum", None)
+    return checks.number(f"volume.{key}", value, **bounds)
+
+
+def _vector(key, value, sizes, *, nonzero=False, bound=None):
+    bounds = {} if bound is None else {"minimum": -bound, "maximum": bound}
+    v = checks.vector(f"volume.{key}", value, sizes, **bounds)
     v = v + [0.0] * (3 - len(v))
     if nonzero and not any(v):
         raise SynthbosError(f"volume.{key} must not be the zero vector")
@@ -193,24 +217,14 @@ def _vector(key, value, sizes, *, nonzero=False):
 
 
 def _integer(key, value, *, low=None, high=None):
-    if isinstance(value, bool) or not isinstance(value, int | float) or int(value) != value:
-        raise SynthbosError(f"volume.{key} must be a whole number, got {value!r}")
-    value = int(value)
-    if (low is not None and value < low) or (high is not None and value > high):
-        raise SynthbosError(f"volume.{key} must be in {low}..{high}, got {value}")
-    return value
+    return checks.number(f"volume.{key}", value, integer=True, minimum=low, maximum=high)
 
 
 def _positive_field(rho, source):
-    low = float(rho.min())
-    if not np.isfinite(rho).all():
-        raise SynthbosError(f"volume: source {source!r} gives NaN/inf density; check its parameters")
-    if low <= 0:
-        raise SynthbosError(
-            f"volume: source {source!r} gives density down to {low:.4g} kg/m^3 inside the volume; "
-            "density must stay > 0 (reduce the gradient/amplitude/jump or raise volume.density_kg_m3)"
-        )
-    return rho
+    return checks.check_density(
+        rho, where=f"volume: source {source!r}", ndim=(3,),
+        hint="; reduce the gradient/amplitude/jump or raise volume.density_kg_m3",
+    )
 
 
 # ------------------------------------------------------------------ sources
@@ -220,31 +234,31 @@ def _analytic(source, p, size_m, grid):
     nx, ny, nz = grid
     x, y, z = node_coordinates((nz, ny, nx), size_m)
     Z, Y, X = np.meshgrid(z, y, x, indexing="ij")
-    rho0 = _number("density_kg_m3", p["density_kg_m3"], positive=True)
+    rho0 = _number("density_kg_m3", p["density_kg_m3"], positive=True, bound=_DENSITY)
     if source == "uniform":
         rho = np.full((nz, ny, nx), rho0)
     elif source == "linear":
-        gx, gy, gz = _vector("gradient_kg_m4", p["gradient_kg_m4"], (2, 3))
+        gx, gy, gz = _vector("gradient_kg_m4", p["gradient_kg_m4"], (2, 3), bound=1.0e12)
         rho = rho0 + gx * X + gy * Y + gz * Z
     elif source == "gaussian":
-        cx, cy, cz = _vector("centre_mm", p["centre_mm"], (2, 3)) * 1e-3
-        s = _number("sigma_mm", p["sigma_mm"], positive=True) * 1e-3
-        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
+        cx, cy, cz = _vector("centre_mm", p["centre_mm"], (2, 3), bound=_LENGTH_MM) * 1e-3
+        s = _number("sigma_mm", p["sigma_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"], bound=_DENSITY)
         rho = rho0 + a * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) / (2 * s * s))
     elif source == "step":
-        px, py, pz = _vector("position_mm", p["position_mm"], (2, 3)) * 1e-3
-        n = _vector("normal", p["normal"], (2, 3), nonzero=True)
+        px, py, pz = _vector("position_mm", p["position_mm"], (2, 3), bound=_LENGTH_MM) * 1e-3
+        n = _vector("normal", p["normal"], (2, 3), nonzero=True, bound=1.0e12)
         n = n / np.linalg.norm(n)
-        jump = _number("jump_kg_m3", p["jump_kg_m3"])
-        delta = _number("thickness_mm", p["thickness_mm"], positive=True) * 1e-3
+        jump = _number("jump_kg_m3", p["jump_kg_m3"], bound=_DENSITY)
+        delta = _number("thickness_mm", p["thickness_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
         s = (X - px) * n[0] + (Y - py) * n[1] + (Z - pz) * n[2]
         rho = rho0 + 0.5 * jump * (1.0 + np.tanh(2.0 * s / delta))
     else:  # sinusoidal
-        d = _vector("direction", p["direction"], (2, 3), nonzero=True)
+        d = _vector("direction", p["direction"], (2, 3), nonzero=True, bound=1.0e12)
         d = d / np.linalg.norm(d)
-        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"])
-        lam = _number("wavelength_mm", p["wavelength_mm"], positive=True) * 1e-3
-        phase = math.radians(_number("phase_deg", p["phase_deg"]))
+        a = _number("amplitude_kg_m3", p["amplitude_kg_m3"], bound=_DENSITY)
+        lam = _number("wavelength_mm", p["wavelength_mm"], positive=True, bound=_LENGTH_MM) * 1e-3
+        phase = math.radians(_number("phase_deg", p["phase_deg"], bound=1.0e6))
         s = X * d[0] + Y * d[1] + Z * d[2]
         rho = rho0 + a * np.sin(2.0 * np.pi * s / lam + phase)
     return _positive_field(rho, source), rho0
@@ -255,11 +269,11 @@ def _extrude(plane):
     return np.ascontiguousarray(np.broadcast_to(plane, (2, *plane.shape)))
 
 
-def _slice_source(p, volume, size_m):
+def _slice_source(p, volume, size_m, memory_gb=None):
     path = p["path"]
     if not isinstance(path, str):
         raise SynthbosError(f'volume.path must be a file name (or "" for the embedded file), got {path!r}')
-    dens, _, _ = read_snapshots(path or None)
+    dens, _, _ = read_snapshots(path or None, memory_gb=memory_gb)
     k = _integer("snapshot", p["snapshot"], low=0, high=len(dens) - 1)
     scale = float(volume["density_scale_kg_m3"])
     plane = dens[k] * scale
@@ -271,7 +285,7 @@ def _optional(p, key, off):
     return None if (isinstance(v, str) and v.lower() == off) else v
 
 
-def _file_source(p, volume, size_m):
+def _file_source(p, volume, size_m, memory_gb=None):
     path = p["path"]
     if not isinstance(path, str) or not path:
         raise SynthbosError(f"volume.path must name a density file, got {path!r}")
@@ -309,8 +323,11 @@ def _file_source(p, volume, size_m):
         if not 1 <= len(vals) <= 3:
             raise SynthbosError(f'volume.spacing_mm must be "auto", a number or a list, got {spacing!r}')
         for i, v in enumerate(vals):
-            _number(f"spacing_mm[{i}]", v, positive=True)
+            _number(f"spacing_mm[{i}]", v, positive=True, bound=_LENGTH_MM)
 
+    order = _optional(p, "axis_order", "auto")
+    if order is not None and not isinstance(order, str):
+        raise SynthbosError(f'volume.axis_order must be "auto" or a string such as "xyz", got {order!r}')
     loaded = load_density(
         path,
         format=fmt,
@@ -319,6 +336,8 @@ def _file_source(p, volume, size_m):
         axis=axis,
         index_range=rng,
         spacing_mm=spacing,
+        axis_order=order,
+        memory_gb=memory_gb,
     )
     fmt = fmt or _inferred(path)
     if norm is None:
@@ -331,14 +350,40 @@ def _file_source(p, volume, size_m):
         ext = [sp[0] * (nx - 1), sp[1] * (ny - 1)]
         ext.append(sp[2] * (nz - 1) if data.ndim == 3 else size_m[2])
         size_m = tuple(ext)
-    return vol, size_m, float(vol.mean())
+        notes = ()
+    else:
+        notes = (_stretch_note(path, data, loaded, size_m),)
+        warnings.warn(notes[0], DensityNotice, stacklevel=4)
+    return vol, size_m, float(vol.mean()), notes
+
+
+def _stretch_note(path, data, loaded, size_m):
+    """The notice for spacing_mm = "auto": the data's nodes are stretched onto size_mm."""
+    shape = data.shape[::-1]  # (nx, ny[, nz])
+    ext = [s * 1e3 for s in size_m[: data.ndim]]
+    step = [L / (n - 1) for L, n in zip(ext, shape, strict=True)]
+    names = "xyz"[: data.ndim]
+    msg = (
+        f'volume.path {path}: spacing_mm = "auto", so its {"x".join(str(n) for n in shape)} nodes '
+        f"({', '.join(names)}) are stretched onto size_mm "
+        f"{' x '.join(f'{L:g}' for L in ext)} mm (node spacing {' x '.join(f'{d:.4g}' for d in step)} mm)"
+    )
+    if loaded.spacing is not None and loaded.spacing_units == "file" and len(loaded.spacing) == data.ndim:
+        own = [d * (n - 1) for d, n in zip(loaded.spacing, shape, strict=True)]
+        change = (ext[0] / ext[1]) / (own[0] / own[1])
+        msg += (
+            f"; the file's own spacing {' x '.join(f'{d:.4g}' for d in loaded.spacing)} (file units) "
+            f"gives an x:y aspect ratio of {own[0] / own[1]:.4g}, this one {ext[0] / ext[1]:.4g} "
+            f"(x {change:.4g} times as stretched as y)"
+        )
+    return msg + "; set volume.spacing_mm to the file's node spacing in mm to keep its proportions"
 
 
 def _inferred(path):
     return infer_format(path)
 
 
-def density_from_config(volume: dict) -> DensityField:
+def density_from_config(volume: dict, *, memory_gb=None) -> DensityField:
     """Build the density field described by a ``[volume]`` table.
 
     Parameters
@@ -346,6 +391,8 @@ def density_from_config(volume: dict) -> DensityField:
     volume : dict
         The ``[volume]`` table: the common keys (``COMMON_KEYS``) and the source's own keys
         (``SOURCE_KEYS[source]``); missing source keys take their defaults.
+    memory_gb : float, optional
+        ``limits.memory_gb``: a data file whose declared shape needs more is refused before reading.
 
     Returns
     -------
@@ -359,15 +406,17 @@ def density_from_config(volume: dict) -> DensityField:
         density that is not finite and positive everywhere.
     """
     source = volume.get("source", COMMON_KEYS["source"])
-    if source not in SOURCE_KEYS:
+    if not isinstance(source, str) or source not in SOURCE_KEYS:
         raise SynthbosError(f"volume.source must be one of {sorted(SOURCE_KEYS)}, got {source!r}")
     p = _params(volume, source)
     size = volume.get("size_mm", COMMON_KEYS["size_mm"])
     if not isinstance(size, list | tuple) or len(size) != 3:
         raise SynthbosError(f"volume.size_mm must be a list of three numbers, got {size!r}")
-    size_m = tuple(_number(f"size_mm[{i}]", s, positive=True) * 1e-3 for i, s in enumerate(size))
-    if source in _ANALYTIC:
-        rho, ambient = _analytic(source, p, size_m, _grid(volume))
+    size_m = tuple(_number(f"size_mm[{i}]", s, positive=True, bound=_LENGTH_MM) * 1e-3 for i, s in enumerate(size))
+    notes = ()
+    if source in ANALYTIC:
+        with np.errstate(all="ignore"):  # overflow or 0/0 of extreme parameters: the field check names them
+            rho, ambient = _analytic(source, p, size_m, _grid(volume))
     else:
         if volume.get("grid") is not None:
             raise SynthbosError(
@@ -377,12 +426,13 @@ def density_from_config(volume: dict) -> DensityField:
             "density_scale_kg_m3",
             volume.get("density_scale_kg_m3", COMMON_KEYS["density_scale_kg_m3"]),
             positive=True,
+            bound=_DENSITY,
         )
         volume = {"density_scale_kg_m3": COMMON_KEYS["density_scale_kg_m3"], **volume}
         if source == "slice":
-            rho, size_m, ambient = _slice_source(p, volume, size_m)
+            rho, size_m, ambient = _slice_source(p, volume, size_m, memory_gb)
         else:
-            rho, size_m, ambient = _file_source(p, volume, size_m)
+            rho, size_m, ambient, notes = _file_source(p, volume, size_m, memory_gb)
     return DensityField(
-        rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient
+        rho=np.ascontiguousarray(rho, dtype=np.float64), size_m=tuple(size_m), ambient=ambient, notes=notes
     )

@@ -8,9 +8,6 @@ The algorithms live in the subpackages ``synthbos.raytrace``, ``synthbos.correla
 ``synthbos`` through setuptools' package-dir mapping.
 """
 
-import contextlib
-import os
-import tempfile
 from importlib import metadata as _metadata
 from importlib import resources as _resources
 from pathlib import Path
@@ -36,34 +33,14 @@ class SynthbosError(ValueError):
     """
 
 
-@contextlib.contextmanager
-def atomic_output(path):
-    """Yield a temporary path beside ``path``; on success rename it to ``path``, on any error remove it.
-
-    Every output file of the project is written this way, so an interrupted or failed run never leaves
-    a partial file under the final name. The file gets the permissions a plain ``open`` would give it
-    (``0o666`` less the user's umask), not ``mkstemp``'s private ``0o600``.
-    """
-    path = Path(path)
-    folder = path.parent
-    if not folder.is_dir():
-        raise SynthbosError(f"output folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; the final file gets the user's umask
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _umask() -> int:
-    """The process umask (read by setting it and putting it back; there is no read-only call)."""
-    mask = os.umask(0o077)
-    os.umask(mask)
-    return mask
+from .outputs import (  # noqa: E402  (needs SynthbosError above)
+    atomic_hdf5,
+    atomic_output,
+    check_output_file,
+    check_output_folder,
+    folder_lock,
+    make_folder,
+)
 
 
 def data_file(*parts):
@@ -75,4 +52,14 @@ def data_file(*parts):
     return Path(str(_resources.files("synthbos.data").joinpath(*parts)))
 
 
-__all__ = ["SynthbosError", "__version__", "atomic_output", "data_file"]
+__all__ = [
+    "SynthbosError",
+    "__version__",
+    "atomic_hdf5",
+    "atomic_output",
+    "check_output_file",
+    "check_output_folder",
+    "data_file",
+    "folder_lock",
+    "make_folder",
+]

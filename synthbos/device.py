@@ -18,7 +18,7 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["describe_device", "init_warp", "resolve_device"]
+__all__ = ["check_device", "describe_device", "init_warp", "resolve_device"]
 
 # What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -64,15 +64,33 @@ def init_warp() -> None:
     _initialised = True
 
 
+def check_device(device):
+    """Return ``device`` if Warp has it on this machine (None stays None: Warp's default); else ``SynthbosError``.
+
+    Names the device as the user gave it (``--device``), so a typo or ``cuda:0`` on a machine without
+    a GPU gives one line before any work.
+    """
+    if device is None:
+        return None
+    init_warp()
+    name = str(device)
+    cuda = wp.is_cuda_available()
+    if name.startswith("cuda") and not cuda:
+        raise SynthbosError(f"device {name!r}: no CUDA GPU is visible to Warp on this machine; use cpu")
+    try:
+        wp.get_device(name)
+    except (ValueError, RuntimeError):
+        known = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())] if cuda else ["cpu"]
+        raise SynthbosError(f"device {name!r} is not a Warp device on this machine; use one of {known}") from None
+    return name
+
+
 def resolve_device(device=None) -> str:
     """The Warp device to use: ``device`` if given (checked), else ``cuda:0`` when present, else ``cpu``."""
     init_warp()
     if device is None:
         return "cuda:0" if wp.is_cuda_available() else "cpu"
-    try:
-        return str(wp.get_device(device))
-    except (RuntimeError, ValueError) as err:
-        raise SynthbosError(f"Warp device {device!r} is not available: {err}") from None
+    return check_device(device)
 
 
 def describe_device(device: str) -> str:

@@ -4,7 +4,14 @@
 harness can call them one by one.
 """
 
-from .calibration import SoloffMapping, fit_soloff
+from .calibration import (
+    GridCalibration,
+    SoloffMapping,
+    calibrate_grid,
+    fit_soloff,
+    mapping_from_dict,
+    mapping_to_dict,
+)
 from .centroid import (
     CENTROID_METHODS,
     centroid_gaussian3,
@@ -34,10 +41,12 @@ __all__ = [
     "MATCH_METHODS",
     "TRACK_DTYPE",
     "DotStatus",
+    "GridCalibration",
     "SoloffMapping",
     "TrackingSettings",
     "blob_properties",
     "blob_score",
+    "calibrate_grid",
     "centroid_gaussian3",
     "centroid_gaussian4",
     "centroid_intensity_weighted",
@@ -52,6 +61,8 @@ __all__ = [
     "fit_dots_numpy",
     "fit_soloff",
     "is_valid",
+    "mapping_from_dict",
+    "mapping_to_dict",
     "match_multiparametric",
     "match_nearest",
     "position_crlb",

@@ -9,6 +9,14 @@ Displacements come both from the difference of the two positions (``u, v``) and 
 model to both images and the correction is that fit with each pair's common shape
 (:mod:`tracking.dotfit`); ``TrackingSettings.paper()`` selects the paper's three-point Gaussian and
 correlation of the dot maps.
+
+Further additions to the paper: with ``TrackingSettings.predictor = "correlation"`` (the default) the
+gradient-image positions are predicted by a coarse-to-fine correlation of the pair (:mod:`tracking.predict`),
+so displacements far beyond the window margin are tracked, with and without a prior, and a match is
+reported (MATCHED) only where it agrees with that prediction and the prediction is significant
+(otherwise PREDICTOR_MISMATCH, PREDICTOR_WEAK); in every mode a dot cut by the image edge (EDGE_CUT) or
+failing a median test against its neighbours (OUTLIER) is not MATCHED, and a mask excludes pixels
+(MASKED).
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from synthbos import SynthbosError
@@ -66,6 +75,28 @@ class DotStatus(enum.IntFlag):
         A closer prior dot claimed the same blob in every iteration (only with NOT found).
     FIT_FALLBACK
         The centroid fit fell back to a simpler estimate (e.g. a non-positive neighbour sample).
+    MASKED
+        The dot (its e^-2 disk, in either image) touches the excluded area of ``track_pair``'s ``mask``;
+        it is not measured (never MATCHED).
+    PREDICTOR_MISMATCH
+        The measured displacement differs from the correlation predictor's by more than
+        ``TrackingSettings.predictor_tolerance`` pixels, and from the local linear fit of its matched
+        neighbours' displacements too (which would overrule a poor prediction): the blob found is
+        probably another dot. ``u, v`` stay NaN (never MATCHED); ``x_gradient, y_gradient`` show what was
+        found.
+    PREDICTOR_WEAK
+        The correlation predictor is not significant at the dot: the local normalised correlation of the
+        pair after undoing the prediction is below ``TrackingSettings.predictor_min_correlation`` (an
+        unrelated or decorrelated gradient image). Never MATCHED.
+    EDGE_CUT
+        The dot's e^-2 disk (diameter ``d``) reaches past the image edge by amounts that differ by more
+        than half a pixel between the two images (a dot entering or leaving the field of view): its
+        two positions are pulled inwards by different amounts. Never MATCHED. (A dot cut alike in both
+        images keeps NEAR_BORDER only: its biases largely cancel, below 0.1 px with the model fit.)
+    OUTLIER
+        The displacement fails the normalised median test against the local linear fit of its nearest
+        matched neighbours (``TrackingSettings.outlier_threshold``): probably paired with the wrong blob.
+        Never MATCHED.
     """
 
     FOUND_REFERENCE = 1
@@ -79,6 +110,11 @@ class DotStatus(enum.IntFlag):
     OVERLAPPED = 256
     AMBIGUOUS = 512
     FIT_FALLBACK = 1024
+    MASKED = 2048
+    PREDICTOR_MISMATCH = 4096
+    PREDICTOR_WEAK = 8192
+    EDGE_CUT = 16384
+    OUTLIER = 32768
 
 
 TRACK_DTYPE = np.dtype(
@@ -96,6 +132,9 @@ TRACK_DTYPE = np.dtype(
         ("status", "i4"),
         ("iteration", "i2"),
         ("iteration_gradient", "i2"),
+        ("u_pred", "f8"),
+        ("v_pred", "f8"),
+        ("pred_correlation", "f8"),
     ]
 )
 
@@ -149,7 +188,9 @@ class TrackingSettings:
         Iterations on the residual image (Eq. 2); identification stops earlier when every dot is found or
         an iteration finds no new one.
     max_displacement : float
-        Largest expected displacement in pixels: the gradient window grows by it, and it bounds the search.
+        Largest expected distance in pixels of a dot's gradient-image position from its prediction (the
+        reference position with ``predictor="none"``, so then the largest displacement): the window of a
+        second search for dots the first one missed grows by it, and it bounds that search.
     prior_radius : float
         Largest distance in pixels between a dot's peak pixel and its prior position.
     cc_threshold : float
@@ -171,7 +212,8 @@ class TrackingSettings:
     match_weights : (w_distance, w_intensity, w_diameter)
         Weights of the multi-parametric match.
     search_radius : float or None
-        Pairing radius of standard tracking; ``max_displacement + 1`` by default.
+        Pairing radius of standard tracking (around the predicted position); ``max_displacement + 1`` by
+        default.
     identification : {"dynamic", "static"}
         Whole-image identification of standard tracking.
     threshold : float or None
@@ -182,10 +224,35 @@ class TrackingSettings:
     saturation_level : float or None
         Intensity at which pixels saturate; None: the image maximum when five or more pixels share it.
     predictor : {"correlation", "none"}
-        Prediction of the gradient-image positions. "none" is the paper's: the reference position, with the
-        window widened by ``max_displacement``. "correlation" (default, an addition) adds the displacement
-        of a coarse 16-pixel-window correlation, so the gradient window stays as small as the reference
-        one; dots it misses are looked for again the paper's way.
+        Prediction of the gradient-image positions, with and without a prior. "none" is the paper's: the
+        reference position, with the window widened by ``max_displacement`` (displacements up to about
+        ``max_displacement``). "correlation" (default, an addition) adds the displacement of a
+        coarse-to-fine window-deformation correlation of the pair
+        (:func:`tracking.predict.predict_displacement`; shifts up to about a quarter of the first
+        window), so the gradient window stays as small as the reference one; dots it misses are looked
+        for again in a window widened by ``max_displacement`` around the prediction. Every match is
+        checked against the prediction (PREDICTOR_MISMATCH, PREDICTOR_WEAK).
+    predictor_windows : tuple of int
+        Window sizes of the predictor's correlation passes, coarse first; the first should be at least
+        four times the largest displacement.
+    predictor_tolerance : float
+        A measured displacement further than this (pixels) from the predicted one is flagged
+        PREDICTOR_MISMATCH and not MATCHED.
+    predictor_min_correlation : float
+        Dots where the predictor's local normalised correlation is below this are flagged
+        PREDICTOR_WEAK and not MATCHED. An unrelated frame gives 0 +- 0.1 (by chance up to ~0.45 in a
+        512x512 px image); a right prediction gives 0.9 to 1 at 1 % noise (of the dot peak) and about
+        0.8 at 5 %, but only about 0.5 for sparse patterns (6 dots per 32x32 px) at 10 %: lower it for
+        such images. -1 disables the test.
+    outlier_threshold : float
+        Normalised median test of each matched dot's displacement against the local linear fit of its
+        ``outlier_neighbours`` nearest matched dots (Westerweel and Scarano 2005 on scattered data, Duncan
+        et al. 2010): a dot further from the fit than this times (the neighbours' median distance from
+        it + ``outlier_epsilon``) is flagged OUTLIER and not MATCHED; ``inf`` disables the test.
+    outlier_epsilon : float
+        Measurement noise (px) of the test's normalisation.
+    outlier_neighbours : int
+        Neighbours of the median test.
     backend : {"warp", "numpy"}
         The per-dot window step as a Warp kernel or as the NumPy reference (same results).
     """
@@ -213,6 +280,12 @@ class TrackingSettings:
     n_levels: int = 8
     saturation_level: float | None = None
     predictor: str = "correlation"
+    predictor_windows: tuple[int, ...] = (64, 32, 16)
+    predictor_tolerance: float = 1.5
+    predictor_min_correlation: float = 0.5
+    outlier_threshold: float = 3.0
+    outlier_epsilon: float = 0.2
+    outlier_neighbours: int = 12
     backend: str = "warp"
 
     def __post_init__(self):
@@ -236,6 +309,12 @@ class TrackingSettings:
             raise SynthbosError(f"unknown predictor {self.predictor!r}; choose 'correlation' or 'none'")
         if self.backend not in ("warp", "numpy"):
             raise SynthbosError(f"unknown backend {self.backend!r}; choose 'warp' or 'numpy'")
+        if not (np.isfinite(self.predictor_tolerance) and self.predictor_tolerance > 0):
+            raise SynthbosError(f"predictor_tolerance must be a positive number, got {self.predictor_tolerance!r}")
+        if not (len(self.predictor_windows) and all(int(s) >= 8 for s in self.predictor_windows)):
+            raise SynthbosError(
+                f"predictor_windows must be window sizes of at least 8 px, got {self.predictor_windows!r}"
+            )
         if self.max_iterations < 1:
             raise SynthbosError(f"max_iterations must be at least 1, got {self.max_iterations}")
 
@@ -522,8 +601,130 @@ def _standard_candidates(image, settings, noise):
     return np.stack([props["x"], props["y"]], axis=1)
 
 
+def _neighbour_fit(xy, uv, query, self_index, k):
+    """Local linear fit (value at the point) of the vectors ``uv`` at ``xy`` around each ``query`` point
+    from its ``k`` nearest points (``self_index``: the query's own index in ``xy``, or -1), and the
+    median distance of those neighbours' vectors from the fit."""
+    _, idx = cKDTree(xy).query(query, k=k + 1)
+    drop = np.where((idx == self_index[:, None]).any(axis=1), np.argmax(idx == self_index[:, None], axis=1), k)
+    keep = np.ones(idx.shape, dtype=bool)
+    keep[np.arange(len(idx)), drop] = False
+    nb = idx[keep].reshape(len(idx), k)
+    d = xy[nb] - query[:, None, :]
+    a = np.concatenate([np.ones((*d.shape[:2], 1)), d], axis=2)  # (n, k, 3)
+    ata = np.einsum("nki,nkj->nij", a, a)
+    ata += 1e-6 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    coef = np.linalg.solve(ata, np.einsum("nki,nkc->nic", a, uv[nb]))  # (n, 3, 2)
+    resid = np.linalg.norm(uv[nb] - np.einsum("nki,nic->nkc", a, coef), axis=2)
+    return coef[:, 0, :], np.median(resid, axis=1)
+
+
+def _confirmed_by_neighbours(out, good, query, settings):
+    """True where a queried dot's displacement agrees with the local linear fit of the ``good`` dots'
+    (within the outlier test and ``predictor_tolerance``): its neighbours overrule a poor prediction
+    (the correlation is least reliable in the windows at the image edge)."""
+    ok = np.zeros(len(good), dtype=bool)
+    gi, qi = np.flatnonzero(good), np.flatnonzero(query)
+    k = settings.outlier_neighbours
+    if qi.size == 0 or gi.size <= k + 3 or not np.isfinite(settings.outlier_threshold):
+        return ok
+
+    def xy_uv(i):
+        xy = np.stack([out["x"][i], out["y"][i]], axis=1)
+        return xy, np.stack([out["x_gradient"][i], out["y_gradient"][i]], axis=1) - xy
+
+    gxy, guv = xy_uv(gi)
+    qxy, quv = xy_uv(qi)
+    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), k)
+    r = np.linalg.norm(quv - fit, axis=1)
+    limit = np.minimum(settings.outlier_threshold * (spread + settings.outlier_epsilon), settings.predictor_tolerance)
+    ok[qi] = r <= limit
+    return ok
+
+
+def _neighbour_outliers(xy, uv, *, neighbours, epsilon, threshold):
+    """True where a vector is further from the local linear fit of its ``neighbours`` nearest vectors than
+    ``threshold`` times (their median distance from that fit + ``epsilon``): a normalised median test
+    for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as in Duncan
+    et al. 2010 so that smooth gradients do not count as outliers). Two rounds: the second fits only
+    the vectors the first one kept."""
+    n = len(xy)
+    if n <= neighbours + 3 or not np.isfinite(threshold):
+        return np.zeros(n, dtype=bool)
+    own = np.arange(n)
+    fit, spread = _neighbour_fit(xy, uv, xy, own, neighbours)
+    bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
+    clean = np.flatnonzero(~bad)
+    if bad.any() and len(clean) > neighbours + 3:
+        where = np.full(n, -1)
+        where[clean] = np.arange(len(clean))
+        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, neighbours)
+        bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
+    return bad
+
+
+#: A dot whose e^-2 disk reaches past the image edge by amounts that differ by more than this (px) between
+#: the two images is flagged EDGE_CUT: the truncation biases of its two centroids no longer cancel (the
+#: measured overshoots understate the difference, as both centroids are pulled inwards).
+_EDGE_CUT_PX = 0.5
+
+
+def _overshoot(x, y, radius, shape):
+    """(N, 2): how far (px) a disk of ``radius`` at (x, y) reaches past the image area, along x and y."""
+    h, w = shape
+    ox = np.maximum(np.maximum(-0.5 - (x - radius), (x + radius) - (w - 0.5)), 0.0)
+    oy = np.maximum(np.maximum(-0.5 - (y - radius), (y + radius) - (h - 0.5)), 0.0)
+    return np.stack([ox, oy], axis=1)
+
+
+def _disk(radius):
+    r = int(np.ceil(radius))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    return xx * xx + yy * yy <= radius * radius + 1e-9
+
+
+def _check_mask(mask, shape):
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != shape:
+        raise SynthbosError(f"mask has shape {m.shape} but the images are {shape}")
+    if m.dtype.kind not in "biuf" or (m.dtype.kind == "f" and not np.isfinite(m).all()):
+        raise SynthbosError("mask must be a finite boolean or 0/1 array (True = excluded)")
+    m = m.astype(bool)
+    if m.all():
+        raise SynthbosError("the mask excludes every pixel: nothing can be tracked")
+    return m
+
+
+def _masked_fill(image, mask):
+    """The image with its excluded pixels set to the median of the others (no dot is found there)."""
+    out = image.copy()
+    out[mask] = np.median(image[~mask])
+    return out
+
+
+def _touches(mask_near, xy):
+    """True where the rounded position lies on ``mask_near`` (outside the image: False)."""
+    h, w = mask_near.shape
+    fin = np.isfinite(xy).all(axis=1)
+    c = np.rint(np.where(fin, xy[:, 0], -1.0)).astype(np.int64)
+    r = np.rint(np.where(fin, xy[:, 1], -1.0)).astype(np.int64)
+    inside = fin & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    out = np.zeros(len(xy), dtype=bool)
+    out[inside] = mask_near[r[inside], c[inside]]
+    return out
+
+
 def track_pair(
-    reference, gradient, *, prior_xy=None, mapping=None, settings: TrackingSettings | None = None, device=None
+    reference,
+    gradient,
+    *,
+    prior_xy=None,
+    mapping=None,
+    mask=None,
+    settings: TrackingSettings | None = None,
+    device=None,
 ):
     """Track every dot from the reference to the gradient image.
 
@@ -538,6 +739,12 @@ def track_pair(
     mapping : callable, optional
         Calibration mapping target -> image (e.g. :func:`tracking.calibration.fit_soloff`'s result),
         applied to ``prior_xy``.
+    mask : (H, W) bool array, optional
+        True on the pixels to EXCLUDE (a model, a reflection, the outside of a window), as in
+        :func:`synthbos.correlation.correlate_pair`; 0/1 arrays are accepted. Excluded pixels take no
+        part in identification or in the correlation predictor. A dot whose e^-2 disk touches the
+        excluded area in either image is flagged MASKED and not measured (with a prior its row stays,
+        NaN; without one, no dot is identified in the excluded area itself).
     settings : TrackingSettings, optional
         Defaults to ``TrackingSettings()``.
     device : str or None, optional
@@ -564,6 +771,11 @@ def track_pair(
         :class:`DotStatus` bit flags; MATCHED marks a valid row.
     ``iteration, iteration_gradient`` (i2)
         Iteration of the residual scheme in which the dot was found in each image (1 = first; 0 = not found).
+    ``u_pred, v_pred`` (f8)
+        Displacement predicted by the correlation predictor, px (NaN with ``predictor="none"``).
+    ``pred_correlation`` (f8)
+        The predictor's local normalised correlation at the dot (its significance, about 1 for a good
+        prediction, about 0 for an unrelated gradient image; NaN with ``predictor="none"``).
 
     Values that could not be measured are NaN, and the status says why; a MATCHED row has finite
     ``x, y, u, v, u_cc, v_cc, x_gradient, y_gradient, diameter, peak``.
@@ -572,7 +784,13 @@ def track_pair(
     ------
     synthbos.SynthbosError
         Images of different shapes, not 2-D, all zero or with non-finite pixels; a prior that is not Nx2 or
-        lies entirely outside the image; a diameter that cannot be estimated.
+        lies entirely outside the image; a diameter that cannot be estimated; a mask of the wrong shape
+        or type, or one that excludes every pixel.
+
+    Notes
+    -----
+    The result does not depend on a constant added to either image (every background is estimated), so
+    dark dots on a bright background are tracked by giving ``max - image`` for both images.
     """
     settings = TrackingSettings() if settings is None else settings
     ref = _check_image("reference", reference)
@@ -580,6 +798,9 @@ def track_pair(
     if ref.shape != grad.shape:
         raise SynthbosError(f"reference and gradient images differ in shape: {ref.shape} and {grad.shape}")
     h_img, w_img = ref.shape
+    excluded = _check_mask(mask, ref.shape)
+    if excluded is not None:
+        ref, grad = _masked_fill(ref, excluded), _masked_fill(grad, excluded)
 
     if prior_xy is not None:
         prior = np.asarray(prior_xy, dtype=np.float64)
@@ -607,6 +828,15 @@ def track_pair(
     frame_r = _Frame(ref, noise_r, _saturation_level(ref, settings.saturation_level))
     frame_g = _Frame(grad, noise_g, _saturation_level(grad, settings.saturation_level))
     search = settings.max_displacement + 1.0 if settings.search_radius is None else settings.search_radius
+    use_pred = settings.predictor == "correlation"
+    near_mask = None
+    if excluded is not None:
+        near_mask = ndimage.binary_dilation(excluded, structure=_disk(d / 2.0))
+
+    def predict(xy):
+        return predict_displacement(
+            ref, grad, xy, window_sizes=settings.predictor_windows, mask=excluded, device=device
+        )
 
     def find(frame, pred, *, wide=False, standard=False):
         """One call of the identification: the prior's narrow window, the paper's wide one, or standard."""
@@ -628,13 +858,14 @@ def track_pair(
         r = find(frame_r, prior)
         found_r = np.isfinite(r["x"])
         base = np.where(found_r[:, None], np.stack([r["x"], r["y"]], axis=1), prior)
-        if settings.predictor == "correlation":
-            pred_g = base + predict_displacement(ref, grad, base, max_displacement=settings.max_displacement)
+        if use_pred:
+            pred_uv, pred_q = predict(base)
+            pred_g = base + np.nan_to_num(pred_uv)
             g = find(frame_g, pred_g)
-            # Dots the prediction missed get the paper's wide window around the reference position.
+            # Dots the prediction missed get the paper's wide window, around the prediction.
             miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
             if miss.size:
-                g2 = find(frame_g, base[miss], wide=True)
+                g2 = find(frame_g, pred_g[miss], wide=True)
                 for key in g:
                     if key == "flags":
                         g[key][miss] |= g2[key]
@@ -645,12 +876,20 @@ def track_pair(
             g = find(frame_g, base, wide=True)
         partner = np.arange(len(prior))
     else:
-        r = find(frame_r, _standard_candidates(ref, settings, noise_r), standard=True)
-        g = find(frame_g, _standard_candidates(grad, settings, noise_g), standard=True)
+        cand_r = _standard_candidates(ref, settings, noise_r)
+        cand_g = _standard_candidates(grad, settings, noise_g)
+        if excluded is not None:
+            cand_r = cand_r[~_touches(excluded, cand_r)]
+            cand_g = cand_g[~_touches(excluded, cand_g)]
+        r = find(frame_r, cand_r, standard=True)
+        g = find(frame_g, cand_g, standard=True)
         r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
         g = {k: v[np.isfinite(g["x"])] for k, v in g.items()}
         rxy = np.stack([r["x"], r["y"]], axis=1)
         gxy = np.stack([g["x"], g["y"]], axis=1)
+        if use_pred:
+            pred_uv, pred_q = predict(rxy)
+            rxy = rxy + np.nan_to_num(pred_uv)  # pair around the predicted gradient-image positions
         if settings.matching == "nearest":
             partner = match_nearest(rxy, gxy, radius=search)
         else:
@@ -696,6 +935,41 @@ def track_pair(
         status |= g["flags"].astype(np.int32) & ~np.int32(DotStatus.OUTSIDE_IMAGE)
     status[found_g] |= DotStatus.FOUND_GRADIENT
     matched = found_r & found_g
+    if near_mask is not None:
+        hidden = _touches(near_mask, np.stack([out["x"], out["y"]], axis=1))
+        hidden |= _touches(near_mask, np.stack([out["x_gradient"], out["y_gradient"]], axis=1))
+        if prior_xy is not None:
+            hidden |= _touches(near_mask, prior)
+        status[hidden] |= DotStatus.MASKED
+        matched &= ~hidden
+    out["u_pred"] = out["v_pred"] = out["pred_correlation"] = np.nan
+    if use_pred:
+        out["u_pred"], out["v_pred"], out["pred_correlation"] = pred_uv[:, 0], pred_uv[:, 1], pred_q
+        du = out["x_gradient"] - out["x"] - pred_uv[:, 0]
+        dv = out["y_gradient"] - out["y"] - pred_uv[:, 1]
+        off = found_r & found_g & ~(np.hypot(du, dv) <= settings.predictor_tolerance)
+        weak = found_r & ~(pred_q >= settings.predictor_min_correlation)
+        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings)
+        status[off] |= DotStatus.PREDICTOR_MISMATCH
+        status[weak] |= DotStatus.PREDICTOR_WEAK
+        matched &= ~(off | weak)
+    over = [
+        _overshoot(out[cx], out[cy], d / 2.0, (h_img, w_img)) for cx, cy in (("x", "y"), ("x_gradient", "y_gradient"))
+    ]
+    cut = (np.abs(over[0] - over[1]) > _EDGE_CUT_PX).any(axis=1)
+    cut &= matched
+    status[cut] |= DotStatus.EDGE_CUT
+    matched &= ~cut
+    mi = np.flatnonzero(matched)
+    wrong = _neighbour_outliers(
+        np.stack([out["x"][mi], out["y"][mi]], axis=1),
+        np.stack([out["x_gradient"][mi] - out["x"][mi], out["y_gradient"][mi] - out["y"][mi]], axis=1),
+        neighbours=settings.outlier_neighbours,
+        epsilon=settings.outlier_epsilon,
+        threshold=settings.outlier_threshold,
+    )
+    status[mi[wrong]] |= DotStatus.OUTLIER
+    matched[mi[wrong]] = False
     status[matched] |= DotStatus.MATCHED
     out["u"] = np.where(matched, out["x_gradient"] - out["x"], np.nan)
     out["v"] = np.where(matched, out["y_gradient"] - out["y"], np.nan)

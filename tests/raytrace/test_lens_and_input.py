@@ -9,7 +9,7 @@ from numpy.testing import assert_allclose
 from synthbos.benchmarks.cli import main
 from synthbos.raytrace import add_noise, kernels, load_config, read_pair, render_pair
 from synthbos.raytrace.camera import camera_from_config
-from synthbos.raytrace.medium import check_density
+from synthbos.raytrace.checks import check_density as _check_density
 from synthbos.raytrace.pattern import grid_pattern, random_pattern
 from synthbos.raytrace.render import plan_render
 
@@ -98,16 +98,16 @@ def test_patterns_density_and_spacing():
 @pytest.mark.parametrize(
     ("tables", "message"),
     [
-        ({"camera": {"f_number": 0}}, "camera.f_number must be > 0"),
-        ({"camera": {"f_number": -2.8}}, "camera.f_number must be > 0"),
-        ({"rays": {"per_dot": 0}}, "rays.per_dot must be > 0"),
+        ({"camera": {"f_number": 0}}, "camera.f_number must be >= 0.5 and <= 1000, got 0"),
+        ({"camera": {"f_number": -2.8}}, "camera.f_number must be >= 0.5 and <= 1000, got -2.8"),
+        ({"rays": {"per_dot": 0}}, "rays.per_dot must be >= 1 and <= 100000000, got 0"),
         ({"camera": {"fnumber": 8}}, "unknown configuration key camera.fnumber"),
         ({"optics": {"x": 1}}, "unknown configuration table [optics]"),
         ({"volume": {"source": "gaussian", "gradient_kg_m4": [1, 1]}}, "unknown configuration key volume.grad"),
         ({"volume": {"distance_from_target_mm": 1200}}, "behind the lens"),
         ({"volume": {"distance_from_target_mm": 3}}, "through the target plane"),
         ({"volume": {"offset_mm": [200.0, 0.0]}}, "misses the field of view"),
-        ({"volume": {"source": "linear", "gradient_kg_m4": [200.0, 0.0]}}, "density must stay > 0"),
+        ({"volume": {"source": "linear", "gradient_kg_m4": [200.0, 0.0]}}, "density must be > 0 everywhere"),
         ({"target": {"pattern": "hexagonal"}}, "target.pattern must be one of"),
     ],
 )
@@ -120,12 +120,14 @@ def test_bad_configuration_is_rejected(tables, message):
 def test_bad_density_arrays_are_rejected():
     rho = np.ones((4, 4, 4))
     rho[1, 2, 3] = np.nan
-    with pytest.raises(SynthbosError, match="non-finite"):
-        check_density(rho)
-    with pytest.raises(SynthbosError, match="positive"):
-        check_density(-np.ones((4, 4, 4)))
+    with pytest.raises(SynthbosError, match=r"NaN/inf value\(s\), first at index \(1, 2, 3\)"):
+        _check_density(rho, where="volume", ndim=(3,))
+    with pytest.raises(SynthbosError, match="must be > 0"):
+        _check_density(-np.ones((4, 4, 4)), where="volume", ndim=(3,))
     with pytest.raises(SynthbosError, match="3-D"):
-        check_density(np.ones((4, 4)))
+        _check_density(np.ones((4, 4)), where="volume", ndim=(3,))
+    with pytest.raises(SynthbosError, match="no fluid"):
+        _check_density(np.full((4, 4, 4), 2e5), where="volume", ndim=(3,))
 
 
 def test_cli_render_writes_a_complete_pair(tmp_path):

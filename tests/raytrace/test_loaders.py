@@ -5,7 +5,8 @@ import nrrd
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
-from synthbos.raytrace.loaders import infer_format, load_density, read_snapshots, validate_density
+from synthbos.raytrace.checks import check_density as validate_density
+from synthbos.raytrace.loaders import infer_format, load_density, read_snapshots
 
 from synthbos import SynthbosError
 
@@ -225,3 +226,29 @@ def test_snapshot_file_errors(tmp_path):
         h5.create_dataset("density", data=np.ones((4, 4)))
     with pytest.raises(SynthbosError, match=r"s\.h5: /density must be \(snapshots, ny, nx\)"):
         read_snapshots(tmp_path / "s.h5")
+
+
+def test_axis_order_reads_fortran_ordered_arrays(tmp_path):
+    vol = _volume((4, 5, 6))  # (nz, ny, nx)
+    np.save(tmp_path / "xyz.npy", vol.transpose(2, 1, 0))  # stored (nx, ny, nz), as Fortran output
+    got = load_density(tmp_path / "xyz.npy", axis_order="xyz")
+    assert_array_equal(got.data, vol)
+    # slices, ranges and spacing name physical axes after the reordering
+    s = load_density(tmp_path / "xyz.npy", axis_order="xyz", slice_index=2, axis="y", spacing_mm=[0.1, 0.2, 0.3])
+    assert_array_equal(s.data, vol[:, 2, :])
+    assert s.spacing == (0.1, 0.3)
+    r = load_density(tmp_path / "xyz.npy", axis_order="XYZ", index_range=[[1, 4], None, [0, 2]])
+    assert_array_equal(r.data, vol[0:2, :, 1:4])
+    plane = vol[0]  # (ny, nx)
+    np.save(tmp_path / "xy.npy", plane.T)
+    assert_array_equal(load_density(tmp_path / "xy.npy", axis_order="xy").data, plane)
+    assert_array_equal(load_density(tmp_path / "xy.npy", axis_order="yx").data, plane.T)
+    # a file's own spacing follows the axes: NRRD spacings are listed x first for a C-ordered (z, y, x) array
+    nrrd.write(str(tmp_path / "v.nrrd"), vol.transpose(2, 1, 0).copy(order="C"), {"spacings": [3.0, 2.0, 1.0]},
+               index_order="C")
+    n = load_density(tmp_path / "v.nrrd", axis_order="xyz")
+    assert_array_equal(n.data, vol)
+    assert n.spacing == (1.0, 2.0, 3.0)
+    for bad in ("xy", "xxz", "abc", "zyxw"):
+        with pytest.raises(SynthbosError, match="axis_order must name each"):
+            load_density(tmp_path / "xyz.npy", axis_order=bad)
