@@ -3,6 +3,9 @@
 #   bash benchmarks/gpu_checks.sh tests      the test suite's CUDA cases (every device-parametrised test
 #                                            on cuda:0, CPU/CUDA agreement) and the renderer speed benchmark
 #   bash benchmarks/gpu_checks.sh campaign   `synthbos paper --full` on cuda:0 and an f-number sweep
+#   bash benchmarks/gpu_checks.sh scaling    campaign throughput on 1, 2, 4 GPUs through Dask (bench_scaling)
+# The device image lacks some pure-Python dependencies (dask, pynrrd, imageio, hypothesis): carry them as
+# wheels in .whl/ and install them into /tmp/site first (see the README's GPU section).
 # Logs, tables and figures are packed into ${OUT:-gpu-out}/gpu-<part>.tar.gz.
 set -uo pipefail
 part=${1:-tests}
@@ -15,13 +18,19 @@ command -v synthbos >/dev/null || synthbos() { python3 -m synthbos.benchmarks.cl
   python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_devices())"; } > "$work/gpu.txt" 2>&1
 cat "$work/gpu.txt"
 if [ "$part" = tests ]; then
-  # The loaders are NumPy-only and need pynrrd, which the device image lacks: their tests run in CI.
-  python3 -m pytest -q -rA -p no:cacheprovider -k "cuda or gpu" --ignore=tests/raytrace/test_loaders.py tests \
+  python3 -m pytest -q -rA -p no:cacheprovider -m gpu tests \
     > "$work/pytest_gpu.log" 2>&1
   grep -E "passed|failed|CPU vs CUDA|^FAILED" "$work/pytest_gpu.log" | tail -12
   python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
     > "$work/bench_render.log" 2>&1
   tail -5 "$work/bench_render.log"
+elif [ "$part" = scaling ]; then
+  gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, -)
+  counts=$(python3 -c "n=len('$gpus'.split(',')); print(','.join(str(c) for c in (1, 2, 4, 8) if c <= n))")
+  python3 -m synthbos.benchmarks.bench_scaling --device cuda:0 --gpus "$gpus" --counts "$counts" \
+    --pairs-per-gpu "${PAIRS_PER_GPU:-8}" --noise "${NOISE:-0,3}" --out "$work/scaling" > "$work/scaling.log" 2>&1
+  tail -12 "$work/scaling.log"
+  cp "$work/scaling/"* "$out/" 2>/dev/null
 else
   synthbos paper --full --device cuda:0 --out "$work/paper-full" --workers 14 -q > "$work/paper_full.log" 2>&1
   tail -16 "$work/paper_full.log"
