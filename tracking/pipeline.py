@@ -227,19 +227,23 @@ class TrackingSettings:
         Prediction of the gradient-image positions, with and without a prior. "none" is the paper's: the
         reference position, with the window widened by ``max_displacement`` (displacements up to about
         ``max_displacement``). "correlation" (default, an addition) adds the displacement of a
-        coarse-to-fine window-deformation correlation of the pair
+        coarse-to-fine pyramid of window-offset correlations of the pair
         (:func:`tracking.predict.predict_displacement`; shifts up to about a quarter of the first
         window), so the gradient window stays as small as the reference one; dots it misses are looked
         for again in a window widened by ``max_displacement`` around the prediction. Every match is
         checked against the prediction (PREDICTOR_MISMATCH, PREDICTOR_WEAK).
     predictor_windows : tuple of int
-        Window sizes of the predictor's correlation passes, coarse first; the first should be at least
-        four times the largest displacement.
+        Tile sizes of the predictor's correlation passes, coarse first (a size may repeat: another
+        pass at that size); the first should be at least four times the largest displacement. The
+        pyramid ends early once a pass changes the field by no more than 0.25 px, so a gentle field
+        costs two passes and a strongly varying one goes on to the 16 px tiles. (Until h9b the
+        default was (64, 32, 16) window-deformation passes with 50 % overlap.)
     predictor_tolerance : float
         A measured displacement further than this (pixels) from the predicted one is flagged
         PREDICTOR_MISMATCH and not MATCHED.
     predictor_min_correlation : float
-        Dots where the predictor's local normalised correlation is below this are flagged
+        Dots where the predictor's normalised correlation coefficient (its finest tiles at their
+        neighbours' displacement, pooled over about 20 dots) is below this are flagged
         PREDICTOR_WEAK and not MATCHED. An unrelated frame gives 0 +- 0.1 (by chance up to ~0.45 in a
         512x512 px image); a right prediction gives 0.9 to 1 at 1 % noise (of the dot peak) and about
         0.8 at 5 %, but only about 0.5 for sparse patterns (6 dots per 32x32 px) at 10 %: lower it for
@@ -280,7 +284,7 @@ class TrackingSettings:
     n_levels: int = 8
     saturation_level: float | None = None
     predictor: str = "correlation"
-    predictor_windows: tuple[int, ...] = (64, 32, 16)
+    predictor_windows: tuple[int, ...] = (64, 32, 16, 16)
     predictor_tolerance: float = 1.5
     predictor_min_correlation: float = 0.5
     outlier_threshold: float = 3.0
