@@ -614,13 +614,35 @@ def _neighbour_fit(xy, uv, query, self_index, k):
     keep = np.ones(idx.shape, dtype=bool)
     keep[np.arange(len(idx)), drop] = False
     nb = idx[keep].reshape(len(idx), k)
-    d = xy[nb] - query[:, None, :]
-    a = np.concatenate([np.ones((*d.shape[:2], 1)), d], axis=2)  # (n, k, 3)
-    ata = np.einsum("nki,nkj->nij", a, a)
-    ata += 1e-6 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(3)
-    coef = np.linalg.solve(ata, np.einsum("nki,nkc->nic", a, uv[nb]))  # (n, 3, 2)
-    resid = np.linalg.norm(uv[nb] - np.einsum("nki,nic->nkc", a, coef), axis=2)
-    return coef[:, 0, :], np.median(resid, axis=1)
+    # Least squares of f = c + G d over the neighbours (offsets d from the query point, vectors f) in
+    # closed form: with both centred on their means, G solves the 2x2 normal equations and
+    # c = mean f - G mean d (a tiny ridge, relative to the spread of the offsets, keeps collinear
+    # neighbourhoods finite). Components as separate (n, k) arrays: contiguous and cheap to gather.
+    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
+    ex -= query[:, 0:1]
+    ey -= query[:, 1:2]
+    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
+    ex -= dmx
+    ey -= dmy
+    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
+    ridge = 1e-6 * (k + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
+    value = np.empty((len(nb), 2))
+    resid2 = np.zeros(nb.shape)
+    for c in range(2):
+        g = uv[:, c][nb]
+        fm = g.mean(axis=1, keepdims=True)
+        g -= fm
+        bx, by = (ex * g).sum(1), (ey * g).sum(1)
+        gx = ((syy * bx - sxy * by) / det)[:, None]
+        gy = ((sxx * by - sxy * bx) / det)[:, None]
+        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
+        g -= ex * gx
+        g -= ey * gy
+        resid2 += g * g
+    return value, np.median(np.sqrt(resid2), axis=1)
 
 
 def _confirmed_by_neighbours(out, good, query, settings):
