@@ -85,9 +85,10 @@ class DotStatus(enum.IntFlag):
         probably another dot. ``u, v`` stay NaN (never MATCHED); ``x_gradient, y_gradient`` show what was
         found.
     PREDICTOR_WEAK
-        The correlation predictor is not significant at the dot: the local normalised correlation of the
-        pair after undoing the prediction is below ``TrackingSettings.predictor_min_correlation`` (an
-        unrelated or decorrelated gradient image). Never MATCHED.
+        The correlation predictor is not significant at the dot: the normalised correlation of the pair
+        around it at the predicted displacement (:func:`tracking.predict.predict_displacement`) is below
+        ``TrackingSettings.predictor_min_correlation`` (an unrelated or decorrelated gradient image).
+        Never MATCHED.
     EDGE_CUT
         The dot's e^-2 disk (diameter ``d``) reaches past the image edge by amounts that differ by more
         than half a pixel between the two images (a dot entering or leaving the field of view): its

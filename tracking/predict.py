@@ -3,7 +3,8 @@
 The tracker pairs a dot with the blob nearest its predicted gradient-image position. Without a predictor
 that position is the reference position, so displacements beyond a couple of pixels (the window margin)
 are missed or, worse, paired with a neighbouring dot. Here a pyramid of window-shifted FFT correlations
-(coarse tiles first, each finer tile's gradient window moved by the coarser field) predicts every dot's
+(coarse tiles first, the gradient image moved back by the coarser field before each finer pass) predicts
+every dot's
 displacement, and the normalised correlation coefficient of the finest tiles, read at the displacement of
 their neighbours, says where the prediction can be trusted: it is near 1 where the images agree and near
 0 where the gradient frame is unrelated to the reference one (wrong frame, flipped frame, decorrelated
@@ -11,8 +12,10 @@ region).
 
 The prediction only has to land within a fraction of ``TrackingSettings.max_displacement`` (2 px) of the
 dot, as the identification looks for the dot in a window around it and the match must lie within
-``predictor_tolerance`` (1.5 px) of it: integer window offsets and a three-point Gaussian peak fit
-(about 0.05 px for 3 px dots) are enough, and no image deformation is needed.
+``predictor_tolerance`` (1.5 px) of it: moving the gradient image by whole pixels (no interpolation)
+and a three-point Gaussian peak fit of the residual (a few hundredths of a pixel for 3 px dots) are
+enough, and side-by-side tiles (no overlap) sample the field finely enough once the pyramid reaches
+tiles a few times the field's scale of variation.
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ from synthbos.correlation.xcorr import cross_correlate
 
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
-#: Window sizes (px) of the predictor's passes: 64 px windows find shifts up to about 16 px (a quarter of
-#: the window) and more; the 32 px pass follows fields that vary over a few tens of pixels.
+#: Tile sizes (px) of the predictor's passes: 64 px tiles find shifts up to about 16 px (a quarter of the
+#: tile) and more; the 32 and 16 px passes (the last one twice) follow fields that vary over a few tens of
+#: pixels (0.2 px per px in the tests). The pyramid ends at the first pass that changes little.
 PREDICTOR_WINDOWS = (64, 32, 16, 16)
 
 #: A pass that changes no tile's displacement by more than this (px) from the coarser pass's field
@@ -240,9 +244,10 @@ def predict_displacement(
     xy : (N, 2) array
         Reference-image positions (x = column, y = row) at which to predict; non-finite rows give NaN.
     window_sizes : tuple of int, keyword-only
-        Tile size of each correlation pass, coarse first (tiles side by side, no overlap). The first
-        should be at least four times the largest displacement; sizes larger than the image are reduced
-        to it.
+        Tile size of each correlation pass, coarse first (tiles side by side, no overlap; a size may
+        repeat: another pass at that size). The first should be at least four times the largest
+        displacement; sizes larger than the image are reduced to it. The passes end early at the first
+        one that changes no tile's displacement by more than 0.25 px from the coarser field.
     min_dots_per_window : float, keyword-only
         Passes whose tiles would hold fewer dots than this on average (from the number of ``xy`` inside
         the image) are replaced by one pass with the smallest tile (a multiple of 8 px) that holds that
@@ -259,13 +264,15 @@ def predict_displacement(
     Returns
     -------
     uv : (N, 2) float array
-        Predicted displacement (u, v) in pixels: the finest pass's tile field (each tile's gradient
-        window moved by the integer part of the coarser field, plus its correlation peak's three-point
-        Gaussian position; a tile further than 1 px from the median of its neighbours takes that
-        median), bilinearly interpolated from the tile centres to ``xy``.
+        Predicted displacement (u, v) in pixels: the last pass's tile field (the mean shift by which
+        the gradient image was moved back, the coarser field rounded at every pixel, plus the tile's
+        correlation peak by a three-point Gaussian fit; a tile failing the normalised median test
+        against its eight neighbours takes their median), bilinearly interpolated from the tile
+        centres to ``xy`` (linearly extrapolated beyond the outer centres).
     quality : (N,) float array
-        Normalised correlation coefficient of the finest tiles (mean-subtracted, masked pixels left out)
-        at the median displacement of each tile's neighbours (not its own peak, so that an unrelated
+        Normalised correlation coefficient of the last pass's tiles (mean-subtracted, masked pixels left
+        out) at the median residual displacement of each tile's neighbours, read off the plane by a
+        separable three-point Gaussian (not its own peak, so that an unrelated
         gradient image does not gain the bias of the maximum over the plane), pooled over the block of
         ``min_dots_per_box`` dots and interpolated to ``xy`` like ``uv``: about 1 where the prediction
         is right, about 0 for an unrelated gradient image.
@@ -274,11 +281,11 @@ def predict_displacement(
     -----
     Not part of Rajendran, Bane and Vlachos (2019), where the reference position itself is the
     prediction for the gradient image (which limits the displacement to the window margin). The passes
-    are the multigrid window-offset correlation of Scarano and Riethmuller (1999) without the window
-    deformation, which the tracker does not need (the prediction is only required to within a
-    fraction of ``max_displacement``); the significance is the normalised correlation at the
-    predicted displacement (Raffel et al. 2018, section 5.5: a correct displacement leaves two nearly
-    identical images).
+    are a multigrid correlation (Scarano and Riethmuller 1999; Scarano 2002) whose deformation moves
+    pixels by whole pixels only, which the tracker can afford (the prediction is only required to
+    within a fraction of ``max_displacement``; the peak fit measures the residual); the significance
+    is the normalised correlation at the predicted displacement (Raffel et al. 2018, section 5.5: a
+    correct displacement leaves two nearly identical images).
     """
     del device
     a = np.asarray(reference, dtype=np.float32)
