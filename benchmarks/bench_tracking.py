@@ -22,7 +22,7 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
-from synthbos.benchmarks.timing import best_time  # noqa: E402
+from synthbos.benchmarks.timing import best_time, best_times  # noqa: E402
 from synthbos.raytrace.dots import draw_dots  # noqa: E402
 from synthbos.tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 from synthbos.tracking.crlb import displacement_crlb, position_crlb  # noqa: E402
@@ -99,6 +99,7 @@ def main(argv=None):
     )
 
     rows = []
+    cpu_rates = []
     procedures = (
         (
             "synthbos tracking, default (model fit + model correction)",
@@ -111,9 +112,10 @@ def main(argv=None):
     )
     for name, settings in procedures:
         track_pair(ref, grad, prior_xy=xy, settings=settings, device="cpu")  # compile / warm up
-        t_track, res = best_time(
+        t_track, t_cpu, res = best_times(
             lambda settings=settings: track_pair(ref, grad, prior_xy=xy, settings=settings, device="cpu"), args.repeat
         )
+        cpu_rates.append(n / t_cpu)
         ok = is_valid(res["status"])
         ex = np.r_[res["x"] - xy[:, 0], res["y"] - xy[:, 1]][np.r_[ok, ok]]
         eu = np.r_[res["u"] - disp[:, 0], res["v"] - disp[:, 1]][np.r_[ok, ok]]
@@ -159,6 +161,7 @@ def main(argv=None):
     )
     print(head)
     print("-" * len(head))
+    # dots/s below: from the best wall time
     for name, rate, y, e, u, c, u95, c95 in rows:
         ratio_u = u / disp_bound if disp_bound > 0 else np.nan
         ratio_c = c / disp_bound if disp_bound > 0 else np.nan
@@ -167,8 +170,12 @@ def main(argv=None):
             f"{u95:7.4f} {c95:7.4f}"
         )
     print(
+        f"CPU time (dots/s from the best process time, which leaves out waiting for a core on a loaded "
+        f"machine): default {cpu_rates[0]:.0f}, paper {cpu_rates[1]:.0f}"
+    )
+    print(
         f"default / paper speed: {rows[0][1] / rows[1][1]:.2f}; target 1e5 dots/s for the default: "
-        f"{'met' if rows[0][1] >= 1e5 else 'NOT met'}"
+        f"{'met' if rows[0][1] >= 1e5 else 'NOT met'} (wall), {'met' if cpu_rates[0] >= 1e5 else 'NOT met'} (CPU)"
     )
     if len(rows) == 3:
         print(f"speed ratio default / trackpy: {rows[0][1] / rows[2][1]:.2f}")

@@ -85,9 +85,10 @@ class DotStatus(enum.IntFlag):
         probably another dot. ``u, v`` stay NaN (never MATCHED); ``x_gradient, y_gradient`` show what was
         found.
     PREDICTOR_WEAK
-        The correlation predictor is not significant at the dot: the local normalised correlation of the
-        pair after undoing the prediction is below ``TrackingSettings.predictor_min_correlation`` (an
-        unrelated or decorrelated gradient image). Never MATCHED.
+        The correlation predictor is not significant at the dot: the normalised correlation of the pair
+        around it at the predicted displacement (:func:`tracking.predict.predict_displacement`) is below
+        ``TrackingSettings.predictor_min_correlation`` (an unrelated or decorrelated gradient image).
+        Never MATCHED.
     EDGE_CUT
         The dot's e^-2 disk (diameter ``d``) reaches past the image edge by amounts that differ by more
         than half a pixel between the two images (a dot entering or leaving the field of view): its
@@ -227,19 +228,23 @@ class TrackingSettings:
         Prediction of the gradient-image positions, with and without a prior. "none" is the paper's: the
         reference position, with the window widened by ``max_displacement`` (displacements up to about
         ``max_displacement``). "correlation" (default, an addition) adds the displacement of a
-        coarse-to-fine window-deformation correlation of the pair
+        coarse-to-fine pyramid of window-offset correlations of the pair
         (:func:`tracking.predict.predict_displacement`; shifts up to about a quarter of the first
         window), so the gradient window stays as small as the reference one; dots it misses are looked
         for again in a window widened by ``max_displacement`` around the prediction. Every match is
         checked against the prediction (PREDICTOR_MISMATCH, PREDICTOR_WEAK).
     predictor_windows : tuple of int
-        Window sizes of the predictor's correlation passes, coarse first; the first should be at least
-        four times the largest displacement.
+        Tile sizes of the predictor's correlation passes, coarse first (a size may repeat: another
+        pass at that size); the first should be at least four times the largest displacement. The
+        pyramid ends early once a pass changes the field by no more than 0.25 px, so a gentle field
+        costs two passes and a strongly varying one goes on to the 16 px tiles. (Until h9b the
+        default was (64, 32, 16) window-deformation passes with 50 % overlap.)
     predictor_tolerance : float
         A measured displacement further than this (pixels) from the predicted one is flagged
         PREDICTOR_MISMATCH and not MATCHED.
     predictor_min_correlation : float
-        Dots where the predictor's local normalised correlation is below this are flagged
+        Dots where the predictor's normalised correlation coefficient (its finest tiles at their
+        neighbours' displacement, pooled over about 20 dots) is below this are flagged
         PREDICTOR_WEAK and not MATCHED. An unrelated frame gives 0 +- 0.1 (by chance up to ~0.45 in a
         512x512 px image); a right prediction gives 0.9 to 1 at 1 % noise (of the dot peak) and about
         0.8 at 5 %, but only about 0.5 for sparse patterns (6 dots per 32x32 px) at 10 %: lower it for
@@ -280,7 +285,7 @@ class TrackingSettings:
     n_levels: int = 8
     saturation_level: float | None = None
     predictor: str = "correlation"
-    predictor_windows: tuple[int, ...] = (64, 32, 16)
+    predictor_windows: tuple[int, ...] = (64, 32, 16, 16)
     predictor_tolerance: float = 1.5
     predictor_min_correlation: float = 0.5
     outlier_threshold: float = 3.0
@@ -610,13 +615,35 @@ def _neighbour_fit(xy, uv, query, self_index, k):
     keep = np.ones(idx.shape, dtype=bool)
     keep[np.arange(len(idx)), drop] = False
     nb = idx[keep].reshape(len(idx), k)
-    d = xy[nb] - query[:, None, :]
-    a = np.concatenate([np.ones((*d.shape[:2], 1)), d], axis=2)  # (n, k, 3)
-    ata = np.einsum("nki,nkj->nij", a, a)
-    ata += 1e-6 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(3)
-    coef = np.linalg.solve(ata, np.einsum("nki,nkc->nic", a, uv[nb]))  # (n, 3, 2)
-    resid = np.linalg.norm(uv[nb] - np.einsum("nki,nic->nkc", a, coef), axis=2)
-    return coef[:, 0, :], np.median(resid, axis=1)
+    # Least squares of f = c + G d over the neighbours (offsets d from the query point, vectors f) in
+    # closed form: with both centred on their means, G solves the 2x2 normal equations and
+    # c = mean f - G mean d (a tiny ridge, relative to the spread of the offsets, keeps collinear
+    # neighbourhoods finite). Components as separate (n, k) arrays: contiguous and cheap to gather.
+    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
+    ex -= query[:, 0:1]
+    ey -= query[:, 1:2]
+    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
+    ex -= dmx
+    ey -= dmy
+    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
+    ridge = 1e-6 * (k + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
+    value = np.empty((len(nb), 2))
+    resid2 = np.zeros(nb.shape)
+    for c in range(2):
+        g = uv[:, c][nb]
+        fm = g.mean(axis=1, keepdims=True)
+        g -= fm
+        bx, by = (ex * g).sum(1), (ey * g).sum(1)
+        gx = ((syy * bx - sxy * by) / det)[:, None]
+        gy = ((sxx * by - sxy * bx) / det)[:, None]
+        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
+        g -= ex * gx
+        g -= ey * gy
+        resid2 += g * g
+    return value, np.median(np.sqrt(resid2), axis=1)
 
 
 def _confirmed_by_neighbours(out, good, query, settings):

@@ -2,30 +2,42 @@
 
 The tracker pairs a dot with the blob nearest its predicted gradient-image position. Without a predictor
 that position is the reference position, so displacements beyond a couple of pixels (the window margin)
-are missed or, worse, paired with a neighbouring dot. Here a multigrid window-deformation correlation of
-the whole pair (:func:`synthbos.correlation.correlate_pair`, coarse windows first) predicts every dot's
-displacement, and the normalised correlation of the pair after undoing that prediction says where the
-prediction can be trusted: it is near 1 where the images agree and near 0 where the gradient frame is
-unrelated to the reference one (wrong frame, flipped frame, decorrelated region).
+are missed or, worse, paired with a neighbouring dot. Here a pyramid of window-shifted FFT correlations
+(coarse tiles first, the gradient image moved back by the coarser field before each finer pass) predicts
+every dot's
+displacement, and the normalised correlation coefficient of the finest tiles, read at the displacement of
+their neighbours, says where the prediction can be trusted: it is near 1 where the images agree and near
+0 where the gradient frame is unrelated to the reference one (wrong frame, flipped frame, decorrelated
+region).
+
+The prediction only has to land within a fraction of ``TrackingSettings.max_displacement`` (2 px) of the
+dot, as the identification looks for the dot in a window around it and the match must lie within
+``predictor_tolerance`` (1.5 px) of it: moving the gradient image by whole pixels (no interpolation)
+and a three-point Gaussian peak fit of the residual (a few hundredths of a pixel for 3 px dots) are
+enough, and side-by-side tiles (no overlap) sample the field finely enough once the pyramid reaches
+tiles a few times the field's scale of variation.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from synthbos.correlation import CorrelationSettings, correlate_pair
-from synthbos.correlation.deform import spline_weights
-
-from synthbos import SynthbosError
+from synthbos.correlation.peak import three_point_offset
+from synthbos.correlation.xcorr import cross_correlate
 
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
-#: Window sizes (px) of the predictor's passes: 64 px windows find shifts up to about 16 px (a quarter of
-#: the window); the 32 and 16 px passes follow fields that vary over a few tens of pixels.
-PREDICTOR_WINDOWS = (64, 32, 16)
+#: Tile sizes (px) of the predictor's passes: 64 px tiles find shifts up to about 16 px (a quarter of the
+#: tile) and more; the 32 and 16 px passes (the last one twice) follow fields that vary over a few tens of
+#: pixels (0.2 px per px in the tests). The pyramid ends at the first pass that changes little.
+PREDICTOR_WINDOWS = (64, 32, 16, 16)
 
-#: Fixed-point iterations from the correlation's midpoint field to the reference positions.
-_MIDPOINT_ITERATIONS = 4
+#: A pass that changes no tile's displacement by more than this (px) from the coarser pass's field
+#: (interpolated to its tile centres) ends the pyramid: the field is resolved for the tracker's needs.
+_RESOLVED = 0.25
+
+#: A tile takes part only where at least this fraction of its reference pixels is not masked.
+_MIN_VALID_FRACTION = 0.25
 
 
 def local_normalized_correlation(a, b, *, size, weights=None):
@@ -66,7 +78,7 @@ def local_normalized_correlation(a, b, *, size, weights=None):
 
 
 def _fill_nan(u):
-    """Replace NaN nodes (masked windows) by the nearest finite one."""
+    """Replace NaN nodes (masked tiles) by the nearest finite one."""
     bad = ~np.isfinite(u)
     if not bad.any():
         return u
@@ -76,14 +88,150 @@ def _fill_nan(u):
     return u[tuple(idx)]
 
 
+def _tile_grid(n, size):
+    """Start of each of the ``n // size`` tiles along an axis of ``n`` px, the tiles centred on the axis."""
+    count = n // size
+    return (n - count * size) // 2 + size * np.arange(count)
+
+
+def _bilinear(field, centres_y, centres_x, y, x):
+    """Bilinear interpolation of a tile field at points (x, y), extrapolated linearly past the outer centres."""
+    iy, ty = _cell(y, centres_y)
+    ix, tx = _cell(x, centres_x)
+    ny, nx = field.shape
+    iy1, ix1 = np.minimum(iy + 1, ny - 1), np.minimum(ix + 1, nx - 1)
+    return (1 - ty) * ((1 - tx) * field[iy, ix] + tx * field[iy, ix1]) + ty * (
+        (1 - tx) * field[iy1, ix] + tx * field[iy1, ix1]
+    )
+
+
+def _cell(t, centres):
+    """Cell index and fraction of coordinates ``t`` on evenly spaced ``centres`` (fraction beyond [0, 1]
+    at the ends: linear extrapolation, which follows a field's gradient to the image edge)."""
+    if len(centres) == 1:
+        return np.zeros(np.shape(t), dtype=np.int64), np.zeros(np.shape(t))
+    f = (np.asarray(t, dtype=np.float64) - centres[0]) / (centres[1] - centres[0])
+    i = np.clip(np.floor(f).astype(np.int64), 0, len(centres) - 2)
+    return i, f - i
+
+
+def _neighbour_median(u):
+    """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none)."""
+    ny, nx = u.shape
+    pad = np.pad(u, 1, constant_values=np.nan)
+    stack = [pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    stack = np.stack(stack)
+    out = np.full(u.shape, np.nan)
+    some = np.isfinite(stack).any(axis=0)
+    out[some] = np.nanmedian(stack[:, some], axis=0)
+    return out
+
+
+def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
+    """Tiles failing the normalised median test against their neighbours take the neighbours' median.
+
+    Westerweel and Scarano (2005): a tile further from its neighbours' median than ``threshold`` times
+    (their median distance from it + ``epsilon`` px) is an outlier.
+    """
+    ny, nx = u.shape
+    med = _neighbour_median(u)
+    pad = np.pad(u, 1, constant_values=np.nan)
+    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    spread = np.stack([np.abs(pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] - med) for dy, dx in shifts])
+    some = np.isfinite(spread).any(axis=0)
+    scale = np.full(u.shape, np.inf)
+    scale[some] = np.nanmedian(spread[:, some], axis=0)
+    bad = np.isfinite(med) & ~(np.abs(u - med) <= threshold * (scale + epsilon))
+    return np.where(bad, med, u)
+
+
+def _gaussian_sample(planes, row, col):
+    """Value of each correlation plane at a sub-pixel position, from a separable three-point Gaussian.
+
+    Around the sample nearest the position the plane is modelled as ``C exp(b t + c t^2)`` along each
+    axis (fitted to that sample and its two neighbours), which a correlation peak of Gaussian dots
+    follows closely; where a sample is not positive the nearest sample itself is taken. Positions
+    off the plane give 0.
+    """
+    k, h, w = planes.shape
+    r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
+    on = (r >= 1) & (r <= h - 2) & (c >= 1) & (c <= w - 2)
+    r, c = np.clip(r, 1, h - 2), np.clip(c, 1, w - 2)
+    i = np.arange(k)
+    centre = planes[i, r, c].astype(np.float64)
+    value = centre.copy()
+    tr, tc = row - r, col - c
+    trip = (
+        (planes[i, r - 1, c], planes[i, r + 1, c], tr),
+        (planes[i, r, c - 1], planes[i, r, c + 1], tc),
+    )
+    ok = centre > 0
+    for lo, hi, _ in trip:
+        ok &= (lo > 0) & (hi > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lc = np.log(np.where(ok, centre, 1.0))
+        factor = np.zeros(k)
+        for lo, hi, t in trip:
+            ll, lh = np.log(np.where(ok, lo, 1.0)), np.log(np.where(ok, hi, 1.0))
+            b, cc = 0.5 * (lh - ll), 0.5 * (lh + ll) - lc
+            factor += b * t + np.minimum(cc, 0.0) * t * t
+    value = np.where(ok, centre * np.exp(factor), centre)
+    return np.where(on, value, 0.0)
+
+
+def _tiles(image, ys, xs, size):
+    """The ``(ny, nx, size, size)`` stack of side-by-side tiles starting at rows ``ys`` and columns ``xs``."""
+    y0, x0 = ys[0], xs[0]
+    block = image[y0 : y0 + len(ys) * size, x0 : x0 + len(xs) * size]
+    return block.reshape(len(ys), size, len(xs), size).swapaxes(1, 2)
+
+
+def _interpolation_matrix(n, centres):
+    """(n, len(centres)) weights of :func:`_bilinear` along one axis at the pixels 0 .. n - 1."""
+    m = np.zeros((n, len(centres)))
+    i, t = _cell(np.arange(n), centres)
+    m[np.arange(n), i] = 1.0 - t
+    m[np.arange(n), np.minimum(i + 1, len(centres) - 1)] += t
+    return m
+
+
+def _correlate_tiles(a, b, va, vb, ys, xs, size):
+    """Normalised circular correlation of each reference tile with the same tile of ``b``.
+
+    Tiles are mean-subtracted over their unmasked pixels (``va``, ``vb`` 1 there, 0 on masked ones;
+    None: all pixels take part).
+    Returns the planes (zero displacement at ``size // 2``; a perfect match peaks at 1), which tiles
+    have enough unmasked pixels, and the two tiles' sums of squares (after mean subtraction).
+    """
+    ta, tb = _tiles(a, ys, xs, size), _tiles(b, ys, xs, size)
+    full = float(size * size)
+    stacks, counts = [], []
+    for t, v in ((ta, va), (tb, vb)):
+        if v is None:  # every pixel takes part
+            stacks.append(t - t.mean(axis=(-2, -1), keepdims=True, dtype=np.float32))
+            counts.append(np.full(t.shape[:2], full))
+        else:
+            wt = _tiles(v, ys, xs, size)
+            nt = wt.sum(axis=(-2, -1))
+            stacks.append((t - (t * wt).sum(axis=(-2, -1), keepdims=True) / np.maximum(nt, 1)[..., None, None]) * wt)
+            counts.append(nt)
+    (ta, tb), (na, nb) = stacks, counts
+    planes = cross_correlate(ta, tb, subtract_mean=False)
+    energy = (ta * ta).sum(axis=(-2, -1), dtype=np.float64), (tb * tb).sum(axis=(-2, -1), dtype=np.float64)
+    norm = np.sqrt(energy[0] * energy[1])
+    planes /= np.where(norm > 0, norm, 1.0).astype(planes.dtype)[..., None, None]
+    enough = _MIN_VALID_FRACTION * size * size
+    return planes, (na >= enough) & (nb >= enough) & (norm > 0), energy
+
+
 def predict_displacement(
     reference,
     gradient,
     xy,
     *,
     window_sizes=PREDICTOR_WINDOWS,
-    quality_window=32,
     min_dots_per_window=5.0,
+    min_dots_per_box=20.0,
     mask=None,
     device=None,
 ):
@@ -96,120 +244,142 @@ def predict_displacement(
     xy : (N, 2) array
         Reference-image positions (x = column, y = row) at which to predict; non-finite rows give NaN.
     window_sizes : tuple of int, keyword-only
-        Window size of each correlation pass, coarse first (50 % overlap; one iteration per pass, two
-        for the last).
-        The first should be at least four times the largest displacement; sizes larger than the image
-        are reduced to it.
+        Tile size of each correlation pass, coarse first (tiles side by side, no overlap; a size may
+        repeat: another pass at that size). The first should be at least four times the largest
+        displacement; sizes larger than the image are reduced to it. The passes end early at the first
+        one that changes no tile's displacement by more than 0.25 px from the coarser field.
     min_dots_per_window : float, keyword-only
-        Passes whose windows would hold fewer dots than this on average (from the number of ``xy`` inside
-        the image) are replaced by one pass with the smallest window (a multiple of 8 px) that holds
-        that many: sparse patterns, calibration grids.
-    quality_window : int, keyword-only
-        Side of the box of the significance measure (``quality``), px; reduced to the image size.
+        Passes whose tiles would hold fewer dots than this on average (from the number of ``xy`` inside
+        the image) are replaced by one pass with the smallest tile (a multiple of 8 px) that holds that
+        many: sparse patterns, calibration grids.
+    min_dots_per_box : float, keyword-only
+        The significance is pooled over a square block of finest tiles (1x1, 3x3, 5x5 ...) holding at
+        least this many dots: the chance correlation of unrelated images falls as one over the square
+        root of the number of dots.
     mask : (H, W) bool array, optional
-        True on pixels to exclude (as :func:`synthbos.correlation.correlate_pair`).
+        True on pixels to exclude: they take no part in the correlation.
     device : str, optional
-        Warp device of the image deformation; "cpu" when None.
+        Unused (the predictor runs on the CPU with NumPy's and SciPy's FFTs); kept for the callers.
 
     Returns
     -------
     uv : (N, 2) float array
-        Predicted displacement (u, v) in pixels: the last pass's field, interpolated to ``xy`` by the
-        correlation's separable cubic spline.
+        Predicted displacement (u, v) in pixels: the last pass's tile field (the mean shift by which
+        the gradient image was moved back, the coarser field rounded at every pixel, plus the tile's
+        correlation peak by a three-point Gaussian fit; a tile failing the normalised median test
+        against its eight neighbours takes their median), bilinearly interpolated from the tile
+        centres to ``xy`` (linearly extrapolated beyond the outer centres).
     quality : (N,) float array
-        Normalised correlation coefficient of the reference image and the gradient image sampled at
-        ``x + uv`` (bilinear), over a box of ``quality_window`` (or the last window, if larger) around each
-        position, masked and
-        out-of-image pixels left out: about 1 where the prediction is right, about 0 for an unrelated
-        gradient image (its spread there is roughly one over the square root of the number of dots in
-        the box).
+        Normalised correlation coefficient of the last pass's tiles (mean-subtracted, masked pixels left
+        out) at the median residual displacement of each tile's neighbours, read off the plane by a
+        separable three-point Gaussian (not its own peak, so that an unrelated
+        gradient image does not gain the bias of the maximum over the plane), pooled over the block of
+        ``min_dots_per_box`` dots and interpolated to ``xy`` like ``uv``: about 1 where the prediction
+        is right, about 0 for an unrelated gradient image.
 
     Notes
     -----
     Not part of Rajendran, Bane and Vlachos (2019), where the reference position itself is the
-    prediction for the gradient image (which limits the displacement to the window margin). The
-    correlation is Scarano's (2002) multigrid window deformation; the significance test is the
-    normalised correlation after deformation (Raffel et al. 2018, section 5.5: a correct
-    displacement leaves two nearly identical images).
+    prediction for the gradient image (which limits the displacement to the window margin). The passes
+    are a multigrid correlation (Scarano and Riethmuller 1999; Scarano 2002) whose deformation moves
+    pixels by whole pixels only, which the tracker can afford (the prediction is only required to
+    within a fraction of ``max_displacement``; the peak fit measures the residual); the significance
+    is the normalised correlation at the predicted displacement (Raffel et al. 2018, section 5.5: a
+    correct displacement leaves two nearly identical images).
     """
-    a = np.asarray(reference, dtype=np.float64)
-    b = np.asarray(gradient, dtype=np.float64)
+    del device
+    a = np.asarray(reference, dtype=np.float32)
+    b = np.asarray(gradient, dtype=np.float32)
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     h, w = a.shape
     side = min(h, w)
+    n = len(xy)
     fin = np.isfinite(xy).all(axis=1)
     n_in = np.count_nonzero(
         fin
         & (np.abs(np.where(fin, xy[:, 0], -9) - (w - 1) / 2) <= w / 2)
         & (np.abs(np.where(fin, xy[:, 1], -9) - (h - 1) / 2) <= h / 2)
     )
-    smallest = 8 * int(np.ceil(np.sqrt(min_dots_per_window * h * w / max(n_in, 1)) / 8.0))
-    window_sizes = [s for s in window_sizes if s > smallest] + [min(smallest, max(window_sizes))]
+    density = max(n_in, 1) / (h * w)
+    smallest = 8 * int(np.ceil(np.sqrt(min_dots_per_window / density) / 8.0))
+    kept = [int(s) for s in window_sizes if s >= smallest]
+    if len(kept) < len(window_sizes):
+        kept.append(min(smallest, max(window_sizes)))
     sizes = []
-    for s in window_sizes:
+    for s in kept:
         s = int(min(s, side))
-        if s >= 8 and s not in sizes:
+        if s >= 8 and (not sizes or s <= sizes[-1]):
             sizes.append(s)
-    n = len(xy)
     if not sizes or n == 0:
         return np.zeros((n, 2)), np.zeros(n)
-    while True:
-        settings = CorrelationSettings(
-            window_sizes=tuple(sizes),
-            overlaps=0.5,
-            iterations=(1,) * (len(sizes) - 1) + (2,),
-            # the coarse passes of a strongly varying field are smeared, not wrong: no peak-coefficient or
-            # coarse-to-fine disagreement failures here; the significance below judges the result
-            min_correlation=0.0,
-            max_disagreement=1.0e6,
-            device="cpu" if device is None else device,
-        )
-        try:
-            res = correlate_pair(a, b, settings=settings, mask=mask)
-            break
-        except SynthbosError:
-            if mask is None or len(sizes) == 1:
-                raise
-            sizes = sizes[1:]  # the mask covers most of every coarse window: start finer
-    node_y, node_x = res.y[:, 0].astype(np.float64), res.x[0, :].astype(np.float64)
-    u, v = _fill_nan(res.u.astype(np.float64)), _fill_nan(res.v.astype(np.float64))
+    valid = None if mask is None else (~np.asarray(mask, dtype=bool)).astype(np.float32)
 
-    rows, cols = np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64)
-    # the correlation's separable cubic spline of the node field at every pixel, constant beyond the
-    # outer nodes (the edge windows are the least reliable, their extrapolation more so)
-    wy = spline_weights(node_y, np.clip(rows, node_y[0], node_y[-1]))
-    wx = spline_weights(node_x, np.clip(cols, node_x[0], node_x[-1]))
-    du, dv = wy @ u @ wx.T, wy @ v @ wx.T
+    rows, cols = np.arange(h), np.arange(w)
+    field = None  # (u, v, centres_y, centres_x) of the previous pass
+    for size in sizes:
+        ys, xs = _tile_grid(h, size), _tile_grid(w, size)
+        cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
+        if field is None:
+            bd, vd = b, valid
+            base_u = base_v = prev_u = prev_v = 0.0
+        else:
+            # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
+            # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
+            wy, wx = _interpolation_matrix(h, field[2]), _interpolation_matrix(w, field[3])
+            su = np.rint(wy @ field[0] @ wx.T).astype(np.int64)
+            sv = np.rint(wy @ field[1] @ wx.T).astype(np.int64)
+            ry, rx = rows[:, None] + sv, cols[None, :] + su
+            inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
+            flat = (np.clip(ry, 0, h - 1) * w + np.clip(rx, 0, w - 1)).ravel()
+            bd = b.ravel().take(flat).reshape(h, w)
+            vd = inside.astype(np.float32)
+            if valid is not None:
+                vd *= valid.ravel().take(flat).reshape(h, w)
+            elif inside.all():
+                vd = None
+            base_u = _tiles(su, ys, xs, size).mean(axis=(-2, -1))
+            base_v = _tiles(sv, ys, xs, size).mean(axis=(-2, -1))
+            prev_u = _bilinear(field[0], field[2], field[3], cy[:, None], cx[None, :])
+            prev_v = _bilinear(field[1], field[2], field[3], cy[:, None], cx[None, :])
+        planes, usable, energy = _correlate_tiles(a, bd, valid, vd, ys, xs, size)
+        half = size // 2
+        search = planes
+        if field is not None:  # the coarser pass placed the window: look for the residual within a quarter
+            q = size // 4
+            search = np.full_like(planes, -np.inf)
+            inner = np.s_[..., half - q : half + q + 1, half - q : half + q + 1]
+            search[inner] = planes[inner]
+        pl = planes.reshape(-1, size, size)
+        idx = np.argmax(search.reshape(len(pl), -1), axis=1)
+        r, c = np.divmod(idx, size)
+        r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
+        i = np.arange(len(pl))
+        rv = (r + three_point_offset(pl[i, r - 1, c], pl[i, r, c], pl[i, r + 1, c]) - half).reshape(usable.shape)
+        ru = (c + three_point_offset(pl[i, r, c - 1], pl[i, r, c], pl[i, r, c + 1]) - half).reshape(usable.shape)
+        ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
+        u, v = _replace_outliers(base_u + ru), _replace_outliers(base_v + rv)
+        field = (_fill_nan(u), _fill_nan(v), cy, cx)
+        change = np.maximum(np.abs(field[0] - prev_u), np.abs(field[1] - prev_v))
+        if np.all(change <= _RESOLVED):
+            break  # the coarser field already gave this one to within the finer pass's noise
+    u, v = field[0], field[1]
 
-    # The correlation measures the displacement at the midpoint of a dot's two positions: solve
-    # d = field(x + d / 2) for the displacement of the dot at reference position x (the field is
-    # sampled bilinearly from its values at the pixels, which it varies too slowly to notice).
-    finite = np.isfinite(xy).all(axis=1)
-    pts = np.where(finite[:, None], xy, 0.0)
-    uv = np.zeros((n, 2))
-    for _ in range(_MIDPOINT_ITERATIONS):
-        mid = [np.clip(pts[:, 1] + 0.5 * uv[:, 1], 0, h - 1), np.clip(pts[:, 0] + 0.5 * uv[:, 0], 0, w - 1)]
-        uv = np.stack([ndimage.map_coordinates(f, mid, order=1) for f in (du, dv)], axis=1)
-    uv[~finite] = np.nan
+    # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
+    mu, mv = _fill_nan(_neighbour_median(ru)), _fill_nan(_neighbour_median(rv))
+    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half).reshape(u.shape)
+    # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
+    # variances, so tiles without dots (variance of the noise only) hardly count
+    ea, eb = (np.where(usable, e, 0.0) for e in energy)
+    cov = np.where(usable, coef, 0.0) * np.sqrt(ea * eb)
+    k = max(1 + 2 * int(np.ceil((np.sqrt(min_dots_per_box / density) / size - 1.0) / 2.0)), 1)
+    if k > 1:
+        cov, ea, eb = (ndimage.uniform_filter(f, size=k, mode="constant") for f in (cov, ea, eb))
+    den = np.sqrt(ea * eb)
+    coef = np.where(den > 0, cov / np.where(den > 0, den, 1.0), 0.0)
 
-    # Significance: undo the prediction on the gradient image (one midpoint step: the field varies
-    # slowly) and correlate it with the reference locally.
-    my, mx = rows[:, None] + 0.5 * dv, cols[None, :] + 0.5 * du
-    ru = ndimage.map_coordinates(du, [my, mx], order=1, mode="nearest")
-    rv = ndimage.map_coordinates(dv, [my, mx], order=1, mode="nearest")
-    sy, sx = rows[:, None] + rv, cols[None, :] + ru
-    inside = (sy >= 0) & (sy <= h - 1) & (sx >= 0) & (sx <= w - 1)
-    warped = ndimage.map_coordinates(b, [sy, sx], order=1, mode="nearest")
-    valid = inside.astype(np.float64)
-    if mask is not None:
-        m = np.asarray(mask, dtype=bool)
-        moved = ndimage.map_coordinates(m.astype(np.float64), [sy, sx], order=0, mode="nearest") > 0
-        valid *= ~(m | moved)
-    # the box holds at least ~20 dots: the chance correlation of unrelated images falls as 1 / sqrt(dots)
-    dense_enough = 8 * int(np.ceil(np.sqrt(20.0 * h * w / max(n_in, 1)) / 8.0))
-    box = min(max(int(quality_window), sizes[-1], dense_enough), side)
-    ncc = local_normalized_correlation(a, warped, size=box, weights=valid)
-    r = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, h - 1)
-    c = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, w - 1)
-    quality = np.where(finite, ncc[r, c], np.nan)
+    pts = np.where(fin[:, None], xy, 0.0)
+    uv = np.stack([_bilinear(f, cy, cx, pts[:, 1], pts[:, 0]) for f in (u, v)], axis=1)
+    quality = _bilinear(coef, cy, cx, pts[:, 1], pts[:, 0])
+    uv[~fin] = np.nan
+    quality = np.where(fin, quality, np.nan)
     return uv, quality
