@@ -239,6 +239,12 @@ def _saturation(saturation, k):
     return np.broadcast_to(np.asarray(saturation, dtype=np.float64), (k,)).copy()
 
 
+def _fixed_point_scale(peak: float) -> float:
+    """Units per intensity of the fixed-point model images: a model pixel holds at most a few overlapping
+    dots' peaks, so ``2**50 / (16 peak)`` keeps it far inside int64 and resolves 1e-14 of the peak."""
+    return float(2.0**50 / (16.0 * max(peak, 1e-300)))
+
+
 def _image_list(images):
     """The images as a list of 2-D float64 arrays (no copy where they already are)."""
     if isinstance(images, np.ndarray) and images.ndim == 2:
@@ -403,7 +409,7 @@ def fit_dots(
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    models = wp.empty((2, len(stack), *stack[0].shape), dtype=wp.float64, device=device)
+    models = wp.empty((2, len(stack), *stack[0].shape), dtype=wp.int64, device=device)
     cur = wp.array(p, dtype=wp.float64, device=device)
     nxt = wp.array(p, dtype=wp.float64, device=device)
     start = wp.array(p, dtype=wp.float64, device=device)
@@ -411,11 +417,18 @@ def fit_dots(
     shared = wp.empty((n, 2), dtype=wp.float64, device=device)
     prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
+    peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
     for it in range(iterations):
         last = it == iterations - 1
+        if it:
+            peak = float(np.max(np.abs(cur.numpy()[:, 2])))
+        scale = _fixed_point_scale(peak)
         (models if last else models[0]).zero_()
         wp.launch(
-            render_dots_kernel, dim=n, inputs=[cur, fr, pa, int(render_half), int(last), prof, models], device=device
+            render_dots_kernel,
+            dim=n,
+            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, models],
+            device=device,
         )
         wp.launch(
             fit_dot_step_kernel,
@@ -424,6 +437,7 @@ def fit_dots(
                 img0,
                 img1,
                 models,
+                1.0 / scale,
                 cur,
                 start,
                 fr,

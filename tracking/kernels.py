@@ -377,6 +377,12 @@ def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=w
     return wp.vec2d(half * (params[i, 2] + params[j, 2]), half * (params[i, 3] + params[j, 3]))
 
 
+@wp.func
+def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
+    """``value`` in fixed point: the nearest integer to ``value * scale``."""
+    return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
+
+
 @wp.kernel
 def render_dots_kernel(
     params: wp.array2d(dtype=wp.float64),
@@ -385,12 +391,15 @@ def render_dots_kernel(
     half: int,
     common: int,
     prof: wp.array3d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.float64),
+    scale: wp.float64,
+    models: wp.array4d(dtype=wp.int64),
 ):
     """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
 
     ``models[0, f]``: ``I0 p_x p_y``; if ``common``, ``models[1, f]``: the same at the pair's common
     shape, linearised in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
+    The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
+    dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
     i = wp.tid()
     f = frame[i]
@@ -409,15 +418,17 @@ def render_dots_kernel(
                 col = ox + c
                 if col >= 0 and col < models.shape[3]:
                     px = prof[i, 0, c]
-                    models[0, f, row, col] += a * py * px
+                    wp.atomic_add(models, 0, f, row, col, to_fixed(a * py * px, scale))
                     if common != 0:
-                        models[1, f, row, col] += cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                        shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                        wp.atomic_add(models, 1, f, row, col, to_fixed(shared, scale))
 
 
 @wp.func
 def normal_matrix(
     image: wp.array2d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.int64),
+    inv_scale: wp.float64,
     f: int,
     params: wp.array2d(dtype=wp.float64),
     i: int,
@@ -431,7 +442,8 @@ def normal_matrix(
     The window is the central ``2 half + 1`` part of the stamp whose profiles ``prof`` holds (``skip``
     pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
     this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
-    against the common-shape model image ``models[1]``. ``J`` is the derivative of the model with
+    against the common-shape model image ``models[1]`` (both fixed point: ``inv_scale`` per unit).
+    ``J`` is the derivative of the model with
     respect to x, y, I0, sigma and the background. Pixels at or above ``sat`` (saturated: they only
     bound the intensity) take no part.
     """
@@ -476,8 +488,8 @@ def normal_matrix(
                 if col >= 0 and col < image.shape[1] and image[row, col] < sat:
                     px = prof[i, 0, cc + skip]
                     v = image[row, col] - b
-                    res = v - models[0, f, row, col]
-                    res2 = v - models[1, f, row, col]
+                    res = v - wp.float64(models[0, f, row, col]) * inv_scale
+                    res2 = v - wp.float64(models[1, f, row, col]) * inv_scale
                     j0 = apy * prof[i, 1, cc + skip]
                     j1 = dpy * px
                     j2 = py * px
@@ -529,7 +541,8 @@ def limited(step: vec5d) -> vec5d:
 def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
     image1: wp.array2d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.int64),
+    inv_scale: wp.float64,
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
@@ -558,9 +571,9 @@ def fit_dot_step_kernel(
     f = frame[i]
     ne = NormalEquations()
     if f == 0:
-        ne = normal_matrix(image0, models, f, params, i, half, render_half - half, saturation[f], prof)
+        ne = normal_matrix(image0, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
     else:
-        ne = normal_matrix(image1, models, f, params, i, half, render_half - half, saturation[f], prof)
+        ne = normal_matrix(image1, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
     # Block elimination: the shape step from the Schur complement, then position and background.
     pinv = wp.inverse(ne.p)
     pq = pinv * ne.q
