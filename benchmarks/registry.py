@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
-from synthbos.tracking import TrackingSettings, is_valid, track_pair
+from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
 
 from synthbos import SynthbosError
 
@@ -119,25 +119,15 @@ def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, devic
                         counts=res.counts())
 
 
-def _masked_dots(xy, mask):
-    """True for dots whose reference position (rounded to the nearest pixel) lies in the mask."""
-    if mask is None or len(xy) == 0:
-        return np.zeros(len(xy), dtype=bool)
-    h, w = mask.shape
-    c = np.clip(np.rint(xy[:, 0]), 0, w - 1).astype(int)
-    r = np.clip(np.rint(xy[:, 1]), 0, h - 1).astype(int)
-    return np.asarray(mask, dtype=bool)[r, c]
-
-
 def _tracker(columns: tuple[str, str], name: str):
     def run(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
-        tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device)
+        tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
         xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
         uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
         table = {c: tab[c] for c in tab.dtype.names}
-        # the mask is applied to the tracked dots here: dots whose reference position is masked are
-        # dropped from the measurement (NaN) and marked in the column "masked"
-        masked = _masked_dots(xy, mask)
+        # dots that touch the mask's excluded pixels (track_pair's MASKED bit) are not measured: NaN,
+        # and marked in the column "masked"
+        masked = (tab["status"] & DotStatus.MASKED) != 0
         uv[masked] = np.nan
         table["masked"] = masked
         valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1) & ~masked
