@@ -56,7 +56,7 @@ def _row(method, noise, split, quantity, e, yield_):
 
 def format_summary(rows: list[dict]) -> str:
     """Short terminal table: displacement error p50 / p90 over all points, and yield."""
-    lines = [f"{'method':<13} {'noise %':>7} {'p50 px':>9} {'p90 px':>9} {'p90 below':>10} {'p90 above':>10} "
+    lines = [f"{'method':<17} {'noise %':>7} {'p50 px':>9} {'p90 px':>9} {'p90 below':>10} {'p90 above':>10} "
              f"{'yield':>7} {'rho rms % cone':>14} {'rho rms % chief':>15}"]
     by = {(r["method"], r["noise_percent"], r["split"], r["quantity"]): r for r in rows}
     for (method, noise, split, quantity), r in by.items():
@@ -66,6 +66,6 @@ def format_summary(rows: list[dict]) -> str:
         hi = by[(method, noise, "above", "displacement")]["p90"]
         rc = by.get((method, noise, "all", "density_cone_rel"), {}).get("rms", float("nan"))
         rh = by.get((method, noise, "all", "density_chief_rel"), {}).get("rms", float("nan"))
-        lines.append(f"{method:<13} {noise:>7g} {r['p50']:>9.4f} {r['p90']:>9.4f} {lo:>10.4f} {hi:>10.4f} "
+        lines.append(f"{method:<17} {noise:>7g} {r['p50']:>9.4f} {r['p90']:>9.4f} {lo:>10.4f} {hi:>10.4f} "
                      f"{r['yield']:>7.3f} {100 * rc:>14.2f} {100 * rh:>15.2f}")
     return "\n".join(lines)
