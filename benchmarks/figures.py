@@ -53,9 +53,6 @@ def save_figure(fig, path) -> list[Path]:
     return written
 
 
-_save = save_figure
-
-
 def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
     """Contour levels from 0 to at least ``vmax`` at round steps (0.05, 0.1, 0.2, ...)."""
     return MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, max(float(vmax), 1e-9))
@@ -120,7 +117,7 @@ def figure4(spec, folder, path):
                  f"dot displacement magnitude\n({used:,} of {total:,} dots valid, "
                  f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
                  fontsize=10)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _threshold_text(thresholds: np.ndarray) -> str:
@@ -214,7 +211,7 @@ def figure5(spec, folder, path):
     fig.suptitle(f"Error CDFs, campaign '{spec.name}' ({len(spec.pair_keys())} pairs). Threshold: half the standard "
                  f"deviation of Eq. 4's |ΔX| in each pair, {_threshold_text(thresholds)}; "
                  "n: points scored per method", fontsize=10)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def figure_density(spec, folder, path):
@@ -271,7 +268,7 @@ def figure_density(spec, folder, path):
             ax[c].legend(fontsize=7, loc="lower right")
     fig.suptitle(f"Campaign '{spec.name}': depth-averaged density from each method's displacements "
                  "(least squares), against the cone and chief-ray truths", fontsize=11)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_label=None, percentiles=(50, 90)):
@@ -346,5 +343,5 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
     what = label1 if param2 is None else f"{label1} and {label2}"
     extra = "; density error after integration" if has_density else ""
     fig.suptitle(f"Sweep of {what}: displacement error over all scored points, and yield{extra}", fontsize=11)
-    _save(fig, path)
+    save_figure(fig, path)
 

@@ -35,7 +35,7 @@ def captured(monkeypatch):
         figs.append((fig, [t.get_text() for t in fig.findobj(plt.Text)]))
         return save(fig, path)
 
-    monkeypatch.setattr(figures, "_save", keep)
+    monkeypatch.setattr(figures, "save_figure", keep)
     return figs
 
 
