@@ -79,6 +79,16 @@ def visible_gpus() -> list[str]:
 # --- what runs on a worker -------------------------------------------------------------------------
 
 
+def _thread_share(n_workers: int) -> dict:
+    """Environment giving one of ``n_workers`` local workers its share of the host's cores for the
+    thread pools of NumPy's BLAS and OpenMP (as dask-cuda gives each GPU worker its CPUs): without it
+    every worker starts a pool as large as the host and the workers oversubscribe the cores. GPU
+    workers get a share per GPU of the host, however many of the GPUs a run uses, so that runs on 1, 2
+    or 4 GPUs give each worker the same cores."""
+    k = str(max(1, default_workers() // max(1, n_workers)))
+    return {var: k for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
 def pair_task(render, scores, token: str) -> int:
     """Render one pair (``render`` args, or None when its file exists) and score it (``scores`` args).
 
@@ -229,11 +239,12 @@ class DaskRunner:
             n = self.workers or len(gpus)
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
-            envs = [{"CUDA_VISIBLE_DEVICES": g} for g in pinned]
+            threads = _thread_share(max(n, len(gpus), len(visible_gpus())))
+            envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:
             n = self.workers or default_workers()
-            names, envs = [f"cpu{i}" for i in range(n)], [{}] * n
+            names, envs = [f"cpu{i}" for i in range(n)], [_thread_share(n)] * n
             self.description = f"local cluster of {n} CPU worker(s)"
         memory = distributed.system.MEMORY_LIMIT // n
         return {

@@ -96,9 +96,27 @@ def test_local_gpu_workers_are_pinned_one_per_gpu():
     assert pins(gpus=["0", "1", "2", "3"]) == {"gpu0": "0", "gpu1": "1", "gpu2": "2", "gpu3": "3"}
     assert pins(gpus=["2", "3"], workers=3) == {"gpu2-0": "2", "gpu3-1": "3", "gpu2-2": "2"}
     cpu = DaskRunner("local", device="cpu", workers=2).local_worker_specs(distributed)
-    assert list(cpu) == ["cpu0", "cpu1"] and all(not s["options"]["env"] for s in cpu.values())
+    assert list(cpu) == ["cpu0", "cpu1"]
+    assert all("CUDA_VISIBLE_DEVICES" not in s["options"]["env"] for s in cpu.values())
     with pytest.raises(ValueError, match="its own GPU"):
         DaskRunner("local", device="cuda:1", gpus=["0"]).local_worker_specs(distributed)
+
+
+def test_local_workers_share_the_cores(monkeypatch):
+    # every GPU worker's BLAS/OpenMP pool gets the cores of one GPU's share of the host, however many
+    # of the GPUs a run uses, so that weak scaling compares like with like; CPU workers split the host
+    from synthbos.benchmarks import distributed as dist
+
+    monkeypatch.setattr(dist, "default_workers", lambda: 64)
+    monkeypatch.setattr(dist, "visible_gpus", lambda: ["0", "1", "2", "3"])
+
+    def share(device, **kw):
+        specs = dist.DaskRunner("local", device=device, **kw).local_worker_specs(distributed).values()
+        return {s["options"]["env"][var] for s in specs for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+
+    assert {n: share("cuda:0", gpus=["0", "1", "2", "3"][:n]) for n in (1, 2, 4)} == {1: {"16"}, 2: {"16"}, 4: {"16"}}
+    assert share("cuda:0", gpus=["0", "1"], workers=8) == {"8"}
+    assert share("cpu", workers=8) == {"8"}
 
 
 def test_scheduler_errors_are_one_line(tmp_path, capsys):
