@@ -52,9 +52,9 @@ def assert_same_files(a, b):
 
 @pytest.fixture(scope="module")
 def plain(tmp_path_factory):
-    """The campaign as the CPU runs it: renders, then score items in a pool of two processes."""
+    """The campaign as the CPU runs it: renders, then score items (one worker: in this process)."""
     folder = tmp_path_factory.mktemp("plain") / "c"
-    rows = run_campaign(SMALL, folder, device="cpu", workers=2, progress=False, figures=False, pipeline=False)
+    rows = run_campaign(SMALL, folder, device="cpu", workers=1, progress=False, figures=False, pipeline=False)
     return folder, rows
 
 
@@ -132,18 +132,16 @@ def test_bad_process_device_is_one_line_and_writes_nothing(pair_file, tmp_path, 
     assert not (tmp_path / "paper").exists() and not (tmp_path / "sweep").exists()
 
 
-def test_paper_and_sweep_accept_the_cpu_device(tmp_path, capsys, monkeypatch):
-    """``--device cpu`` on paper and sweep processes on the CPU and the results say so (a tiny campaign)."""
+def test_paper_and_sweep_pass_the_devices_on(plain, tmp_path, capsys, monkeypatch):
+    """``--device`` renders and processes, ``--process-device`` overrides the processing device."""
     import synthbos.benchmarks.cli as cli
 
-    monkeypatch.setattr(cli, "QUICK", replace(SMALL, name="quick", snapshots=(1,), noise_percent=(0.0,)))
-    out = tmp_path / "paper"
-    assert main(["paper", "--quick", "--device", "cpu", "--process-device", "cpu", "--out", str(out), "-q",
-                 "--workers", "1"]) == 0
+    calls = []
+    monkeypatch.setattr(cli, "run_campaign", lambda spec, out, **kw: calls.append(kw) or plain[1])
+    monkeypatch.setattr(cli, "run_sweep", lambda *a, **kw: calls.append(kw) or [])
+    assert main(["paper", "--quick", "--device", "cpu", "--out", str(tmp_path / "a"), "-q"]) == 0
+    assert main(["paper", "--quick", "--device", "cpu", "--process-device", "cpu", "--out", str(tmp_path / "b"),
+                 "-q"]) == 0
+    assert main(["sweep", "--param", "noise=0", "--device", "cpu", "--out", str(tmp_path / "c"), "-q"]) == 0
+    assert [(c["device"], c["process_device"]) for c in calls] == [("cpu", "cpu")] * 3
     assert "device: cpu" in capsys.readouterr().out
-    assert {r["process_device"] for r in json.loads((out / "results.json").read_text())} == {"cpu"}
-    sweep, cfg = tmp_path / "sweep", tmp_path / "small.toml"
-    cfg.write_text('[camera]\npixels = [96, 96]\n[rays]\nper_dot = 10\n[target]\ndots_per_32px = 12.0\n')
-    assert main(["sweep", str(cfg), "--param", "noise=0", "--device", "cpu", "--out", str(sweep), "-q",
-                 "--workers", "1"]) == 0
-    assert {r["process_device"] for r in json.loads((sweep / "sweep.json").read_text())} == {"cpu"}
