@@ -8,7 +8,8 @@ in flight.
 CPU, where every core renders or processes. ``run_pipeline`` is the way for a GPU: this process does
 all the device work, pair after pair (render, noise, each method's processing), and hands each
 result to a pool of worker processes for the host work (scoring, density integration, the score
-file), so the device never waits for the host and no worker initialises CUDA. Both give
+file), so the device never waits for the host and no worker initialises CUDA; a thread renders the
+next pair meanwhile. Both give
 byte-identical files: every item computes the same thing from the same seeds, only where differs.
 
 Worker processes die with the campaign: each asks Linux to send it SIGKILL when its parent exits
@@ -23,7 +24,7 @@ import ctypes
 import os
 import signal
 import sys
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, as_completed, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from multiprocessing import get_context
 
 from tqdm.auto import tqdm
@@ -91,12 +92,13 @@ def pair_tasks(renders, scores):
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process") -> None:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
-    Pair after pair, this process renders the pair (when its file is missing), reads it once, and for
-    each of its score items adds the noise and runs the method on the item's processing device
-    (``items.measure_item``); the result goes to a worker process that scores it and writes the score
-    file (``items.finish_item``) while this process goes on with the next item. At most
-    ``4 * workers`` results wait for a worker, so memory stays bounded when the host is the slower
-    side. With ``workers <= 1`` the host work runs here too, after each item.
+    Pair after pair, this process reads the pair and, for each of its score items, adds the noise and
+    runs the method on the item's processing device (``items.measure_item``); the result goes to a
+    worker process that scores it and writes the score file (``items.finish_item``) while this
+    process goes on with the next item. Meanwhile a thread renders the next pair (when its file is
+    missing), so the renderer's kernels run while this thread processes. At most ``4 * workers``
+    results wait for a worker, so memory stays bounded when the host is the slower side. With
+    ``workers <= 1`` the host work runs here, after each item.
     """
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
@@ -106,44 +108,50 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     if not tasks:
         return
     bar = tqdm(total=len(renders) + len(scores), desc=desc, unit="item", disable=not progress)
-    with bar:
-        if workers <= 1:
-            for render, items in tasks:
-                if render is not None:
-                    render_item(*render)
+    pending: set = set()
+
+    def collect(block: bool) -> None:
+        nonlocal pending
+        if not pending:
+            return
+        done, pending = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
+        for fut in done:
+            fut.result()  # a worker's error stops the campaign here
+            bar.update(1)
+
+    def render(k: int):
+        args = tasks[k][0] if k < len(tasks) else None
+        return None if args is None else renderer.submit(render_item, *args)
+
+    pool = _pool(workers - 1) if workers > 1 else None
+    renderer = ThreadPoolExecutor(1, thread_name_prefix="synthbos-render")
+    rendering = []
+    try:
+        with bar:
+            rendering.append(render(0))
+            for k, (_, items) in enumerate(tasks):
+                rendering.append(render(k + 1))  # the next pair renders while this one is processed
+                if rendering[k] is not None:
+                    rendering[k].result()
                     bar.update(1)
                 pair = read_pair(items[0][0]) if items else None
                 for args in items:
-                    *host, device = measure_item(pair, *args)
-                    finish_item(*host, device, pair=pair)
-                    bar.update(1)
-            return
-        pending: set = set()
-
-        def collect(block: bool) -> None:
-            nonlocal pending
-            if not pending:
-                return
-            done, pending = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
-            for fut in done:
-                fut.result()  # a worker's error stops the campaign here
-                bar.update(1)
-
-        with _pool(max(1, workers - 1)) as pool:
-            try:
-                for render, items in tasks:
-                    if render is not None:
-                        render_item(*render)
+                    host = measure_item(pair, *args)
+                    if pool is None:
+                        finish_item(*host, pair=pair)
                         bar.update(1)
-                    pair = read_pair(items[0][0]) if items else None
-                    for args in items:
-                        pending.add(pool.submit(finish_item, *measure_item(pair, *args)))
-                        collect(block=False)
-                        while len(pending) >= 4 * workers:
-                            collect(block=True)
-                while pending:
-                    collect(block=True)
-            except BaseException:
-                for fut in pending:
-                    fut.cancel()
-                raise
+                        continue
+                    pending.add(pool.submit(finish_item, *host))
+                    collect(block=False)
+                    while len(pending) >= 4 * workers:
+                        collect(block=True)
+            while pending:
+                collect(block=True)
+    except BaseException:
+        for fut in [*pending, *(f for f in rendering if f is not None)]:
+            fut.cancel()
+        raise
+    finally:
+        renderer.shutdown(wait=True)  # a render in flight finishes writing its (atomic) file
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

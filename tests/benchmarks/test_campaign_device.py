@@ -145,3 +145,35 @@ def test_paper_and_sweep_pass_the_devices_on(plain, tmp_path, capsys, monkeypatc
     assert main(["sweep", "--param", "noise=0", "--device", "cpu", "--out", str(tmp_path / "c"), "-q"]) == 0
     assert [(c["device"], c["process_device"]) for c in calls] == [("cpu", "cpu")] * 3
     assert "device: cpu" in capsys.readouterr().out
+
+
+def test_tracking_and_tracking_cc_share_one_track_pair(pair_file):
+    """A pair's tracking items, one after the other, run ``track_pair`` once; the results are those of two runs."""
+    from synthbos.benchmarks import registry
+    from synthbos.benchmarks.items import measure_pair
+    from synthbos.raytrace import read_pair
+
+    pair = read_pair(pair_file)
+    calls = []
+    fn = registry._track_pair.fn
+    registry.forget_shared_results()
+    try:
+        registry._track_pair.fn = lambda *a, **kw: calls.append(1) or fn(*a, **kw)
+        shared = {m: measure_pair(pair, m, noise_percent=3.0, seeds=(5, 6), device="cpu")
+                  for m in ("tracking", "tracking-cc")}
+        assert len(calls) == 1
+        alone = {}
+        for m in ("tracking", "tracking-cc"):
+            registry.forget_shared_results()
+            alone[m] = measure_pair(pair, m, noise_percent=3.0, seeds=(5, 6), device="cpu")
+        assert len(calls) == 3
+        other_noise = measure_pair(pair, "tracking-cc", noise_percent=1.0, seeds=(5, 6), device="cpu")
+        assert len(calls) == 4 and not np.array_equal(other_noise.uv, alone["tracking-cc"].uv, equal_nan=True)
+    finally:
+        registry._track_pair.fn = fn
+        registry.forget_shared_results()
+    for m in shared:
+        assert shared[m].uv.tobytes() == alone[m].uv.tobytes()
+        for k in shared[m].table:
+            assert np.asarray(shared[m].table[k]).tobytes() == np.asarray(alone[m].table[k]).tobytes(), (m, k)
+    assert not np.array_equal(shared["tracking"].uv, shared["tracking-cc"].uv, equal_nan=True)
