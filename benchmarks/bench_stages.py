@@ -28,7 +28,8 @@ the measured one beside it. No other stage depends on the rays per dot (the imag
 and dots).
 
 ``--paper-full`` then runs ``synthbos paper --full --device DEV`` (DEV: the first CUDA device given)
-in a temporary folder, in a subprocess, and prints its wall time.
+in a temporary folder, in a subprocess, and prints its wall time; ``--also-cpu-processing`` runs it
+again with ``--process-device cpu`` (rendering on the GPU, processing in CPU worker processes).
 
     python -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --paper-full --json stages.json
 """
@@ -61,9 +62,9 @@ PAPER_RAYS = 10_000
 NOISE_LEVELS = len(FULL.noise_percent)  # a campaign processes each pair at each of these
 
 
-def _config(rays_per_dot: int) -> dict:
-    """The paper's set-up (``raytrace/default.toml``, its one home) with ``rays_per_dot`` rays per dot."""
-    return {"rays": {"per_dot": int(rays_per_dot)}}
+def _config(rays_per_dot: int, base=None) -> dict:
+    """The paper's set-up (``raytrace/default.toml``, its one home; ``base`` tables over it) with ``rays_per_dot``."""
+    return {**(base or {}), "rays": {**(base or {}).get("rays", {}), "per_dot": int(rays_per_dot)}}
 
 
 def _best(fn, repeats: int, device: str, *, before=None):
@@ -87,8 +88,10 @@ def _best(fn, repeats: int, device: str, *, before=None):
 
 
 def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int = 3, noise_percent: float = 3.0,
-                methods=None, folder=None) -> dict:
+                methods=None, folder=None, base_config=None) -> dict:
     """Time every stage of one pair on ``device``; return ``{"stages": {name: seconds}, ...}``.
+
+    ``base_config`` (tables over the default, e.g. a smaller camera for a test) is None for the paper's set-up.
 
     The render is timed at ``rays_per_dot``; when that differs from ``scale_to`` its time is also given
     scaled: fixed part (the render at 2 rays per dot) + (measured - fixed) x (scale_to - 2) / (rays - 2).
@@ -98,12 +101,12 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
     methods = list(methods or default_methods())
     stages: dict[str, float] = {}
     measured: dict[str, float] = {}
-    config = _config(rays_per_dot)
+    config = _config(rays_per_dot, base_config)
 
     t_render, pair = _best(lambda: render_pair(config, device=device), repeats, device)
     measured["render"] = t_render
     if rays_per_dot != scale_to:
-        t_fixed, _ = _best(lambda: render_pair(_config(2), device=device), repeats, device)
+        t_fixed, _ = _best(lambda: render_pair(_config(2, base_config), device=device), repeats, device)
         t_fixed = min(t_fixed, t_render)
         measured["render fixed (2 rays/dot)"] = t_fixed
         stages["render"] = t_fixed + (t_render - t_fixed) * (scale_to - 2) / max(1, rays_per_dot - 2)
@@ -155,11 +158,13 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
     }
 
 
-def paper_full_wall_time(device: str, *, workers=None, folder=None) -> dict:
+def paper_full_wall_time(device: str, *, process_device=None, workers=None, folder=None) -> dict:
     """Run ``synthbos paper --full --device DEVICE`` in a temporary folder (a subprocess); return its wall time."""
     with tempfile.TemporaryDirectory(prefix="synthbos-paper-full-", dir=folder) as tmp:
         cmd = [sys.executable, "-m", "synthbos", "paper", "--full", "--device", device, "--out",
                str(Path(tmp) / "paper-full"), "-q"]
+        if process_device:
+            cmd += ["--process-device", process_device]
         if workers:
             cmd += ["--workers", str(workers)]
         t0 = time.perf_counter()
@@ -205,7 +210,10 @@ def main(argv=None):
     parser.add_argument("--methods", default=None, help="comma-separated methods (default: the campaign's)")
     parser.add_argument("--paper-full", action="store_true",
                         help="also time 'synthbos paper --full' on the first CUDA device given")
-    parser.add_argument("--workers", type=int, default=None, help="--workers of the paper --full run")
+    parser.add_argument("--also-cpu-processing", action="store_true",
+                        help="with --paper-full, also time it with --process-device cpu (render on the GPU, process "
+                             "in CPU worker processes: the scheduling before the GPU pipeline)")
+    parser.add_argument("--workers", type=int, default=None, help="--workers of the paper --full runs")
     parser.add_argument("--json", help="write the table (and the paper --full time) here as JSON")
     args = parser.parse_args(argv)
     init_warp()
@@ -228,8 +236,12 @@ def main(argv=None):
         cuda = [d for d in args.devices if d.startswith("cuda")]
         if not cuda:
             parser.error("--paper-full needs a CUDA device in --devices")
-        paper = paper_full_wall_time(cuda[0], workers=args.workers)
-        print(f"\n{paper['command']}: {paper['wall_seconds']:.1f} s wall")
+        paper = [paper_full_wall_time(cuda[0], workers=args.workers)]
+        if args.also_cpu_processing:
+            paper.append(paper_full_wall_time(cuda[0], process_device="cpu", workers=args.workers))
+        print()
+        for run in paper:
+            print(f"{run['command']}: {run['wall_seconds']:.1f} s wall")
     if args.json:
         out = {"date": date, "host": platform.node(), "cpu_cores": os.cpu_count(), "warp": wp.config.version,
                "repeats": args.repeats, "noise_levels_per_pair": NOISE_LEVELS, "runs": runs, "paper_full": paper}

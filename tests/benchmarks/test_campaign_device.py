@@ -177,3 +177,18 @@ def test_tracking_and_tracking_cc_share_one_track_pair(pair_file):
         for k in shared[m].table:
             assert np.asarray(shared[m].table[k]).tobytes() == np.asarray(alone[m].table[k]).tobytes(), (m, k)
     assert not np.array_equal(shared["tracking"].uv, shared["tracking-cc"].uv, equal_nan=True)
+
+
+def test_bench_stages_times_every_stage_on_the_cpu(capsys):
+    from synthbos.benchmarks.bench_stages import format_table, time_stages
+
+    run = time_stages("cpu", rays_per_dot=6, scale_to=10_000, repeats=1, base_config=SMALL_CONFIG)
+    stages = run["stages"]
+    expected = ["render", "pair file", "noise", "correlation", "tracking", "tracking-cc", "methods in turn",
+                "score correlation", "score tracking", "score tracking-cc", "pair total"]
+    assert list(stages) == expected and all(t > 0 for t in stages.values())
+    # the render is scaled from 6 to 10,000 rays per dot; the measured time is kept
+    assert stages["render"] > run["measured"]["render"] and run["render_scaled_to_rays_per_dot"] == 10_000
+    assert stages["pair total"] > stages["render"] + 4 * stages["methods in turn"]
+    table = format_table([run, run])
+    assert "cpu/cpu" in table and "render scaled to 10000 rays/dot" in table
