@@ -192,3 +192,28 @@ def test_bench_stages_times_every_stage_on_the_cpu(capsys):
     assert stages["pair total"] > stages["render"] + 4 * stages["methods in turn"]
     table = format_table([run, run])
     assert "cpu/cpu" in table and "render scaled to 10000 rays/dot" in table
+
+
+def test_an_error_in_the_pipeline_stops_it_and_a_rerun_finishes(plain, tmp_path, monkeypatch):
+    import synthbos.benchmarks.items as items
+
+    folder, rows = plain
+    out = tmp_path / "c"
+    shutil.copytree(folder, out)
+    for p in [*(out / "scores").glob("*.npz"), out / "results.json", out / "results.csv"]:
+        p.unlink()
+    finish, done = items.finish_item, []
+
+    def failing(*args, **kw):
+        if len(done) == 2:
+            raise RuntimeError("scoring failed")
+        done.append(finish(*args, **kw))
+        return done[-1]
+
+    monkeypatch.setattr(items, "finish_item", failing)
+    with pytest.raises(RuntimeError, match="scoring failed"):
+        run_campaign(SMALL, out, device="cpu", workers=1, progress=False, figures=False, pipeline=True)
+    assert len(list((out / "scores").glob("*.npz"))) == 2 and not list(out.rglob("*.tmp"))
+    monkeypatch.setattr(items, "finish_item", finish)
+    assert run_campaign(SMALL, out, device="cpu", workers=1, progress=False, figures=False, pipeline=True) == rows
+    assert_same_files(folder, out)
