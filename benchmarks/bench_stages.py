@@ -239,6 +239,8 @@ def main(argv=None):
         paper = [paper_full_wall_time(cuda[0], workers=args.workers)]
         if args.also_cpu_processing:
             paper.append(paper_full_wall_time(cuda[0], process_device="cpu", workers=args.workers))
+        for run in paper:
+            print(f"\n{run['command']}\n" + "\n".join(run["stdout_tail"].strip().splitlines()[-16:]))
         print()
         for run in paper:
             print(f"{run['command']}: {run['wall_seconds']:.1f} s wall")
