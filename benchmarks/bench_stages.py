@@ -142,7 +142,8 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
         stages[f"score {name}"], _ = _best(lambda name=name: score_result(pair, name, results[name]), repeats, "cpu")
     per_noise = stages["noise"] + stages["methods in turn"] + sum(stages[f"score {n}"] for n in methods)
     stages["pair total"] = stages["render"] + stages["pair file"] + NOISE_LEVELS * per_noise
-    measured.update({k: v for k, v in stages.items() if k not in measured and k != "render"})
+    measured.update({k: v for k, v in stages.items() if k not in ("render", "pair total")})
+    measured["pair total"] = stages["pair total"] - stages["render"] + measured["render"]
     return {
         "device": device,
         "device_name": str(wp.get_device(device).name),
