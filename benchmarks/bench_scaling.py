@@ -58,7 +58,7 @@ def _warm_up(device: str, folder: str) -> float:
     pair = str(Path(folder) / f"warm-{time.monotonic_ns()}.h5")
     render_item({"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 10}}, pair, device)
     for m in default_methods():
-        score_item(pair, m, 1.0, (1, 2), pair.replace(".h5", f"-{m}.npz"), {})
+        score_item(pair, m, 1.0, (1, 2), pair.replace(".h5", f"-{m}.npz"), {}, device)
     return time.perf_counter() - t0
 
 

@@ -15,21 +15,31 @@ from pathlib import Path
 from synthbos.raytrace import checks, plan_render
 
 from synthbos import SynthbosError, folder_lock, make_folder
+from synthbos.device import check_device
 
 from .figures import figure4, figure5, figure_density
 from .items import render_item, score_item
 from .registry import get_method
-from .scheduling import default_workers, run_items
+from .scheduling import default_workers, run_items, run_pipeline
 from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import summarise
 
-__all__ = ["check_spec", "run_campaign"]
+__all__ = ["check_spec", "resolve_process_device", "run_campaign"]
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
-                 scheduler=None, wait=False):
+                 scheduler=None, wait=False, process_device=None, pipeline=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
+
+    ``device`` renders; ``process_device`` runs the methods (default: ``device``, and the CPU when
+    neither is given). Every score file, and the results table's column ``process_device``, records it.
+
+    Without a scheduler, a campaign that processes on the CPU runs its renders and then its score
+    items in a pool of ``workers`` processes; one that processes on a GPU runs as a pipeline
+    (``scheduling.run_pipeline``): this process does the device work of pair after pair while
+    ``workers - 1`` processes score the results. ``pipeline`` (True or False) chooses either way
+    whatever the device; the files are byte-identical.
 
     Everything a user can get wrong (the configuration, the methods and their settings, the folder) is
     checked before any work starts. The folder is locked (``folder/.lock``) for the campaign's life: a
@@ -45,16 +55,27 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         One row per method, noise level, split and quantity (see ``tables.summarise``).
     """
     folder = Path(folder)
-    check_spec(spec, device)  # a bad method, setting or configuration fails before any work
+    process_device = resolve_process_device(device, process_device)
+    check_spec(spec, device, process_device)  # a bad method, setting, device or configuration fails before any work
     methods = [get_method(name) for name in spec.methods]
+    if pipeline is None:
+        pipeline = process_device.startswith("cuda")
     make_folder(folder)
     with folder_lock(folder, wait=wait):
         return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
-                           figures=figures, scheduler=scheduler)
+                           figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline)
 
 
-def check_spec(spec: CampaignSpec, device=None) -> None:
-    """Check a campaign spec without rendering: its methods, their settings, noise levels and render plan."""
+def resolve_process_device(device=None, process_device=None) -> str:
+    """The processing device of a campaign: ``process_device``, else the render ``device``, else ``"cpu"``."""
+    chosen = process_device if process_device is not None else device
+    return "cpu" if chosen is None else str(chosen)
+
+
+def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
+    """Check a campaign spec without rendering: its methods, their settings, noise levels, devices and render plan."""
+    if process_device is not None:
+        check_device(process_device)
     for noise in spec.noise_percent:
         if not (isinstance(noise, int | float) and math.isfinite(noise) and 0 <= noise <= 100):
             raise SynthbosError(f"noise level must be a percentage in 0..100, got {noise!r}")
@@ -67,7 +88,7 @@ def check_spec(spec: CampaignSpec, device=None) -> None:
         checks.check_ray_steps(plan_render(spec.pair_config(s, p)), device)  # configuration, limits, view
 
 
-def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler):
+def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline):
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
     for sub in (folder, folder / "pairs", folder / "scores"):
@@ -87,11 +108,14 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                 out = score_path(folder, s, p, noise, m.name)
                 if not out.exists():
                     scores.append((str(pair_path(folder, s, p)), m.name, noise, seeds, str(out),
-                                   spec.overrides_for(m)))
+                                   spec.overrides_for(m), process_device))
     if scheduler is not None:  # Dask: each pair is rendered and scored by one task, on one worker
         from .distributed import run_pairs
 
-        run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress)
+        run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress,
+                  process_device=process_device)
+    elif pipeline:  # the device work here, pair after pair; scoring in worker processes
+        run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress)
     else:
         workers = workers or default_workers()
         run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)

@@ -19,7 +19,7 @@ from synthbos.raytrace.config import read_toml
 
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
-from synthbos.device import describe_device, init_warp, resolve_device
+from synthbos.device import describe_device, resolve_device
 
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
@@ -62,7 +62,7 @@ def _render(args):
 
 def _process(args):
     out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
-    init_warp()  # quietly; each method runs on its settings' device
+    device = _device(args.device)  # the method's processing device
     method = get_method(args.method)
     invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
     settings, options = process_settings(
@@ -94,8 +94,9 @@ def _process(args):
     attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
     t0 = time.perf_counter()
     res, image_used = process_pair(args.method, ref, grad, settings=settings, options=options, prior_xy=prior,
-                                   notes=notes)
+                                   notes=notes, device=device)
     attrs["seconds"] = time.perf_counter() - t0
+    attrs["device"] = device
     attrs["image"] = json.dumps(image_used)
     if args.config:
         attrs["config"] = Path(args.config).read_text()
@@ -184,20 +185,30 @@ def _integrate(args):
     return 0
 
 
+def _process_device(args, device: str) -> str:
+    """``--process-device`` (checked and reported) when given, else the command's ``--device``."""
+    if args.process_device is None:
+        return device
+    process_device = resolve_device(args.process_device)
+    print(f"processing {describe_device(process_device)}")
+    return process_device
+
+
 def _paper(args):
     device = _device(args.device)
+    process_device = _process_device(args, device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     if args.methods:
         spec = replace(spec, methods=_method_list(args.methods))
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
-    check_spec(spec, device)  # before the banner: an error is the only line
+    check_spec(spec, device, process_device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
-    rows = run_campaign(spec, out, device=device, workers=args.workers, progress=not args.quiet,
-                        scheduler=args.scheduler, wait=args.wait)
+    rows = run_campaign(spec, out, device=device, process_device=process_device, workers=args.workers,
+                        progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -224,8 +235,10 @@ def _sweep(args):
     base = read_toml(args.config) if args.config else {}
     params = [parse_parameter(p) for p in args.param]
     check_output_folder(args.out)
-    rows = run_sweep(base, params, args.out, size=args.size, device=_device(args.device),
-                     workers=args.workers, progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
+    device = _device(args.device)
+    rows = run_sweep(base, params, args.out, size=args.size, device=device,
+                     process_device=_process_device(args, device), workers=args.workers,
+                     progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
 
@@ -264,6 +277,12 @@ def _add_scheduler_option(p) -> None:
     p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
                    help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
                         "an address or a scheduler file joins a running one (needs dask[distributed])")
+
+
+def _add_process_device_option(p) -> None:
+    p.add_argument("--process-device", default=None, metavar="DEVICE",
+                   help="Warp device for the processing when it differs from --device (e.g. render on cuda:0, "
+                        "process on cpu)")
 
 
 _WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
@@ -310,6 +329,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overlap", type=float, help="correlation window overlap fraction, e.g. 0.5")
     p.add_argument("--diameter", type=float, help="tracking: dot diameter in pixels")
     p.add_argument("--max-displacement", type=float, help="tracking: largest displacement in pixels")
+    p.add_argument("--device", default=None,
+                   help="Warp device of the processing: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
     p.set_defaults(func=_process)
 
     p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
@@ -348,8 +369,12 @@ def build_parser() -> argparse.ArgumentParser:
         g.add_argument("--quick", action="store_true", help="reduced campaign for two CPU cores (default without GPU)")
         g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
         p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
-        p.add_argument("--device", default=None, help="Warp device for rendering (default: cuda:0 if present)")
-        p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+        p.add_argument("--device", default=None,
+                       help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
+        _add_process_device_option(p)
+        p.add_argument("--workers", type=_workers, default=None,
+                       help="processes (default: all CPU cores); processing on a GPU, this process drives the GPU "
+                            "and the others score")
         p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
         p.add_argument("--methods", default=None, metavar="A,B,...",
                        help=f"methods to run (default: {','.join(default_methods())}; also: "
@@ -374,7 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "rays, window); give it once or twice")
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
-    p.add_argument("--device", default=None)
+    p.add_argument("--device", default=None,
+                   help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
+    _add_process_device_option(p)
     p.add_argument("--workers", type=_workers, default=None)
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     p.add_argument("-q", "--quiet", action="store_true")

@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 from synthbos import SynthbosError
 
 from .items import render_item, score_item
-from .scheduling import default_workers
+from .scheduling import default_workers, pair_tasks
 
 __all__ = ["DaskRunner", "pair_task", "run_pairs", "visible_gpus"]
 
@@ -129,14 +129,7 @@ def _in_flight(token: str) -> int:
 # --- the client side -------------------------------------------------------------------------------
 
 
-def _pair_tasks(renders, scores):
-    """Group the campaign's items by pair file: [(render args or None, [score args])], in campaign order."""
-    by_pair: dict[str, list] = {}
-    for args in renders:
-        by_pair[str(args[1])] = [args, []]
-    for args in scores:
-        by_pair.setdefault(str(args[0]), [None, []])[1].append(args)
-    return [(r, s) for r, s in by_pair.values()]
+_pair_tasks = pair_tasks  # one home: scheduling
 
 
 def _remove_stale_temporaries(paths) -> None:
@@ -157,6 +150,9 @@ class DaskRunner:
         ``"local"``, a scheduler address (``tcp://host:port``) or a scheduler file (JSON).
     device : str, optional
         The campaign's Warp device: a ``cuda`` device makes a local cluster one worker per GPU.
+    process_device : str, optional
+        The campaign's processing device, when it differs from ``device``; a ``cuda`` one also makes
+        the local cluster one worker per GPU.
     workers : int, optional
         Local cluster: how many workers (default one per GPU, or every CPU core for CPU workers);
         with more workers than GPUs they share the GPUs in turn.
@@ -169,9 +165,10 @@ class DaskRunner:
     """
 
     def __init__(self, scheduler: str, *, device=None, workers=None, gpus=None, progress=True,
-                 dashboard_address=DASHBOARD_ADDRESS):
+                 dashboard_address=DASHBOARD_ADDRESS, process_device=None):
         self.scheduler = str(scheduler)
         self.device = device
+        self.process_device = process_device
         self.workers = workers
         self.gpus = None if gpus is None else [str(g) for g in gpus]
         self.progress = progress
@@ -228,14 +225,15 @@ class DaskRunner:
 
     def local_worker_specs(self, distributed) -> dict:
         """The local cluster's workers: ``{name: {"cls": Nanny, "options": ...}}``; sets ``description``."""
-        on_gpu = self.device is not None and str(self.device).startswith("cuda")
-        if on_gpu:
-            if str(self.device) not in ("cuda", "cuda:0"):
-                raise SynthbosError(f"--device {self.device}: with --scheduler local every worker has its own GPU, "
-                                    "its cuda:0; choose the GPUs with CUDA_VISIBLE_DEVICES")
+        cuda = [str(d) for d in (self.device, self.process_device) if d is not None and str(d).startswith("cuda")]
+        if cuda:
+            for d in cuda:
+                if d not in ("cuda", "cuda:0"):
+                    raise SynthbosError(f"--device {d}: with --scheduler local every worker has its own GPU, "
+                                        "its cuda:0; choose the GPUs with CUDA_VISIBLE_DEVICES")
             gpus = self.gpus if self.gpus is not None else visible_gpus()
             if not gpus:
-                raise SynthbosError(f"--device {self.device} but no CUDA device is visible")
+                raise SynthbosError(f"--device {cuda[0]} but no CUDA device is visible")
             n = self.workers or len(gpus)
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
@@ -349,11 +347,12 @@ class DaskRunner:
             pass
 
 
-def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True) -> int:
+def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True, process_device=None) -> int:
     """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address."""
     if isinstance(scheduler, DaskRunner):
         return scheduler.run_pairs(renders, scores)
     if not renders and not scores:  # a finished campaign: no cluster to start
         return 0
-    with DaskRunner(scheduler, device=device, workers=workers, progress=progress) as runner:
+    with DaskRunner(scheduler, device=device, workers=workers, progress=progress,
+                    process_device=process_device) as runner:
         return runner.run_pairs(renders, scores)

@@ -4,6 +4,8 @@
 #                                            on cuda:0, CPU/CUDA agreement) and the renderer speed benchmark
 #   bash benchmarks/gpu_checks.sh campaign   `synthbos paper --full` on cuda:0 and an f-number sweep
 #   bash benchmarks/gpu_checks.sh scaling    campaign throughput on 1, 2, 4 GPUs through Dask (bench_scaling)
+#   bash benchmarks/gpu_checks.sh stages     per-stage times of a pair on cuda:0 and the CPU (bench_stages), and
+#                                            `synthbos paper --full` processing on the GPU and on the CPU
 # The device image lacks some pure-Python dependencies (dask, pynrrd, imageio, hypothesis): carry them as
 # wheels in .whl/ and install them into /tmp/site first (see the README's GPU section).
 # Logs, tables and figures are packed into ${OUT:-gpu-out}/gpu-<part>.tar.gz.
@@ -24,6 +26,11 @@ if [ "$part" = tests ]; then
   python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
     > "$work/bench_render.log" 2>&1
   tail -5 "$work/bench_render.log"
+elif [ "$part" = stages ]; then
+  python3 -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --rays 10000 --cpu-rays 100 --paper-full \
+    --also-cpu-processing --workers 14 --json "$work/bench_stages.json" > "$work/bench_stages.log" 2>&1
+  cat "$work/bench_stages.log"
+  cp "$work/bench_stages.json" "$work/bench_stages.log" "$out/" 2>/dev/null
 elif [ "$part" = scaling ]; then
   gpus=$(nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, -)
   counts=$(python3 -c "n=len('$gpus'.split(',')); print(','.join(str(c) for c in (1, 2, 4, 8) if c <= n))")

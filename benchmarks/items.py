@@ -1,10 +1,16 @@
 """A campaign's work items: render a pair; process one pair with one method at one noise level and score it.
 
-Each item is a top-level function (it runs in worker processes) that writes one file atomically.
+Each item is a top-level function (it runs in worker processes) that writes one file atomically. A
+score item has a device half (:func:`measure_item`: noise and the method on the processing device)
+and a host half (:func:`finish_item`: scoring, density integration, the score file), so a campaign
+that processes on a GPU can run the halves in different processes (``scheduling.run_pipeline``);
+:func:`score_item` runs both.
 """
 
 from __future__ import annotations
 
+import functools
+import os
 import tomllib
 
 import numpy as np
@@ -18,7 +24,8 @@ from .integrate import score_density
 from .registry import GRID, get_method
 from .storage import save_scores
 
-__all__ = ["nominal_positions", "render_item", "score_item", "score_pair"]
+__all__ = ["finish_item", "measure_item", "measure_pair", "noisy_pair", "nominal_positions", "read_pair_cached",
+           "render_item", "score_item", "score_pair", "score_result"]
 
 
 def render_item(config: dict, out: str, device) -> str:
@@ -34,8 +41,44 @@ def nominal_positions(pair) -> np.ndarray:
     return cam.target_to_pixel(pair.target_xy_m)
 
 
+def noisy_pair(pair, *, noise_percent: float, seeds=(0, 1), peak=None):
+    """The pair's reference and gradient images with seeded sensor noise (``noise_percent`` of the peak)."""
+    peak = float(pair.attrs.get("peak_intensity", 1.0)) if peak is None else peak
+    ref = add_noise(pair.reference, percent=noise_percent, seed=seeds[0], peak=peak)
+    grad = add_noise(pair.gradient, percent=noise_percent, seed=seeds[1], peak=peak)
+    return ref, grad
+
+
+def measure_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=None, settings=None,
+                 device=None):
+    """The device part of an item: add the noise and run one method on its processing ``device``.
+
+    Returns the registry's ``MethodResult``; :func:`score_result` scores it on the host.
+    """
+    m = get_method(method)
+    ref, grad = noisy_pair(pair, noise_percent=noise_percent, seeds=seeds, peak=peak)
+    prior = nominal_positions(pair) if m.uses_prior else None
+    settings = m.settings() if settings is None else settings
+    return m.run(ref, grad, prior_xy=prior, settings=settings, device=device)
+
+
 def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=None, settings=None, device=None):
     """Process one pair with one method at one noise level and return its error arrays.
+
+    :func:`measure_pair` (noise and the method, on ``device``) followed by :func:`score_result`.
+
+    Returns
+    -------
+    dict of arrays
+        See :func:`score_result`.
+    """
+    res = measure_pair(pair, method, noise_percent=noise_percent, seeds=seeds, peak=peak, settings=settings,
+                       device=device)
+    return score_result(pair, method, res)
+
+
+def score_result(pair, method: str, res) -> dict:
+    """Score one method's result on a pair against the pair's truth (host work).
 
     Returns
     -------
@@ -47,14 +90,8 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
         integrated by ``integrate.DENSITY_SOLVER`` against both truths (``integrate.score_density``).
     """
     m = get_method(method)
-    peak = float(pair.attrs.get("peak_intensity", 1.0)) if peak is None else peak
-    ref = add_noise(pair.reference, percent=noise_percent, seed=seeds[0], peak=peak)
-    grad = add_noise(pair.gradient, percent=noise_percent, seed=seeds[1], peak=peak)
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
-    prior = nominal_positions(pair) if m.uses_prior else None
-    settings = m.settings() if settings is None else settings
-    res = m.run(ref, grad, prior_xy=prior, settings=settings, device=device)
     if m.kind == GRID:
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
         keep = np.all(np.isfinite(truth), axis=1)
@@ -84,11 +121,43 @@ def score_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=No
 
 
 def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict, device=None) -> str:
-    """Score one (pair, method, noise) item into ``out`` (.npz)."""
+    """Score one (pair, method, noise) item into ``out`` (.npz), processing on ``device``."""
     init_warp()
     m = get_method(method)
-    settings = m.settings(overrides)
-    scores = score_pair(read_pair(pair_path), method, noise_percent=noise, seeds=seeds, settings=settings,
-                        device=device)
+    pair = read_pair(pair_path)
+    res = measure_pair(pair, method, noise_percent=noise, seeds=seeds, settings=m.settings(overrides),
+                       device=device)
+    return finish_item(pair_path, method, res, out, device, pair=pair)
+
+
+def measure_item(pair, pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict,
+                 device=None):
+    """The device half of :func:`score_item` on an already read ``pair``: the arguments of :func:`finish_item`."""
+    m = get_method(method)
+    res = measure_pair(pair, method, noise_percent=noise, seeds=seeds, settings=m.settings(overrides),
+                       device=device)
+    return pair_path, method, res, out, device
+
+
+def read_pair_cached(path: str):
+    """``read_pair``, remembering the last few files read (by path, size and modification time)."""
+    st = os.stat(path)
+    return _read_pair_cached(str(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_pair_cached(path: str, size: int, mtime_ns: int):
+    return read_pair(path)
+
+
+def finish_item(pair_path: str, method: str, res, out: str, device=None, *, pair=None) -> str:
+    """The host half of :func:`score_item`: score the result ``res`` and write ``out`` (.npz).
+
+    ``pair`` is the pair read from ``pair_path`` (read here when None). The score file records the
+    processing device (``process_device``).
+    """
+    pair = read_pair_cached(pair_path) if pair is None else pair
+    scores = score_result(pair, method, res)
+    scores["process_device"] = np.array(str(device) if device is not None else "default")
     save_scores(out, scores)
     return out

@@ -37,7 +37,7 @@ centroid-difference displacement as ``u_centroid``, ``v_centroid``).
 Root attributes: ``method``, ``kind``, ``settings`` (JSON of the settings used), ``image`` (JSON of the
 image options used: mask, its polarity, whether the images were inverted and why), ``counts`` (JSON:
 measured, replaced, failed, masked, total), ``config`` (the configuration file's text, when one was
-given), ``input``, ``seconds``.
+given), ``input``, ``seconds``, ``device`` (the Warp device that processed, from the command line).
 Both: ``valid`` (``/valid`` or ``/dots/valid``), the vectors the method counts as measured and unflagged;
 from the command line also ``image_shape`` (H, W) and, for a pair file, its ``magnification``.
 ``read_result`` reads a result file back.

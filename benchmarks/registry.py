@@ -11,6 +11,8 @@ so the curves stay apart in grey-scale print too.
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -20,7 +22,8 @@ from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
 
 from synthbos import SynthbosError
 
-__all__ = ["METHODS", "Method", "MethodResult", "default_methods", "get_method", "method_names", "settings_dict"]
+__all__ = ["METHODS", "Method", "MethodResult", "default_methods", "forget_shared_results", "get_method",
+           "method_names", "settings_dict"]
 
 GRID = "grid"  # a vector on a regular grid of window centres
 DOTS = "dots"  # a vector at each tracked dot's reference position
@@ -119,9 +122,55 @@ def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, devic
                         counts=res.counts())
 
 
+class _LastCall:
+    """The last call of a function and its result, by the contents of its array arguments.
+
+    ``tracking`` and ``tracking-cc`` read two columns of one ``track_pair`` table; a campaign that
+    processes a pair's items one after another (``scheduling.run_pipeline``) runs ``track_pair`` once
+    for both. The key holds a digest of every array's bytes, shape and dtype, so equal inputs, not
+    merely the same objects, hit; the result is handed out as a copy.
+    """
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.key = None
+        self.value = None
+        self.lock = threading.Lock()
+
+    @staticmethod
+    def _digest(value):
+        if value is None:
+            return None
+        a = np.ascontiguousarray(value)
+        return a.shape, a.dtype.str, hashlib.blake2b(a.view(np.uint8).ravel(), digest_size=16).digest()
+
+    def __call__(self, reference, gradient, *, prior_xy, settings, device, mask):
+        key = (*map(self._digest, (reference, gradient, prior_xy, mask)), settings, str(device))
+        with self.lock:
+            if key != self.key:
+                self.key, self.value = None, None  # no stale result if the call fails
+                self.value = self.fn(reference, gradient, prior_xy=prior_xy, settings=settings, device=device,
+                                     mask=mask)
+                self.key = key
+            return self.value.copy()
+
+
+    def forget(self) -> None:
+        with self.lock:
+            self.key, self.value = None, None
+
+
+_track_pair = _LastCall(track_pair)
+
+
+def forget_shared_results() -> None:
+    """Drop the remembered ``track_pair`` result (benchmarks time each method on its own)."""
+    _track_pair.forget()
+
+
 def _tracker(columns: tuple[str, str], name: str):
     def run(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
-        tab = track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
+        tab = _track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
         xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
         uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
         table = {c: tab[c] for c in tab.dtype.names}

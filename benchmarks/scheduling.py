@@ -1,8 +1,16 @@
-"""How a campaign's work items run: in this process, or in a pool of worker processes.
+"""How a campaign's work items run: in this process, in a pool of worker processes, or as a pipeline.
 
 Items are ``(args)`` tuples for one top-level function; each writes its own output file atomically,
 so whichever way they run, a finished item is never redone and an interrupted run loses only the items
 in flight.
+
+``run_items`` runs the items of one kind (render, or score) in a pool of processes: the way for the
+CPU, where every core renders or processes. ``run_pipeline`` is the way for a GPU: this process does
+all the device work, pair after pair (render, noise, each method's processing), and hands each
+result to a pool of worker processes for the host work (scoring, density integration, the score
+file), so the device never waits for the host and no worker initialises CUDA; a thread renders the
+next pair meanwhile. Both give
+byte-identical files: every item computes the same thing from the same seeds, only where differs.
 
 Worker processes die with the campaign: each asks Linux to send it SIGKILL when its parent exits
 (``prctl(PR_SET_PDEATHSIG)``), and checks that its parent is still the one that started it, so a
@@ -16,12 +24,12 @@ import ctypes
 import os
 import signal
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from multiprocessing import get_context
 
 from tqdm.auto import tqdm
 
-__all__ = ["default_workers", "die_with_parent", "run_items"]
+__all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline"]
 
 _PR_SET_PDEATHSIG = 1
 
@@ -66,3 +74,84 @@ def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
                 for fut in futures:
                     fut.cancel()
                 raise
+
+
+def pair_tasks(renders, scores):
+    """Group a campaign's items by pair file: ``[(render args or None, [score args])]``, in campaign order.
+
+    Render items are ``(config, pair path, device)``; score items start with the pair path.
+    """
+    by_pair: dict[str, list] = {}
+    for args in renders:
+        by_pair[str(args[1])] = [args, []]
+    for args in scores:
+        by_pair.setdefault(str(args[0]), [None, []])[1].append(args)
+    return [(r, s) for r, s in by_pair.values()]
+
+
+def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process") -> None:
+    """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
+
+    Pair after pair, this process reads the pair and, for each of its score items, adds the noise and
+    runs the method on the item's processing device (``items.measure_item``); the result goes to a
+    worker process that scores it and writes the score file (``items.finish_item``) while this
+    process goes on with the next item. Meanwhile a thread renders the next pair (when its file is
+    missing), so the renderer's kernels run while this thread processes. At most ``4 * workers``
+    results wait for a worker, so memory stays bounded when the host is the slower side. With
+    ``workers <= 1`` the host work runs here, after each item.
+    """
+    from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
+
+    from .items import finish_item, measure_item, render_item
+
+    tasks = pair_tasks(renders, scores)
+    if not tasks:
+        return
+    bar = tqdm(total=len(renders) + len(scores), desc=desc, unit="item", disable=not progress)
+    pending: set = set()
+
+    def collect(block: bool) -> None:
+        nonlocal pending
+        if not pending:
+            return
+        done, pending = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
+        for fut in done:
+            fut.result()  # a worker's error stops the campaign here
+            bar.update(1)
+
+    def render(k: int):
+        args = tasks[k][0] if k < len(tasks) else None
+        return None if args is None else renderer.submit(render_item, *args)
+
+    pool = _pool(workers - 1) if workers > 1 else None
+    renderer = ThreadPoolExecutor(1, thread_name_prefix="synthbos-render")
+    rendering = []
+    try:
+        with bar:
+            rendering.append(render(0))
+            for k, (_, items) in enumerate(tasks):
+                rendering.append(render(k + 1))  # the next pair renders while this one is processed
+                if rendering[k] is not None:
+                    rendering[k].result()
+                    bar.update(1)
+                pair = read_pair(items[0][0]) if items else None
+                for args in items:
+                    host = measure_item(pair, *args)
+                    if pool is None:
+                        finish_item(*host, pair=pair)
+                        bar.update(1)
+                        continue
+                    pending.add(pool.submit(finish_item, *host))
+                    collect(block=False)
+                    while len(pending) >= 4 * workers:
+                        collect(block=True)
+            while pending:
+                collect(block=True)
+    except BaseException:
+        for fut in [*pending, *(f for f in rendering if f is not None)]:
+            fut.cancel()
+        raise
+    finally:
+        renderer.shutdown(wait=True)  # a render in flight finishes writing its (atomic) file
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

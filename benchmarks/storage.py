@@ -4,7 +4,8 @@
 
     campaign.json                          what the campaign is (its spec); a re-run must match it
     pairs/s{S}_p{P}.h5                     one noise-free rendered pair per snapshot S and pair P
-    scores/s{S}_p{P}_n{N}_{method}.npz     the errors of one method on one pair at noise level N %
+    scores/s{S}_p{P}_n{N}_{method}.npz     the errors of one method on one pair at noise level N %, and the
+                                           device that processed it (process_device)
     results.csv, results.json              the summary table, made from the scores at the end
     fig4.*, fig5.*, fig_density.*          the figures, made from the pairs and scores
 
@@ -63,8 +64,12 @@ def save_scores(path, scores: dict) -> None:
 
 
 def load_scores(spec, folder, method: str, noise: float) -> dict:
-    """Concatenate the scores of one method and noise level over all pairs of a campaign."""
+    """Concatenate the scores of one method and noise level over all pairs of a campaign.
+
+    ``process_device`` is the processing device(s) of those scores, sorted and joined by "+".
+    """
     parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "measured": 0, "expected": 0}
+    devices = set()
     for truth in DENSITY_TRUTHS:
         parts[f"density_{truth}"], parts[f"density_{truth}_rel"] = [], []
     for s, p in spec.pair_keys():
@@ -81,7 +86,10 @@ def load_scores(spec, folder, method: str, noise: float) -> dict:
             parts["threshold"].append(np.full(n, float(z["threshold"])))
             parts["measured"] += int(z["measured"])
             parts["expected"] += int(z["expected"])
-    return {k: (np.concatenate(v) if isinstance(v, list) else v) for k, v in parts.items()}
+            devices.add(str(z["process_device"]) if "process_device" in z else "unknown")
+    out = {k: (np.concatenate(v) if isinstance(v, list) else v) for k, v in parts.items()}
+    out["process_device"] = "+".join(sorted(devices))
+    return out
 
 
 def load_density_map(folder, snapshot: int, pair: int, noise: float, method: str) -> dict | None:

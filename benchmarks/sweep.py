@@ -28,7 +28,7 @@ from synthbos.raytrace import DEFAULT_CONFIG, load_config
 
 from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
-from .campaign import check_spec, run_campaign
+from .campaign import check_spec, resolve_process_device, run_campaign
 from .figures import sweep_figure
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
@@ -126,9 +126,10 @@ def _slug(name, value):
 
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
-              scheduler=None, wait=False):
+              scheduler=None, wait=False, process_device=None):
     """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
 
+    ``device`` renders and ``process_device`` processes (default: ``device``; see ``run_campaign``).
     Every point is checked (configuration, settings, resource limits) before the first is run; the
     sweep folder is locked for the sweep's life (``wait``: wait for another sweep into it to finish).
     With ``scheduler`` (see ``run_campaign``) one Dask client serves the whole sweep and all its points
@@ -139,6 +140,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
     load_config(base_config)  # the base configuration alone, before any point
+    process_device = resolve_process_device(device, process_device)
     folder = Path(folder)
     check_output_folder(folder)
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
@@ -154,7 +156,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
                 label += "_" + _slug(name2, v2)
             spec = replace(spec, name=f"{spec0.name}-sweep-{label}")
             try:
-                check_spec(spec, device)  # every point fails before any work
+                check_spec(spec, device, process_device)  # every point fails before any work
             except SynthbosError as err:
                 raise SynthbosError(f"sweep point {label}: {err}") from None
             points.append((v1, v2, label, spec))
@@ -163,14 +165,14 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         v1, v2, label, spec = point
         if progress and runner is None:
             print(f"sweep point {label}")
-        point_rows = run_campaign(spec, folder / "points" / label, device=device, workers=workers,
-                                  progress=progress, figures=False, scheduler=runner, wait=wait)
+        point_rows = run_campaign(spec, folder / "points" / label, device=device, process_device=process_device,
+                                  workers=workers, progress=progress, figures=False, scheduler=runner, wait=wait)
         return [{"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r} for r in point_rows]
 
     make_folder(folder)
     with folder_lock(folder, wait=wait, what="sweep folder"):
         per_point = _run_points(points, run_point, scheduler=scheduler, device=device, workers=workers,
-                                progress=progress)
+                                progress=progress, process_device=process_device)
         rows = [r for point_rows in per_point for r in point_rows]
         write_tables(rows, folder, stem="sweep")
         with atomic_output(folder / "sweep_params.json") as tmp:
@@ -180,14 +182,15 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     return rows
 
 
-def _run_points(points, run_point, *, scheduler, device, workers, progress):
+def _run_points(points, run_point, *, scheduler, device, workers, progress, process_device=None):
     """Every point's rows, one point after another, or all together on one Dask client."""
     if scheduler is None:
         return [run_point(point) for point in points]
     from .distributed import DaskRunner  # dask only when a scheduler is asked for
 
     owned = not isinstance(scheduler, DaskRunner)
-    runner = DaskRunner(scheduler, device=device, workers=workers, progress=progress) if owned else scheduler
+    runner = (DaskRunner(scheduler, device=device, workers=workers, progress=progress, process_device=process_device)
+              if owned else scheduler)
     # One thread per point submits its pair tasks and waits for them; the cluster runs them all together.
     threads = min(len(points), 64)
     with (runner if owned else contextlib.nullcontext()), ThreadPoolExecutor(threads, "sweep-point") as pool:

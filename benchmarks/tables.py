@@ -38,19 +38,20 @@ def summarise(spec, folder) -> list[dict]:
                 errors = sc["error"] if quantity == "displacement" else sc["grad_error"]
                 for split in SPLITS:
                     e = errors[masks[split]]
-                    rows.append(_row(method, noise, split, quantity, e, yield_))
+                    rows.append(_row(method, noise, split, quantity, e, yield_, sc["process_device"]))
             for quantity in DENSITY_QUANTITIES:
-                rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_))
+                rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_, sc["process_device"]))
     return rows
 
 
-def _row(method, noise, split, quantity, e, yield_):
+def _row(method, noise, split, quantity, e, yield_, device):
     e = np.asarray(e, dtype=np.float64)
     fin = e[np.isfinite(e)]
     row = {"method": method, "noise_percent": noise, "split": split, "quantity": quantity,
            "n": len(fin), "yield": float(yield_)}
     row.update({f"p{k}": v for k, v in scoring.error_percentiles(e).items()})
     row["rms"] = float(np.sqrt(np.mean(fin**2))) if len(fin) else float("nan")
+    row["process_device"] = device
     return row
 
 
