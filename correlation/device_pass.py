@@ -1,0 +1,372 @@
+"""The whole multigrid correlation on one Warp device: host code of :mod:`correlation.pass_kernels`.
+
+:func:`correlate_on_device` runs the passes and iterations of :func:`correlation.correlate_pair`
+with every step on device arrays: the two images go up once, the vector field comes back once, and
+nothing in between waits for the host. Everything that depends only on the geometry (window grids,
+spline weights of the predictor, buffers) is prepared once per image shape and settings in a
+:class:`_Plan` and kept for the next pair; on CUDA devices the plan's launches are recorded into a
+CUDA graph at the second pair and replayed after that.
+
+The validation's replacement of rejected vectors (``validation.replace_outliers``) runs a fixed
+number of parallel sweeps (:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider
+than that many vectors) is finished by a single-thread kernel that carries on exactly as the NumPy
+loop does, so both give the same field.
+
+The NumPy path in :mod:`correlation.multigrid` is the reference; the two agree to float32 rounding
+(1e-5 px on the tests' pairs, identical flags).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+from synthbos import SynthbosError
+
+from .deform import spline_weights
+from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
+from .xcorr import rpc_spectral_filter
+
+__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports"]
+
+#: Parallel replacement sweeps per iteration (each fills one ring of a hole).
+PARALLEL_SWEEPS = 4
+#: ``validation.replace_outliers``' limit, kept by the single-thread finish.
+MAX_SWEEPS = 100
+#: Plans kept per process (one per image shape, settings, device and thread).
+PLAN_CACHE_SIZE = 4
+
+_INTERPOLATOR_CODES = {"cubic": 0, "keys": 1, "lanczos": 2}
+_METHOD_CODES = {"gaussian": 0, "parabolic": 1, "centroid": 2}
+
+_plans: OrderedDict = OrderedDict()
+_plans_lock = threading.Lock()
+_window_kernels: dict = {}
+
+
+def _warp():
+    import warp as wp
+
+    from synthbos.device import init_warp
+
+    from . import pass_kernels
+
+    init_warp()
+    return wp, pass_kernels
+
+
+def device_supports(settings):
+    """Why the device path cannot run these settings, or None when it can.
+
+    The windows' FFTs are Warp tile FFTs along both axes of a square tile: power-of-two window sizes
+    of at least 4 px.
+    """
+    for s in settings.window_sizes:
+        if s < 4 or s & (s - 1):
+            return f"window size {s} px is not a power of two >= 4 (tile FFT)"
+    return None
+
+
+def _correlate_kernel(wp, k, n, rpc):
+    key = (n, bool(rpc))
+    if key not in _window_kernels:
+        _window_kernels[key] = k.make_correlate_windows(n, bool(rpc))
+    return _window_kernels[key]
+
+
+class _Iteration:
+    """Geometry and buffers of one iteration of one pass."""
+
+
+class _Plan:
+    """Buffers, spline weights and the launch sequence for one image shape and settings."""
+
+    def __init__(self, shape, settings, device):
+        wp, k = _warp()
+        self.wp, self.k = wp, k
+        self.device = device
+        self.settings = settings
+        self.shape = shape
+        h, w = shape
+        f32, f64, i32 = wp.float32, wp.float64, wp.int32
+
+        def zeros(s, dtype):
+            return wp.zeros(s, dtype=dtype, device=device)
+
+        self.img = [zeros(shape, f32), zeros(shape, f32)]
+        self.valid_px = zeros(shape, f32)
+        self.deformed = any(
+            p > 0 or it > 0 for p, n_iter in enumerate(settings.iterations) for it in range(n_iter)
+        )
+        self.prefilter = self.deformed and settings.interpolator == "cubic"
+        if self.prefilter:
+            self.coef = [zeros(shape, f32), zeros(shape, f32)]
+            self.rows_tmp = zeros(shape, f32)
+            self.line_rows = zeros((h, w), f64)
+            self.line_cols = zeros((w, h), f64)
+        else:
+            self.coef = self.img
+        self.passes = []
+        self.iterations = []
+        prev = None  # (node_y, node_x) of the latest iteration
+        q = SAMPLING_OFFSET
+        for pass_index, (size, overlap, n_iter) in enumerate(
+            zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
+        ):
+            g = window_grid(shape, size, overlap)
+            ny, nx = len(g.yc), len(g.xc)
+            rows, cols = len(g.rows), len(g.cols)
+            ps = {
+                "grid": g,
+                "masked": zeros((ny, nx), i32),
+                "zero": zeros((ny, nx), f32),
+                "planes": zeros((ny * nx * size, size), f32),
+                "norm": zeros(ny * nx, f64),
+                "kernel": _correlate_kernel(wp, k, size, settings.rpc),
+            }
+            if settings.rpc:
+                spectral = rpc_spectral_filter((size, size), settings.rpc_diameter, half=False) / size**2
+            else:
+                spectral = np.full((size, size), 1.0 / size**2)
+            ps["spectral"] = wp.array(spectral.astype(np.float32), dtype=f32, device=device)
+            if prev is not None or n_iter > 1:
+                ps["def"] = [zeros((rows, cols), f32) for _ in range(3)]  # first, second, weight
+                ps["du"] = [zeros((rows, cols), f32), zeros((rows, cols), f32)]
+            self.passes.append(ps)
+            for iteration in range(n_iter):
+                it = _Iteration()
+                it.pass_ = ps
+                it.size, it.step = size, g.step
+                it.first_of_pass = iteration == 0
+                it.use_coarse = pass_index > 0
+                it.confirm = iteration > 0 and settings.confirm_tolerance > 0
+                it.deform = prev is not None
+                if it.deform:
+                    py, px = prev
+                    it.node = (g.yc + q, g.xc + q)
+                    wy_pix = spline_weights(py, g.rows + q).astype(np.float32)
+                    wx_pix = spline_weights(px, g.cols + q).astype(np.float32)
+                    wy_node = spline_weights(py, g.yc + q).astype(np.float32)
+                    wx_node = spline_weights(px, g.xc + q).astype(np.float32)
+                    it.w = [wp.array(m, dtype=f32, device=device) for m in (wy_pix, wx_pix, wy_node, wx_node)]
+                    it.s_pix = [zeros((rows, len(px)), f32) for _ in range(2)]
+                    it.s_node = [zeros((ny, len(px)), f32) for _ in range(2)]
+                    it.p = [zeros((ny, nx), f32), zeros((ny, nx), f32)]
+                else:
+                    it.node = (g.yc, g.xc)
+                    it.p = [ps["zero"], ps["zero"]]
+                it.u, it.v = zeros((ny, nx), f64), zeros((ny, nx), f64)
+                it.ratio, it.coef = zeros((ny, nx), f64), zeros((ny, nx), f64)
+                it.flags = [zeros((ny, nx), i32) for _ in range(3)]
+                it.ok = zeros((ny, nx), i32)
+                it.rep = [[zeros((ny, nx), f64) for _ in range(2)] for _ in range(2)]  # ping-pong (u, v)
+                it.todo = [zeros((ny, nx), i32), zeros((ny, nx), i32)]
+                it.left = zeros(PARALLEL_SWEEPS, i32)
+                it.scratch = zeros(ny * nx, f64)
+                self.iterations.append(it)
+                prev = it.node
+        # the vectors measured by the previous iteration of the same pass (confirmation) and the
+        # coarser pass's predictor (disagreement)
+        for idx, it in enumerate(self.iterations):
+            it.raw = self.iterations[idx - 1] if it.confirm else it
+            if it.first_of_pass:
+                first = it
+            it.coarse = first.p if it.use_coarse else [it.pass_["zero"], it.pass_["zero"]]
+        self.graph = None
+        self.runs = 0
+        self.lock = threading.Lock()
+
+    # -------------------------------------------------------------------------------- launches
+
+    def _launch(self, kernel, dim, inputs):
+        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def _launch_all(self):
+        wp, k, s = self.wp, self.k, self.settings
+        h, w = self.shape
+        if self.prefilter:
+            for img, coef in zip(self.img, self.coef, strict=True):
+                self._launch(k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp])
+                self._launch(k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef])
+        prev = None
+        q = SAMPLING_OFFSET
+        for it in self.iterations:
+            ps = it.pass_
+            g = ps["grid"]
+            ny, nx = len(g.yc), len(g.xc)
+            n = it.size
+            if it.deform:
+                wy_pix, wx_pix, wy_node, wx_node = it.w
+                du, dv = ps["du"]
+                first, second, weight = ps["def"]
+                self._launch(k.spline_rows, it.s_pix[0].shape, [wy_pix, prev.rep_u, prev.rep_v, *it.s_pix])
+                self._launch(k.spline_cols, du.shape, [*it.s_pix, wx_pix, du, dv])
+                self._launch(k.spline_rows, it.s_node[0].shape, [wy_node, prev.rep_u, prev.rep_v, *it.s_node])
+                self._launch(k.spline_cols, it.p[0].shape, [*it.s_node, wx_node, *it.p])
+                self._launch(
+                    k.deform_pair_weighted,
+                    du.shape,
+                    [
+                        *self.coef,
+                        du,
+                        dv,
+                        float(g.rows[0] + q),
+                        float(g.cols[0] + q),
+                        _INTERPOLATOR_CODES[s.interpolator],
+                        self.valid_px,
+                        int(g.rows[0]),
+                        int(g.cols[0]),
+                        float(EDGE_MARGIN),
+                        first,
+                        second,
+                        weight,
+                    ],
+                )
+                images, origin = [first, second, weight], (0, 0)
+            else:
+                images, origin = [*self.img, self.valid_px], (int(g.rows[0]), int(g.cols[0]))
+            wp.launch_tiled(
+                ps["kernel"],
+                dim=[ny * nx],
+                inputs=[*images, *origin, it.step, nx, ps["spectral"], ps["planes"], ps["norm"]],
+                block_dim=max(n // 2, 1),
+                device=self.device,
+            )
+            f0, f1, f2 = it.flags
+            self._launch(
+                k.fit_peaks,
+                (ny, nx),
+                [
+                    ps["planes"],
+                    n,
+                    ps["norm"],
+                    *it.p,
+                    _METHOD_CODES[s.subpixel],
+                    int(not s.rpc),
+                    float(s.peak_ratio_min),
+                    float(s.min_correlation),
+                    *it.coarse,
+                    int(it.use_coarse),
+                    float(s.max_disagreement * n),
+                    ps["masked"],
+                    it.u,
+                    it.v,
+                    it.ratio,
+                    it.coef,
+                    f0,
+                ],
+            )
+            self._launch(k.measured_mask, (ny, nx), [f0, it.ok])
+            self._launch(
+                k.median_test,
+                (ny, nx),
+                [
+                    it.u,
+                    it.v,
+                    it.ok,
+                    float(s.median_epsilon),
+                    float(s.median_threshold),
+                    int(it.confirm),
+                    float(s.confirm_tolerance),
+                    it.raw.u,
+                    it.raw.v,
+                    int(not s.rpc),
+                    it.coef,
+                    float(CONFIRM_CORRELATION),
+                    f0,
+                    f1,
+                ],
+            )
+            self._launch(k.isolated_test, (ny, nx), [f1, f2])
+            (ua, va), (ub, vb) = it.rep
+            ta, tb = it.todo
+            self._launch(k.start_replacement, (ny, nx), [it.u, it.v, f2, ua, va, ta])
+            it.left.zero_()
+            src, dst = (ua, va, ta), (ub, vb, tb)
+            for sweep in range(PARALLEL_SWEEPS):
+                self._launch(k.replacement_sweep, (ny, nx), [*src, *dst, it.left, sweep])
+                src, dst = dst, src
+            self._launch(k.finish_replacement, 1, [*src, it.left, PARALLEL_SWEEPS, MAX_SWEEPS, it.scratch])
+            it.rep_u, it.rep_v = src[0], src[1]
+            prev = it
+
+    def run(self, a, b, valid_px, masked):
+        """Upload one pair (float32 images, pixel weights, per-pass masked windows), run, download."""
+        wp = self.wp
+        self.img[0].assign(a)
+        self.img[1].assign(b)
+        self.valid_px.assign(valid_px)
+        for ps, m in zip(self.passes, masked, strict=True):
+            ps["masked"].assign(m.astype(np.int32))
+        device = wp.get_device(self.device)
+        if self.graph is None and self.runs > 0 and device.is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                self._launch_all()
+            self.graph = capture.graph
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            self._launch_all()
+        self.runs += 1
+        last = self.iterations[-1]
+        return {
+            "u": last.rep_u.numpy(),
+            "v": last.rep_v.numpy(),
+            "peak_ratio": last.ratio.numpy(),
+            "correlation": last.coef.numpy(),
+            "flags": last.flags[2].numpy(),
+            "node": last.node,
+        }
+
+
+def _plan_for(shape, settings, device):
+    key = (str(device), tuple(shape), settings, threading.get_ident())
+    with _plans_lock:
+        plan = _plans.pop(key, None)
+        if plan is None:
+            plan = _Plan(tuple(shape), settings, str(device))
+        _plans[key] = plan
+        while len(_plans) > PLAN_CACHE_SIZE:
+            _plans.popitem(last=False)
+    return plan
+
+
+def correlate_on_device(a, b, *, settings, valid_px=None, masked=None, device="cpu"):
+    """The passes and iterations of :func:`correlation.correlate_pair` on one Warp device.
+
+    Parameters
+    ----------
+    a, b : (H, W) float32 arrays
+        The normalised reference and gradient images (``multigrid._checked_image``).
+    settings : CorrelationSettings
+    valid_px : (H, W) float32 array of 0 and 1, optional
+        1 on pixels that take part in the correlation (no mask: all).
+    masked : list of (ny, nx) bool arrays, optional
+        Per pass, the windows more than half masked.
+    device : str
+        Warp device.
+
+    Returns
+    -------
+    dict
+        ``u``, ``v`` (replaced field), ``peak_ratio``, ``correlation``, ``flags`` of the last
+        iteration on its grid, and ``node`` (its row and column coordinates).
+    """
+    reason = device_supports(settings)
+    if reason is not None:
+        raise SynthbosError(f"the Warp correlation cannot run these settings: {reason}")
+    shape = np.shape(a)
+    plan = _plan_for(shape, settings, device)
+    if valid_px is None:
+        valid_px = np.ones(shape, dtype=np.float32)
+    if masked is None:
+        masked = [np.zeros((len(p["grid"].yc), len(p["grid"].xc)), dtype=bool) for p in plan.passes]
+    with plan.lock:
+        return plan.run(
+            np.ascontiguousarray(a, dtype=np.float32),
+            np.ascontiguousarray(b, dtype=np.float32),
+            np.ascontiguousarray(valid_px, dtype=np.float32),
+            masked,
+        )
