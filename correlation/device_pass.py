@@ -29,7 +29,7 @@ from .deform import spline_weights
 from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
 from .xcorr import rpc_spectral_filter
 
-__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports"]
+__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports", "replace_outliers_on_device"]
 
 #: Parallel replacement sweeps per iteration (each fills one ring of a hole).
 PARALLEL_SWEEPS = 4
@@ -280,16 +280,9 @@ class _Plan:
                 ],
             )
             self._launch(k.isolated_test, (ny, nx), [f1, f2])
-            (ua, va), (ub, vb) = it.rep
-            ta, tb = it.todo
-            self._launch(k.start_replacement, (ny, nx), [it.u, it.v, f2, ua, va, ta])
-            it.left.zero_()
-            src, dst = (ua, va, ta), (ub, vb, tb)
-            for sweep in range(PARALLEL_SWEEPS):
-                self._launch(k.replacement_sweep, (ny, nx), [*src, *dst, it.left, sweep])
-                src, dst = dst, src
-            self._launch(k.finish_replacement, 1, [*src, it.left, PARALLEL_SWEEPS, MAX_SWEEPS, it.scratch])
-            it.rep_u, it.rep_v = src[0], src[1]
+            it.rep_u, it.rep_v = _launch_replacement(
+                wp, k, self.device, it.u, it.v, f2, it.rep, it.todo, it.left, it.scratch
+            )
             prev = it
 
     def run(self, a, b, valid_px, masked):
@@ -319,6 +312,66 @@ class _Plan:
             "flags": last.flags[2].numpy(),
             "node": last.node,
         }
+
+
+def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
+    """Launches of ``validation.replace_outliers(u, v, flags != 0)``; returns the arrays holding the result.
+
+    ``rep``: two pairs of (ny, nx) float64 arrays and ``todo`` two int32 arrays (ping-pong),
+    ``left``: PARALLEL_SWEEPS int32, ``scratch``: ny nx float64.
+    """
+    shape = u.shape
+    (ua, va), (ub, vb) = rep
+    ta, tb = todo
+    wp.launch(k.start_replacement, dim=shape, inputs=[u, v, flags, ua, va, ta], device=device)
+    left.zero_()
+    src, dst = (ua, va, ta), (ub, vb, tb)
+    for sweep in range(PARALLEL_SWEEPS):
+        wp.launch(k.replacement_sweep, dim=shape, inputs=[*src, *dst, left, sweep], device=device)
+        src, dst = dst, src
+    wp.launch(k.finish_replacement, dim=1, inputs=[*src, left, PARALLEL_SWEEPS, MAX_SWEEPS, scratch], device=device)
+    return src[0], src[1]
+
+
+def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
+    """``validation.replace_outliers(u, v, invalid)`` with the kernels of the Warp path.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    invalid : (ny, nx) bool array
+    device : str
+        Warp device.
+
+    Returns
+    -------
+    u, v : (ny, nx) float64 arrays
+    """
+    wp, k = _warp()
+    shape = np.shape(u)
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    def zeros(s, dtype):
+        return wp.zeros(s, dtype=dtype, device=device)
+
+    flags = arr(np.asarray(invalid, dtype=np.int32), wp.int32)
+    rep = [[zeros(shape, wp.float64) for _ in range(2)] for _ in range(2)]
+    todo = [zeros(shape, wp.int32) for _ in range(2)]
+    ru, rv = _launch_replacement(
+        wp,
+        k,
+        device,
+        arr(np.asarray(u, dtype=np.float64), wp.float64),
+        arr(np.asarray(v, dtype=np.float64), wp.float64),
+        flags,
+        rep,
+        todo,
+        zeros(PARALLEL_SWEEPS, wp.int32),
+        zeros(int(np.prod(shape)), wp.float64),
+    )
+    return ru.numpy(), rv.numpy()
 
 
 def _plan_for(shape, settings, device):
