@@ -66,7 +66,7 @@ def bspline3_prefilter_lines(
     if n > 1:
         z = wp.float64(-0.2679491924311228)
         zn1 = wp.float64(1.0)
-        for i in range(n - 1):
+        for _ in range(n - 1):
             zn1 *= z
         c0 = line[k, 0] + zn1 * line[k, n - 1]
         zi = z
@@ -369,8 +369,8 @@ def fit_peaks(
     i, j = wp.tid()
     k = i * u.shape[1] + j
     # highest sample (first in row-major order of the shifted plane, as np.argmax) and lowest
-    r0 = int(0)
-    c0 = int(0)
+    r0 = wp.int32(0)
+    c0 = wp.int32(0)
     c1 = shifted(planes, k, n, 0, 0)
     cmin = c1
     for r in range(n):
@@ -383,7 +383,7 @@ def fit_peaks(
             if s < cmin:
                 cmin = s
     # second peak: the highest sample outside the 5x5 square around the first
-    found = int(0)
+    found = wp.int32(0)
     c2 = cmin
     for r in range(n):
         for c in range(n):
@@ -430,7 +430,7 @@ def fit_peaks(
     cc = wp.float64(0.0)
     if norm[k] > wp.float64(0.0):
         cc = c1 / norm[k]
-    f = int(0)
+    f = wp.int32(0)
     if border:
         f = f | FLAG_BORDER
     if pr < peak_ratio_min or (has_norm != 0 and cc < min_correlation):
@@ -508,7 +508,7 @@ def median_residual(
 ) -> wp.vec2d:
     """(r0^2, neighbour count) of the normalised median test of one component at node (i, j)."""
     nb = vec8d()
-    count = int(0)
+    count = wp.int32(0)
     for dy in range(-1, 2):
         for dx in range(-1, 2):
             if dy != 0 or dx != 0:
@@ -534,7 +534,7 @@ def median_residual(
 def measured_mask(flags: wp.array2d(dtype=wp.int32), ok: wp.array2d(dtype=wp.int32)):
     """``ok = flags == 0``."""
     i, j = wp.tid()
-    m = int(0)
+    m = wp.int32(0)
     if flags[i, j] == 0:
         m = 1
     ok[i, j] = m
@@ -558,7 +558,8 @@ def median_test(
     flags_out: wp.array2d(dtype=wp.int32),
 ):
     """Normalised median test on the valid (``ok``) vectors, unless the previous iteration confirms
-    them (``multigrid._confirmed``, ``confirm_fraction`` = ``CONFIRM_CORRELATION``): ``flags_out = flags_in | MEDIAN`` for the rejected ones."""
+    them (``multigrid._confirmed``; ``confirm_fraction`` is ``CONFIRM_CORRELATION``):
+    ``flags_out = flags_in | MEDIAN`` for the rejected ones."""
     i, j = wp.tid()
     f = flags_in[i, j]
     if ok[i, j] != 0:
@@ -571,7 +572,7 @@ def median_test(
             confirmed = wp.sqrt(du * du + dv * dv) <= tolerance
             if confirmed and has_coef != 0:
                 nb = vec8d()
-                count = int(0)
+                count = wp.int32(0)
                 for dy in range(-1, 2):
                     for dx in range(-1, 2):
                         y = i + dy
@@ -594,8 +595,8 @@ def isolated_test(flags_in: wp.array2d(dtype=wp.int32), flags_out: wp.array2d(dt
     i, j = wp.tid()
     f = flags_in[i, j]
     if f == 0:
-        n_meas = int(0)
-        n_open = int(0)
+        n_meas = wp.int32(0)
+        n_open = wp.int32(0)
         for dy in range(-1, 2):
             for dx in range(-1, 2):
                 y = i + dy
@@ -620,7 +621,7 @@ def neighbour_median_at(
 ) -> wp.vec2d:
     """(median, count) of the neighbours of (i, j) with ``todo == 0``; (0, 0) if there are none."""
     nb = vec8d()
-    count = int(0)
+    count = wp.int32(0)
     for dy in range(-1, 2):
         for dx in range(-1, 2):
             y = i + dy
@@ -647,7 +648,7 @@ def start_replacement(
     i, j = wp.tid()
     u_out[i, j] = u[i, j]
     v_out[i, j] = v[i, j]
-    t = int(0)
+    t = wp.int32(0)
     if flags[i, j] != 0:
         t = 1
     todo[i, j] = t
@@ -699,8 +700,8 @@ def finish_replacement(
         return
     ny = u.shape[0]
     nx = u.shape[1]
-    for s in range(sweeps_done, max_sweeps):
-        filled = int(0)
+    for _ in range(sweeps_done, max_sweeps):
+        filled = wp.int32(0)
         for i in range(ny):
             for j in range(nx):
                 if todo[i, j] == 1:
@@ -718,7 +719,7 @@ def finish_replacement(
         if filled == 0:
             break
     for comp in range(2):
-        count = int(0)
+        count = wp.int32(0)
         for i in range(ny):
             for j in range(nx):
                 if todo[i, j] == 0:

@@ -100,7 +100,10 @@ def test_warp_path_is_reused_for_the_next_pair(device):
     """The second pair reuses the first one's plan (a CUDA graph on GPUs) and gives its own field."""
     s = CorrelationSettings(backend="warp", device=device)
     for seed, shift in ((8, (0.4, -1.1)), (9, (-2.2, 0.7))):
-        a, b = synthetic_pair((128, 128), lambda x, y, sh=shift: (np.full_like(x, sh[0]), np.full_like(y, sh[1])), seed=seed)
+        def field(x, y, sh=shift):
+            return np.full_like(x, sh[0]), np.full_like(y, sh[1])
+
+        a, b = synthetic_pair((128, 128), field, seed=seed)
         r = correlate_pair(a, b, settings=s)
         assert_allclose(np.median(r.u), shift[0], atol=0.02)
         assert_allclose(np.median(r.v), shift[1], atol=0.02)
@@ -108,7 +111,7 @@ def test_warp_path_is_reused_for_the_next_pair(device):
 
 
 def test_prefilter_matches_scipy(device):
-    """The device's cubic B-spline prefilter: a deformation by zero reproduces the image."""
+    """The device's cubic B-spline prefilter gives the coefficients of scipy.ndimage's (bspline3_coefficients)."""
     rng = np.random.default_rng(0)
     img = rng.random((37, 53)).astype(np.float32)
     from synthbos.correlation.device_pass import _warp
@@ -117,8 +120,10 @@ def test_prefilter_matches_scipy(device):
     src = wp.array(img, dtype=wp.float32, device=device)
     tmp = wp.zeros(img.shape, dtype=wp.float32, device=device)
     out = wp.zeros(img.shape, dtype=wp.float32, device=device)
-    wp.launch(k.bspline3_prefilter_lines, dim=37, inputs=[src, 1, wp.zeros((37, 53), dtype=wp.float64, device=device), tmp], device=device)
-    wp.launch(k.bspline3_prefilter_lines, dim=53, inputs=[tmp, 0, wp.zeros((53, 37), dtype=wp.float64, device=device), out], device=device)
+    rows = wp.zeros((37, 53), dtype=wp.float64, device=device)
+    cols = wp.zeros((53, 37), dtype=wp.float64, device=device)
+    wp.launch(k.bspline3_prefilter_lines, dim=37, inputs=[src, 1, rows, tmp], device=device)
+    wp.launch(k.bspline3_prefilter_lines, dim=53, inputs=[tmp, 0, cols, out], device=device)
     assert_allclose(out.numpy(), bspline3_coefficients(img), atol=2e-6, rtol=0)
 
 
