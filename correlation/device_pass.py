@@ -96,7 +96,11 @@ class _Plan:
             return wp.zeros(s, dtype=dtype, device=device)
 
         self.img = [zeros(shape, f32), zeros(shape, f32)]
+        self.raw = {}  # input images as given (float32 or float64), by dtype
+        self.col_stats = [zeros((w, 4), f64), zeros((w, 4), f64)]
+        self.summary = zeros((2, 6), f64)
         self.valid_px = zeros(shape, f32)
+        self.valid_is_ones = False
         self.deformed = any(
             p > 0 or it > 0 for p, n_iter in enumerate(settings.iterations) for it in range(n_iter)
         )
@@ -285,12 +289,53 @@ class _Plan:
             )
             prev = it
 
-    def run(self, a, b, valid_px, masked):
-        """Upload one pair (float32 images, pixel weights, per-pass masked windows), run, download."""
+    def _raw(self, index, dtype):
         wp = self.wp
-        self.img[0].assign(a)
-        self.img[1].assign(b)
-        self.valid_px.assign(valid_px)
+        key = (index, dtype)
+        if key not in self.raw:
+            self.raw[key] = wp.zeros(self.shape, dtype=dtype, device=self.device)
+        return self.raw[key]
+
+    def upload(self, images, names, raise_for):
+        """Both images up, checked and normalised on the device (``multigrid._checked_image``).
+
+        The one wait for the device before the passes: reading back six numbers per image to raise
+        ``raise_for(name, image, nonfinite)`` for images with non-finite pixels or constant ones.
+        """
+        wp, k = self.wp, self.k
+        h, w = self.shape
+        raws = []
+        for idx, arr in enumerate(images):
+            # float32 holds every value of these exactly; anything else goes up as float64
+            exact32 = arr.dtype in (np.float32, np.uint8, np.int8, np.uint16, np.int16)
+            dtype = wp.float32 if exact32 else wp.float64
+            raw = self._raw(idx, dtype)
+            raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
+            stats, summary = self.col_stats[idx], self.summary[idx]
+            self._launch(k.column_stats, w, [raw, stats])
+            self._launch(k.combine_stats, 1, [stats, float(h * w), summary])
+            self._launch(k.column_moments, w, [raw, summary, stats])
+            self._launch(k.combine_moments, 1, [stats, float(h * w), summary])
+            raws.append(raw)
+        summary = self.summary.numpy()
+        for arr, name, (_, _, lo, hi, bad, _) in zip(images, names, summary, strict=True):
+            if bad > 0 or lo == hi:
+                raise raise_for(name, arr, int(bad))
+        for idx, raw in enumerate(raws):
+            self._launch(k.normalise_image, self.shape, [raw, self.summary[idx], self.img[idx]])
+
+    def run(self, images, valid_px, masked, *, names, raise_for):
+        """One pair: upload (:meth:`upload`), pixel weights (None: all 1) and the per-pass masked
+        windows, the passes, and the last iteration's field back."""
+        wp = self.wp
+        self.upload(images, names, raise_for)
+        if valid_px is None:
+            if not self.valid_is_ones:
+                self.valid_px.fill_(1.0)
+                self.valid_is_ones = True
+        else:
+            self.valid_px.assign(np.ascontiguousarray(valid_px, dtype=np.float32))
+            self.valid_is_ones = False
         for ps, m in zip(self.passes, masked, strict=True):
             ps["masked"].assign(m.astype(np.int32))
         device = wp.get_device(self.device)
@@ -386,13 +431,21 @@ def _plan_for(shape, settings, device):
     return plan
 
 
-def correlate_on_device(a, b, *, settings, valid_px=None, masked=None, device="cpu"):
+def _default_error(name, arr, nonfinite):
+    what = f"{nonfinite} non-finite pixels" if nonfinite else "constant"
+    return SynthbosError(f"{name} is not an image to correlate: {what}")
+
+
+def correlate_on_device(
+    a, b, *, settings, valid_px=None, masked=None, device="cpu", raise_for=_default_error
+):
     """The passes and iterations of :func:`correlation.correlate_pair` on one Warp device.
 
     Parameters
     ----------
-    a, b : (H, W) float32 arrays
-        The normalised reference and gradient images (``multigrid._checked_image``).
+    a, b : (H, W) real or integer arrays
+        The reference and gradient images as given (checked for dtype and shape); they are brought
+        to zero mean and unit variance on the device.
     settings : CorrelationSettings
     valid_px : (H, W) float32 array of 0 and 1, optional
         1 on pixels that take part in the correlation (no mask: all).
@@ -400,6 +453,9 @@ def correlate_on_device(a, b, *, settings, valid_px=None, masked=None, device="c
         Per pass, the windows more than half masked.
     device : str
         Warp device.
+    raise_for : callable
+        ``raise_for(name, image, nonfinite)`` gives the exception to raise for an image with
+        non-finite pixels (``nonfinite`` > 0) or a constant one.
 
     Returns
     -------
@@ -412,14 +468,13 @@ def correlate_on_device(a, b, *, settings, valid_px=None, masked=None, device="c
         raise SynthbosError(f"the Warp correlation cannot run these settings: {reason}")
     shape = np.shape(a)
     plan = _plan_for(shape, settings, device)
-    if valid_px is None:
-        valid_px = np.ones(shape, dtype=np.float32)
     if masked is None:
         masked = [np.zeros((len(p["grid"].yc), len(p["grid"].xc)), dtype=bool) for p in plan.passes]
     with plan.lock:
         return plan.run(
-            np.ascontiguousarray(a, dtype=np.float32),
-            np.ascontiguousarray(b, dtype=np.float32),
-            np.ascontiguousarray(valid_px, dtype=np.float32),
+            (np.asarray(a), np.asarray(b)),
+            valid_px,
             masked,
+            names=("reference image", "gradient image"),
+            raise_for=raise_for,
         )

@@ -354,7 +354,8 @@ class CorrelationResult:
         return count_vectors(self.flags)
 
 
-def _checked_image(image, name):
+def _checked_array(image, name):
+    """The image as an array, after the checks that need no pass over its pixels."""
     arr = np.asarray(image)
     if arr.dtype.kind not in "iuf":
         raise SynthbosError(f"{name} has dtype {arr.dtype}; expected a real or integer image")
@@ -362,11 +363,22 @@ def _checked_image(image, name):
         raise SynthbosError(f"{name} has shape {arr.shape}; expected a 2-D image")
     if arr.size == 0:
         raise SynthbosError(f"{name} is empty (shape {arr.shape})")
-    arr = arr.astype(np.float64)
+    return arr
+
+
+def _pixel_error(name, arr, nonfinite):
+    """The error for an image with ``nonfinite`` non-finite pixels (> 0), or else a constant one."""
+    if nonfinite:
+        return SynthbosError(f"{name} has {int(nonfinite)} non-finite pixels")
+    return SynthbosError(f"{name} is constant (value {arr.flat[0]:g}): there is nothing to correlate")
+
+
+def _checked_image(image, name):
+    arr = _checked_array(image, name).astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise SynthbosError(f"{name} has {int(np.sum(~np.isfinite(arr)))} non-finite pixels")
+        raise _pixel_error(name, arr, np.sum(~np.isfinite(arr)))
     if arr.max() == arr.min():
-        raise SynthbosError(f"{name} is constant (value {arr.flat[0]:g}): there is nothing to correlate")
+        raise _pixel_error(name, arr, 0)
     # zero mean, unit standard deviation: the correlation is linear in each image, so this changes
     # nothing but keeps float32 sums of squares finite for images of any scale (1e-30 to 1e38)
     arr -= arr.mean()
@@ -508,7 +520,9 @@ def _correlate_pair_warp(a, b, valid_px, settings):
         _window_validity(valid_px, window_grid(a.shape, size, overlap))[1]
         for size, overlap in zip(settings.window_sizes, settings.overlaps, strict=True)
     ]
-    out = correlate_on_device(a, b, settings=settings, valid_px=valid_px, masked=masked, device=settings.device)
+    out = correlate_on_device(
+        a, b, settings=settings, valid_px=valid_px, masked=masked, device=settings.device, raise_for=_pixel_error
+    )
     u, v, flags = out["u"], out["v"], out["flags"]
     if not np.any(flags == 0):
         u = np.full_like(u, np.nan)
@@ -604,8 +618,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
         settings = CorrelationSettings()
     if not isinstance(settings, CorrelationSettings):
         raise SynthbosError(f"settings must be a CorrelationSettings, got {type(settings).__name__}")
-    a = _checked_image(reference, "reference image")
-    b = _checked_image(gradient, "gradient image")
+    checked = _checked_array if settings.uses_warp() else _checked_image  # Warp: normalised on the device
+    a = checked(reference, "reference image")
+    b = checked(gradient, "gradient image")
     if a.shape != b.shape:
         raise SynthbosError(f"images differ in shape: reference {a.shape}, gradient {b.shape}")
     shape = a.shape

@@ -15,6 +15,8 @@ float64 on a (ny, nx) grid; flags are :class:`correlation.VectorFlag` bits.
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from .kernels import bspline3_weights, keys_weights, sample_lanczos3, sample_taps4
@@ -58,33 +60,143 @@ def bspline3_prefilter_lines(
     n = src.shape[1]
     if axis == 0:
         n = src.shape[0]
-    for i in range(n):
+    if n == 1:
         if axis == 0:
-            line[k, i] = wp.float64(6.0) * wp.float64(src[i, k])
+            dst[0, k] = src[0, k]
         else:
-            line[k, i] = wp.float64(6.0) * wp.float64(src[k, i])
-    if n > 1:
-        z = wp.float64(-0.2679491924311228)
-        zn1 = wp.float64(1.0)
-        for _ in range(n - 1):
-            zn1 *= z
-        c0 = line[k, 0] + zn1 * line[k, n - 1]
-        zi = z
-        for i in range(1, n - 1):
-            c0 += zi * (line[k, i] + zn1 * line[k, n - 1 - i])
-            zi *= z
-        line[k, 0] = c0 / (wp.float64(1.0) - zn1 * zn1)
-        for i in range(1, n):
-            line[k, i] += z * line[k, i - 1]
-        line[k, n - 1] = (z * line[k, n - 2] + line[k, n - 1]) * z / (z * z - wp.float64(1.0))
-        for j in range(n - 1):
-            i = n - 2 - j
-            line[k, i] = z * (line[k, i + 1] - line[k, i])
-    for i in range(n):
+            dst[k, 0] = src[k, 0]
+        return
+    gain = wp.float64(6.0)
+    z = wp.float64(-0.2679491924311228)
+    zn1 = wp.float64(1.0)
+    for _ in range(n - 1):
+        zn1 *= z
+    # causal start: the mirror sum
+    first = wp.float64(0.0)
+    last = wp.float64(0.0)
+    if axis == 0:
+        first = gain * wp.float64(src[0, k])
+        last = gain * wp.float64(src[n - 1, k])
+    else:
+        first = gain * wp.float64(src[k, 0])
+        last = gain * wp.float64(src[k, n - 1])
+    c = first + zn1 * last
+    zi = z
+    for i in range(1, n - 1):
+        x = wp.float64(0.0)
+        y = wp.float64(0.0)
         if axis == 0:
-            dst[i, k] = wp.float32(line[k, i])
+            x = wp.float64(src[i, k])
+            y = wp.float64(src[n - 1 - i, k])
         else:
-            dst[k, i] = wp.float32(line[k, i])
+            x = wp.float64(src[k, i])
+            y = wp.float64(src[k, n - 1 - i])
+        c += zi * gain * (x + zn1 * y)
+        zi *= z
+    c = c / (wp.float64(1.0) - zn1 * zn1)
+    line[k, 0] = c
+    # causal sweep, the running value in a register
+    for i in range(1, n):
+        x = wp.float64(0.0)
+        if axis == 0:
+            x = wp.float64(src[i, k])
+        else:
+            x = wp.float64(src[k, i])
+        c = gain * x + z * c
+        line[k, i] = c
+    # anticausal sweep, written out as it goes
+    c = (z * line[k, n - 2] + c) * z / (z * z - wp.float64(1.0))
+    for j in range(n):
+        i = n - 1 - j
+        if j > 0:
+            c = z * (c - line[k, i])
+        if axis == 0:
+            dst[i, k] = wp.float32(c)
+        else:
+            dst[k, i] = wp.float32(c)
+
+
+# ---------------------------------------------------------------- image normalisation (multigrid._checked_image)
+
+
+@wp.kernel
+def column_stats(image: wp.array2d(dtype=Any), stats: wp.array2d(dtype=wp.float64)):
+    """Per column (coalesced): sum, min and max of the finite pixels, and the number of non-finite ones."""
+    j = wp.tid()
+    total = wp.float64(0.0)
+    lo = wp.float64(1.0e308)
+    hi = wp.float64(-1.0e308)
+    bad = wp.float64(0.0)
+    for i in range(image.shape[0]):
+        x = wp.float64(image[i, j])
+        if wp.isfinite(x):
+            total += x
+            lo = wp.min(lo, x)
+            hi = wp.max(hi, x)
+        else:
+            bad += wp.float64(1.0)
+    stats[j, 0] = total
+    stats[j, 1] = lo
+    stats[j, 2] = hi
+    stats[j, 3] = bad
+
+
+@wp.kernel
+def combine_stats(stats: wp.array2d(dtype=wp.float64), pixels: wp.float64, summary: wp.array(dtype=wp.float64)):
+    """One thread: ``summary`` = mean, largest |pixel - mean|, min, max, non-finite count."""
+    total = wp.float64(0.0)
+    lo = wp.float64(1.0e308)
+    hi = wp.float64(-1.0e308)
+    bad = wp.float64(0.0)
+    for j in range(stats.shape[0]):
+        total += stats[j, 0]
+        lo = wp.min(lo, stats[j, 1])
+        hi = wp.max(hi, stats[j, 2])
+        bad += stats[j, 3]
+    mean = total / pixels
+    summary[0] = mean
+    summary[1] = wp.max(hi - mean, mean - lo)
+    summary[2] = lo
+    summary[3] = hi
+    summary[4] = bad
+
+
+@wp.kernel
+def column_moments(
+    image: wp.array2d(dtype=Any), summary: wp.array(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64)
+):
+    """Per column: sum of y and of y^2, y = (pixel - mean) / largest |pixel - mean|."""
+    j = wp.tid()
+    s1 = wp.float64(0.0)
+    s2 = wp.float64(0.0)
+    for i in range(image.shape[0]):
+        y = (wp.float64(image[i, j]) - summary[0]) / summary[1]
+        s1 += y
+        s2 += y * y
+    stats[j, 0] = s1
+    stats[j, 1] = s2
+
+
+@wp.kernel
+def combine_moments(stats: wp.array2d(dtype=wp.float64), pixels: wp.float64, summary: wp.array(dtype=wp.float64)):
+    """One thread: ``summary[5]`` = standard deviation of y."""
+    s1 = wp.float64(0.0)
+    s2 = wp.float64(0.0)
+    for j in range(stats.shape[0]):
+        s1 += stats[j, 0]
+        s2 += stats[j, 1]
+    m = s1 / pixels
+    summary[5] = wp.sqrt(wp.max(s2 / pixels - m * m, wp.float64(0.0)))
+
+
+@wp.kernel
+def normalise_image(
+    image: wp.array2d(dtype=Any), summary: wp.array(dtype=wp.float64), out: wp.array2d(dtype=wp.float32)
+):
+    """``out = ((pixel - mean) / largest |pixel - mean|) / std``: zero mean, unit standard deviation."""
+    i, j = wp.tid()
+    y = (wp.float64(image[i, j]) - summary[0]) / summary[1]
+    out[i, j] = wp.float32(y / summary[5])
 
 
 # ---------------------------------------------------------------- predictor: separable spline weights

@@ -155,3 +155,21 @@ def test_backend_selection():
     a, b = synthetic_pair((96, 96), bump_field((96, 96)), seed=1)
     with pytest.raises(SynthbosError, match="power of two"):
         correlate_pair(a, b, settings=CorrelationSettings(backend="warp", window_sizes=(24, 12)))
+
+
+def test_warp_path_checks_and_normalises_images_on_the_device(device):
+    """Images of any real or integer dtype normalised on the device as on the host; the same errors."""
+    a, b = synthetic_pair((128, 128), bump_field((128, 128)), seed=2)
+    s = CorrelationSettings(backend="warp", device=device)
+    scale = 200 / max(a.max(), b.max())
+    for dtype in (np.uint8, np.uint16, np.int32, np.float32, np.float64):
+        ai, bi = (a * scale + 10).astype(dtype), (b * scale + 10).astype(dtype)
+        ref = correlate_pair(ai, bi, settings=replace(s, backend="numpy"))
+        assert_same_field(ref, correlate_pair(ai, bi, settings=s))
+    bad = a.copy()
+    bad[3, 4] = np.nan
+    bad[5, 6] = np.inf
+    with pytest.raises(SynthbosError, match="reference image has 2 non-finite pixels"):
+        correlate_pair(bad, b, settings=s)
+    with pytest.raises(SynthbosError, match=r"gradient image is constant \(value 3\)"):
+        correlate_pair(a, np.full_like(b, 3.0), settings=s)
