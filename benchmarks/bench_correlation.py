@@ -222,6 +222,28 @@ def compare_backends(sizes, devices, *, repeat, seed, settings=None):
     return rows
 
 
+def profile_kernels(size, device, *, seed, settings=None):
+    """Per-kernel CUDA times of one Warp-path call (kernels launched one by one, no CUDA graph)."""
+    from dataclasses import replace
+
+    import warp as wp
+
+    from synthbos.correlation import device_pass
+
+    s = replace(settings or CorrelationSettings(), backend="warp", device=device)
+    a, b = synthetic_pair((size, size), bump_field((size, size)), seed=seed)
+    correlate_pair(a, b, settings=s)  # compiled and loaded
+    graph, device_pass.USE_CUDA_GRAPH = device_pass.USE_CUDA_GRAPH, False
+    try:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        correlate_pair(a, b, settings=s)
+        results = wp.timing_end()
+    finally:
+        device_pass.USE_CUDA_GRAPH = graph
+    print(f"\nper-kernel CUDA times, one {size}x{size} pair on {device}, kernels launched one by one:")
+    wp.timing_print(results)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[512, 1024])
@@ -231,9 +253,15 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--devices", nargs="*", default=None,
                         help="compare the NumPy path with the Warp path on these devices (no OpenPIV)")
+    parser.add_argument("--profile", action="store_true",
+                        help="with --devices: per-kernel CUDA times of one pair of the first size per CUDA device")
     args = parser.parse_args(argv)
     if args.devices:
         compare_backends(args.sizes, args.devices, repeat=args.repeat, seed=args.seed)
+        if args.profile:
+            for dev in args.devices:
+                if dev.startswith("cuda"):
+                    profile_kernels(args.sizes[0], dev, seed=args.seed)
         return
 
     ours = {

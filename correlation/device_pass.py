@@ -37,6 +37,9 @@ PARALLEL_SWEEPS = 4
 MAX_SWEEPS = 100
 #: Plans kept per process (one per image shape, settings, device and thread).
 PLAN_CACHE_SIZE = 4
+#: Record each plan's launches into a CUDA graph at its second pair and replay it (CUDA devices);
+#: False launches every kernel from Python (for per-kernel profiles).
+USE_CUDA_GRAPH = True
 
 _INTERPOLATOR_CODES = {"cubic": 0, "keys": 1, "lanczos": 2}
 _METHOD_CODES = {"gaussian": 0, "parabolic": 1, "centroid": 2}
@@ -339,11 +342,11 @@ class _Plan:
         for ps, m in zip(self.passes, masked, strict=True):
             ps["masked"].assign(m.astype(np.int32))
         device = wp.get_device(self.device)
-        if self.graph is None and self.runs > 0 and device.is_cuda:
+        if self.graph is None and self.runs > 0 and device.is_cuda and USE_CUDA_GRAPH:
             with wp.ScopedCapture(device=device) as capture:
                 self._launch_all()
             self.graph = capture.graph
-        if self.graph is not None:
+        if self.graph is not None and USE_CUDA_GRAPH:
             wp.capture_launch(self.graph)
         else:
             self._launch_all()
