@@ -227,7 +227,6 @@ def profile_kernels(size, device, *, seed, settings=None):
     from dataclasses import replace
 
     import warp as wp
-
     from synthbos.correlation import device_pass
 
     s = replace(settings or CorrelationSettings(), backend="warp", device=device)
