@@ -79,6 +79,11 @@ def _correlate_kernel(wp, k, n, rpc):
     return _window_kernels[key]
 
 
+def _graph_replay(device):
+    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`)."""
+    return USE_CUDA_GRAPH and device.is_cuda
+
+
 class _Iteration:
     """Geometry and buffers of one iteration of one pass."""
 
@@ -342,11 +347,12 @@ class _Plan:
         for ps, m in zip(self.passes, masked, strict=True):
             ps["masked"].assign(m.astype(np.int32))
         device = wp.get_device(self.device)
-        if self.graph is None and self.runs > 0 and device.is_cuda and USE_CUDA_GRAPH:
+        use_graph = _graph_replay(device)
+        if self.graph is None and self.runs > 0 and use_graph:
             with wp.ScopedCapture(device=device) as capture:
                 self._launch_all()
             self.graph = capture.graph
-        if self.graph is not None and USE_CUDA_GRAPH:
+        if self.graph is not None and use_graph:
             wp.capture_launch(self.graph)
         else:
             self._launch_all()

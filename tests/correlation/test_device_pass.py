@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.benchmarks.bench_correlation import bump_field, random_phase_field, synthetic_pair
-from synthbos.correlation import CorrelationSettings, correlate_pair, count_vectors
+from synthbos.correlation import CorrelationSettings, correlate_pair, count_vectors, device_pass
 from synthbos.correlation.deform import bspline3_coefficients
 from synthbos.correlation.device_pass import PARALLEL_SWEEPS, replace_outliers_on_device
 from synthbos.correlation.validation import replace_outliers
@@ -96,18 +96,23 @@ def test_warp_path_rpc_close_to_numpy(device):
     assert np.percentile(diff, 95) < 2e-3
 
 
-def test_warp_path_is_reused_for_the_next_pair(device):
-    """The second pair reuses the first one's plan (a CUDA graph on GPUs) and gives its own field."""
-    s = CorrelationSettings(backend="warp", device=device)
-    for seed, shift in ((8, (0.4, -1.1)), (9, (-2.2, 0.7))):
+def test_warp_path_replays_its_graph_for_the_next_pairs(device, monkeypatch):
+    """The second pair records the plan's launches into a graph (CUDA; here on every device), later
+    pairs replay it: each still gets its own field."""
+    monkeypatch.setattr(device_pass, "_graph_replay", lambda dev: True)
+    s = CorrelationSettings(backend="warp", device=device, window_sizes=(64, 32, 16), iterations=(2, 1, 2))
+    for seed, shift in ((8, (0.4, -1.1)), (9, (-2.2, 0.7)), (10, (1.6, 2.9))):
+
         def field(x, y, sh=shift):
             return np.full_like(x, sh[0]), np.full_like(y, sh[1])
 
-        a, b = synthetic_pair((128, 128), field, seed=seed)
+        a, b = synthetic_pair((128, 160), field, seed=seed)
         r = correlate_pair(a, b, settings=s)
         assert_allclose(np.median(r.u), shift[0], atol=0.02)
         assert_allclose(np.median(r.v), shift[1], atol=0.02)
         assert_same_field(correlate_pair(a, b, settings=replace(s, backend="numpy")), r)
+    plans = [p for p in device_pass._plans.values() if p.settings == s]
+    assert len(plans) == 1 and plans[0].graph is not None and plans[0].runs == 3
 
 
 def test_prefilter_matches_scipy(device):
