@@ -37,6 +37,9 @@ PARALLEL_SWEEPS = 4
 MAX_SWEEPS = 100
 #: Plans kept per process (one per image shape, settings, device and thread).
 PLAN_CACHE_SIZE = 4
+#: Block size of the kernels whose threads each loop over a line or a plane (B-spline prefilter,
+#: image statistics, peak search): few threads, spread over many multiprocessors.
+LOOP_BLOCK = 32
 #: Record each plan's launches into a CUDA graph at its second pair and replay it (CUDA devices);
 #: False launches every kernel from Python (for per-kernel profiles).
 USE_CUDA_GRAPH = True
@@ -192,16 +195,16 @@ class _Plan:
 
     # -------------------------------------------------------------------------------- launches
 
-    def _launch(self, kernel, dim, inputs):
-        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+    def _launch(self, kernel, dim, inputs, block_dim=256):
+        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, block_dim=block_dim)
 
     def _launch_all(self):
         wp, k, s = self.wp, self.k, self.settings
         h, w = self.shape
         if self.prefilter:
             for img, coef in zip(self.img, self.coef, strict=True):
-                self._launch(k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp])
-                self._launch(k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef])
+                self._launch(k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], LOOP_BLOCK)
+                self._launch(k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], LOOP_BLOCK)
         prev = None
         q = SAMPLING_OFFSET
         for it in self.iterations:
@@ -269,6 +272,7 @@ class _Plan:
                     it.coef,
                     f0,
                 ],
+                LOOP_BLOCK,
             )
             self._launch(k.measured_mask, (ny, nx), [f0, it.ok])
             self._launch(
@@ -320,9 +324,9 @@ class _Plan:
             raw = self._raw(idx, dtype)
             raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
             stats, summary = self.col_stats[idx], self.summary[idx]
-            self._launch(k.column_stats, w, [raw, stats])
+            self._launch(k.column_stats, w, [raw, stats], LOOP_BLOCK)
             self._launch(k.combine_stats, 1, [stats, float(h * w), summary])
-            self._launch(k.column_moments, w, [raw, summary, stats])
+            self._launch(k.column_moments, w, [raw, summary, stats], LOOP_BLOCK)
             self._launch(k.combine_moments, 1, [stats, float(h * w), summary])
             raws.append(raw)
         summary = self.summary.numpy()
