@@ -37,8 +37,8 @@ PARALLEL_SWEEPS = 4
 MAX_SWEEPS = 100
 #: Plans kept per process (one per image shape, settings, device and thread).
 PLAN_CACHE_SIZE = 4
-#: Block size of the kernels whose threads each loop over a line or a plane (B-spline prefilter,
-#: image statistics, peak search): few threads, spread over many multiprocessors.
+#: Block size of the kernels whose threads each loop over an image line (B-spline prefilter, image
+#: statistics): few threads, spread over many multiprocessors.
 LOOP_BLOCK = 32
 #: Record each plan's launches into a CUDA graph at its second pair and replay it (CUDA devices);
 #: False launches every kernel from Python (for per-kernel profiles).
@@ -146,6 +146,13 @@ class _Plan:
             else:
                 spectral = np.full((size, size), 1.0 / size**2)
             ps["spectral"] = wp.array(spectral.astype(np.float32), dtype=f32, device=device)
+            # shifted position (fftshift) of every sample of an unshifted plane, coded row * code + column
+            shifted = (np.arange(size) + size // 2) % size
+            code = int(k.PLANE_CODE)
+            positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
+            ps["positions"] = wp.array(positions, dtype=wp.int32, device=device)
+            ps["peak_at"] = zeros(ny * nx, i32)
+            ps["peak_values"] = zeros((ny * nx, 3), f32)
             if prev is not None or n_iter > 1:
                 ps["def"] = [zeros((rows, cols), f32) for _ in range(3)]  # first, second, weight
                 ps["du"] = [zeros((rows, cols), f32), zeros((rows, cols), f32)]
@@ -245,7 +252,18 @@ class _Plan:
             wp.launch_tiled(
                 ps["kernel"],
                 dim=[ny * nx],
-                inputs=[*images, *origin, it.step, nx, ps["spectral"], ps["planes"], ps["norm"]],
+                inputs=[
+                    *images,
+                    *origin,
+                    it.step,
+                    nx,
+                    ps["spectral"],
+                    ps["positions"],
+                    ps["planes"],
+                    ps["norm"],
+                    ps["peak_at"],
+                    ps["peak_values"],
+                ],
                 block_dim=max(n // 2, 1),
                 device=self.device,
             )
@@ -257,6 +275,8 @@ class _Plan:
                     ps["planes"],
                     n,
                     ps["norm"],
+                    ps["peak_at"],
+                    ps["peak_values"],
                     *it.p,
                     _METHOD_CODES[s.subpixel],
                     int(not s.rpc),
@@ -272,7 +292,6 @@ class _Plan:
                     it.coef,
                     f0,
                 ],
-                LOOP_BLOCK,
             )
             self._launch(k.measured_mask, (ny, nx), [f0, it.ok])
             self._launch(

@@ -346,6 +346,18 @@ def phase_spectrum(fa: wp.vec2f, fb: wp.vec2f, f: wp.float32) -> wp.vec2f:
     return wp.vec2f(re / mag * f, im / mag * f)
 
 
+#: Shifted plane positions (row, column) are coded as row * PLANE_CODE + column.
+PLANE_CODE = wp.constant(4096)
+
+
+@wp.func
+def outside_peak(x: wp.float32, at: wp.int32, peak: wp.int32) -> wp.float32:
+    """``x`` where its shifted position ``at`` lies outside the 5 x 5 square around ``peak``, else -FLT_MAX."""
+    if wp.abs(at // PLANE_CODE - peak // PLANE_CODE) > 2 or wp.abs(at % PLANE_CODE - peak % PLANE_CODE) > 2:
+        return x
+    return wp.float32(-3.4028235e38)
+
+
 def make_correlate_windows(n: int, rpc: bool):
     """Kernel correlating all ``n`` x ``n`` window pairs of a grid, one tile (block) per window.
 
@@ -364,12 +376,20 @@ def make_correlate_windows(n: int, rpc: bool):
         step: int,
         nx: int,
         spectral: wp.array2d(dtype=wp.float32),
+        positions: wp.array2d(dtype=wp.int32),
         planes: wp.array2d(dtype=wp.float32),
         norm: wp.array(dtype=wp.float64),
+        peak_at: wp.array(dtype=wp.int32),
+        peak_values: wp.array2d(dtype=wp.float32),
     ):
         """Window k: weighted means subtracted, 2-D FFTs (rows, transpose, rows), cross spectrum times
         ``spectral`` (1/n^2, and the RPC filter), inverse; plane k (unshifted) in rows k n ... k n + n - 1.
-        ``norm[k]`` = sqrt(sum a'^2 sum b'^2) of the mean-subtracted windows."""
+
+        ``norm[k]`` = sqrt(sum a'^2 sum b'^2) of the mean-subtracted windows; ``peak_at[k]`` the shifted
+        position of the plane's maximum (``PLANE_CODE``; (0, 0) for a constant plane, as np.argmax);
+        ``peak_values[k]`` its maximum, minimum and the maximum outside the 5 x 5 square around the
+        peak (``correlation.peak.peak_ratio``; the minimum if there is nothing outside).
+        ``positions`` holds the shifted position of every unshifted sample."""
         k = wp.tid()
         r = row0 + (k // nx) * step
         c = col0 + (k % nx) * step
@@ -399,7 +419,26 @@ def make_correlate_windows(n: int, rpc: bool):
         wp.tile_ifft(s)
         st = wp.tile_map(same, wp.tile_transpose(wp.tile_map(same, s)))
         wp.tile_ifft(st)
-        wp.tile_store(planes, wp.tile_map(real_part, st), offset=(k * n, 0))
+        plane = wp.tile_map(real_part, st)
+        wp.tile_store(planes, plane, offset=(k * n, 0))
+        # the peak and the second peak
+        at = wp.tile_load(positions, shape=(n, n))
+        top = wp.tile_extract(wp.tile_max(plane), 0)
+        low = wp.tile_extract(wp.tile_min(plane), 0)
+        peak = wp.int32(0)
+        if top > low:
+            i = wp.tile_extract(wp.tile_argmax(plane), 0)
+            peak = positions[i // n, i % n]
+        second = wp.tile_extract(
+            wp.tile_max(wp.tile_map(outside_peak, plane, at, wp.tile_full(shape=(n, n), value=peak, dtype=wp.int32))),
+            0,
+        )
+        if second == wp.float32(-3.4028235e38):
+            second = low
+        peak_at[k] = peak
+        peak_values[k, 0] = top
+        peak_values[k, 1] = low
+        peak_values[k, 2] = second
 
     return correlate_windows
 
@@ -458,6 +497,8 @@ def fit_peaks(
     planes: wp.array2d(dtype=wp.float32),
     n: int,
     norm: wp.array(dtype=wp.float64),
+    peak_at: wp.array(dtype=wp.int32),
+    peak_values: wp.array2d(dtype=wp.float32),
     pu: wp.array2d(dtype=wp.float32),
     pv: wp.array2d(dtype=wp.float32),
     method: int,
@@ -475,35 +516,17 @@ def fit_peaks(
     coef: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
 ):
-    """One thread per window: highest peak, three-point fit on overlap-weighted samples, peak ratio
-    (exclusion 2), correlation coefficient, vector = predictor + peak offset, and the flags ``BORDER``,
-    ``PEAK``, ``DISAGREE``, ``MASKED`` (``subpixel_peak``, ``peak_ratio``, ``correlate_pair``)."""
+    """One thread per window, from the peak found by the correlation kernel: three-point fit on
+    overlap-weighted samples, peak ratio (exclusion 2), correlation coefficient, vector = predictor +
+    peak offset, and the flags ``BORDER``, ``PEAK``, ``DISAGREE``, ``MASKED`` (``subpixel_peak``,
+    ``peak_ratio``, ``correlate_pair``)."""
     i, j = wp.tid()
     k = i * u.shape[1] + j
-    # highest sample (first in row-major order of the shifted plane, as np.argmax) and lowest
-    r0 = wp.int32(0)
-    c0 = wp.int32(0)
-    c1 = shifted(planes, k, n, 0, 0)
-    cmin = c1
-    for r in range(n):
-        for c in range(n):
-            s = shifted(planes, k, n, r, c)
-            if s > c1:
-                c1 = s
-                r0 = r
-                c0 = c
-            if s < cmin:
-                cmin = s
-    # second peak: the highest sample outside the 5x5 square around the first
-    found = wp.int32(0)
-    c2 = cmin
-    for r in range(n):
-        for c in range(n):
-            if wp.abs(r - r0) > 2 or wp.abs(c - c0) > 2:
-                s = shifted(planes, k, n, r, c)
-                if found == 0 or s > c2:
-                    c2 = s
-                    found = 1
+    r0 = peak_at[k] // PLANE_CODE
+    c0 = peak_at[k] % PLANE_CODE
+    c1 = wp.float64(peak_values[k, 0])
+    cmin = wp.float64(peak_values[k, 1])
+    c2 = wp.float64(peak_values[k, 2])
     num = c1 - cmin
     den = c2 - cmin
     pr = wp.float64(1.0)
