@@ -425,10 +425,10 @@ def make_correlate_windows(n: int, rpc: bool):
         at = wp.tile_load(positions, shape=(n, n))
         top = wp.tile_extract(wp.tile_max(plane), 0)
         low = wp.tile_extract(wp.tile_min(plane), 0)
-        peak = wp.int32(0)
-        if top > low:
-            i = wp.tile_extract(wp.tile_argmax(plane), 0)
-            peak = positions[i // n, i % n]
+        i = wp.tile_extract(wp.tile_argmax(plane), 0)  # cooperative: every thread, outside branches
+        peak = positions[i // n, i % n]
+        if top <= low:
+            peak = wp.int32(0)
         second = wp.tile_extract(
             wp.tile_max(wp.tile_map(outside_peak, plane, at, wp.tile_full(shape=(n, n), value=peak, dtype=wp.int32))),
             0,
