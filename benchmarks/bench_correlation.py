@@ -16,6 +16,14 @@ Run::
     python3 -m synthbos.benchmarks.bench_correlation [--sizes 512 1024] [--turbulent-sizes 256 1024]
 
 OpenPIV (``pip install openpiv``, the ``bench`` extra) is only imported here.
+
+With ``--devices`` the run compares the two paths of ``correlate_pair`` instead (no OpenPIV): the
+NumPy path on the CPU (``backend="numpy"``, one core) and the Warp path (``backend="warp"``) on each
+given device, on the same pairs and the default settings: per-pair time (best of ``--repeat`` after a
+warm-up call; on CUDA the second call records the CUDA graph that later calls replay), the speed-up
+over the NumPy path, and the largest difference of the vectors (px) and of the flags between them::
+
+    python3 -m synthbos.benchmarks.bench_correlation --devices cpu cuda:0 --sizes 512 1024 --repeat 10
 """
 
 import os
@@ -168,6 +176,73 @@ def _compare(a, b, field, op, ours, repeat, first_cell):
     return rows
 
 
+def compare_backends(sizes, devices, *, repeat, seed, settings=None):
+    """Time the NumPy path (CPU) and the Warp path on each device on the same pairs; print one row each.
+
+    Returns
+    -------
+    list of dict
+        One per pair and path: ``pair``, ``path``, ``time_s``, ``speedup`` (NumPy time / time),
+        ``max_diff_px`` (largest |u| or |v| difference to the NumPy path), ``flags_differ`` (count).
+    """
+    from dataclasses import replace
+
+    base = settings or CorrelationSettings()
+    print("settings:", base.as_dict())
+    header = (
+        f"{'pair':<18} {'path':<22} {'time [ms]':>10} {'speed-up':>9} {'max |d| [px]':>13} "
+        f"{'flags differ':>12}  measured/replaced/failed"
+    )
+    print(header)
+    print("-" * len(header))
+    rows = []
+    for n in sizes:
+        for name, field in (("uniform", uniform_field()), ("bump", bump_field((n, n))),
+                            ("turbulent", random_phase_field((n, n), seed=seed + n))):
+            a, b = synthetic_pair((n, n), field, seed=seed + n)
+            pair = f"{n}x{n} {name}"
+            paths = [("numpy, cpu", replace(base, backend="numpy", device="cpu"))]
+            paths += [(f"warp, {dev}", replace(base, backend="warp", device=dev)) for dev in devices]
+            ref = None
+            for label, s in paths:
+                t, r = best_time(lambda a=a, b=b, s=s: correlate_pair(a, b, settings=s), repeat, warmup=True)
+                if ref is None:
+                    ref, t_ref = r, t
+                diff = float(max(np.nanmax(np.abs(r.u - ref.u)), np.nanmax(np.abs(r.v - ref.v))))
+                flags_differ = int(np.sum(r.flags != ref.flags))
+                c = count_vectors(r.flags)
+                print(f"{pair if label.startswith('numpy') else '':<18} {label:<22} {t * 1e3:10.2f} "
+                      f"{t_ref / t:8.1f}x {diff:13.2e} {flags_differ:12d}  "
+                      f"{c['measured']}/{c['replaced']}/{c['failed']}")
+                rows.append({"pair": pair, "path": label, "time_s": t, "speedup": t_ref / t,
+                             "max_diff_px": diff, "flags_differ": flags_differ})
+    print()
+    print("time: best of --repeat whole calls (images in, vectors out) after a warm-up call; speed-up =")
+    print("NumPy-path time / time; max |d|: largest difference of u or v to the NumPy path's vectors.")
+    return rows
+
+
+def profile_kernels(size, device, *, seed, settings=None):
+    """Per-kernel CUDA times of one Warp-path call (kernels launched one by one, no CUDA graph)."""
+    from dataclasses import replace
+
+    import warp as wp
+    from synthbos.correlation import device_pass
+
+    s = replace(settings or CorrelationSettings(), backend="warp", device=device)
+    a, b = synthetic_pair((size, size), bump_field((size, size)), seed=seed)
+    correlate_pair(a, b, settings=s)  # compiled and loaded
+    graph, device_pass.USE_CUDA_GRAPH = device_pass.USE_CUDA_GRAPH, False
+    try:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        correlate_pair(a, b, settings=s)
+        results = wp.timing_end()
+    finally:
+        device_pass.USE_CUDA_GRAPH = graph
+    print(f"\nper-kernel CUDA times, one {size}x{size} pair on {device}, kernels launched one by one:")
+    wp.timing_print(results)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[512, 1024])
@@ -175,7 +250,18 @@ def main(argv=None):
     parser.add_argument("--turbulent-pairs", type=int, default=3)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--devices", nargs="*", default=None,
+                        help="compare the NumPy path with the Warp path on these devices (no OpenPIV)")
+    parser.add_argument("--profile", action="store_true",
+                        help="with --devices: per-kernel CUDA times of one pair of the first size per CUDA device")
     args = parser.parse_args(argv)
+    if args.devices:
+        compare_backends(args.sizes, args.devices, repeat=args.repeat, seed=args.seed)
+        if args.profile:
+            for dev in args.devices:
+                if dev.startswith("cuda"):
+                    profile_kernels(args.sizes[0], dev, seed=args.seed)
+        return
 
     ours = {
         "synthbos (default)": CorrelationSettings(),

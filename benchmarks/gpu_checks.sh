@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU evidence behind the README, in two parts that each fit one device call:
 #   bash benchmarks/gpu_checks.sh tests      the test suite's CUDA cases (every device-parametrised test
-#                                            on cuda:0, CPU/CUDA agreement) and the renderer speed benchmark
+#                                            on cuda:0, CPU/CUDA agreement), the renderer speed benchmark and
+#                                            the correlation's NumPy path against its Warp path on cuda:0
 #   bash benchmarks/gpu_checks.sh campaign   `synthbos paper --full` on cuda:0 and an f-number sweep
 #   bash benchmarks/gpu_checks.sh scaling    campaign throughput on 1, 2, 4 GPUs through Dask (bench_scaling)
 #   bash benchmarks/gpu_checks.sh stages     per-stage times of a pair on cuda:0 and the CPU (bench_stages), and
@@ -26,6 +27,9 @@ if [ "$part" = tests ]; then
   python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
     > "$work/bench_render.log" 2>&1
   tail -5 "$work/bench_render.log"
+  python3 -m synthbos.benchmarks.bench_correlation --devices cuda:0 --sizes 512 1024 --repeat 10 --profile \
+    > "$work/bench_correlation.log" 2>&1
+  grep -A12 "^pair" "$work/bench_correlation.log"
 elif [ "$part" = stages ]; then
   python3 -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --rays 10000 --cpu-rays 100 --paper-full \
     --also-cpu-processing --workers 14 --json "$work/bench_stages.json" > "$work/bench_stages.log" 2>&1

@@ -126,6 +126,9 @@ SAMPLING_OFFSET = 0.25
 #: at least this fraction of its valid neighbours' median (and the previous iteration measured it alike).
 CONFIRM_CORRELATION = 0.7
 
+#: Values of :attr:`CorrelationSettings.backend`.
+BACKENDS = ("auto", "numpy", "warp")
+
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0
 
@@ -201,7 +204,15 @@ class CorrelationSettings:
     workers : int
         Threads for ``scipy.fft``.
     device : str
-        Warp device of the deformation kernels ("cpu", "cuda:0").
+        Warp device ("cpu", "cuda:0"): of the deformation kernels on the NumPy path, of everything on
+        the Warp path.
+    backend : {"auto", "numpy", "warp"}
+        ``numpy``: windows, FFTs, peak fit and validation in NumPy/SciPy on the host, the image
+        deformation on ``device``, host copies every iteration (the reference). ``warp``: every step
+        as Warp kernels on ``device`` (:mod:`correlation.device_pass`; the images go up once, the
+        vectors come back once; power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA
+        devices when the window sizes allow it, else ``numpy``. Both give the same vectors and flags
+        to float32 rounding (1e-4 px).
     """
 
     window_sizes: tuple = (32, 16)
@@ -219,6 +230,7 @@ class CorrelationSettings:
     rpc_diameter: float = 2.8
     workers: int = 1
     device: str = "cpu"
+    backend: str = "auto"
 
     def __post_init__(self):
         sizes = _tuple_of(self.window_sizes, 1, "window_sizes") if np.ndim(self.window_sizes) == 0 else None
@@ -265,6 +277,8 @@ class CorrelationSettings:
             raise SynthbosError(
                 f"correlation setting min_correlation is a correlation coefficient <= 1, got {self.min_correlation!r}"
             )
+        if self.backend not in BACKENDS:
+            raise SynthbosError(f"correlation backend {self.backend!r} is not one of {', '.join(BACKENDS)}")
         if not isinstance(self.workers, numbers.Integral) or self.workers == 0:
             raise SynthbosError(
                 f"correlation setting workers must be a non-zero integer, got {self.workers!r}"
@@ -292,7 +306,16 @@ class CorrelationSettings:
             "rpc_diameter": float(self.rpc_diameter),
             "workers": int(self.workers),
             "device": str(self.device),
+            "backend": str(self.backend),
         }
+
+    def uses_warp(self):
+        """True when :func:`correlate_pair` runs these settings on the Warp path (see ``backend``)."""
+        if self.backend != "auto":
+            return self.backend == "warp"
+        from .device_pass import device_supports
+
+        return str(self.device).startswith("cuda") and device_supports(self) is None
 
 
 @dataclass
@@ -331,7 +354,8 @@ class CorrelationResult:
         return count_vectors(self.flags)
 
 
-def _checked_image(image, name):
+def _checked_array(image, name):
+    """The image as an array, after the checks that need no pass over its pixels."""
     arr = np.asarray(image)
     if arr.dtype.kind not in "iuf":
         raise SynthbosError(f"{name} has dtype {arr.dtype}; expected a real or integer image")
@@ -339,11 +363,22 @@ def _checked_image(image, name):
         raise SynthbosError(f"{name} has shape {arr.shape}; expected a 2-D image")
     if arr.size == 0:
         raise SynthbosError(f"{name} is empty (shape {arr.shape})")
-    arr = arr.astype(np.float64)
+    return arr
+
+
+def _pixel_error(name, arr, nonfinite):
+    """The error for an image with ``nonfinite`` non-finite pixels (> 0), or else a constant one."""
+    if nonfinite:
+        return SynthbosError(f"{name} has {int(nonfinite)} non-finite pixels")
+    return SynthbosError(f"{name} is constant (value {arr.flat[0]:g}): there is nothing to correlate")
+
+
+def _checked_image(image, name):
+    arr = _checked_array(image, name).astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise SynthbosError(f"{name} has {int(np.sum(~np.isfinite(arr)))} non-finite pixels")
+        raise _pixel_error(name, arr, np.sum(~np.isfinite(arr)))
     if arr.max() == arr.min():
-        raise SynthbosError(f"{name} is constant (value {arr.flat[0]:g}): there is nothing to correlate")
+        raise _pixel_error(name, arr, 0)
     # zero mean, unit standard deviation: the correlation is linear in each image, so this changes
     # nothing but keeps float32 sums of squares finite for images of any scale (1e-30 to 1e38)
     arr -= arr.mean()
@@ -477,6 +512,69 @@ def _edge_weights(du, dv, rows, cols, shape, margin):
     return weights
 
 
+def _correlate_pair_warp(a, b, valid_px, settings):
+    """:func:`correlate_pair` after its checks, on the Warp path (:mod:`correlation.device_pass`)."""
+    from .device_pass import correlate_on_device
+
+    masked = [
+        _window_validity(valid_px, window_grid(a.shape, size, overlap))[1]
+        for size, overlap in zip(settings.window_sizes, settings.overlaps, strict=True)
+    ]
+    out = correlate_on_device(
+        a, b, settings=settings, valid_px=valid_px, masked=masked, device=settings.device, raise_for=_pixel_error
+    )
+    u, v, flags = out["u"], out["v"], out["flags"]
+    if not np.any(flags == 0):
+        u = np.full_like(u, np.nan)
+        v = np.full_like(v, np.nan)
+    u = np.where(masked[-1], np.nan, u)
+    v = np.where(masked[-1], np.nan, v)
+    coef = np.full(u.shape, np.nan) if settings.rpc else out["correlation"]
+    x, y = np.meshgrid(out["node"][1], out["node"][0])
+    return CorrelationResult(
+        x=x, y=y, u=u, v=v, peak_ratio=out["peak_ratio"], flags=flags, settings=settings, correlation=coef
+    )
+
+
+@dataclass(frozen=True)
+class WindowGrid:
+    """Window grid of one pass: spacing, window centres and the pixel rows and columns the windows cover."""
+
+    size: int
+    step: int
+    yc: np.ndarray
+    xc: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+
+
+def window_grid(shape, size, overlap):
+    """The :class:`WindowGrid` of ``size`` px windows overlapping by ``overlap`` in an image of ``shape``."""
+    step = window_step(size, overlap)
+    sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
+    return WindowGrid(
+        size=size,
+        step=step,
+        yc=sy + (size - 1) / 2.0,
+        xc=sx + (size - 1) / 2.0,
+        rows=np.arange(sy[0], sy[-1] + size),
+        cols=np.arange(sx[0], sx[-1] + size),
+    )
+
+
+def _window_validity(valid_px, grid):
+    """Pixel weights of every window ((K, N, N), None without a mask) and the (ny, nx) masked windows."""
+    ny, nx, size = len(grid.yc), len(grid.xc), grid.size
+    if valid_px is None:
+        return None, np.zeros((ny, nx), dtype=bool)
+    r0, c0 = int(grid.rows[0]), int(grid.cols[0])
+    win_valid = extract_windows(valid_px, size, grid.step, r0, c0, ny, nx).reshape(-1, size, size)
+    masked = (win_valid.mean(axis=(-2, -1)) < 0.5).reshape(ny, nx)
+    if masked.all():
+        raise SynthbosError(f"the mask covers every {size} px window: no vector can be measured")
+    return win_valid, masked
+
+
 def correlate_pair(reference, gradient, *, settings=None, mask=None):
     """Displacement field between two images by multigrid window-deformation cross-correlation.
 
@@ -520,8 +618,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
         settings = CorrelationSettings()
     if not isinstance(settings, CorrelationSettings):
         raise SynthbosError(f"settings must be a CorrelationSettings, got {type(settings).__name__}")
-    a = _checked_image(reference, "reference image")
-    b = _checked_image(gradient, "gradient image")
+    checked = _checked_array if settings.uses_warp() else _checked_image  # Warp: normalised on the device
+    a = checked(reference, "reference image")
+    b = checked(gradient, "gradient image")
     if a.shape != b.shape:
         raise SynthbosError(f"images differ in shape: reference {a.shape}, gradient {b.shape}")
     shape = a.shape
@@ -530,25 +629,19 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
         raise SynthbosError(f"window size {biggest} px does not fit in the {shape[0]}x{shape[1]} px image")
     excluded = _checked_mask(mask, shape)
     valid_px = None if excluded is None else (~excluded).astype(np.float32)
+    if settings.uses_warp():
+        return _correlate_pair_warp(a, b, valid_px, settings)
 
     coefs = None  # interpolant of each image, made at the first deformation
     prev = None  # (node_y, node_x, u, v) of the latest iteration
     for pass_index, (size, overlap, n_iter) in enumerate(
         zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
     ):
-        step = window_step(size, overlap)
-        sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
-        ny, nx = len(sy), len(sx)
-        yc, xc = sy + (size - 1) / 2.0, sx + (size - 1) / 2.0
-        r0, c0 = int(sy[0]), int(sx[0])
-        rows, cols = np.arange(r0, sy[-1] + size), np.arange(c0, sx[-1] + size)
-        win_valid = None
-        masked = np.zeros((ny, nx), dtype=bool)
-        if valid_px is not None:
-            win_valid = extract_windows(valid_px, size, step, r0, c0, ny, nx).reshape(-1, size, size)
-            masked = (win_valid.mean(axis=(-2, -1)) < 0.5).reshape(ny, nx)
-            if masked.all():
-                raise SynthbosError(f"the mask covers every {size} px window: no vector can be measured")
+        g = window_grid(shape, size, overlap)
+        step, yc, xc, rows, cols = g.step, g.yc, g.xc, g.rows, g.cols
+        ny, nx = len(yc), len(xc)
+        r0, c0 = int(rows[0]), int(cols[0])
+        win_valid, masked = _window_validity(valid_px, g)
         coarse = None  # the previous pass's field at this pass's nodes
         raw = None  # the measured (unreplaced) field of the previous iteration of this pass
         for iteration in range(n_iter):

@@ -79,7 +79,7 @@ def _shifted_inverse(spec, shape, workers):
     return np.fft.fftshift(corr, axes=(-2, -1))
 
 
-def rpc_spectral_filter(shape, diameter):
+def rpc_spectral_filter(shape, diameter, *, half=True):
     """Spectral energy filter of robust phase correlation for a real-FFT half spectrum.
 
     Parameters
@@ -88,17 +88,20 @@ def rpc_spectral_filter(shape, diameter):
         Window shape.
     diameter : float
         e^-2 diameter of the particle (dot) images in pixels.
+    half : bool
+        The half spectrum of a real FFT (default), or with False the full (h, w) spectrum of a
+        complex FFT (bins in ``numpy.fft.fft`` order).
 
     Returns
     -------
-    (h, w // 2 + 1) float array
+    (h, w // 2 + 1) or (h, w) float array
         ``exp(-pi^2 d^2 |f|^2 / 4)``, ``f`` in cycles per pixel: the energy spectrum of a Gaussian
         dot of ``sigma = d / 4`` (Eckstein and Vlachos, Meas. Sci. Technol. 20 (2009) 075402, eq. 9),
         which turns the phase-only correlation into a Gaussian peak of a dot's autocorrelation width.
     """
     h, w = shape
     fy = sfft.fftfreq(h)[:, None]
-    fx = sfft.rfftfreq(w)[None, :]
+    fx = (sfft.rfftfreq(w) if half else sfft.fftfreq(w))[None, :]
     return np.exp(-(np.pi**2) * diameter**2 * (fx * fx + fy * fy) / 4.0)
 
 

@@ -1,0 +1,512 @@
+"""The whole multigrid correlation on one Warp device: host code of :mod:`correlation.pass_kernels`.
+
+:func:`correlate_on_device` runs the passes and iterations of :func:`correlation.correlate_pair`
+with every step on device arrays: the two images go up once, the vector field comes back once, and
+nothing in between waits for the host. Everything that depends only on the geometry (window grids,
+spline weights of the predictor, buffers) is prepared once per image shape and settings in a
+:class:`_Plan` and kept for the next pair; on CUDA devices the plan's launches are recorded into a
+CUDA graph at the second pair and replayed after that.
+
+The validation's replacement of rejected vectors (``validation.replace_outliers``) runs a fixed
+number of parallel sweeps (:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider
+than that many vectors) is finished by a single-thread kernel that carries on exactly as the NumPy
+loop does, so both give the same field.
+
+The NumPy path in :mod:`correlation.multigrid` is the reference; the two agree to float32 rounding
+(3e-5 px on the tests' and the benchmark's pairs, identical flags).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+from synthbos import SynthbosError
+
+from .deform import spline_weights
+from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
+from .xcorr import rpc_spectral_filter
+
+__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports", "replace_outliers_on_device"]
+
+#: Parallel replacement sweeps per iteration (each fills one ring of a hole).
+PARALLEL_SWEEPS = 4
+#: ``validation.replace_outliers``' limit, kept by the single-thread finish.
+MAX_SWEEPS = 100
+#: Plans kept per process (one per image shape, settings, device and thread).
+PLAN_CACHE_SIZE = 4
+#: Block size of the kernels whose threads each loop over an image line (B-spline prefilter, image
+#: statistics): few threads, spread over many multiprocessors.
+LOOP_BLOCK = 32
+#: Record each plan's launches into a CUDA graph at its second pair and replay it (CUDA devices);
+#: False launches every kernel from Python (for per-kernel profiles).
+USE_CUDA_GRAPH = True
+
+_INTERPOLATOR_CODES = {"cubic": 0, "keys": 1, "lanczos": 2}
+_METHOD_CODES = {"gaussian": 0, "parabolic": 1, "centroid": 2}
+
+_plans: OrderedDict = OrderedDict()
+_plans_lock = threading.Lock()
+_window_kernels: dict = {}
+
+
+def _warp():
+    import warp as wp
+
+    from synthbos.device import init_warp
+
+    from . import pass_kernels
+
+    init_warp()
+    return wp, pass_kernels
+
+
+def device_supports(settings):
+    """Why the device path cannot run these settings, or None when it can.
+
+    The windows' FFTs are Warp tile FFTs along both axes of a square tile: power-of-two window sizes
+    of at least 4 px.
+    """
+    for s in settings.window_sizes:
+        if s < 4 or s & (s - 1):
+            return f"window size {s} px is not a power of two >= 4 (tile FFT)"
+    return None
+
+
+def _correlate_kernel(wp, k, n, rpc):
+    key = (n, bool(rpc))
+    if key not in _window_kernels:
+        _window_kernels[key] = k.make_correlate_windows(n, bool(rpc))
+    return _window_kernels[key]
+
+
+def _graph_replay(device):
+    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`)."""
+    return USE_CUDA_GRAPH and device.is_cuda
+
+
+class _Iteration:
+    """Geometry and buffers of one iteration of one pass."""
+
+
+class _Plan:
+    """Buffers, spline weights and the launch sequence for one image shape and settings."""
+
+    def __init__(self, shape, settings, device):
+        wp, k = _warp()
+        self.wp, self.k = wp, k
+        self.device = device
+        self.settings = settings
+        self.shape = shape
+        h, w = shape
+        f32, f64, i32 = wp.float32, wp.float64, wp.int32
+
+        def zeros(s, dtype):
+            return wp.zeros(s, dtype=dtype, device=device)
+
+        self.img = [zeros(shape, f32), zeros(shape, f32)]
+        self.raw = {}  # input images as given (float32 or float64), by dtype
+        self.col_stats = [zeros((w, 4), f64), zeros((w, 4), f64)]
+        self.summary = zeros((2, 6), f64)
+        self.valid_px = zeros(shape, f32)
+        self.valid_is_ones = False
+        self.deformed = any(
+            p > 0 or it > 0 for p, n_iter in enumerate(settings.iterations) for it in range(n_iter)
+        )
+        self.prefilter = self.deformed and settings.interpolator == "cubic"
+        if self.prefilter:
+            self.coef = [zeros(shape, f32), zeros(shape, f32)]
+            self.rows_tmp = zeros(shape, f32)
+            self.line_rows = zeros((h, w), f64)
+            self.line_cols = zeros((w, h), f64)
+        else:
+            self.coef = self.img
+        self.passes = []
+        self.iterations = []
+        prev = None  # (node_y, node_x) of the latest iteration
+        q = SAMPLING_OFFSET
+        for pass_index, (size, overlap, n_iter) in enumerate(
+            zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
+        ):
+            g = window_grid(shape, size, overlap)
+            ny, nx = len(g.yc), len(g.xc)
+            rows, cols = len(g.rows), len(g.cols)
+            ps = {
+                "grid": g,
+                "masked": zeros((ny, nx), i32),
+                "zero": zeros((ny, nx), f32),
+                "planes": zeros((ny * nx * size, size), f32),
+                "norm": zeros(ny * nx, f64),
+                "kernel": _correlate_kernel(wp, k, size, settings.rpc),
+            }
+            if settings.rpc:
+                spectral = rpc_spectral_filter((size, size), settings.rpc_diameter, half=False) / size**2
+            else:
+                spectral = np.full((size, size), 1.0 / size**2)
+            ps["spectral"] = wp.array(spectral.astype(np.float32), dtype=f32, device=device)
+            # shifted position (fftshift) of every sample of an unshifted plane, coded row * code + column
+            shifted = (np.arange(size) + size // 2) % size
+            code = int(k.PLANE_CODE)
+            positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
+            ps["positions"] = wp.array(positions, dtype=wp.int32, device=device)
+            ps["peak_at"] = zeros(ny * nx, i32)
+            ps["peak_values"] = zeros((ny * nx, 3), f32)
+            if prev is not None or n_iter > 1:
+                ps["def"] = [zeros((rows, cols), f32) for _ in range(3)]  # first, second, weight
+                ps["du"] = [zeros((rows, cols), f32), zeros((rows, cols), f32)]
+            self.passes.append(ps)
+            for iteration in range(n_iter):
+                it = _Iteration()
+                it.pass_ = ps
+                it.size, it.step = size, g.step
+                it.first_of_pass = iteration == 0
+                it.use_coarse = pass_index > 0
+                it.confirm = iteration > 0 and settings.confirm_tolerance > 0
+                it.deform = prev is not None
+                if it.deform:
+                    py, px = prev
+                    it.node = (g.yc + q, g.xc + q)
+                    wy_pix = spline_weights(py, g.rows + q).astype(np.float32)
+                    wx_pix = spline_weights(px, g.cols + q).astype(np.float32)
+                    wy_node = spline_weights(py, g.yc + q).astype(np.float32)
+                    wx_node = spline_weights(px, g.xc + q).astype(np.float32)
+                    it.w = [wp.array(m, dtype=f32, device=device) for m in (wy_pix, wx_pix, wy_node, wx_node)]
+                    it.s_pix = [zeros((rows, len(px)), f32) for _ in range(2)]
+                    it.s_node = [zeros((ny, len(px)), f32) for _ in range(2)]
+                    it.p = [zeros((ny, nx), f32), zeros((ny, nx), f32)]
+                else:
+                    it.node = (g.yc, g.xc)
+                    it.p = [ps["zero"], ps["zero"]]
+                it.u, it.v = zeros((ny, nx), f64), zeros((ny, nx), f64)
+                it.ratio, it.coef = zeros((ny, nx), f64), zeros((ny, nx), f64)
+                it.flags = [zeros((ny, nx), i32) for _ in range(3)]
+                it.ok = zeros((ny, nx), i32)
+                it.rep = [[zeros((ny, nx), f64) for _ in range(2)] for _ in range(2)]  # ping-pong (u, v)
+                it.todo = [zeros((ny, nx), i32), zeros((ny, nx), i32)]
+                it.left = zeros(PARALLEL_SWEEPS, i32)
+                it.scratch = zeros(ny * nx, f64)
+                self.iterations.append(it)
+                prev = it.node
+        # the vectors measured by the previous iteration of the same pass (confirmation) and the
+        # coarser pass's predictor (disagreement)
+        for idx, it in enumerate(self.iterations):
+            it.raw = self.iterations[idx - 1] if it.confirm else it
+            if it.first_of_pass:
+                first = it
+            it.coarse = first.p if it.use_coarse else [it.pass_["zero"], it.pass_["zero"]]
+        self.graph = None
+        self.runs = 0
+        self.lock = threading.Lock()
+
+    # -------------------------------------------------------------------------------- launches
+
+    def _launch(self, kernel, dim, inputs, block_dim=256):
+        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, block_dim=block_dim)
+
+    def _launch_all(self):
+        wp, k, s = self.wp, self.k, self.settings
+        h, w = self.shape
+        if self.prefilter:
+            for img, coef in zip(self.img, self.coef, strict=True):
+                self._launch(k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], LOOP_BLOCK)
+                self._launch(k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], LOOP_BLOCK)
+        prev = None
+        q = SAMPLING_OFFSET
+        for it in self.iterations:
+            ps = it.pass_
+            g = ps["grid"]
+            ny, nx = len(g.yc), len(g.xc)
+            n = it.size
+            if it.deform:
+                wy_pix, wx_pix, wy_node, wx_node = it.w
+                du, dv = ps["du"]
+                first, second, weight = ps["def"]
+                self._launch(k.spline_rows, it.s_pix[0].shape, [wy_pix, prev.rep_u, prev.rep_v, *it.s_pix])
+                self._launch(k.spline_cols, du.shape, [*it.s_pix, wx_pix, du, dv])
+                self._launch(k.spline_rows, it.s_node[0].shape, [wy_node, prev.rep_u, prev.rep_v, *it.s_node])
+                self._launch(k.spline_cols, it.p[0].shape, [*it.s_node, wx_node, *it.p])
+                self._launch(
+                    k.deform_pair_weighted,
+                    du.shape,
+                    [
+                        *self.coef,
+                        du,
+                        dv,
+                        float(g.rows[0] + q),
+                        float(g.cols[0] + q),
+                        _INTERPOLATOR_CODES[s.interpolator],
+                        self.valid_px,
+                        int(g.rows[0]),
+                        int(g.cols[0]),
+                        float(EDGE_MARGIN),
+                        first,
+                        second,
+                        weight,
+                    ],
+                )
+                images, origin = [first, second, weight], (0, 0)
+            else:
+                images, origin = [*self.img, self.valid_px], (int(g.rows[0]), int(g.cols[0]))
+            wp.launch_tiled(
+                ps["kernel"],
+                dim=[ny * nx],
+                inputs=[
+                    *images,
+                    *origin,
+                    it.step,
+                    nx,
+                    ps["spectral"],
+                    ps["positions"],
+                    ps["planes"],
+                    ps["norm"],
+                    ps["peak_at"],
+                    ps["peak_values"],
+                ],
+                block_dim=max(n // 2, 1),
+                device=self.device,
+            )
+            f0, f1, f2 = it.flags
+            self._launch(
+                k.fit_peaks,
+                (ny, nx),
+                [
+                    ps["planes"],
+                    n,
+                    ps["norm"],
+                    ps["peak_at"],
+                    ps["peak_values"],
+                    *it.p,
+                    _METHOD_CODES[s.subpixel],
+                    int(not s.rpc),
+                    float(s.peak_ratio_min),
+                    float(s.min_correlation),
+                    *it.coarse,
+                    int(it.use_coarse),
+                    float(s.max_disagreement * n),
+                    ps["masked"],
+                    it.u,
+                    it.v,
+                    it.ratio,
+                    it.coef,
+                    f0,
+                ],
+            )
+            self._launch(k.measured_mask, (ny, nx), [f0, it.ok])
+            self._launch(
+                k.median_test,
+                (ny, nx),
+                [
+                    it.u,
+                    it.v,
+                    it.ok,
+                    float(s.median_epsilon),
+                    float(s.median_threshold),
+                    int(it.confirm),
+                    float(s.confirm_tolerance),
+                    it.raw.u,
+                    it.raw.v,
+                    int(not s.rpc),
+                    it.coef,
+                    float(CONFIRM_CORRELATION),
+                    f0,
+                    f1,
+                ],
+            )
+            self._launch(k.isolated_test, (ny, nx), [f1, f2])
+            it.rep_u, it.rep_v = _launch_replacement(
+                wp, k, self.device, it.u, it.v, f2, it.rep, it.todo, it.left, it.scratch
+            )
+            prev = it
+
+    def _raw(self, index, dtype):
+        wp = self.wp
+        key = (index, dtype)
+        if key not in self.raw:
+            self.raw[key] = wp.zeros(self.shape, dtype=dtype, device=self.device)
+        return self.raw[key]
+
+    def upload(self, images, names, raise_for):
+        """Both images up, checked and normalised on the device (``multigrid._checked_image``).
+
+        The one wait for the device before the passes: reading back six numbers per image to raise
+        ``raise_for(name, image, nonfinite)`` for images with non-finite pixels or constant ones.
+        """
+        wp, k = self.wp, self.k
+        h, w = self.shape
+        raws = []
+        for idx, arr in enumerate(images):
+            # float32 holds every value of these exactly; anything else goes up as float64
+            exact32 = arr.dtype in (np.float32, np.uint8, np.int8, np.uint16, np.int16)
+            dtype = wp.float32 if exact32 else wp.float64
+            raw = self._raw(idx, dtype)
+            raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
+            stats, summary = self.col_stats[idx], self.summary[idx]
+            self._launch(k.column_stats, w, [raw, stats], LOOP_BLOCK)
+            self._launch(k.combine_stats, 1, [stats, float(h * w), summary])
+            self._launch(k.column_moments, w, [raw, summary, stats], LOOP_BLOCK)
+            self._launch(k.combine_moments, 1, [stats, float(h * w), summary])
+            raws.append(raw)
+        summary = self.summary.numpy()
+        for arr, name, (_, _, lo, hi, bad, _) in zip(images, names, summary, strict=True):
+            if bad > 0 or lo == hi:
+                raise raise_for(name, arr, int(bad))
+        for idx, raw in enumerate(raws):
+            self._launch(k.normalise_image, self.shape, [raw, self.summary[idx], self.img[idx]])
+
+    def run(self, images, valid_px, masked, *, names, raise_for):
+        """One pair: upload (:meth:`upload`), pixel weights (None: all 1) and the per-pass masked
+        windows, the passes, and the last iteration's field back."""
+        wp = self.wp
+        self.upload(images, names, raise_for)
+        if valid_px is None:
+            if not self.valid_is_ones:
+                self.valid_px.fill_(1.0)
+                self.valid_is_ones = True
+        else:
+            self.valid_px.assign(np.ascontiguousarray(valid_px, dtype=np.float32))
+            self.valid_is_ones = False
+        for ps, m in zip(self.passes, masked, strict=True):
+            ps["masked"].assign(m.astype(np.int32))
+        device = wp.get_device(self.device)
+        use_graph = _graph_replay(device)
+        if self.graph is None and self.runs > 0 and use_graph:
+            with wp.ScopedCapture(device=device) as capture:
+                self._launch_all()
+            self.graph = capture.graph
+        if self.graph is not None and use_graph:
+            wp.capture_launch(self.graph)
+        else:
+            self._launch_all()
+        self.runs += 1
+        last = self.iterations[-1]
+        return {
+            "u": last.rep_u.numpy(),
+            "v": last.rep_v.numpy(),
+            "peak_ratio": last.ratio.numpy(),
+            "correlation": last.coef.numpy(),
+            "flags": last.flags[2].numpy(),
+            "node": last.node,
+        }
+
+
+def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
+    """Launches of ``validation.replace_outliers(u, v, flags != 0)``; returns the arrays holding the result.
+
+    ``rep``: two pairs of (ny, nx) float64 arrays and ``todo`` two int32 arrays (ping-pong),
+    ``left``: PARALLEL_SWEEPS int32, ``scratch``: ny nx float64.
+    """
+    shape = u.shape
+    (ua, va), (ub, vb) = rep
+    ta, tb = todo
+    wp.launch(k.start_replacement, dim=shape, inputs=[u, v, flags, ua, va, ta], device=device)
+    left.zero_()
+    src, dst = (ua, va, ta), (ub, vb, tb)
+    for sweep in range(PARALLEL_SWEEPS):
+        wp.launch(k.replacement_sweep, dim=shape, inputs=[*src, *dst, left, sweep], device=device)
+        src, dst = dst, src
+    wp.launch(k.finish_replacement, dim=1, inputs=[*src, left, PARALLEL_SWEEPS, MAX_SWEEPS, scratch], device=device)
+    return src[0], src[1]
+
+
+def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
+    """``validation.replace_outliers(u, v, invalid)`` with the kernels of the Warp path.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    invalid : (ny, nx) bool array
+    device : str
+        Warp device.
+
+    Returns
+    -------
+    u, v : (ny, nx) float64 arrays
+    """
+    wp, k = _warp()
+    shape = np.shape(u)
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    def zeros(s, dtype):
+        return wp.zeros(s, dtype=dtype, device=device)
+
+    flags = arr(np.asarray(invalid, dtype=np.int32), wp.int32)
+    rep = [[zeros(shape, wp.float64) for _ in range(2)] for _ in range(2)]
+    todo = [zeros(shape, wp.int32) for _ in range(2)]
+    ru, rv = _launch_replacement(
+        wp,
+        k,
+        device,
+        arr(np.asarray(u, dtype=np.float64), wp.float64),
+        arr(np.asarray(v, dtype=np.float64), wp.float64),
+        flags,
+        rep,
+        todo,
+        zeros(PARALLEL_SWEEPS, wp.int32),
+        zeros(int(np.prod(shape)), wp.float64),
+    )
+    return ru.numpy(), rv.numpy()
+
+
+def _plan_for(shape, settings, device):
+    key = (str(device), tuple(shape), settings, threading.get_ident())
+    with _plans_lock:
+        plan = _plans.pop(key, None)
+        if plan is None:
+            plan = _Plan(tuple(shape), settings, str(device))
+        _plans[key] = plan
+        while len(_plans) > PLAN_CACHE_SIZE:
+            _plans.popitem(last=False)
+    return plan
+
+
+def _default_error(name, arr, nonfinite):
+    what = f"{nonfinite} non-finite pixels" if nonfinite else "constant"
+    return SynthbosError(f"{name} is not an image to correlate: {what}")
+
+
+def correlate_on_device(
+    a, b, *, settings, valid_px=None, masked=None, device="cpu", raise_for=_default_error
+):
+    """The passes and iterations of :func:`correlation.correlate_pair` on one Warp device.
+
+    Parameters
+    ----------
+    a, b : (H, W) real or integer arrays
+        The reference and gradient images as given (checked for dtype and shape); they are brought
+        to zero mean and unit variance on the device.
+    settings : CorrelationSettings
+    valid_px : (H, W) float32 array of 0 and 1, optional
+        1 on pixels that take part in the correlation (no mask: all).
+    masked : list of (ny, nx) bool arrays, optional
+        Per pass, the windows more than half masked.
+    device : str
+        Warp device.
+    raise_for : callable
+        ``raise_for(name, image, nonfinite)`` gives the exception to raise for an image with
+        non-finite pixels (``nonfinite`` > 0) or a constant one.
+
+    Returns
+    -------
+    dict
+        ``u``, ``v`` (replaced field), ``peak_ratio``, ``correlation``, ``flags`` of the last
+        iteration on its grid, and ``node`` (its row and column coordinates).
+    """
+    reason = device_supports(settings)
+    if reason is not None:
+        raise SynthbosError(f"the Warp correlation cannot run these settings: {reason}")
+    shape = np.shape(a)
+    plan = _plan_for(shape, settings, device)
+    if masked is None:
+        masked = [np.zeros((len(p["grid"].yc), len(p["grid"].xc)), dtype=bool) for p in plan.passes]
+    with plan.lock:
+        return plan.run(
+            (np.asarray(a), np.asarray(b)),
+            valid_px,
+            masked,
+            names=("reference image", "gradient image"),
+            raise_for=raise_for,
+        )
