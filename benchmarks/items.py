@@ -106,8 +106,7 @@ def score_result(pair, method: str, res) -> dict:
         keep = valid
         measured = valid & res.valid
         at = np.where(measured[:, None], pair.reference_px, np.nan)
-        g_meas = scoring.scattered_gradient(at, res.uv)
-        g_true = scoring.scattered_gradient(at, truth)
+        g_meas, g_true = scoring.scattered_gradient(at, np.stack([res.uv, truth]))
     err = scoring.vector_errors(res.uv, truth)
     grad_err = np.sqrt(np.sum((g_meas - g_true) ** 2, axis=(1, 2)))
     return score_density(pair, res) | {
