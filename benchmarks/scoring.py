@@ -31,6 +31,8 @@ from scipy.spatial import cKDTree
 from synthbos.integration import triangulate
 from synthbos.tracking.crlb import position_crlb
 
+from synthbos.memo import RecentResults
+
 __all__ = [
     "PERCENTILES",
     "cramer_rao_displacement",
@@ -125,7 +127,8 @@ def scattered_gradient(xy, disp, *, neighbours=8):
     Notes
     -----
     Each field is fitted exactly as on its own; fields whose skipped dots are the same share the
-    neighbours and the normal matrices of the fits.
+    neighbours and the normal matrices of the fits, which are also remembered for the last few dot
+    sets (a campaign's items of one pair mostly measure the same dots).
     """
     xy = np.asarray(xy, dtype=np.float64)
     disp = np.asarray(disp, dtype=np.float64)
@@ -136,10 +139,14 @@ def scattered_gradient(xy, disp, *, neighbours=8):
     for f, field in enumerate(fields):
         ok = xy_ok & np.all(np.isfinite(field), axis=1)
         if shared_ok is None or not np.array_equal(ok, shared_ok):
-            shared_ok, fit = ok, _plane_fit(xy, ok, neighbours + 1)
+            idx_ok = np.flatnonzero(ok)
+            k = min(neighbours + 1, len(idx_ok))
+            pts = xy[idx_ok]
+            shared_ok = ok
+            fit = _plane_fits.get([pts], lambda pts=pts, k=k: _plane_fit(pts, k), extra=k) if k >= 3 else None
         if fit is None:
             continue
-        idx_ok, nn, a, ata, good = fit
+        nn, a, ata, good = fit
         b = field[idx_ok][nn]  # (n, k, 2)
         atb = np.einsum("nki,nkj->nij", a, b)
         coef = np.full((len(idx_ok), 3, 2), np.nan)
@@ -149,20 +156,20 @@ def scattered_gradient(xy, disp, *, neighbours=8):
     return out[0] if disp.ndim == 2 else out
 
 
-def _plane_fit(xy, ok, k):
-    """What the plane fits at the dots ``ok`` share whatever the field: each dot's ``k`` nearest dots
+_plane_fits = RecentResults(4)  # a campaign's items of one pair mostly measure the same dots
+
+
+def _plane_fit(pts, k):
+    """What the plane fits at the dots ``pts`` share whatever the field: each dot's ``k`` nearest dots
     (itself included), the design matrices, their normal matrices, and which of those are regular."""
-    idx_ok = np.flatnonzero(ok)
-    k = min(k, len(idx_ok))
-    if k < 3:
-        return None
-    pts = xy[idx_ok]
     _, nn = cKDTree(pts).query(pts, k=k)
     dx = pts[nn] - pts[:, None, :]  # (n, k, 2)
     a = np.concatenate([np.ones((*dx.shape[:2], 1)), dx], axis=2)  # columns: 1, dx, dy
     ata = np.einsum("nki,nkj->nij", a, a)
     good = np.abs(np.linalg.det(ata)) > 1e-9
-    return idx_ok, nn, a, ata, good
+    for v in (nn, a, ata, good):
+        v.flags.writeable = False  # shared by the items that measure the same dots
+    return nn, a, ata, good
 
 
 def cramer_rao_displacement(noise_percent, *, peak=1.0, diameter=3.0):

@@ -12,22 +12,17 @@ points' bytes. Qhull is deterministic, so a remembered triangulation is the one 
 
 from __future__ import annotations
 
-import hashlib
-import threading
-from collections import OrderedDict
-
 import numpy as np
 from scipy import ndimage
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 
 from synthbos import SynthbosError
+from synthbos.memo import RecentResults
 
 __all__ = ["fill_missing", "grid_for_points", "scattered_to_grid", "triangulate"]
 
-_KEEP = 8  # triangulations remembered (a few pairs' truths and the latest items' points)
-_triangulations: OrderedDict = OrderedDict()
-_lock = threading.Lock()
+_triangulations = RecentResults(8)  # a few pairs' truths and the latest items' points
 
 
 def triangulate(points):
@@ -50,18 +45,7 @@ def triangulate(points):
         If Qhull cannot triangulate the points (fewer than 3, all collinear).
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
-    key = (pts.shape, hashlib.blake2b(pts.view(np.uint8).ravel(), digest_size=16).digest())
-    with _lock:
-        tri = _triangulations.get(key)
-        if tri is not None and np.array_equal(tri.points, pts):
-            _triangulations.move_to_end(key)
-            return tri
-    tri = Delaunay(pts)
-    with _lock:
-        _triangulations[key] = tri
-        while len(_triangulations) > _KEEP:
-            _triangulations.popitem(last=False)
-    return tri
+    return _triangulations.get([pts], lambda: Delaunay(pts))
 
 
 def grid_for_points(x, y, *, spacing=None, extent=None):
