@@ -5,6 +5,11 @@ score item has a device half (:func:`measure_item`: noise and the method on the 
 and a host half (:func:`finish_item`: scoring, density integration, the score file), so a campaign
 that processes on a GPU can run the halves in different processes (``scheduling.run_pipeline``);
 :func:`score_item` runs both.
+
+The host half's costly steps that depend only on the pair, or repeat from item to item (the truth's
+Delaunay triangulation, the dots' neighbours for the gradient fits, the LU factors of a least-squares
+domain met before), are remembered in each process (``synthbos.memo``), so a worker that scores several
+items of a pair does them once; the scores are byte-identical either way.
 """
 
 from __future__ import annotations
