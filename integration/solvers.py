@@ -29,6 +29,7 @@ options, so the solution is bit for bit ``scipy.sparse.linalg.spsolve``'s.
 from __future__ import annotations
 
 import functools
+import threading
 
 import numpy as np
 from scipy import fft, ndimage, sparse
@@ -41,7 +42,9 @@ from synthbos.memo import RecentResults
 __all__ = ["border_region", "edge_increments", "lsq_integrate", "poisson_dct", "set_reference", "weighted_lsq"]
 
 _W4 = np.array([-1.0, 13.0, 13.0, -1.0]) / 24.0
-_factors = RecentResults(4)  # LU factors of the last few least-squares matrices
+# LU factors of the last few least-squares matrices, per thread: a SuperLU object is used only by the
+# thread that made it (no concurrent solves on one factorisation, no factor outliving its thread)
+_factors = threading.local()
 
 
 def edge_increments(g, h, *, valid=None, sigma=None):
@@ -254,7 +257,9 @@ def _spsolve(a, r):
         return splinalg.spsolve(a, r)
     a.sum_duplicates()  # canonical form (spsolve does the same): one matrix, one key
     try:
-        lu = _factors.get([a.indptr, a.indices, a.data], lambda: splinalg.splu(a), extra=a.shape)
+        if not hasattr(_factors, "recent"):
+            _factors.recent = RecentResults(4)
+        lu = _factors.recent.get([a.indptr, a.indices, a.data], lambda: splinalg.splu(a), extra=a.shape)
     except RuntimeError:  # exactly singular: spsolve's own warning and NaN
         return splinalg.spsolve(a, r)
     return lu.solve(r)
