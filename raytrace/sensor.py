@@ -12,12 +12,12 @@ bit for bit ``numpy.random.default_rng(seed).normal(0, sigma, shape)``, which dr
 
 from __future__ import annotations
 
-import functools
 import numbers
 
 import numpy as np
 
 from synthbos import SynthbosError
+from synthbos.memo import RecentResults
 
 __all__ = ["add_noise"]
 
@@ -67,12 +67,14 @@ def add_noise(image, *, percent, seed, peak=None, bit_depth=0, full_scale=None):
 def _standard_normal(seed, shape):
     """``default_rng(seed).standard_normal(shape)``, remembered for the last few integer seeds (read-only)."""
     if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
-        return _remembered_standard_normal(int(seed), tuple(int(n) for n in shape))
+        return _draws.get([], lambda: _draw(int(seed), shape), extra=(int(seed), tuple(int(n) for n in shape)))
     return np.random.default_rng(seed).standard_normal(size=shape)
 
 
-@functools.lru_cache(maxsize=8)
-def _remembered_standard_normal(seed: int, shape: tuple):
+def _draw(seed, shape):
     z = np.random.default_rng(seed).standard_normal(size=shape)
     z.flags.writeable = False
     return z
+
+
+_draws = RecentResults(8)  # a campaign's noise level: two images, three methods

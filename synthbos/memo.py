@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import weakref
 from collections import OrderedDict
 
 import numpy as np
 
-__all__ = ["RecentResults"]
+__all__ = ["RecentResults", "forget_all"]
+
+_instances: weakref.WeakSet = weakref.WeakSet()
 
 
 class RecentResults:
@@ -35,6 +38,7 @@ class RecentResults:
         self.keep = int(keep)
         self._items: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
+        _instances.add(self)
 
     def get(self, arrays, compute, *, extra=()):
         """``compute()``, or what it returned before for arrays of the same contents (and equal ``extra``).
@@ -42,7 +46,7 @@ class RecentResults:
         Parameters
         ----------
         arrays : sequence of ndarray
-            The inputs ``compute`` depends on: their shape, dtype and bytes identify a call.
+            The inputs ``compute`` depends on: their shape, dtype and bytes identify a call (may be empty).
         compute : callable
             Called without arguments when the inputs are new.
         extra : hashable
@@ -67,6 +71,12 @@ class RecentResults:
         """Forget every remembered result."""
         with self._lock:
             self._items.clear()
+
+
+def forget_all() -> None:
+    """Forget what every :class:`RecentResults` of the process remembers (timings of cold work)."""
+    for memo in list(_instances):
+        memo.clear()
 
 
 def _same_bytes(a, b) -> bool:

@@ -29,3 +29,16 @@ def test_recent_results_recognise_contents_and_forget_the_oldest():
     memo.clear()
     get(nan)
     assert len(calls) == 8
+
+
+def test_forget_all_reaches_every_memory():
+    from synthbos.memo import forget_all
+
+    memos, calls = [RecentResults(3), RecentResults(3)], []
+    a = np.ones(4)
+    for memo in memos:
+        memo.get([a], lambda: calls.append(1))
+    forget_all()
+    for memo in memos:
+        memo.get([a], lambda: calls.append(1))
+    assert len(calls) == 4
