@@ -29,8 +29,8 @@ from .integrate import score_density
 from .registry import GRID, get_method
 from .storage import save_scores
 
-__all__ = ["finish_item", "measure_item", "measure_pair", "noisy_pair", "nominal_positions", "read_pair_cached",
-           "render_item", "score_item", "score_pair", "score_result"]
+__all__ = ["finish_item", "finish_items", "measure_item", "measure_pair", "noisy_pair", "nominal_positions",
+           "read_pair_cached", "render_item", "score_item", "score_pair", "score_result"]
 
 
 def render_item(config: dict, out: str, device) -> str:
@@ -165,3 +165,13 @@ def finish_item(pair_path: str, method: str, res, out: str, device=None, *, pair
     scores["process_device"] = np.array(str(device) if device is not None else "default")
     save_scores(out, scores)
     return out
+
+
+def finish_items(hosts) -> list[str]:
+    """:func:`finish_item` for several items in turn (``hosts``: their :func:`measure_item` tuples).
+
+    Items on the same noisy images of a pair, scored in one process, share the work they have in
+    common (``synthbos.memo``): the pair's triangulation and, for ``tracking`` and ``tracking-cc``,
+    that of the dots they both measured.
+    """
+    return [finish_item(*host) for host in hosts]
