@@ -5,6 +5,11 @@ score item has a device half (:func:`measure_item`: noise and the method on the 
 and a host half (:func:`finish_item`: scoring, density integration, the score file), so a campaign
 that processes on a GPU can run the halves in different processes (``scheduling.run_pipeline``);
 :func:`score_item` runs both.
+
+The host half's costly steps that depend only on the pair, or repeat from item to item (the truth's
+Delaunay triangulation, the dots' neighbours for the gradient fits, the LU factors of a least-squares
+domain met before), are remembered in each process (``synthbos.memo``), so a worker that scores several
+items of a pair does them once; the scores are byte-identical either way.
 """
 
 from __future__ import annotations
@@ -24,8 +29,8 @@ from .integrate import score_density
 from .registry import GRID, get_method
 from .storage import save_scores
 
-__all__ = ["finish_item", "measure_item", "measure_pair", "noisy_pair", "nominal_positions", "read_pair_cached",
-           "render_item", "score_item", "score_pair", "score_result"]
+__all__ = ["finish_item", "finish_items", "measure_item", "measure_pair", "noisy_pair", "nominal_positions",
+           "read_pair_cached", "render_item", "score_item", "score_pair", "score_result"]
 
 
 def render_item(config: dict, out: str, device) -> str:
@@ -106,8 +111,7 @@ def score_result(pair, method: str, res) -> dict:
         keep = valid
         measured = valid & res.valid
         at = np.where(measured[:, None], pair.reference_px, np.nan)
-        g_meas = scoring.scattered_gradient(at, res.uv)
-        g_true = scoring.scattered_gradient(at, truth)
+        g_meas, g_true = scoring.scattered_gradient(at, np.stack([res.uv, truth]))
     err = scoring.vector_errors(res.uv, truth)
     grad_err = np.sqrt(np.sum((g_meas - g_true) ** 2, axis=(1, 2)))
     return score_density(pair, res) | {
@@ -161,3 +165,13 @@ def finish_item(pair_path: str, method: str, res, out: str, device=None, *, pair
     scores["process_device"] = np.array(str(device) if device is not None else "default")
     save_scores(out, scores)
     return out
+
+
+def finish_items(hosts) -> list[str]:
+    """:func:`finish_item` for several items in turn (``hosts``: their :func:`measure_item` tuples).
+
+    Items on the same noisy images of a pair, scored in one process, share the work they have in
+    common (``synthbos.memo``): the pair's triangulation and, for ``tracking`` and ``tracking-cc``,
+    that of the dots they both measured.
+    """
+    return [finish_item(*host) for host in hosts]

@@ -29,7 +29,7 @@ from multiprocessing import get_context
 
 from tqdm.auto import tqdm
 
-__all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline"]
+__all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline", "same_image_runs"]
 
 _PR_SET_PDEATHSIG = 1
 
@@ -89,35 +89,54 @@ def pair_tasks(renders, scores):
     return [(r, s) for r, s in by_pair.values()]
 
 
+def same_image_runs(scores) -> list[list]:
+    """Split score items into runs of consecutive items on the same noisy images (same pair, noise and seeds).
+
+    Score items are ``(pair path, method, noise, seeds, ...)``; a campaign lists a noise level's methods
+    one after another.
+    """
+    def images(args):
+        return str(args[0]), float(args[2]), tuple(args[3])
+
+    runs: list[list] = []
+    for args in scores:
+        if runs and images(runs[-1][-1]) == images(args):
+            runs[-1].append(args)
+        else:
+            runs.append([args])
+    return runs
+
+
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process") -> None:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items, adds the noise and
     runs the method on the item's processing device (``items.measure_item``); the result goes to a
     worker process that scores it and writes the score file (``items.finish_item``) while this
-    process goes on with the next item. Meanwhile a thread renders the next pair (when its file is
-    missing), so the renderer's kernels run while this thread processes. At most ``4 * workers``
-    results wait for a worker, so memory stays bounded when the host is the slower side. With
-    ``workers <= 1`` the host work runs here, after each item.
+    process goes on with the next item. Consecutive items on the same noisy images (one noise level's
+    methods) go to a worker together (``items.finish_items``), so the work they share is done once
+    there (``tracking`` and ``tracking-cc`` measure the same dots: one triangulation). Meanwhile a
+    thread renders the next pair (when its file is missing), so the renderer's kernels run while this
+    thread processes. At most ``4 * workers`` such batches wait for a worker, so memory stays bounded
+    when the host is the slower side. With ``workers <= 1`` the host work runs here, after each item.
     """
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
-    from .items import finish_item, measure_item, render_item
+    from .items import finish_item, finish_items, measure_item, render_item
 
     tasks = pair_tasks(renders, scores)
     if not tasks:
         return
     bar = tqdm(total=len(renders) + len(scores), desc=desc, unit="item", disable=not progress)
-    pending: set = set()
+    pending: dict = {}  # future -> how many items it scores
 
     def collect(block: bool) -> None:
-        nonlocal pending
         if not pending:
             return
-        done, pending = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
+        done, _ = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
         for fut in done:
             fut.result()  # a worker's error stops the campaign here
-            bar.update(1)
+            bar.update(pending.pop(fut))
 
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
@@ -135,13 +154,18 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     rendering[k].result()
                     bar.update(1)
                 pair = read_pair(items[0][0]) if items else None
-                for args in items:
-                    host = measure_item(pair, *args)
+                for run in same_image_runs(items):
+                    batch = []
+                    for args in run:
+                        host = measure_item(pair, *args)
+                        if pool is None:
+                            finish_item(*host, pair=pair)
+                            bar.update(1)
+                        else:
+                            batch.append(host)
                     if pool is None:
-                        finish_item(*host, pair=pair)
-                        bar.update(1)
                         continue
-                    pending.add(pool.submit(finish_item, *host))
+                    pending[pool.submit(finish_items, batch)] = len(batch)
                     collect(block=False)
                     while len(pending) >= 4 * workers:
                         collect(block=True)

@@ -28,7 +28,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import cKDTree
+from synthbos.integration import triangulate
 from synthbos.tracking.crlb import position_crlb
+
+from synthbos.memo import RecentResults
 
 __all__ = [
     "PERCENTILES",
@@ -77,7 +80,8 @@ def error_percentiles(errors, percentiles=PERCENTILES):
 def interpolate_truth(dot_xy, dot_disp, points_xy):
     """Linear (Delaunay barycentric) interpolation of dot displacements to points; NaN outside the hull."""
     ok = np.all(np.isfinite(dot_xy), axis=1) & np.all(np.isfinite(dot_disp), axis=1)
-    interp = LinearNDInterpolator(np.asarray(dot_xy)[ok], np.asarray(dot_disp)[ok], fill_value=np.nan)
+    # the pair's dots: the same points for every item of a pair, triangulated once (``triangulate``)
+    interp = LinearNDInterpolator(triangulate(np.asarray(dot_xy)[ok]), np.asarray(dot_disp)[ok], fill_value=np.nan)
     pts = np.asarray(points_xy, dtype=np.float64)
     return interp(pts.reshape(-1, 2)).reshape(*pts.shape[:-1], 2)
 
@@ -110,35 +114,62 @@ def scattered_gradient(xy, disp, *, neighbours=8):
 
     Parameters
     ----------
-    xy : (N, 2) dot positions (px); disp : (N, 2) displacements; rows with NaN are skipped.
+    xy : (N, 2) dot positions (px)
+    disp : (N, 2) displacements, or (m, N, 2): m displacement fields at the same dots (a measured and a
+        true one), fitted with one neighbour search; rows with NaN are skipped.
     neighbours : int
         Neighbours used besides the dot itself.
 
     Returns
     -------
-    (N, 2, 2) array [[du/dx, du/dy], [dv/dx, dv/dy]]; NaN for skipped dots.
+    (N, 2, 2) array, or (m, N, 2, 2): [[du/dx, du/dy], [dv/dx, dv/dy]]; NaN for skipped dots.
+
+    Notes
+    -----
+    Each field is fitted exactly as on its own; fields whose skipped dots are the same share the
+    neighbours and the normal matrices of the fits, which are also remembered for the last few dot
+    sets (a campaign's items of one pair mostly measure the same dots).
     """
     xy = np.asarray(xy, dtype=np.float64)
     disp = np.asarray(disp, dtype=np.float64)
-    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(disp), axis=1)
-    out = np.full((len(xy), 2, 2), np.nan)
-    idx_ok = np.flatnonzero(ok)
-    k = min(neighbours + 1, len(idx_ok))
-    if k < 3:
-        return out
-    pts = xy[idx_ok]
+    fields = disp[None] if disp.ndim == 2 else disp
+    xy_ok = np.all(np.isfinite(xy), axis=1)
+    out = np.full((len(fields), len(xy), 2, 2), np.nan)
+    shared_ok = fit = None
+    for f, field in enumerate(fields):
+        ok = xy_ok & np.all(np.isfinite(field), axis=1)
+        if shared_ok is None or not np.array_equal(ok, shared_ok):
+            idx_ok = np.flatnonzero(ok)
+            k = min(neighbours + 1, len(idx_ok))
+            pts = xy[idx_ok]
+            shared_ok = ok
+            fit = _plane_fits.get([pts], lambda pts=pts, k=k: _plane_fit(pts, k), extra=k) if k >= 3 else None
+        if fit is None:
+            continue
+        nn, a, ata, good = fit
+        b = field[idx_ok][nn]  # (n, k, 2)
+        atb = np.einsum("nki,nkj->nij", a, b)
+        coef = np.full((len(idx_ok), 3, 2), np.nan)
+        coef[good] = np.linalg.solve(ata[good], atb[good])
+        # coef[:, 1, c] = d disp_c / dx, coef[:, 2, c] = d disp_c / dy
+        out[f, idx_ok] = np.transpose(coef[:, 1:, :], (0, 2, 1))
+    return out[0] if disp.ndim == 2 else out
+
+
+_plane_fits = RecentResults(4)  # a campaign's items of one pair mostly measure the same dots
+
+
+def _plane_fit(pts, k):
+    """What the plane fits at the dots ``pts`` share whatever the field: each dot's ``k`` nearest dots
+    (itself included), the design matrices, their normal matrices, and which of those are regular."""
     _, nn = cKDTree(pts).query(pts, k=k)
     dx = pts[nn] - pts[:, None, :]  # (n, k, 2)
     a = np.concatenate([np.ones((*dx.shape[:2], 1)), dx], axis=2)  # columns: 1, dx, dy
-    b = disp[idx_ok][nn]  # (n, k, 2)
     ata = np.einsum("nki,nkj->nij", a, a)
-    atb = np.einsum("nki,nkj->nij", a, b)
     good = np.abs(np.linalg.det(ata)) > 1e-9
-    coef = np.full((len(pts), 3, 2), np.nan)
-    coef[good] = np.linalg.solve(ata[good], atb[good])
-    # coef[:, 1, c] = d disp_c / dx, coef[:, 2, c] = d disp_c / dy
-    out[idx_ok] = np.transpose(coef[:, 1:, :], (0, 2, 1))
-    return out
+    for v in (nn, a, ata, good):
+        v.flags.writeable = False  # shared by the items that measure the same dots
+    return nn, a, ata, good
 
 
 def cramer_rao_displacement(noise_percent, *, peak=1.0, diameter=3.0):

@@ -4,6 +4,10 @@ Dots are scattered; the solvers of ``integration.solvers`` work on a grid. The i
 piecewise linear on the Delaunay triangulation of the dots (exact for a field linear over each
 triangle, second order otherwise); grid nodes outside the dots' convex hull, or in a triangle with a
 vertex that carries no value, are left NaN and so fall outside the solvers' mask.
+
+The triangulation is the costly part, and a campaign interpolates the same points again and again
+(a pair's truth, once per item): :func:`triangulate` remembers the last few triangulations by the
+points' bytes. Qhull is deterministic, so a remembered triangulation is the one it would build again.
 """
 
 from __future__ import annotations
@@ -11,11 +15,37 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 from scipy.interpolate import LinearNDInterpolator
-from scipy.spatial import QhullError
+from scipy.spatial import Delaunay, QhullError
 
 from synthbos import SynthbosError
+from synthbos.memo import RecentResults
 
-__all__ = ["fill_missing", "grid_for_points", "scattered_to_grid"]
+__all__ = ["fill_missing", "grid_for_points", "scattered_to_grid", "triangulate"]
+
+_triangulations = RecentResults(8)  # a few pairs' truths and the latest items' points
+
+
+def triangulate(points):
+    """The Delaunay triangulation of points, remembered for the last few point sets.
+
+    Parameters
+    ----------
+    points : (N, 2) array_like
+        Point coordinates, all finite.
+
+    Returns
+    -------
+    scipy.spatial.Delaunay
+        ``Delaunay(points)`` with scipy's default options. A call with points of the same bytes as one
+        of the last few calls returns that call's object (shared: treat it as read-only).
+
+    Raises
+    ------
+    scipy.spatial.QhullError
+        If Qhull cannot triangulate the points (fewer than 3, all collinear).
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    return _triangulations.get([pts], lambda: Delaunay(pts))
 
 
 def grid_for_points(x, y, *, spacing=None, extent=None):
@@ -74,7 +104,7 @@ def scattered_to_grid(x, y, values, grid_x, grid_y):
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(v).all(axis=1)
     if ok.sum() < 3:
         raise SynthbosError(f"need at least 3 points with a valid value to interpolate, got {int(ok.sum())}")
-    interp = LinearNDInterpolator(np.stack([x[ok], y[ok]], axis=1), v[ok], fill_value=np.nan)
+    interp = LinearNDInterpolator(triangulate(np.stack([x[ok], y[ok]], axis=1)), v[ok], fill_value=np.nan)
     gx, gy = np.meshgrid(np.asarray(grid_x, float), np.asarray(grid_y, float))
     out = interp(gx, gy)
     return out[..., 0] if single else out

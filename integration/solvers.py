@@ -19,9 +19,17 @@ gradient is sampled exactly is recovered to O(h^4) in the interior.
 
 The constant of integration is free in the first two unless nodes are known; :func:`set_reference`
 fixes it from a reference value over a region.
+
+The sparse system depends only on the domain (and the weights): a campaign integrates many results on
+the same domain, so the LU factors of the last few matrices are remembered (``synthbos.memo``) and a
+repeated matrix costs only the triangular solves. The factors are SuperLU's with ``spsolve``'s
+options, so the solution is bit for bit ``scipy.sparse.linalg.spsolve``'s.
 """
 
 from __future__ import annotations
+
+import functools
+import threading
 
 import numpy as np
 from scipy import fft, ndimage, sparse
@@ -29,10 +37,14 @@ from scipy.sparse import csgraph
 from scipy.sparse import linalg as splinalg
 
 from synthbos import SynthbosError
+from synthbos.memo import RecentResults
 
 __all__ = ["border_region", "edge_increments", "lsq_integrate", "poisson_dct", "set_reference", "weighted_lsq"]
 
 _W4 = np.array([-1.0, 13.0, 13.0, -1.0]) / 24.0
+# LU factors of the last few least-squares matrices, per thread: a SuperLU object is used only by the
+# thread that made it (no concurrent solves on one factorisation, no factor outliving its thread)
+_factors = threading.local()
 
 
 def edge_increments(g, h, *, valid=None, sigma=None):
@@ -231,12 +243,36 @@ def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_
     if solve.any():
         sub = lap[solve][:, solve]
         r = rhs[solve] - lap[solve][:, hold] @ values[hold]
-        phi[solve] = splinalg.spsolve(sub.tocsc(), r)
+        phi[solve] = _spsolve(sub.tocsc(), r)
     for part in free_parts:
         sel = labels == part
         sel &= inside
         phi[sel] = np.nan if unreferenced == "nan" and fixed.any() else phi[sel] - phi[sel].mean()
     return phi.reshape(ny, nx)
+
+
+def _spsolve(a, r):
+    """``scipy.sparse.linalg.spsolve(a, r)`` for a CSC matrix, remembering the LU factors of ``a``."""
+    if not _spsolve_uses_superlu():
+        return splinalg.spsolve(a, r)
+    a.sum_duplicates()  # canonical form (spsolve does the same): one matrix, one key
+    try:
+        if not hasattr(_factors, "recent"):
+            _factors.recent = RecentResults(4)
+        lu = _factors.recent.get([a.indptr, a.indices, a.data], lambda: splinalg.splu(a), extra=a.shape)
+    except RuntimeError:  # exactly singular: spsolve's own warning and NaN
+        return splinalg.spsolve(a, r)
+    return lu.solve(r)
+
+
+@functools.cache
+def _spsolve_uses_superlu() -> bool:
+    """Whether ``spsolve`` factorises with SuperLU here (it takes UMFPACK where scikit-umfpack is installed)."""
+    try:
+        import scikits.umfpack  # noqa: F401
+    except ImportError:
+        return True
+    return False
 
 
 def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None, unreferenced="mean"):

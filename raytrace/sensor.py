@@ -3,13 +3,21 @@
 A render is stored noise-free in float32 so that one render serves every noise level: ``add_noise``
 adds zero-mean Gaussian noise whose standard deviation is a percentage of the peak intensity,
 reproducibly from a seed, and optionally quantises to a bit depth with saturation.
+
+A campaign adds the noise of one seed to one image once per method; the standard normal draws of the
+last few (integer) seeds are remembered, so the later methods only scale and add them. The noise is
+bit for bit ``numpy.random.default_rng(seed).normal(0, sigma, shape)``, which draws
+``0 + sigma * z`` from the same standard normal stream.
 """
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from synthbos import SynthbosError
+from synthbos.memo import RecentResults
 
 __all__ = ["add_noise"]
 
@@ -44,8 +52,9 @@ def add_noise(image, *, percent, seed, peak=None, bit_depth=0, full_scale=None):
     if not np.isfinite(percent) or percent < 0:
         raise SynthbosError(f"noise percent must be a finite number >= 0, got {percent}")
     ref = float(img.max()) if peak is None else float(peak)
-    rng = np.random.default_rng(seed)
-    noisy = img + rng.normal(0.0, percent / 100.0 * ref, size=img.shape) if percent > 0 else img.copy()
+    if percent > 0 and ref < 0:
+        raise SynthbosError(f"the noise's reference intensity must be >= 0, got {ref}")
+    noisy = img + (0.0 + (percent / 100.0 * ref) * _standard_normal(seed, img.shape)) if percent > 0 else img.copy()
     if bit_depth:
         if not 1 <= int(bit_depth) <= 32:
             raise SynthbosError(f"bit depth must be between 1 and 32, got {bit_depth}")
@@ -53,3 +62,19 @@ def add_noise(image, *, percent, seed, peak=None, bit_depth=0, full_scale=None):
         scale = top / (ref if full_scale is None else float(full_scale))
         noisy = np.clip(np.round(noisy * scale), 0.0, top)
     return noisy.astype(np.float32)
+
+
+def _standard_normal(seed, shape):
+    """``default_rng(seed).standard_normal(shape)``, remembered for the last few integer seeds (read-only)."""
+    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
+        return _draws.get([], lambda: _draw(int(seed), shape), extra=(int(seed), tuple(int(n) for n in shape)))
+    return np.random.default_rng(seed).standard_normal(size=shape)
+
+
+def _draw(seed, shape):
+    z = np.random.default_rng(seed).standard_normal(size=shape)
+    z.flags.writeable = False
+    return z
+
+
+_draws = RecentResults(8)  # a campaign's noise level: two images, three methods

@@ -217,3 +217,17 @@ def test_an_error_in_the_pipeline_stops_it_and_a_rerun_finishes(plain, tmp_path,
     monkeypatch.setattr(items, "finish_item", finish)
     assert run_campaign(SMALL, out, device="cpu", workers=1, progress=False, figures=False, pipeline=True) == rows
     assert_same_files(folder, out)
+
+
+def test_pipeline_scores_a_noise_levels_items_together():
+    from synthbos.benchmarks.scheduling import same_image_runs
+
+    scores = [(f"p{p}.h5", m, noise, (7 * p + int(noise), 1), f"{p}{noise}{m}.npz", {}, "cpu")
+              for p in (1, 2) for noise in (0.0, 3.0) for m in ("correlation", "tracking", "tracking-cc")]
+    runs = same_image_runs(scores)
+    assert [len(r) for r in runs] == [3, 3, 3, 3] and [x for r in runs for x in r] == scores
+    assert all(len({(a[0], a[2], a[3]) for a in r}) == 1 for r in runs)
+    # a resumed campaign lists only the missing items: runs never join different images
+    missing = scores[1:2] + scores[4:8]
+    assert [[a[4] for a in r] for r in same_image_runs(missing)] == [
+        ["10.0tracking.npz"], ["13.0tracking.npz", "13.0tracking-cc.npz"], ["20.0correlation.npz", "20.0tracking.npz"]]

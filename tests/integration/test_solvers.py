@@ -202,3 +202,29 @@ def test_fill_missing_and_border_region():
     assert ring[40, 55] and ring[40, 57]  # the hole's neighbours belong to the border
     full = border_region(np.ones((4, 5), bool))
     assert full.sum() == 4 * 5 - 2 * 3
+
+
+def test_remembered_factors_solve_bit_for_bit_like_spsolve(monkeypatch):
+    # lsq_integrate remembers the LU factors of its matrix: a repeated domain must give exactly what
+    # scipy's spsolve gives, weighted or not, with known nodes or not.
+    from scipy.sparse import linalg as splinalg
+    from synthbos.integration import solvers
+
+    rng = np.random.default_rng(3)
+    X, Y = _grid()
+    mask = (X / X.max()) ** 2 + (Y / Y.max()) ** 2 < 0.9
+    mask[30:34, 40:60] = False  # a hole
+    known = np.where(border_region(mask), 1.2, np.nan)
+    runs = []
+    for k in range(3):  # the same domain, other gradients: the factors are reused
+        gx = np.where(mask, np.cos(X * 900) + 0.01 * rng.standard_normal(X.shape), np.nan)
+        gy = np.where(mask, np.sin(Y * 700) + 0.01 * rng.standard_normal(X.shape), np.nan)
+        sx = 0.1 + rng.random(X.shape)
+        runs.append(dict(gx=gx, gy=gy, dx=DX, dy=DY, mask=mask, known=known if k != 1 else None))
+        runs.append(dict(gx=gx, gy=gy, dx=DX, dy=DY, sigma_x=sx, sigma_y=sx[::-1]))
+    got = [lsq_integrate(**kw) for kw in runs + runs]
+    monkeypatch.setattr(solvers, "_spsolve", lambda a, r: splinalg.spsolve(a, r))
+    want = [lsq_integrate(**kw) for kw in runs]
+    for g, w in zip(got, want + want, strict=True):
+        assert np.isfinite(w).sum() > 1000
+        assert g.tobytes() == w.tobytes()

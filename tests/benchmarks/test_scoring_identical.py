@@ -1,0 +1,184 @@
+"""The cheaper scoring returns exactly what the straightforward implementation returned.
+
+Campaign scores are stored numbers checked byte for byte by ``synthbos regress``: the triangulation
+cache (``integration.triangulate``) and the shared neighbour search of ``scoring.scattered_gradient``
+must not change a bit. The references below are the implementations they replaced, kept here only.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from numpy.testing import assert_array_equal
+from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import cKDTree
+from synthbos.benchmarks import integrate, items, scoring
+from synthbos.benchmarks.registry import MethodResult
+from synthbos.integration import grid_for_points, scattered_to_grid, triangulate
+
+
+def reference_scattered_to_grid(x, y, values, grid_x, grid_y):
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    v = np.asarray(values, dtype=np.float64)
+    single = v.ndim == 1
+    v = v.reshape(len(x), -1)
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(v).all(axis=1)
+    interp = LinearNDInterpolator(np.stack([x[ok], y[ok]], axis=1), v[ok], fill_value=np.nan)
+    gx, gy = np.meshgrid(np.asarray(grid_x, float), np.asarray(grid_y, float))
+    out = interp(gx, gy)
+    return out[..., 0] if single else out
+
+
+def reference_interpolate_truth(dot_xy, dot_disp, points_xy):
+    ok = np.all(np.isfinite(dot_xy), axis=1) & np.all(np.isfinite(dot_disp), axis=1)
+    interp = LinearNDInterpolator(np.asarray(dot_xy)[ok], np.asarray(dot_disp)[ok], fill_value=np.nan)
+    pts = np.asarray(points_xy, dtype=np.float64)
+    return interp(pts.reshape(-1, 2)).reshape(*pts.shape[:-1], 2)
+
+
+def reference_scattered_gradient(xy, disp, *, neighbours=8):
+    xy = np.asarray(xy, dtype=np.float64)
+    disp = np.asarray(disp, dtype=np.float64)
+    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(disp), axis=1)
+    out = np.full((len(xy), 2, 2), np.nan)
+    idx_ok = np.flatnonzero(ok)
+    k = min(neighbours + 1, len(idx_ok))
+    if k < 3:
+        return out
+    pts = xy[idx_ok]
+    _, nn = cKDTree(pts).query(pts, k=k)
+    dx = pts[nn] - pts[:, None, :]
+    a = np.concatenate([np.ones((*dx.shape[:2], 1)), dx], axis=2)
+    b = disp[idx_ok][nn]
+    ata = np.einsum("nki,nkj->nij", a, a)
+    atb = np.einsum("nki,nkj->nij", a, b)
+    good = np.abs(np.linalg.det(ata)) > 1e-9
+    coef = np.full((len(pts), 3, 2), np.nan)
+    coef[good] = np.linalg.solve(ata[good], atb[good])
+    out[idx_ok] = np.transpose(coef[:, 1:, :], (0, 2, 1))
+    return out
+
+
+def assert_identical(new, old):
+    """Same dtype, shape and bytes (NaN where NaN, the sign of zeros included)."""
+    new, old = np.asarray(new), np.asarray(old)
+    assert new.dtype == old.dtype and new.shape == old.shape
+    assert_array_equal(new, old)  # NaN-aware: NaN only where NaN
+    assert new.tobytes() == old.tobytes()
+
+
+def synthetic_pair(seed=0, size=192, pitch=7.2):
+    """A rendered-like pair: dots on a jittered lattice (the paper's 20 dots per 32 x 32 px), a smooth
+    displacement field, per-dot density truths, a few invalid dots and a lost one."""
+    rng = np.random.default_rng(seed)
+    c = np.arange(pitch / 2, size, pitch)
+    xy = np.stack(np.meshgrid(c, c), -1).reshape(-1, 2) + rng.uniform(-2.0, 2.0, (len(c) ** 2, 2))
+    r2 = np.sum((xy - size / 2) ** 2, axis=1) / (0.2 * size) ** 2
+    bump = np.exp(-r2)
+    disp = 0.4 * bump[:, None] * (xy - size / 2) / (0.2 * size)
+    valid = rng.random(len(xy)) > 0.02
+    disp[~valid & (rng.random(len(xy)) > 0.5)] = np.nan
+    xy[7] = np.nan
+    attrs = dict(magnification=0.1173, pixel_pitch_m=1e-5, z_d_m=0.25, z_stop_m=1.0, volume_depth_m=0.01,
+                 gladstone_dale_m3_per_kg=2.25e-4, n0=1.000276, principal_point_x_px=size / 2 - 0.5,
+                 principal_point_y_px=size / 2 - 0.5, volume_centre_x_m=0.0, volume_centre_y_m=0.0,
+                 ambient_density_kg_m3=1.225, peak_intensity=1.0)
+    return SimpleNamespace(
+        reference_px=xy, displacement_px=disp, theory_px=disp * 1.01, valid=valid,
+        density_cone_kg_m3=1.225 - 0.06 * bump * (1 + 0.01 * rng.standard_normal(len(xy))),
+        density_chief_kg_m3=1.225 - 0.06 * bump, attrs=attrs, reference=np.zeros((size, size), np.float32))
+
+
+def tracked(pair, name, seed=1):
+    """A tracking result on ``pair``: noisy positions and displacements, a few lost dots."""
+    rng = np.random.default_rng(seed)
+    n = len(pair.reference_px)
+    xy = pair.reference_px + 0.05 * rng.standard_normal((n, 2))
+    uv = pair.displacement_px + 0.03 * rng.standard_normal((n, 2))
+    lost = rng.random(n) < 0.03
+    uv[lost] = np.nan
+    valid = ~lost & np.all(np.isfinite(uv), axis=1)
+    table = {"u": uv[:, 0], "v": uv[:, 1], "u_cc": uv[:, 0] + 0.01, "v_cc": uv[:, 1], "x": xy[:, 0], "y": xy[:, 1]}
+    return MethodResult(name, xy, uv, None, table, {}, valid)
+
+
+def correlated(pair, seed=2, step=12.0):
+    """A correlation result on ``pair``: window centres on a grid, interpolated truth plus noise."""
+    rng = np.random.default_rng(seed)
+    size = pair.reference.shape[0]
+    c = np.arange(step, size - step + 1, step)
+    gx, gy = np.meshgrid(c, c)
+    xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    uv = reference_interpolate_truth(pair.reference_px[pair.valid], pair.displacement_px[pair.valid], xy)
+    uv = uv + 0.02 * rng.standard_normal(uv.shape)
+    valid = np.all(np.isfinite(uv), axis=1) & (rng.random(len(xy)) > 0.05)
+    table = {"peak_ratio": 1.5 + rng.random(gx.shape)}
+    return MethodResult("correlation", xy, uv, gx.shape, table, {}, valid)
+
+
+def test_scattered_to_grid_and_truth_interpolation_match_the_uncached_ones():
+    pair = synthetic_pair()
+    ok = pair.valid & np.all(np.isfinite(pair.reference_px), axis=1)
+    x, y = pair.reference_px[ok, 0], pair.reference_px[ok, 1]
+    gx, gy = grid_for_points(x, y)
+    values = np.stack([pair.density_cone_kg_m3[ok], pair.density_chief_kg_m3[ok]], 1)
+    old = reference_scattered_to_grid(x, y, values, gx, gy)
+    for _ in range(3):  # the first call triangulates, the next ones reuse the triangulation
+        assert_identical(scattered_to_grid(x, y, values, gx, gy), old)
+    # other values at the same points, a single column, and a NaN value (a smaller point set)
+    v1 = pair.density_chief_kg_m3[ok].copy()
+    assert_identical(scattered_to_grid(x, y, v1, gx, gy), reference_scattered_to_grid(x, y, v1, gx, gy))
+    v1[3] = np.nan
+    assert_identical(scattered_to_grid(x, y, v1, gx, gy), reference_scattered_to_grid(x, y, v1, gx, gy))
+    at = np.stack(np.meshgrid(np.linspace(-5, 200, 23), np.linspace(-5, 200, 19)), -1)
+    old = reference_interpolate_truth(pair.reference_px, pair.displacement_px, at)
+    for _ in range(2):
+        assert_identical(scoring.interpolate_truth(pair.reference_px, pair.displacement_px, at), old)
+
+
+def test_triangulate_remembers_by_contents_and_forgets_the_oldest():
+    pts = synthetic_pair().reference_px[8:]
+    tri = triangulate(pts)
+    assert triangulate(pts.copy()) is tri  # equal points, another array
+    moved = pts.copy()
+    moved[0, 0] += 1e-9
+    assert triangulate(moved) is not tri
+    for k in range(10):
+        triangulate(pts + k + 1.0)
+    assert triangulate(pts) is not tri
+    assert_array_equal(triangulate(pts).simplices, tri.simplices)
+
+
+def test_scattered_gradient_of_two_fields_matches_two_separate_fits():
+    pair = synthetic_pair()
+    res = tracked(pair, "tracking")
+    measured = pair.valid & res.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
+    at = np.where(measured[:, None], pair.reference_px, np.nan)
+    g_meas, g_true = scoring.scattered_gradient(at, np.stack([res.uv, pair.displacement_px]))
+    assert_identical(g_meas, reference_scattered_gradient(at, res.uv))
+    assert_identical(g_true, reference_scattered_gradient(at, pair.displacement_px))
+    # fields missing at different dots: each is fitted on its own dots, as before
+    both = scoring.scattered_gradient(pair.reference_px, np.stack([res.uv, pair.displacement_px]))
+    assert_identical(both[0], reference_scattered_gradient(pair.reference_px, res.uv))
+    assert_identical(both[1], reference_scattered_gradient(pair.reference_px, pair.displacement_px))
+    assert_identical(scoring.scattered_gradient(at, res.uv), reference_scattered_gradient(at, res.uv))
+    few = np.full_like(at, np.nan)
+    few[:2] = at[:2]
+    assert_identical(scoring.scattered_gradient(few, res.uv), reference_scattered_gradient(few, res.uv))
+
+
+@pytest.mark.parametrize("method", ["correlation", "tracking", "tracking-cc"])
+def test_score_result_is_unchanged(method, monkeypatch):
+    pair = synthetic_pair()
+    res = correlated(pair) if method == "correlation" else tracked(pair, method)
+    new = [items.score_result(pair, method, res) for _ in range(2)]  # cold, then warm caches
+    monkeypatch.setattr(integrate, "scattered_to_grid", reference_scattered_to_grid)
+    monkeypatch.setattr(scoring, "interpolate_truth", reference_interpolate_truth)
+    monkeypatch.setattr(scoring, "scattered_gradient",
+                        lambda xy, disp: np.stack([reference_scattered_gradient(xy, d) for d in disp]))
+    old = items.score_result(pair, method, res)
+    assert old["density_error_cone"].size > 100 and np.isfinite(old["grad_error"]).sum() > 100
+    for scores in new:
+        assert scores.keys() == old.keys()
+        for key in old:
+            assert_identical(scores[key], old[key])
