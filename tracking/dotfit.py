@@ -445,6 +445,7 @@ def fit_dots(
                 sat,
                 int(half),
                 int(render_half),
+                int(last),
                 float(max_move),
                 float(sigma_range[0]),
                 float(sigma_range[1]),

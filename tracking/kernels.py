@@ -529,6 +529,159 @@ def normal_matrix(
 
 
 @wp.func
+def window_is_whole(
+    image: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), i: int, half: int, sat: wp.float64
+) -> bool:
+    """True where dot i's ``2 half + 1`` window lies inside the image and holds no pixel at or above ``sat``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    if ox < 0 or oy < 0 or ox + n > image.shape[1] or oy + n > image.shape[0]:
+        return False
+    if sat < wp.float64(1.0e300):
+        for rr in range(n):
+            for cc in range(n):
+                if image[oy + rr, ox + cc] >= sat:
+                    return False
+    return True
+
+
+@wp.func
+def normal_matrix_separable(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.int64),
+    inv_scale: wp.float64,
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    common: int,
+    prof: wp.array3d(dtype=wp.float64),
+) -> NormalEquations:
+    """``normal_matrix`` for a whole window (``window_is_whole``): every Jacobian column is a product of
+    an x and a y profile term, so ``J^T J`` comes from 1-D sums over the rows and columns, and ``J^T r``
+    from one pass that sums each row against the x terms first. ``J^T r'`` only if ``common``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) ...
+    xpp = zero
+    xdd = zero
+    xss = zero
+    xpd = zero
+    xps = zero
+    xds = zero
+    xp = zero
+    xd = zero
+    xs = zero
+    for k in range(n):
+        p = prof[i, 0, k + skip]
+        d = prof[i, 1, k + skip]
+        sg = prof[i, 2, k + skip]
+        xpp += p * p
+        xdd += d * d
+        xss += sg * sg
+        xpd += p * d
+        xps += p * sg
+        xds += d * sg
+        xp += p
+        xd += d
+        xs += sg
+    # ... and of the y terms
+    ypp = zero
+    ydd = zero
+    yss = zero
+    ypd = zero
+    yps = zero
+    yds = zero
+    yp = zero
+    yd = zero
+    ys = zero
+    for k in range(n):
+        p = prof[i, 3, k + skip]
+        d = prof[i, 4, k + skip]
+        sg = prof[i, 5, k + skip]
+        ypp += p * p
+        ydd += d * d
+        yss += sg * sg
+        ypd += p * d
+        yps += p * sg
+        yds += d * sg
+        yp += p
+        yd += d
+        ys += sg
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
+    for rr in range(n):
+        row = oy + rr
+        r0 = zero
+        r1 = zero
+        r2 = zero
+        r3 = zero
+        t0 = zero
+        t1 = zero
+        t3 = zero
+        for cc in range(n):
+            col = ox + cc
+            res = image[row, col] - b - wp.float64(models[0, f, row, col]) * inv_scale
+            r0 += prof[i, 1, cc + skip] * res
+            r1 += prof[i, 0, cc + skip] * res
+            r2 += prof[i, 2, cc + skip] * res
+            r3 += res
+            if common != 0:
+                res2 = image[row, col] - b - wp.float64(models[1, f, row, col]) * inv_scale
+                t0 += prof[i, 1, cc + skip] * res2
+                t1 += prof[i, 0, cc + skip] * res2
+                t3 += res2
+        py = prof[i, 3, rr + skip]
+        dy = prof[i, 4, rr + skip]
+        sy = prof[i, 5, rr + skip]
+        g0 += py * r0
+        g1 += dy * r1
+        g2 += py * r1
+        g3 += sy * r1 + py * r2
+        g4 += r3
+        h0 += py * t0
+        h1 += dy * t1
+        h4 += t3
+    a2 = a * a
+    eps = wp.float64(1.0e-12)
+    s00 = a2 * ypp * xdd
+    s01 = a2 * ypd * xpd
+    s02 = a * ypp * xpd
+    s03 = a2 * (yps * xpd + ypp * xds)
+    s04 = a * yp * xd
+    s11 = a2 * ydd * xpp
+    s12 = a * ypd * xpp
+    s13 = a2 * (yds * xpp + ypd * xps)
+    s14 = a * yd * xp
+    s22 = ypp * xpp
+    s23 = a * (yps * xpp + ypp * xps)
+    s24 = yp * xp
+    s33 = a2 * (yss * xpp + wp.float64(2.0) * yps * xps + ypp * xss)
+    s34 = a * (ys * xp + yp * xs)
+    s44 = wp.float64(n * n)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(a * g0, a * g1, g4)
+    ne.g2 = wp.vec2d(g2, a * g3)
+    ne.h1 = wp.vec3d(a * h0, a * h1, h4)
+    return ne
+
+
+@wp.func
 def limited(step: vec5d) -> vec5d:
     """The step scaled so that the position moves at most half a pixel per axis."""
     big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
@@ -550,6 +703,7 @@ def fit_dot_step_kernel(
     saturation: wp.array(dtype=wp.float64),
     half: int,
     render_half: int,
+    common: int,
     max_move: wp.float64,
     smin: wp.float64,
     smax: wp.float64,
@@ -563,17 +717,25 @@ def fit_dot_step_kernel(
     ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
 
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
-    at the new parameters ``out``. ``shared_xy`` gets the position of the step for position and
-    background against the common-shape model image (NaN without a partner).
+    at the new parameters ``out``. If ``common``, ``shared_xy`` gets the position of the step for
+    position and background against the common-shape model image (NaN without a partner; all NaN
+    without ``common``, when that image is not drawn).
     """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
     f = frame[i]
+    skip = render_half - half
     ne = NormalEquations()
     if f == 0:
-        ne = normal_matrix(image0, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
+        if window_is_whole(image0, params, i, half, saturation[f]):
+            ne = normal_matrix_separable(image0, models, inv_scale, f, params, i, half, skip, common, prof)
+        else:
+            ne = normal_matrix(image0, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
     else:
-        ne = normal_matrix(image1, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
+        if window_is_whole(image1, params, i, half, saturation[f]):
+            ne = normal_matrix_separable(image1, models, inv_scale, f, params, i, half, skip, common, prof)
+        else:
+            ne = normal_matrix(image1, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
     # Block elimination: the shape step from the Schur complement, then position and background.
     pinv = wp.inverse(ne.p)
     pq = pinv * ne.q
@@ -592,10 +754,151 @@ def fit_dot_step_kernel(
     nan = wp.float64(wp.nan)
     shared_xy[i, 0] = nan
     shared_xy[i, 1] = nan
-    if partner[i] >= 0:
+    if common != 0 and partner[i] >= 0:
         shared_xy[i, 0] = p[0] + qs[0]
         shared_xy[i, 1] = p[1] + qs[1]
     for k in range(5):
         out[i, k] = q[k]
     ok[i] = int(good)
     dot_profiles(out, i, render_half, prof)
+
+
+# --- the local linear fit of scattered vectors from each point's nearest neighbours -----------------
+
+
+@wp.func
+def keep_nearest(
+    d: wp.float64, p: int, found: int, s: int, dist: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32)
+) -> int:
+    """Insert point ``p`` at squared distance ``d`` into row ``s`` of the sorted lists of the ``k`` nearest
+    (``k = dist.shape[1]``; ties broken by the lower index, so the set does not depend on the visiting
+    order); return the new count."""
+    k = dist.shape[1]
+    if found == k:
+        if d > dist[s, k - 1] or (d == dist[s, k - 1] and p > idx[s, k - 1]):
+            return found
+    m = found
+    if found == k:
+        m = k - 1
+    while m > 0 and (dist[s, m - 1] > d or (dist[s, m - 1] == d and idx[s, m - 1] > p)):
+        dist[s, m] = dist[s, m - 1]
+        idx[s, m] = idx[s, m - 1]
+        m -= 1
+    dist[s, m] = d
+    idx[s, m] = wp.int32(p)
+    return wp.min(found + 1, k)
+
+
+@wp.kernel
+def neighbour_fit_kernel(
+    xy: wp.array2d(dtype=wp.float64),
+    uv: wp.array2d(dtype=wp.float64),
+    query: wp.array2d(dtype=wp.float64),
+    self_index: wp.array(dtype=wp.int32),
+    cell_start: wp.array(dtype=wp.int32),
+    cell_points: wp.array(dtype=wp.int32),
+    x0: wp.float64,
+    y0: wp.float64,
+    cell: wp.float64,
+    nx: int,
+    ny: int,
+    dist: wp.array2d(dtype=wp.float64),
+    idx: wp.array2d(dtype=wp.int32),
+    value: wp.array2d(dtype=wp.float64),
+    spread: wp.array(dtype=wp.float64),
+):
+    """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
+    ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
+    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``).
+
+    The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
+    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``); rings of cells around q's
+    are searched until the k-th nearest is closer than any unvisited cell. ``dist``, ``idx`` are scratch
+    rows of length k: thread q uses row ``q % rows``.
+    """
+    q = wp.tid()
+    s = q % dist.shape[0]
+    k = dist.shape[1]
+    qx = query[q, 0]
+    qy = query[q, 1]
+    own = self_index[q]
+    cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
+    cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
+    found = int(0)
+    r = int(0)
+    while True:
+        for iy in range(cy - r, cy + r + 1):
+            if iy >= 0 and iy < ny:
+                step = int(1)
+                if iy != cy - r and iy != cy + r:
+                    step = 2 * r
+                for ix in range(cx - r, cx + r + 1, step):
+                    if ix >= 0 and ix < nx:
+                        c = iy * nx + ix
+                        for j in range(cell_start[c], cell_start[c + 1]):
+                            p = int(cell_points[j])
+                            if p != own:
+                                dx = xy[p, 0] - qx
+                                dy = xy[p, 1] - qy
+                                found = keep_nearest(dx * dx + dy * dy, p, found, s, dist, idx)
+        reach = wp.float64(r) * cell
+        if found == k and dist[s, k - 1] <= reach * reach:
+            break
+        if r > nx + ny:
+            break
+        r += 1
+    # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
+    kf = wp.float64(k)
+    dmx = wp.float64(0.0)
+    dmy = wp.float64(0.0)
+    for j in range(k):
+        dmx += xy[idx[s, j], 0] - qx
+        dmy += xy[idx[s, j], 1] - qy
+    dmx = dmx / kf
+    dmy = dmy / kf
+    sxx = wp.float64(0.0)
+    syy = wp.float64(0.0)
+    sxy = wp.float64(0.0)
+    for j in range(k):
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        sxx += ex * ex
+        syy += ey * ey
+        sxy += ex * ey
+    ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
+    for j in range(k):
+        dist[s, j] = wp.float64(0.0)  # from here on: the squared distance of neighbour j's vector from the fit
+    for comp in range(2):
+        fm = wp.float64(0.0)
+        for j in range(k):
+            fm += uv[idx[s, j], comp]
+        fm = fm / kf
+        bx = wp.float64(0.0)
+        by = wp.float64(0.0)
+        for j in range(k):
+            g = uv[idx[s, j], comp] - fm
+            bx += (xy[idx[s, j], 0] - qx - dmx) * g
+            by += (xy[idx[s, j], 1] - qy - dmy) * g
+        gx = (syy * bx - sxy * by) / det
+        gy = (sxx * by - sxy * bx) / det
+        value[q, comp] = fm - dmx * gx - dmy * gy
+        for j in range(k):
+            g = uv[idx[s, j], comp] - fm
+            g = g - (xy[idx[s, j], 0] - qx - dmx) * gx
+            g = g - (xy[idx[s, j], 1] - qy - dmy) * gy
+            dist[s, j] = dist[s, j] + g * g
+    # median of the distances: insertion sort of the squares (the root is monotonic)
+    for j in range(1, k):
+        v = dist[s, j]
+        m = j - 1
+        while m >= 0 and dist[s, m] > v:
+            dist[s, m + 1] = dist[s, m]
+            m -= 1
+        dist[s, m + 1] = v
+    if k % 2 == 1:
+        spread[q] = wp.sqrt(dist[s, k / 2])
+    else:
+        spread[q] = wp.float64(0.5) * (wp.sqrt(dist[s, k / 2 - 1]) + wp.sqrt(dist[s, k / 2]))

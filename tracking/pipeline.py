@@ -43,6 +43,7 @@ from .identify import (
     static_threshold_identification,
 )
 from .match import MATCH_METHODS, match_multiparametric, match_nearest
+from .neighbours import neighbour_fit, neighbour_fit_numpy
 from .predict import predict_displacement
 from .residual import subtract_gaussians
 from .windows import measure_windows, measure_windows_numpy
@@ -360,9 +361,7 @@ def _saturation_level(image, level):
     return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
 
 
-def _identify(
-    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
-):
+def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
@@ -443,11 +442,7 @@ def _identify(
         method = "gaussian3" if settings.centroid == "model" else settings.centroid
         xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = (
-            ~(np.isfinite(xw) & np.isfinite(yw))
-            | (np.abs(xw - map_half) > 1.0)
-            | (np.abs(yw - map_half) > 1.0)
-        )
+        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
@@ -502,9 +497,7 @@ def _model_start(found, sigma0):
     idx = np.flatnonzero(np.isfinite(found["x"]))
     # The three-point peak is that of the pixel-broadened dot (variance sigma0^2 + 1/12, same flux).
     peak = found["i0"][idx] * (1.0 + 1.0 / (12.0 * sigma0**2))
-    start = np.stack(
-        [found["x"][idx], found["y"][idx], peak, np.full(idx.size, sigma0), np.zeros(idx.size)], axis=1
-    )
+    start = np.stack([found["x"][idx], found["y"][idx], peak, np.full(idx.size, sigma0), np.zeros(idx.size)], axis=1)
     return idx, start
 
 
@@ -606,47 +599,14 @@ def _standard_candidates(image, settings, noise):
     return np.stack([props["x"], props["y"]], axis=1)
 
 
-def _neighbour_fit(xy, uv, query, self_index, k):
-    """Local linear fit (value at the point) of the vectors ``uv`` at ``xy`` around each ``query`` point
-    from its ``k`` nearest points (``self_index``: the query's own index in ``xy``, or -1), and the
-    median distance of those neighbours' vectors from the fit."""
-    _, idx = cKDTree(xy).query(query, k=k + 1)
-    drop = np.where((idx == self_index[:, None]).any(axis=1), np.argmax(idx == self_index[:, None], axis=1), k)
-    keep = np.ones(idx.shape, dtype=bool)
-    keep[np.arange(len(idx)), drop] = False
-    nb = idx[keep].reshape(len(idx), k)
-    # Least squares of f = c + G d over the neighbours (offsets d from the query point, vectors f) in
-    # closed form: with both centred on their means, G solves the 2x2 normal equations and
-    # c = mean f - G mean d (a tiny ridge, relative to the spread of the offsets, keeps collinear
-    # neighbourhoods finite). Components as separate (n, k) arrays: contiguous and cheap to gather.
-    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
-    ex -= query[:, 0:1]
-    ey -= query[:, 1:2]
-    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
-    ex -= dmx
-    ey -= dmy
-    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
-    ridge = 1e-6 * (k + sxx + syy)
-    sxx += ridge
-    syy += ridge
-    det = sxx * syy - sxy * sxy
-    value = np.empty((len(nb), 2))
-    resid2 = np.zeros(nb.shape)
-    for c in range(2):
-        g = uv[:, c][nb]
-        fm = g.mean(axis=1, keepdims=True)
-        g -= fm
-        bx, by = (ex * g).sum(1), (ey * g).sum(1)
-        gx = ((syy * bx - sxy * by) / det)[:, None]
-        gy = ((sxx * by - sxy * bx) / det)[:, None]
-        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
-        g -= ex * gx
-        g -= ey * gy
-        resid2 += g * g
-    return value, np.median(np.sqrt(resid2), axis=1)
+def _neighbour_fit(xy, uv, query, self_index, settings, device):
+    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``, on the settings' backend."""
+    if settings.backend == "warp":
+        return neighbour_fit(xy, uv, query, self_index, k=settings.outlier_neighbours, device=device)
+    return neighbour_fit_numpy(xy, uv, query, self_index, k=settings.outlier_neighbours)
 
 
-def _confirmed_by_neighbours(out, good, query, settings):
+def _confirmed_by_neighbours(out, good, query, settings, device):
     """True where a queried dot's displacement agrees with the local linear fit of the ``good`` dots'
     (within the outlier test and ``predictor_tolerance``): its neighbours overrule a poor prediction
     (the correlation is least reliable in the windows at the image edge)."""
@@ -662,30 +622,32 @@ def _confirmed_by_neighbours(out, good, query, settings):
 
     gxy, guv = xy_uv(gi)
     qxy, quv = xy_uv(qi)
-    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), k)
+    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), settings, device)
     r = np.linalg.norm(quv - fit, axis=1)
     limit = np.minimum(settings.outlier_threshold * (spread + settings.outlier_epsilon), settings.predictor_tolerance)
     ok[qi] = r <= limit
     return ok
 
 
-def _neighbour_outliers(xy, uv, *, neighbours, epsilon, threshold):
-    """True where a vector is further from the local linear fit of its ``neighbours`` nearest vectors than
-    ``threshold`` times (their median distance from that fit + ``epsilon``): a normalised median test
+def _neighbour_outliers(xy, uv, settings, device):
+    """True where a vector is further from the local linear fit of its ``settings.outlier_neighbours``
+    nearest vectors than ``outlier_threshold`` times (their median distance from that fit +
+    ``outlier_epsilon``; :mod:`tracking.neighbours`): a normalised median test
     for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as in Duncan
     et al. 2010 so that smooth gradients do not count as outliers). Two rounds: the second fits only
     the vectors the first one kept."""
     n = len(xy)
+    neighbours, epsilon, threshold = settings.outlier_neighbours, settings.outlier_epsilon, settings.outlier_threshold
     if n <= neighbours + 3 or not np.isfinite(threshold):
         return np.zeros(n, dtype=bool)
     own = np.arange(n)
-    fit, spread = _neighbour_fit(xy, uv, xy, own, neighbours)
+    fit, spread = _neighbour_fit(xy, uv, xy, own, settings, device)
     bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     clean = np.flatnonzero(~bad)
     if bad.any() and len(clean) > neighbours + 3:
         where = np.full(n, -1)
         where[clean] = np.arange(len(clean))
-        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, neighbours)
+        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, settings, device)
         bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     return bad
 
@@ -976,7 +938,7 @@ def track_pair(
         dv = out["y_gradient"] - out["y"] - pred_uv[:, 1]
         off = found_r & found_g & ~(np.hypot(du, dv) <= settings.predictor_tolerance)
         weak = found_r & ~(pred_q >= settings.predictor_min_correlation)
-        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings)
+        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings, device)
         status[off] |= DotStatus.PREDICTOR_MISMATCH
         status[weak] |= DotStatus.PREDICTOR_WEAK
         matched &= ~(off | weak)
@@ -991,9 +953,8 @@ def track_pair(
     wrong = _neighbour_outliers(
         np.stack([out["x"][mi], out["y"][mi]], axis=1),
         np.stack([out["x_gradient"][mi] - out["x"][mi], out["y_gradient"][mi] - out["y"][mi]], axis=1),
-        neighbours=settings.outlier_neighbours,
-        epsilon=settings.outlier_epsilon,
-        threshold=settings.outlier_threshold,
+        settings,
+        device,
     )
     status[mi[wrong]] |= DotStatus.OUTLIER
     matched[mi[wrong]] = False
