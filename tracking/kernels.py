@@ -37,20 +37,6 @@ class NormalEquations:
 
 
 @wp.func
-def ring_pixel(k: int, w: int) -> int:
-    """Flat index of the k-th pixel on the edge of a w x w window (top row, bottom row, then the sides)."""
-    if k < w:
-        return k
-    if k < 2 * w:
-        return (w - 1) * w + (k - w)
-    k2 = k - 2 * w
-    row = 1 + k2 // 2
-    if k2 % 2 == 0:
-        return row * w
-    return row * w + (w - 1)
-
-
-@wp.func
 def load_window(
     image: wp.array2d(dtype=wp.float64),
     fill: wp.float64,
@@ -63,52 +49,37 @@ def load_window(
     """Copy the window at column ``ox``, row ``oy`` into ``win[i]`` (``fill`` outside); return (min, max)."""
     vmin = wp.float64(1.0e300)
     vmax = wp.float64(-1.0e300)
-    for p in range(w * w):
-        y = oy + p // w
-        x = ox + p % w
-        v = fill
-        if y >= 0 and y < image.shape[0] and x >= 0 and x < image.shape[1]:
-            v = image[y, x]
-        win[i, p] = v
-        vmin = wp.min(vmin, v)
-        vmax = wp.max(vmax, v)
+    for r in range(w):
+        y = oy + r
+        row_in = y >= 0 and y < image.shape[0]
+        for c in range(w):
+            x = ox + c
+            v = fill
+            if row_in and x >= 0 and x < image.shape[1]:
+                v = image[y, x]
+            win[i, r * w + c] = v
+            vmin = wp.min(vmin, v)
+            vmax = wp.max(vmax, v)
     return wp.vec2d(vmin, vmax)
 
 
 @wp.func
 def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Median of the window's edge pixels (insertion sort in ``ring[i]``; ``4 (w - 1)`` is small)."""
-    n = 4 * (w - 1)
-    for j in range(n):
-        ring[i, j] = win[i, ring_pixel(j, w)]
-    for j in range(1, n):
-        v = ring[i, j]
-        k = j - 1
-        while k >= 0 and ring[i, k] > v:
-            ring[i, k + 1] = ring[i, k]
-            k -= 1
-        ring[i, k + 1] = v
+    """Median of the window's ``4 (w - 1)`` edge pixels (insertion sort in ``ring[i]``)."""
+    n = int(0)
+    for r in range(w):
+        step = int(1)
+        if r != 0 and r != w - 1:
+            step = w - 1
+        for c in range(0, w, step):
+            v = win[i, r * w + c]
+            k = n - 1
+            while k >= 0 and ring[i, k] > v:
+                ring[i, k + 1] = ring[i, k]
+                k -= 1
+            ring[i, k + 1] = v
+            n += 1
     return (ring[i, n / 2 - 1] + ring[i, n / 2]) / wp.float64(2.0)
-
-
-@wp.func
-def uphill_neighbour(win: wp.array2d(dtype=wp.float64), i: int, w: int, p: int) -> int:
-    """The brightest of pixel p and its 8 neighbours (ties: the higher index)."""
-    pr = p // w
-    pc = p % w
-    best = p
-    bv = win[i, p]
-    for dy in range(-1, 2):
-        for dx in range(-1, 2):
-            r = pr + dy
-            c = pc + dx
-            if r >= 0 and r < w and c >= 0 and c < w:
-                q = r * w + c
-                vq = win[i, q]
-                if vq > bv or (vq == bv and q > best):
-                    best = q
-                    bv = vq
-    return best
 
 
 @wp.func
@@ -119,17 +90,38 @@ def segment_window(
     thr: wp.float64,
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
 ) -> int:
     """Label each pixel above ``thr`` with its blob's peak pixel by steepest ascent (-1 below).
 
-    Fills ``area[i, root]`` with each blob's pixel count and returns the number of blobs.
+    A pixel's uphill step goes to the brightest of it and its 8 neighbours (ties: the higher index).
+    Fills ``area[i, root]`` with each blob's pixel count and ``roots[i, :nblobs]`` with the peak
+    pixels in increasing order; returns the number of blobs.
     """
-    for p in range(w * w):
-        area[i, p] = 0
-        lab[i, p] = -1
-        if win[i, p] > thr:
-            lab[i, p] = uphill_neighbour(win, i, w, p)
     nblobs = int(0)
+    for r in range(w):
+        r0 = wp.max(r - 1, 0)
+        r1 = wp.min(r + 1, w - 1)
+        for c in range(w):
+            p = r * w + c
+            area[i, p] = 0
+            best = int(-1)
+            bv = win[i, p]
+            if bv > thr:
+                best = p
+                c0 = wp.max(c - 1, 0)
+                c1 = wp.min(c + 1, w - 1)
+                for rr in range(r0, r1 + 1):
+                    for cc in range(c0, c1 + 1):
+                        q = rr * w + cc
+                        vq = win[i, q]
+                        if vq > bv or (vq == bv and q > best):
+                            best = q
+                            bv = vq
+                if best == p:
+                    roots[i, nblobs] = p
+                    nblobs += 1
+            lab[i, p] = best
     for p in range(w * w):
         if lab[i, p] >= 0:
             r = lab[i, p]
@@ -137,8 +129,6 @@ def segment_window(
                 r = lab[i, r]
             lab[i, p] = r
             area[i, r] = area[i, r] + 1
-            if r == p:
-                nblobs += 1
     return nblobs
 
 
@@ -153,8 +143,9 @@ def peak_distance(p: int, w: int, lx: wp.float64, ly: wp.float64) -> wp.float64:
 @wp.func
 def choose_blob(
     win: wp.array2d(dtype=wp.float64),
-    lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    nblobs: int,
     i: int,
     w: int,
     bg: wp.float64,
@@ -168,37 +159,37 @@ def choose_blob(
     """Peak pixel of the blob with the best Eq. 1 score among those within ``radius``; -1 if none.
 
     Eq. 1 of Rajendran, Bane and Vlachos (2019); area, peak and distance are scaled by their maxima
-    over the candidates, and the first best wins.
+    over the candidates, and the first best (in pixel order) wins.
     """
     ma = wp.float64(-1.0e300)
     mi = wp.float64(-1.0e300)
     md = wp.float64(-1.0e300)
-    for p in range(w * w):
-        if lab[i, p] == p:
-            dist = peak_distance(p, w, lx, ly)
-            if dist <= radius:
-                ma = wp.max(ma, wp.float64(area[i, p]))
-                mi = wp.max(mi, win[i, p] - bg)
-                md = wp.max(md, dist)
+    for k in range(nblobs):
+        p = roots[i, k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ma = wp.max(ma, wp.float64(area[i, p]))
+            mi = wp.max(mi, win[i, p] - bg)
+            md = wp.max(md, dist)
     chosen = int(-1)
     best = wp.float64(-1.0e300)
-    for p in range(w * w):
-        if lab[i, p] == p:
-            dist = peak_distance(p, w, lx, ly)
-            if dist <= radius:
-                ta = wp.float64(1.0)
-                ti = wp.float64(1.0)
-                td = wp.float64(1.0)
-                if ma > wp.float64(0.0):
-                    ta = wp.float64(area[i, p]) / ma
-                if mi > wp.float64(0.0):
-                    ti = (win[i, p] - bg) / mi
-                if md > wp.float64(0.0):
-                    td = wp.float64(1.0) - dist / md
-                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
-                if score > best:
-                    best = score
-                    chosen = p
+    for k in range(nblobs):
+        p = roots[i, k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ta = wp.float64(1.0)
+            ti = wp.float64(1.0)
+            td = wp.float64(1.0)
+            if ma > wp.float64(0.0):
+                ta = wp.float64(area[i, p]) / ma
+            if mi > wp.float64(0.0):
+                ti = (win[i, p] - bg) / mi
+            if md > wp.float64(0.0):
+                td = wp.float64(1.0) - dist / md
+            score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+            if score > best:
+                best = score
+                chosen = p
     return chosen
 
 
@@ -275,13 +266,14 @@ def measure_windows_kernel(
     ring: wp.array2d(dtype=wp.float64),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
     """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map.
 
-    ``win``, ``ring``, ``lab`` and ``area`` are scratch rows: thread i uses row ``i % rows`` (one row is
+    ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
     """
     i = wp.tid()
@@ -292,8 +284,8 @@ def measure_windows_kernel(
     if use_min == 0:
         bg = edge_median(win, s, w, ring)
     thr = bg + wp.max(frac * (mm[1] - bg), floor)
-    nblobs = segment_window(win, s, w, thr, lab, area)
-    chosen = choose_blob(win, lab, area, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
+    nblobs = segment_window(win, s, w, thr, lab, area, roots)
+    chosen = choose_blob(win, area, roots, nblobs, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
     out_int[i, 2] = 0
@@ -339,9 +331,18 @@ def integrated_profile(
     z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
     g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
     e0 = erf_from_gauss(z0 * k0, g0)
+    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2) (h = 1 / s), a ratio that itself
+    # changes by exp(-h^2) per edge: three exponentials per axis, unless the first ratio would overflow
+    # or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
+    direct = z0 < wp.float64(-20.0) or z0 * inv < wp.float64(-200.0)
+    ratio = wp.exp(-z0 * inv - wp.float64(0.5) * inv * inv)
+    step = wp.exp(-inv * inv)
     for k in range(n):
         z1 = z0 + inv
-        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        g1 = g0 * ratio
+        ratio = ratio * step
+        if direct:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
         e1 = erf_from_gauss(z1 * k0, g1)
         p = scale * (e1 - e0)
         prof[i, row, k] = p

@@ -195,6 +195,7 @@ def measure_windows(
     ring = wp.empty((rows, 4 * (w - 1)), dtype=wp.float64, device=device)
     lab = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     area = wp.empty((rows, w * w), dtype=wp.int32, device=device)
+    roots = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
     out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
     dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
@@ -221,6 +222,7 @@ def measure_windows(
             ring,
             lab,
             area,
+            roots,
             out_i,
             out_f,
             dotmap,
