@@ -18,6 +18,8 @@ the array-program reference that defines the result.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
@@ -359,6 +361,23 @@ def fit_dots_numpy(
     return p, ok, shared
 
 
+_workspace = threading.local()
+
+
+def _model_images(shape, device):
+    """The fixed-point model images, kept from the last call of this thread with the same shape and device.
+
+    They are 32 MB for a 1024x1024 pair: allocating them afresh costs more than the fit's own
+    arithmetic (the operating system maps and clears new pages on first touch), so each thread keeps
+    one set. Their content is undefined; every step clears what it uses.
+    """
+    key = (str(wp.get_device(device)), tuple(shape))
+    cached = getattr(_workspace, "models", None)
+    if cached is None or cached[0] != key:
+        _workspace.models = cached = (key, wp.empty(shape, dtype=wp.int64, device=device))
+    return cached[1]
+
+
 def _on_device(a, dtype, device):
     """A Warp array of ``a``; on the CPU it shares the NumPy array's memory (no copy)."""
     a = np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32)
@@ -409,7 +428,7 @@ def fit_dots(
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    models = wp.empty((2, len(stack), *stack[0].shape), dtype=wp.int64, device=device)
+    models = _model_images((2, len(stack), *stack[0].shape), device)
     cur = wp.array(p, dtype=wp.float64, device=device)
     nxt = wp.array(p, dtype=wp.float64, device=device)
     start = wp.array(p, dtype=wp.float64, device=device)

@@ -21,9 +21,12 @@ tiles a few times the field's scale of variation.
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 from scipy import ndimage
 from synthbos.correlation.peak import three_point_offset
 from synthbos.correlation.xcorr import cross_correlate
+
+from .kernels import deform_nearest_kernel
 
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
@@ -186,13 +189,51 @@ def _tiles(image, ys, xs, size):
     return block.reshape(len(ys), size, len(xs), size).swapaxes(1, 2)
 
 
-def _interpolation_matrix(n, centres):
-    """(n, len(centres)) weights of :func:`_bilinear` along one axis at the pixels 0 .. n - 1."""
-    m = np.zeros((n, len(centres)))
-    i, t = _cell(np.arange(n), centres)
-    m[np.arange(n), i] = 1.0 - t
-    m[np.arange(n), np.minimum(i + 1, len(centres) - 1)] += t
-    return m
+def _deform_nearest(image, valid, field, device):
+    """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
+    and rounded to whole pixels at every pixel (Warp kernel ``deform_nearest_kernel``).
+
+    Returns the moved image, the weights of its pixels (1 where the source pixel lies inside the image,
+    times ``valid`` there; None where that is every pixel and there is no ``valid``) and the rounded
+    shifts u and v (int32 images).
+    """
+    h, w = image.shape
+    u, v, cy, cx = field
+
+    def spacing(c):
+        return float(c[1] - c[0]) if len(c) > 1 else 1.0
+
+    def on_device(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
+
+    out = wp.empty((h, w), dtype=wp.float32, device=device)
+    out_valid = wp.empty((h, w), dtype=wp.float32, device=device)
+    shift = wp.empty((2, h, w), dtype=wp.int32, device=device)
+    outside = wp.zeros(1, dtype=wp.int32, device=device)
+    img = on_device(image, wp.float32)
+    wp.launch(
+        deform_nearest_kernel,
+        dim=(h, w),
+        inputs=[
+            img,
+            img if valid is None else on_device(valid, wp.float32),
+            int(valid is not None),
+            on_device(np.asarray(u, dtype=np.float64), wp.float64),
+            on_device(np.asarray(v, dtype=np.float64), wp.float64),
+            float(cy[0]),
+            spacing(cy),
+            float(cx[0]),
+            spacing(cx),
+            out,
+            out_valid,
+            shift,
+            outside,
+        ],
+        device=device,
+    )
+    weights = None if valid is None and int(outside.numpy()[0]) == 0 else out_valid.numpy()
+    sh = shift.numpy()
+    return out.numpy(), weights, sh[0], sh[1]
 
 
 def _correlate_tiles(a, b, va, vb, ys, xs, size):
@@ -259,7 +300,8 @@ def predict_displacement(
     mask : (H, W) bool array, optional
         True on pixels to exclude: they take no part in the correlation.
     device : str, optional
-        Unused (the predictor runs on the CPU with NumPy's and SciPy's FFTs); kept for the callers.
+        Warp device of the window deformation ("cpu", "cuda:0"; Warp's default when None); the
+        correlations run on the CPU with SciPy's FFTs.
 
     Returns
     -------
@@ -287,7 +329,6 @@ def predict_displacement(
     is the normalised correlation at the predicted displacement (Raffel et al. 2018, section 5.5: a
     correct displacement leaves two nearly identical images).
     """
-    del device
     a = np.asarray(reference, dtype=np.float32)
     b = np.asarray(gradient, dtype=np.float32)
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -314,7 +355,6 @@ def predict_displacement(
         return np.zeros((n, 2)), np.zeros(n)
     valid = None if mask is None else (~np.asarray(mask, dtype=bool)).astype(np.float32)
 
-    rows, cols = np.arange(h), np.arange(w)
     field = None  # (u, v, centres_y, centres_x) of the previous pass
     for size in sizes:
         ys, xs = _tile_grid(h, size), _tile_grid(w, size)
@@ -325,18 +365,7 @@ def predict_displacement(
         else:
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
-            wy, wx = _interpolation_matrix(h, field[2]), _interpolation_matrix(w, field[3])
-            su = np.rint(wy @ field[0] @ wx.T).astype(np.int64)
-            sv = np.rint(wy @ field[1] @ wx.T).astype(np.int64)
-            ry, rx = rows[:, None] + sv, cols[None, :] + su
-            inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
-            flat = (np.clip(ry, 0, h - 1) * w + np.clip(rx, 0, w - 1)).ravel()
-            bd = b.ravel().take(flat).reshape(h, w)
-            vd = inside.astype(np.float32)
-            if valid is not None:
-                vd *= valid.ravel().take(flat).reshape(h, w)
-            elif inside.all():
-                vd = None
+            bd, vd, su, sv = _deform_nearest(b, valid, field, device)
             base_u = _tiles(su, ys, xs, size).mean(axis=(-2, -1))
             base_v = _tiles(sv, ys, xs, size).mean(axis=(-2, -1))
             prev_u = _bilinear(field[0], field[2], field[3], cy[:, None], cx[None, :])
