@@ -909,27 +909,13 @@ def neighbour_fit_kernel(
 
 
 @wp.func
-def centre_cell(t: wp.float64, first: wp.float64, spacing: wp.float64, count: int) -> wp.vec2d:
-    """Cell index (as a float) and fraction of coordinate ``t`` on ``count`` evenly spaced centres from
-    ``first``; the fraction leaves [0, 1] beyond the outer centres (linear extrapolation)."""
-    if count == 1:
-        return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    f = (t - first) / spacing
-    k = wp.clamp(wp.floor(f), wp.float64(0.0), wp.float64(count - 2))
-    return wp.vec2d(k, f - k)
-
-
-@wp.func
 def bilinear_field(
-    field: wp.array2d(dtype=wp.float64), cy: wp.vec2d, cx: wp.vec2d
+    field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int, tx: wp.float64
 ) -> wp.float64:
-    """Bilinear interpolation of a tile field at cell and fraction ``cy``, ``cx`` (``centre_cell``)."""
-    iy = int(cy[0])
-    ix = int(cx[0])
+    """Bilinear interpolation of a tile field in cell (iy, ix) at fractions (ty, tx) (beyond [0, 1]:
+    linear extrapolation)."""
     iy1 = wp.min(iy + 1, field.shape[0] - 1)
     ix1 = wp.min(ix + 1, field.shape[1] - 1)
-    ty = cy[1]
-    tx = cx[1]
     one = wp.float64(1.0)
     top = (one - tx) * field[iy, ix] + tx * field[iy, ix1]
     bottom = (one - tx) * field[iy1, ix] + tx * field[iy1, ix1]
@@ -943,41 +929,45 @@ def deform_nearest_kernel(
     use_valid: int,
     field_u: wp.array2d(dtype=wp.float64),
     field_v: wp.array2d(dtype=wp.float64),
-    cy0: wp.float64,
-    dcy: wp.float64,
-    cx0: wp.float64,
-    dcx: wp.float64,
+    row_cell: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=wp.float64),
+    col_cell: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=wp.float64),
+    strip: int,
     out: wp.array2d(dtype=wp.float32),
     out_valid: wp.array2d(dtype=wp.float32),
     shift: wp.array3d(dtype=wp.int32),
     outside: wp.array(dtype=wp.int32),
 ):
-    """Pixel (row, col) of ``image`` moved back by the tile field rounded to whole pixels: ``out`` takes
-    the pixel at (row + rint(v), col + rint(u)) (the edge pixel beyond the image), ``out_valid`` 1 where
-    that lies inside the image (times ``valid`` there if ``use_valid``), ``shift`` the two rounded
-    shifts (u, v); ``outside[0]`` counts the pixels whose source lies outside. The field is given at
-    evenly spaced tile centres (rows ``cy0 + k dcy``, columns ``cx0 + k dcx``) and interpolated
-    bilinearly (extrapolated linearly beyond the outer centres)."""
-    row, col = wp.tid()
+    """Pixels of one row and a strip of ``strip`` columns of ``image`` moved back by the tile field
+    rounded to whole pixels: ``out`` takes the pixel at (row + rint(v), col + rint(u)) (the edge pixel
+    beyond the image), ``out_valid`` 1 where that lies inside the image (times ``valid`` there if
+    ``use_valid``), ``shift`` the two rounded shifts (u, v); ``outside[0]`` counts the pixels whose
+    source lies outside. The field is interpolated bilinearly, each row and column given by its cell of
+    tile centres and fraction in it."""
+    row, k = wp.tid()
     h = image.shape[0]
     w = image.shape[1]
-    cy = centre_cell(wp.float64(row), cy0, dcy, field_u.shape[0])
-    cx = centre_cell(wp.float64(col), cx0, dcx, field_u.shape[1])
-    su = int(wp.rint(bilinear_field(field_u, cy, cx)))
-    sv = int(wp.rint(bilinear_field(field_v, cy, cx)))
-    ry = row + sv
-    rx = col + su
-    inside = ry >= 0 and ry < h and rx >= 0 and rx < w
-    ry = wp.clamp(ry, 0, h - 1)
-    rx = wp.clamp(rx, 0, w - 1)
-    out[row, col] = image[ry, rx]
-    v = wp.float32(0.0)
-    if inside:
-        v = wp.float32(1.0)
-        if use_valid != 0:
-            v = valid[ry, rx]
-    else:
-        wp.atomic_add(outside, 0, 1)
-    out_valid[row, col] = v
-    shift[0, row, col] = su
-    shift[1, row, col] = sv
+    iy = row_cell[row]
+    ty = row_frac[row]
+    n_out = int(0)
+    for col in range(k * strip, wp.min(k * strip + strip, w)):
+        ix = col_cell[col]
+        tx = col_frac[col]
+        su = int(wp.rint(bilinear_field(field_u, iy, ty, ix, tx)))
+        sv = int(wp.rint(bilinear_field(field_v, iy, ty, ix, tx)))
+        ry = row + sv
+        rx = col + su
+        v = wp.float32(0.0)
+        if ry >= 0 and ry < h and rx >= 0 and rx < w:
+            v = wp.float32(1.0)
+            if use_valid != 0:
+                v = valid[ry, rx]
+        else:
+            n_out += 1
+        out[row, col] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
+        out_valid[row, col] = v
+        shift[0, row, col] = su
+        shift[1, row, col] = sv
+    if n_out > 0:
+        wp.atomic_add(outside, 0, n_out)

@@ -199,13 +199,13 @@ def _deform_nearest(image, valid, field, device):
     """
     h, w = image.shape
     u, v, cy, cx = field
-
-    def spacing(c):
-        return float(c[1] - c[0]) if len(c) > 1 else 1.0
+    strip = 64
 
     def on_device(a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
 
+    row_cell, row_frac = _cell(np.arange(h), cy)
+    col_cell, col_frac = _cell(np.arange(w), cx)
     out = wp.empty((h, w), dtype=wp.float32, device=device)
     out_valid = wp.empty((h, w), dtype=wp.float32, device=device)
     shift = wp.empty((2, h, w), dtype=wp.int32, device=device)
@@ -213,17 +213,18 @@ def _deform_nearest(image, valid, field, device):
     img = on_device(image, wp.float32)
     wp.launch(
         deform_nearest_kernel,
-        dim=(h, w),
+        dim=(h, (w + strip - 1) // strip),
         inputs=[
             img,
             img if valid is None else on_device(valid, wp.float32),
             int(valid is not None),
             on_device(np.asarray(u, dtype=np.float64), wp.float64),
             on_device(np.asarray(v, dtype=np.float64), wp.float64),
-            float(cy[0]),
-            spacing(cy),
-            float(cx[0]),
-            spacing(cx),
+            on_device(row_cell.astype(np.int32), wp.int32),
+            on_device(row_frac, wp.float64),
+            on_device(col_cell.astype(np.int32), wp.int32),
+            on_device(col_frac, wp.float64),
+            strip,
             out,
             out_valid,
             shift,
