@@ -267,16 +267,19 @@ def measure_windows_kernel(
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
     roots: wp.array2d(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map.
+    """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
+    (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
+    neighbouring pixels).
 
     ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
     """
-    i = wp.tid()
+    i = order[wp.tid()]
     s = i % win.shape[0]
     w = 2 * half + 1
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
@@ -718,9 +721,10 @@ def fit_dot_step_kernel(
     ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
 
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
-    at the new parameters ``out``. If ``common``, ``shared_xy`` gets the position of the step for
-    position and background against the common-shape model image (NaN without a partner; all NaN
-    without ``common``, when that image is not drawn).
+    at the new parameters ``out``, except in the last step (``common``), after which none are needed.
+    If ``common``, ``shared_xy`` gets the position of the step for position and background against
+    the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
+    is not drawn).
     """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
@@ -761,7 +765,8 @@ def fit_dot_step_kernel(
     for k in range(5):
         out[i, k] = q[k]
     ok[i] = int(good)
-    dot_profiles(out, i, render_half, prof)
+    if common == 0:  # not the last step: the next one needs the profiles at the new parameters
+        dot_profiles(out, i, render_half, prof)
 
 
 # --- the local linear fit of scattered vectors from each point's nearest neighbours -----------------
@@ -813,9 +818,10 @@ def neighbour_fit_kernel(
     from the fit (see ``tracking.neighbours.neighbour_fit_numpy``).
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
-    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``); rings of cells around q's
-    are searched until the k-th nearest is closer than any unvisited cell. ``dist``, ``idx`` are scratch
-    rows of length k: thread q uses row ``q % rows``.
+    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
+    run). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
+    nearest is closer than the block's edge. ``dist``, ``idx`` are scratch rows of length k: thread q
+    uses row ``q % rows``.
     """
     q = wp.tid()
     s = q % dist.shape[0]
@@ -826,27 +832,36 @@ def neighbour_fit_kernel(
     cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
     cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
     found = int(0)
-    r = int(0)
+    r = int(1)
     while True:
-        for iy in range(cy - r, cy + r + 1):
-            if iy >= 0 and iy < ny:
-                step = int(1)
-                if iy != cy - r and iy != cy + r:
-                    step = 2 * r
-                for ix in range(cx - r, cx + r + 1, step):
-                    if ix >= 0 and ix < nx:
-                        c = iy * nx + ix
-                        for j in range(cell_start[c], cell_start[c + 1]):
-                            p = int(cell_points[j])
-                            if p != own:
-                                dx = xy[p, 0] - qx
-                                dy = xy[p, 1] - qy
-                                found = keep_nearest(dx * dx + dy * dy, p, found, s, dist, idx)
-        reach = wp.float64(r) * cell
-        if found == k and dist[s, k - 1] <= reach * reach:
+        found = int(0)
+        worst = wp.float64(float(0.0))
+        ix0 = wp.max(cx - r, 0)
+        ix1 = wp.min(cx + r, nx - 1)
+        for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
+            for j in range(cell_start[iy * nx + ix0], cell_start[iy * nx + ix1 + 1]):
+                p = int(cell_points[j])
+                dx = xy[p, 0] - qx
+                dy = xy[p, 1] - qy
+                d = dx * dx + dy * dy
+                if p != own and (found < k or d <= worst):
+                    found = keep_nearest(d, p, found, s, dist, idx)
+                    if found == k:
+                        worst = dist[s, k - 1]
+        # distance from q to the nearest edge of the block that is not the edge of the grid
+        edge = wp.float64(1.0e300)
+        if cx - r > 0:
+            edge = wp.min(edge, qx - (x0 + wp.float64(cx - r) * cell))
+        if cx + r < nx - 1:
+            edge = wp.min(edge, x0 + wp.float64(cx + r + 1) * cell - qx)
+        if cy - r > 0:
+            edge = wp.min(edge, qy - (y0 + wp.float64(cy - r) * cell))
+        if cy + r < ny - 1:
+            edge = wp.min(edge, y0 + wp.float64(cy + r + 1) * cell - qy)
+        if found == k and (edge >= wp.float64(1.0e300) or worst <= edge * edge):
             break
-        if r > nx + ny:
-            break
+        if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
+            break  # the block holds every point
         r += 1
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
     kf = wp.float64(k)
@@ -860,37 +875,48 @@ def neighbour_fit_kernel(
     sxx = wp.float64(0.0)
     syy = wp.float64(0.0)
     sxy = wp.float64(0.0)
+    fmu = wp.float64(0.0)
+    fmv = wp.float64(0.0)
     for j in range(k):
         ex = xy[idx[s, j], 0] - qx - dmx
         ey = xy[idx[s, j], 1] - qy - dmy
         sxx += ex * ex
         syy += ey * ey
         sxy += ex * ey
+        fmu += uv[idx[s, j], 0]
+        fmv += uv[idx[s, j], 1]
+    fmu = fmu / kf
+    fmv = fmv / kf
     ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
     sxx += ridge
     syy += ridge
     det = sxx * syy - sxy * sxy
+    bxu = wp.float64(0.0)
+    byu = wp.float64(0.0)
+    bxv = wp.float64(0.0)
+    byv = wp.float64(0.0)
     for j in range(k):
-        dist[s, j] = wp.float64(0.0)  # from here on: the squared distance of neighbour j's vector from the fit
-    for comp in range(2):
-        fm = wp.float64(0.0)
-        for j in range(k):
-            fm += uv[idx[s, j], comp]
-        fm = fm / kf
-        bx = wp.float64(0.0)
-        by = wp.float64(0.0)
-        for j in range(k):
-            g = uv[idx[s, j], comp] - fm
-            bx += (xy[idx[s, j], 0] - qx - dmx) * g
-            by += (xy[idx[s, j], 1] - qy - dmy) * g
-        gx = (syy * bx - sxy * by) / det
-        gy = (sxx * by - sxy * bx) / det
-        value[q, comp] = fm - dmx * gx - dmy * gy
-        for j in range(k):
-            g = uv[idx[s, j], comp] - fm
-            g = g - (xy[idx[s, j], 0] - qx - dmx) * gx
-            g = g - (xy[idx[s, j], 1] - qy - dmy) * gy
-            dist[s, j] = dist[s, j] + g * g
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        gu = uv[idx[s, j], 0] - fmu
+        gv = uv[idx[s, j], 1] - fmv
+        bxu += ex * gu
+        byu += ey * gu
+        bxv += ex * gv
+        byv += ey * gv
+    gxu = (syy * bxu - sxy * byu) / det
+    gyu = (sxx * byu - sxy * bxu) / det
+    gxv = (syy * bxv - sxy * byv) / det
+    gyv = (sxx * byv - sxy * bxv) / det
+    value[q, 0] = fmu - dmx * gxu - dmy * gyu
+    value[q, 1] = fmv - dmx * gxv - dmy * gyv
+    # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
+    for j in range(k):
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        gu = uv[idx[s, j], 0] - fmu - ex * gxu - ey * gyu
+        gv = uv[idx[s, j], 1] - fmv - ex * gxv - ey * gyv
+        dist[s, j] = gu * gu + gv * gv
     # median of the distances: insertion sort of the squares (the root is monotonic)
     for j in range(1, k):
         v = dist[s, j]

@@ -365,7 +365,8 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
-    dot's peak pixel, and dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
+    dot's peak pixel, and, for the paper's correction (the only user), dotmap (N, c, c): its
+    background-free pixels centred on the peak, others zero.
     """
     h_img, w_img = image.shape
     n = len(pred)
@@ -378,8 +379,10 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         "iteration": np.zeros(n, dtype=np.int16),
         "flags": np.zeros(n, dtype=np.int32),
         "root": np.zeros((n, 2), dtype=np.int64),
-        "dotmap": np.zeros((n, c, c)),
     }
+    keep_maps = settings.correction == "paper"
+    if keep_maps:
+        out["dotmap"] = np.zeros((n, c, c))
     finite = np.isfinite(pred).all(axis=1)
     safe = np.where(finite[:, None], pred, -1e9)
     inside = finite & (safe[:, 0] > -0.5) & (safe[:, 0] < w_img - 0.5)
@@ -436,11 +439,19 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
         if win_idx.size == 0:
             break
-        dotmap = m["dotmap"][win_idx]
-        hc = np.full(len(win_idx), map_half)
-        # The model fit (centroid="model") starts from the three-point estimate.
+        # The model fit (centroid="model") starts from the three-point estimate, which needs only the
+        # peak pixel and its four neighbours: the 3x3 centre of the maps.
         method = "gaussian3" if settings.centroid == "model" else settings.centroid
-        xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
+        if method == "gaussian3":
+            centre = m["dotmap"][win_idx, map_half - 1 : map_half + 2, map_half - 1 : map_half + 2]
+            ones = np.ones(len(win_idx), dtype=np.int64)
+            xw, yw, eta, i0, fit_ok = fit_centroids(centre, method=method, peak_rc=(ones, ones))
+            xw += map_half - 1
+            yw += map_half - 1
+        else:
+            dotmap = m["dotmap"][win_idx]
+            hc = np.full(len(win_idx), map_half)
+            xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
         wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
         xw = np.where(wild, map_half, xw)
@@ -456,7 +467,8 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         out["i0"][g] = i0
         out["iteration"][g] = it
         out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
-        out["dotmap"][g] = dotmap
+        if keep_maps:
+            out["dotmap"][g] = m["dotmap"][win_idx]
         flags = np.zeros(len(g), dtype=np.int32)
         flags[m["nblobs"][win_idx] > 1] |= DotStatus.OVERLAPPED
         flags[~fit_ok] |= DotStatus.FIT_FALLBACK

@@ -177,18 +177,17 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
-    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels.
-    order = np.lexsort((origin[:, 0], origin[:, 1] // 8))
-    back = np.empty_like(order)
-    back[order] = np.arange(n)
+    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels
+    # (the kernel takes them in that order and writes each at its own row).
+    order = np.lexsort((origin[:, 0], origin[:, 1] // 8)).astype(np.int32)
     img = wp.array(
         np.ascontiguousarray(image, dtype=np.float64),
         dtype=wp.float64,
         device=device,
         copy=not wp.get_device(device).is_cpu,  # on the CPU, share the NumPy array's memory
     )
-    org = wp.array(np.ascontiguousarray(origin[order], dtype=np.int32), dtype=wp.int32, device=device)
-    loc = wp.array(np.ascontiguousarray(local[order], dtype=np.float64), dtype=wp.float64, device=device)
+    org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
+    loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
     # Per-thread scratch; CPU threads run one after another, so one row serves them all.
     rows = 1 if wp.get_device(device).is_cpu else n
     win = wp.empty((rows, w * w), dtype=wp.float64, device=device)
@@ -223,13 +222,14 @@ def measure_windows(
             lab,
             area,
             roots,
+            wp.array(order, dtype=wp.int32, device=device),
             out_i,
             out_f,
             dotmap,
         ],
         device=device,
     )
-    oi, of = out_i.numpy()[back], out_f.numpy()[back]
+    oi, of = out_i.numpy(), out_f.numpy()
     return {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
@@ -237,5 +237,5 @@ def measure_windows(
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy()[back],
+        "dotmap": dotmap.numpy(),
     }
