@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from synthbos import SynthbosError
 
-from .centroid import CENTROID_METHODS, fit_centroids
+from .centroid import CENTROID_METHODS, fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
 from .dotfit import fit_dots, fit_dots_numpy, fit_window_half
@@ -432,22 +432,27 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
         absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
         cidx = np.flatnonzero(ok)
-        order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = absroot[order][1:] != absroot[order][:-1]
-        win_idx = order[first]
-        out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
+        claimed = np.sort(absroot[cidx])
+        if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
+            win_idx = cidx  # every blob claimed once (the usual case): nothing to resolve
+        else:
+            order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
+            first = np.ones(len(order), dtype=bool)
+            first[1:] = absroot[order][1:] != absroot[order][:-1]
+            win_idx = order[first]
+            out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
         if win_idx.size == 0:
             break
         # The model fit (centroid="model") starts from the three-point estimate, which needs only the
         # peak pixel and its four neighbours: the 3x3 centre of the maps.
         method = "gaussian3" if settings.centroid == "model" else settings.centroid
         if method == "gaussian3":
-            centre = m["dotmap"][win_idx, map_half - 1 : map_half + 2, map_half - 1 : map_half + 2]
-            ones = np.ones(len(win_idx), dtype=np.int64)
-            xw, yw, eta, i0, fit_ok = fit_centroids(centre, method=method, peak_rc=(ones, ones))
-            xw += map_half - 1
-            yw += map_half - 1
+            flat = m["dotmap"].reshape(len(sel), c * c)
+            k0 = map_half * c + map_half
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(
+                *(flat[win_idx, k0 + k] for k in (0, -1, 1, -c, c))  # peak, left, right, up, down
+            )
+            xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]
             hc = np.full(len(win_idx), map_half)
