@@ -413,20 +413,19 @@ def fit_dots(
         return p, np.ones(0, dtype=bool), np.zeros((0, 2))
     if render_half < half:
         raise ValueError(f"render_half ({render_half}) must be at least half ({half})")
+    # Dots in raster order of 8-row bands: neighbouring threads read neighbouring pixels.
+    order = np.lexsort((p[:, 0], np.floor(p[:, 1] / 8.0), frame))
+    back = np.empty_like(order)
+    back[order] = np.arange(n)
+    p = p[order]
+    # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
     if len(stack) > 2:
         raise ValueError(f"fit_dots takes one image or a pair, got {len(stack)}")
-    # Threads take the dots in raster order of 8-row bands (within a band, in their given order):
-    # neighbouring threads read neighbouring pixels. Only the speed depends on it.
-    band = np.clip(np.floor(p[:, 1] / 8.0), -1, stack[0].shape[0] // 8 + 1).astype(np.int64) + 1
-    key = frame * (stack[0].shape[0] // 8 + 3) + band
-    order = np.argsort(key.astype(np.int16 if key.max() < 2**15 else np.int64), kind="stable").astype(np.int32)
-    order = wp.array(order, dtype=wp.int32, device=device)
-    # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
     img0 = _on_device(stack[0], wp.float64, device)
     img1 = _on_device(stack[-1], wp.float64, device)
-    fr = _on_device(frame, wp.int32, device)
+    fr = _on_device(frame[order], wp.int32, device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
-    pa = _on_device(partner, wp.int32, device)
+    pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
     models = _model_images((2, len(stack), *stack[0].shape), device)
@@ -436,7 +435,7 @@ def fit_dots(
     ok = wp.zeros(n, dtype=wp.int32, device=device)
     shared = wp.empty((n, 2), dtype=wp.float64, device=device)
     prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
-    wp.launch(dot_profiles_kernel, dim=n, inputs=[order, cur, int(render_half), prof], device=device)
+    wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
     peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
     for it in range(iterations):
         last = it == iterations - 1
@@ -447,14 +446,13 @@ def fit_dots(
         wp.launch(
             render_dots_kernel,
             dim=n,
-            inputs=[order, cur, fr, pa, int(render_half), int(last), prof, scale, models],
+            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, models],
             device=device,
         )
         wp.launch(
             fit_dot_step_kernel,
             dim=n,
             inputs=[
-                order,
                 img0,
                 img1,
                 models,
@@ -478,4 +476,4 @@ def fit_dots(
             device=device,
         )
         cur, nxt = nxt, cur
-    return cur.numpy(), ok.numpy().astype(bool), shared.numpy()
+    return cur.numpy()[back], ok.numpy().astype(bool)[back], shared.numpy()[back]

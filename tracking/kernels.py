@@ -366,11 +366,9 @@ def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: 
 
 
 @wp.kernel
-def dot_profiles_kernel(
-    order: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)
-):
-    """Profiles of every dot on its stamp (see ``dot_profiles``); thread t takes dot ``order[t]``."""
-    dot_profiles(params, order[wp.tid()], half, prof)
+def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Profiles of every dot on its stamp (see ``dot_profiles``)."""
+    dot_profiles(params, wp.tid(), half, prof)
 
 
 @wp.func
@@ -391,7 +389,6 @@ def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
 
 @wp.kernel
 def render_dots_kernel(
-    order: wp.array(dtype=wp.int32),
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
@@ -406,11 +403,9 @@ def render_dots_kernel(
     ``models[0, f]``: ``I0 p_x p_y``; if ``common``, ``models[1, f]``: the same at the pair's common
     shape, linearised in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
     The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
-    dots sum to the same bits in any thread order: CUDA fits are reproducible run to run. Thread t
-    takes dot ``order[t]`` (dots near each other in memory order: neighbouring threads touch
-    neighbouring pixels).
+    dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
-    i = order[wp.tid()]
+    i = wp.tid()
     f = frame[i]
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
@@ -701,7 +696,6 @@ def limited(step: vec5d) -> vec5d:
 
 @wp.kernel
 def fit_dot_step_kernel(
-    order: wp.array(dtype=wp.int32),
     image0: wp.array2d(dtype=wp.float64),
     image1: wp.array2d(dtype=wp.float64),
     models: wp.array4d(dtype=wp.int64),
@@ -725,7 +719,6 @@ def fit_dot_step_kernel(
     """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
 
     ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
-    Thread t takes dot ``order[t]``.
 
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
     at the new parameters ``out``, except in the last step (``common``), after which none are needed.
@@ -733,7 +726,7 @@ def fit_dot_step_kernel(
     the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
     is not drawn).
     """
-    i = order[wp.tid()]
+    i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
     f = frame[i]
     skip = render_half - half

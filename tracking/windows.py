@@ -177,11 +177,9 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
-    # Windows in raster order of 8-row bands (within a band, in their given order), so that neighbouring
-    # threads read neighbouring pixels (the kernel takes them in that order and writes each at its own
-    # row). Only the speed depends on it.
-    band = np.clip(origin[:, 1] // 8 + 1, 0, image.shape[0] // 8 + 2)
-    order = np.argsort(band.astype(np.int16 if image.shape[0] < 2**17 else np.int64), kind="stable").astype(np.int32)
+    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels (the
+    # kernel takes them in that order and writes each at its own row). Only the speed depends on it.
+    order = np.argsort((origin[:, 1] // 8) * (image.shape[1] + 4 * w) + origin[:, 0]).astype(np.int32)
     img = wp.array(
         np.ascontiguousarray(image, dtype=np.float64),
         dtype=wp.float64,
