@@ -797,6 +797,7 @@ def keep_nearest(
 
 @wp.kernel
 def neighbour_fit_kernel(
+    query_order: wp.array(dtype=wp.int32),
     xy: wp.array2d(dtype=wp.float64),
     uv: wp.array2d(dtype=wp.float64),
     query: wp.array2d(dtype=wp.float64),
@@ -820,10 +821,11 @@ def neighbour_fit_kernel(
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
     run). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
-    nearest is closer than the block's edge. ``dist``, ``idx`` are scratch rows of length k: thread q
-    uses row ``q % rows``.
+    nearest is closer than the block's edge. Thread t takes query ``query_order[t]`` (queries in the
+    order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
+    of length k: query q uses row ``q % rows``.
     """
-    q = wp.tid()
+    q = query_order[wp.tid()]
     s = q % dist.shape[0]
     k = dist.shape[1]
     qx = query[q, 0]

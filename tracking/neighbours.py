@@ -123,6 +123,9 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
+    qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
+    qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
+    query_order = np.argsort(qy * nx + qx).astype(np.int32)
     # the query's own index where it is one of the points; -1 (never a point's index) otherwise
     own = np.asarray(self_index, dtype=np.int32)
     rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
@@ -132,6 +135,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
         neighbour_fit_kernel,
         dim=n,
         inputs=[
+            wp.array(query_order, dtype=wp.int32, device=device),
             wp.array(xy, dtype=wp.float64, device=device),
             wp.array(np.ascontiguousarray(uv, dtype=np.float64), dtype=wp.float64, device=device),
             wp.array(query, dtype=wp.float64, device=device),
