@@ -228,9 +228,13 @@ def cut_dot_map(
     bg: wp.float64,
     hc: int,
     k: int,
+    full: int,
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero."""
+    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero.
+
+    Without ``full`` only the peak and its four neighbours are cut (what the three-point fit needs), the
+    rest of the map is zero."""
     c = 2 * hc + 1
     rr = chosen // w
     rc = chosen % w
@@ -239,7 +243,8 @@ def cut_dot_map(
             qr = rr + a - hc
             qc = rc + b - hc
             val = wp.float64(0.0)
-            if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            wanted = full != 0 or (a == hc and b >= hc - 1 and b <= hc + 1) or (b == hc and a >= hc - 1 and a <= hc + 1)
+            if wanted and chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
                 l = lab[i, qr * w + qc]
                 if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
                     val = win[i, qr * w + qc] - bg
@@ -268,13 +273,14 @@ def measure_windows_kernel(
     area: wp.array2d(dtype=wp.int32),
     roots: wp.array2d(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
+    full_maps: int,
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
     """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
     (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
-    neighbouring pixels).
+    neighbouring pixels); without ``full_maps`` only the map's centre cross (``cut_dot_map``).
 
     ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
@@ -299,7 +305,7 @@ def measure_windows_kernel(
         out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
         out_float[i, 1] = win[s, chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, dotmap)
+    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, full_maps, dotmap)
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------
@@ -937,9 +943,7 @@ def neighbour_fit_kernel(
 
 
 @wp.func
-def bilinear_field(
-    field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int, tx: wp.float64
-) -> wp.float64:
+def bilinear_field(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int, tx: wp.float64) -> wp.float64:
     """Bilinear interpolation of a tile field in cell (iy, ix) at fractions (ty, tx) (beyond [0, 1]:
     linear extrapolation)."""
     iy1 = wp.min(iy + 1, field.shape[0] - 1)

@@ -399,7 +399,9 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     residual = image
     ref_peak = None
     measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
-    extra = {"device": device} if settings.backend == "warp" else {}
+    method = "gaussian3" if settings.centroid == "model" else settings.centroid
+    # the three-point start needs only the centre of the dot maps
+    extra = {"device": device, "full_maps": keep_maps or method != "gaussian3"} if settings.backend == "warp" else {}
     for it in range(1, max_iterations + 1):
         sel = np.flatnonzero(todo)
         if sel.size == 0:
@@ -444,8 +446,7 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         if win_idx.size == 0:
             break
         # The model fit (centroid="model") starts from the three-point estimate, which needs only the
-        # peak pixel and its four neighbours: the 3x3 centre of the maps.
-        method = "gaussian3" if settings.centroid == "model" else settings.centroid
+        # peak pixel and its four neighbours.
         if method == "gaussian3":
             flat = m["dotmap"].reshape(len(sel), c * c)
             k0 = map_half * c + map_half

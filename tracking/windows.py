@@ -148,12 +148,16 @@ def measure_windows(
     use_minimum=False,
     saturation=np.inf,
     fill=0.0,
+    full_maps=True,
     device=None,
 ):
     """Same as :func:`measure_windows_numpy`, as a Warp kernel with one thread per dot.
 
     Parameters
     ----------
+    full_maps : bool, keyword-only
+        False: only the centre of each dot map (the peak pixel and its four neighbours) is cut, the
+        other map pixels are zero (what the three-point fit needs, for less work).
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -223,6 +227,7 @@ def measure_windows(
             area,
             roots,
             wp.array(order, dtype=wp.int32, device=device),
+            int(bool(full_maps)),
             out_i,
             out_f,
             dotmap,
