@@ -19,7 +19,7 @@ from .kernels import neighbour_fit_kernel
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 
 #: Points per cell, on average, of the kernel's cell grid.
-_POINTS_PER_CELL = 3.0
+_POINTS_PER_CELL = 4.5
 
 
 def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
