@@ -18,13 +18,12 @@ the array-program reference that defines the result.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .kernels import dot_profiles_kernel, fit_dot_step_kernel, render_dots_kernel
+from .workspace import scratch
 
 __all__ = [
     "PARAMS",
@@ -361,23 +360,6 @@ def fit_dots_numpy(
     return p, ok, shared
 
 
-_workspace = threading.local()
-
-
-def _model_images(shape, device):
-    """The fixed-point model images, kept from the last call of this thread with the same shape and device.
-
-    They are 32 MB for a 1024x1024 pair: allocating them afresh costs more than the fit's own
-    arithmetic (the operating system maps and clears new pages on first touch), so each thread keeps
-    one set. Their content is undefined; every step clears what it uses.
-    """
-    key = (str(wp.get_device(device)), tuple(shape))
-    cached = getattr(_workspace, "models", None)
-    if cached is None or cached[0] != key:
-        _workspace.models = cached = (key, wp.empty(shape, dtype=wp.int64, device=device))
-    return cached[1]
-
-
 def _on_device(a, dtype, device):
     """A Warp array of ``a``; on the CPU it shares the NumPy array's memory (no copy)."""
     a = np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32)
@@ -428,13 +410,16 @@ def fit_dots(
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    models = _model_images((2, len(stack), *stack[0].shape), device)
-    cur = wp.array(p, dtype=wp.float64, device=device)
-    nxt = wp.array(p, dtype=wp.float64, device=device)
-    start = wp.array(p, dtype=wp.float64, device=device)
-    ok = wp.zeros(n, dtype=wp.int32, device=device)
-    shared = wp.empty((n, 2), dtype=wp.float64, device=device)
-    prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
+    # Working arrays from the thread's workspace (results are copied out at the end).
+    models = scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device)
+    cur = scratch("fit_params", (n, 5), wp.float64, device)
+    nxt = scratch("fit_params_next", (n, 5), wp.float64, device)
+    start = scratch("fit_start", (n, 5), wp.float64, device)
+    for a in (cur, nxt, start):
+        a.assign(p)
+    ok = scratch("fit_ok", (n,), wp.int32, device)
+    shared = scratch("fit_shared", (n, 2), wp.float64, device)
+    prof = scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
     peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
     for it in range(iterations):
@@ -476,4 +461,4 @@ def fit_dots(
             device=device,
         )
         cur, nxt = nxt, cur
-    return cur.numpy()[back], ok.numpy().astype(bool)[back], shared.numpy()[back]
+    return cur.numpy()[back], ok.numpy()[back].astype(bool), shared.numpy()[back]

@@ -27,6 +27,7 @@ from synthbos.correlation.peak import three_point_offset
 from synthbos.correlation.xcorr import cross_correlate
 
 from .kernels import deform_nearest_kernel
+from .workspace import scratch
 
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
@@ -204,7 +205,7 @@ def _deform_nearest(image, valid, field, device):
 
     Returns the moved image, the weights of its pixels (1 where the source pixel lies inside the image,
     times ``valid`` there; None where that is every pixel and there is no ``valid``) and the rounded
-    shifts u and v (int32 images).
+    shifts u and v (int32 images): views of the thread's workspace, valid until the next call.
     """
     h, w = image.shape
     u, v, cy, cx = field
@@ -215,9 +216,10 @@ def _deform_nearest(image, valid, field, device):
 
     row_cell, row_frac = _cell(np.arange(h), cy)
     col_cell, col_frac = _cell(np.arange(w), cx)
-    out = wp.empty((h, w), dtype=wp.float32, device=device)
-    out_valid = wp.empty((h, w), dtype=wp.float32, device=device)
-    shift = wp.empty((2, h, w), dtype=wp.int32, device=device)
+    # from the thread's workspace: the views returned are used within the pass only
+    out = scratch("predict_moved", (h, w), wp.float32, device)
+    out_valid = scratch("predict_weights", (h, w), wp.float32, device)
+    shift = scratch("predict_shift", (2, h, w), wp.int32, device)
     outside = wp.zeros(1, dtype=wp.int32, device=device)
     img = on_device(image, wp.float32)
     wp.launch(
@@ -382,15 +384,13 @@ def predict_displacement(
             prev_v = _bilinear(field[1], field[2], field[3], cy[:, None], cx[None, :])
         planes, usable, energy = _correlate_tiles(a, bd, valid, vd, ys, xs, size)
         half = size // 2
-        search = planes
-        if field is not None:  # the coarser pass placed the window: look for the residual within a quarter
-            q = size // 4
-            search = np.full_like(planes, -np.inf)
-            inner = np.s_[..., half - q : half + q + 1, half - q : half + q + 1]
-            search[inner] = planes[inner]
         pl = planes.reshape(-1, size, size)
-        idx = np.argmax(search.reshape(len(pl), -1), axis=1)
-        r, c = np.divmod(idx, size)
+        if field is None:
+            r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
+        else:  # the coarser pass placed the window: look for the residual within a quarter
+            lo, m = half - size // 4, 2 * (size // 4) + 1
+            r, c = np.divmod(np.argmax(pl[:, lo : lo + m, lo : lo + m].reshape(len(pl), -1), axis=1), m)
+            r, c = r + lo, c + lo
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
         rv = (r + three_point_offset(pl[i, r - 1, c], pl[i, r, c], pl[i, r + 1, c]) - half).reshape(usable.shape)
