@@ -65,7 +65,9 @@ def load_window(
 
 @wp.func
 def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Median of the window's ``4 (w - 1)`` edge pixels (insertion sort in ``ring[i]``)."""
+    """Median of the window's ``4 (w - 1)`` edge pixels: the ``2 (w - 1) + 1`` smallest kept sorted in
+    ``ring[i]`` by insertion (larger ones are dropped), the middle two averaged."""
+    keep = 2 * (w - 1) + 1
     n = int(0)
     for r in range(w):
         step = int(1)
@@ -73,13 +75,14 @@ def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.arra
             step = w - 1
         for c in range(0, w, step):
             v = win[i, r * w + c]
-            k = n - 1
-            while k >= 0 and ring[i, k] > v:
-                ring[i, k + 1] = ring[i, k]
-                k -= 1
-            ring[i, k + 1] = v
-            n += 1
-    return (ring[i, n / 2 - 1] + ring[i, n / 2]) / wp.float64(2.0)
+            if n < keep or v < ring[i, keep - 1]:
+                k = wp.min(n, keep - 1) - 1
+                while k >= 0 and ring[i, k] > v:
+                    ring[i, k + 1] = ring[i, k]
+                    k -= 1
+                ring[i, k + 1] = v
+                n = wp.min(n + 1, keep)
+    return (ring[i, keep - 2] + ring[i, keep - 1]) / wp.float64(2.0)
 
 
 @wp.func
