@@ -97,34 +97,46 @@ def segment_window(
 ) -> int:
     """Label each pixel above ``thr`` with its blob's peak pixel by steepest ascent (-1 below).
 
-    A pixel's uphill step goes to the brightest of it and its 8 neighbours (ties: the higher index).
+    A pixel's uphill step goes to the brightest of it and its 8 neighbours (ties: the higher index),
+    taken as the brightest of the three rows' brightest of three (``area`` holds those first).
     Fills ``area[i, root]`` with each blob's pixel count and ``roots[i, :nblobs]`` with the peak
     pixels in increasing order; returns the number of blobs.
     """
+    for r in range(w):
+        for c in range(w):
+            p = r * w + c
+            best = p
+            bv = win[i, p]
+            if c > 0:
+                if win[i, p - 1] > bv:
+                    best = p - 1
+                    bv = win[i, p - 1]
+            if c < w - 1:
+                if win[i, p + 1] >= bv:
+                    best = p + 1
+            area[i, p] = best
     nblobs = int(0)
     for r in range(w):
         r0 = wp.max(r - 1, 0)
         r1 = wp.min(r + 1, w - 1)
         for c in range(w):
             p = r * w + c
-            area[i, p] = 0
             best = int(-1)
             bv = win[i, p]
             if bv > thr:
                 best = p
-                c0 = wp.max(c - 1, 0)
-                c1 = wp.min(c + 1, w - 1)
                 for rr in range(r0, r1 + 1):
-                    for cc in range(c0, c1 + 1):
-                        q = rr * w + cc
-                        vq = win[i, q]
-                        if vq > bv or (vq == bv and q > best):
-                            best = q
-                            bv = vq
+                    q = area[i, rr * w + c]
+                    vq = win[i, q]
+                    if vq > bv or (vq == bv and q > best):
+                        best = q
+                        bv = vq
                 if best == p:
                     roots[i, nblobs] = p
                     nblobs += 1
             lab[i, p] = best
+    for p in range(w * w):
+        area[i, p] = 0
     for p in range(w * w):
         if lab[i, p] >= 0:
             r = lab[i, p]
