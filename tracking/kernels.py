@@ -432,7 +432,9 @@ def render_dots_kernel(
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
     a = params[i, 2]
-    cs = common_shape(params, partner, i)
+    cs = wp.vec2d(a, params[i, 3])
+    if common != 0:  # the partner's shape only where it is drawn (a scattered read)
+        cs = common_shape(params, partner, i)
     ds = cs[1] - params[i, 3]
     for r in range(n):
         row = oy + r
