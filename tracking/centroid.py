@@ -107,7 +107,20 @@ def centroid_gaussian3(windows, *, peak_rc=None):
     """
     windows = np.asarray(windows, dtype=np.float64)
     r, c = _peak_index(windows, peak_rc)
-    cen, left, right, up, down = _neighbours(windows, r, c)
+    dx, dy, eta, i0, ok = gaussian3_from_samples(*_neighbours(windows, r, c))
+    return c + dx, r + dy, eta, i0, ok
+
+
+def gaussian3_from_samples(cen, left, right, up, down):
+    """:func:`centroid_gaussian3` from the five samples: the peak and its left, right, upper and lower
+    neighbours (0 outside the window).
+
+    Returns
+    -------
+    dx, dy, eta, i0, ok : (N,) arrays
+        Offsets from the peak pixel, then as :func:`centroid_gaussian3`.
+    """
+    cen, left, right, up, down = (np.asarray(a, dtype=np.float64) for a in (cen, left, right, up, down))
     dx = three_point_offset(left, cen, right, method="gaussian")
     dy = three_point_offset(up, cen, down, method="gaussian")
     ok = (cen > 0) & (left > 0) & (right > 0) & (up > 0) & (down > 0)
@@ -121,7 +134,7 @@ def centroid_gaussian3(windows, *, peak_rc=None):
     eta = np.sqrt(eta2)
     with np.errstate(invalid="ignore", over="ignore"):
         i0 = np.where(ok, cen * np.exp((dx**2 + dy**2) / np.where(ok, 2 * eta2, 1.0)), cen)
-    return c + dx, r + dy, eta, i0, ok
+    return dx, dy, eta, i0, ok
 
 
 def centroid_gaussian4(windows, *, peak_rc=None):

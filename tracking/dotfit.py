@@ -23,6 +23,7 @@ import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .kernels import dot_profiles_kernel, fit_dot_step_kernel, render_dots_kernel
+from .workspace import scratch
 
 __all__ = [
     "PARAMS",
@@ -409,13 +410,16 @@ def fit_dots(
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    models = wp.empty((2, len(stack), *stack[0].shape), dtype=wp.int64, device=device)
-    cur = wp.array(p, dtype=wp.float64, device=device)
-    nxt = wp.array(p, dtype=wp.float64, device=device)
-    start = wp.array(p, dtype=wp.float64, device=device)
-    ok = wp.zeros(n, dtype=wp.int32, device=device)
-    shared = wp.empty((n, 2), dtype=wp.float64, device=device)
-    prof = wp.empty((n, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
+    # Working arrays from the thread's workspace (results are copied out at the end).
+    models = scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device)
+    cur = scratch("fit_params", (n, 5), wp.float64, device)
+    nxt = scratch("fit_params_next", (n, 5), wp.float64, device)
+    start = scratch("fit_start", (n, 5), wp.float64, device)
+    for a in (cur, nxt, start):
+        a.assign(p)
+    ok = scratch("fit_ok", (n,), wp.int32, device)
+    shared = scratch("fit_shared", (n, 2), wp.float64, device)
+    prof = scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
     peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
     for it in range(iterations):
@@ -445,6 +449,7 @@ def fit_dots(
                 sat,
                 int(half),
                 int(render_half),
+                int(last),
                 float(max_move),
                 float(sigma_range[0]),
                 float(sigma_range[1]),
@@ -456,4 +461,4 @@ def fit_dots(
             device=device,
         )
         cur, nxt = nxt, cur
-    return cur.numpy()[back], ok.numpy().astype(bool)[back], shared.numpy()[back]
+    return cur.numpy()[back], ok.numpy()[back].astype(bool), shared.numpy()[back]

@@ -37,20 +37,6 @@ class NormalEquations:
 
 
 @wp.func
-def ring_pixel(k: int, w: int) -> int:
-    """Flat index of the k-th pixel on the edge of a w x w window (top row, bottom row, then the sides)."""
-    if k < w:
-        return k
-    if k < 2 * w:
-        return (w - 1) * w + (k - w)
-    k2 = k - 2 * w
-    row = 1 + k2 // 2
-    if k2 % 2 == 0:
-        return row * w
-    return row * w + (w - 1)
-
-
-@wp.func
 def load_window(
     image: wp.array2d(dtype=wp.float64),
     fill: wp.float64,
@@ -63,52 +49,40 @@ def load_window(
     """Copy the window at column ``ox``, row ``oy`` into ``win[i]`` (``fill`` outside); return (min, max)."""
     vmin = wp.float64(1.0e300)
     vmax = wp.float64(-1.0e300)
-    for p in range(w * w):
-        y = oy + p // w
-        x = ox + p % w
-        v = fill
-        if y >= 0 and y < image.shape[0] and x >= 0 and x < image.shape[1]:
-            v = image[y, x]
-        win[i, p] = v
-        vmin = wp.min(vmin, v)
-        vmax = wp.max(vmax, v)
+    for r in range(w):
+        y = oy + r
+        row_in = y >= 0 and y < image.shape[0]
+        for c in range(w):
+            x = ox + c
+            v = fill
+            if row_in and x >= 0 and x < image.shape[1]:
+                v = image[y, x]
+            win[i, r * w + c] = v
+            vmin = wp.min(vmin, v)
+            vmax = wp.max(vmax, v)
     return wp.vec2d(vmin, vmax)
 
 
 @wp.func
 def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Median of the window's edge pixels (insertion sort in ``ring[i]``; ``4 (w - 1)`` is small)."""
-    n = 4 * (w - 1)
-    for j in range(n):
-        ring[i, j] = win[i, ring_pixel(j, w)]
-    for j in range(1, n):
-        v = ring[i, j]
-        k = j - 1
-        while k >= 0 and ring[i, k] > v:
-            ring[i, k + 1] = ring[i, k]
-            k -= 1
-        ring[i, k + 1] = v
-    return (ring[i, n / 2 - 1] + ring[i, n / 2]) / wp.float64(2.0)
-
-
-@wp.func
-def uphill_neighbour(win: wp.array2d(dtype=wp.float64), i: int, w: int, p: int) -> int:
-    """The brightest of pixel p and its 8 neighbours (ties: the higher index)."""
-    pr = p // w
-    pc = p % w
-    best = p
-    bv = win[i, p]
-    for dy in range(-1, 2):
-        for dx in range(-1, 2):
-            r = pr + dy
-            c = pc + dx
-            if r >= 0 and r < w and c >= 0 and c < w:
-                q = r * w + c
-                vq = win[i, q]
-                if vq > bv or (vq == bv and q > best):
-                    best = q
-                    bv = vq
-    return best
+    """Median of the window's ``4 (w - 1)`` edge pixels: the ``2 (w - 1) + 1`` smallest kept sorted in
+    ``ring[i]`` by insertion (larger ones are dropped), the middle two averaged."""
+    keep = 2 * (w - 1) + 1
+    n = int(0)
+    for r in range(w):
+        step = int(1)
+        if r != 0 and r != w - 1:
+            step = w - 1
+        for c in range(0, w, step):
+            v = win[i, r * w + c]
+            if n < keep or v < ring[i, keep - 1]:
+                k = wp.min(n, keep - 1) - 1
+                while k >= 0 and ring[i, k] > v:
+                    ring[i, k + 1] = ring[i, k]
+                    k -= 1
+                ring[i, k + 1] = v
+                n = wp.min(n + 1, keep)
+    return (ring[i, keep - 2] + ring[i, keep - 1]) / wp.float64(2.0)
 
 
 @wp.func
@@ -119,17 +93,50 @@ def segment_window(
     thr: wp.float64,
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
 ) -> int:
     """Label each pixel above ``thr`` with its blob's peak pixel by steepest ascent (-1 below).
 
-    Fills ``area[i, root]`` with each blob's pixel count and returns the number of blobs.
+    A pixel's uphill step goes to the brightest of it and its 8 neighbours (ties: the higher index),
+    taken as the brightest of the three rows' brightest of three (``area`` holds those first).
+    Fills ``area[i, root]`` with each blob's pixel count and ``roots[i, :nblobs]`` with the peak
+    pixels in increasing order; returns the number of blobs.
     """
+    for r in range(w):
+        for c in range(w):
+            p = r * w + c
+            best = p
+            bv = win[i, p]
+            if c > 0:
+                if win[i, p - 1] > bv:
+                    best = p - 1
+                    bv = win[i, p - 1]
+            if c < w - 1:
+                if win[i, p + 1] >= bv:
+                    best = p + 1
+            area[i, p] = best
+    nblobs = int(0)
+    for r in range(w):
+        r0 = wp.max(r - 1, 0)
+        r1 = wp.min(r + 1, w - 1)
+        for c in range(w):
+            p = r * w + c
+            best = int(-1)
+            bv = win[i, p]
+            if bv > thr:
+                best = p
+                for rr in range(r0, r1 + 1):
+                    q = area[i, rr * w + c]
+                    vq = win[i, q]
+                    if vq > bv or (vq == bv and q > best):
+                        best = q
+                        bv = vq
+                if best == p:
+                    roots[i, nblobs] = p
+                    nblobs += 1
+            lab[i, p] = best
     for p in range(w * w):
         area[i, p] = 0
-        lab[i, p] = -1
-        if win[i, p] > thr:
-            lab[i, p] = uphill_neighbour(win, i, w, p)
-    nblobs = int(0)
     for p in range(w * w):
         if lab[i, p] >= 0:
             r = lab[i, p]
@@ -137,8 +144,6 @@ def segment_window(
                 r = lab[i, r]
             lab[i, p] = r
             area[i, r] = area[i, r] + 1
-            if r == p:
-                nblobs += 1
     return nblobs
 
 
@@ -153,8 +158,9 @@ def peak_distance(p: int, w: int, lx: wp.float64, ly: wp.float64) -> wp.float64:
 @wp.func
 def choose_blob(
     win: wp.array2d(dtype=wp.float64),
-    lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    nblobs: int,
     i: int,
     w: int,
     bg: wp.float64,
@@ -168,37 +174,37 @@ def choose_blob(
     """Peak pixel of the blob with the best Eq. 1 score among those within ``radius``; -1 if none.
 
     Eq. 1 of Rajendran, Bane and Vlachos (2019); area, peak and distance are scaled by their maxima
-    over the candidates, and the first best wins.
+    over the candidates, and the first best (in pixel order) wins.
     """
     ma = wp.float64(-1.0e300)
     mi = wp.float64(-1.0e300)
     md = wp.float64(-1.0e300)
-    for p in range(w * w):
-        if lab[i, p] == p:
-            dist = peak_distance(p, w, lx, ly)
-            if dist <= radius:
-                ma = wp.max(ma, wp.float64(area[i, p]))
-                mi = wp.max(mi, win[i, p] - bg)
-                md = wp.max(md, dist)
+    for k in range(nblobs):
+        p = roots[i, k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ma = wp.max(ma, wp.float64(area[i, p]))
+            mi = wp.max(mi, win[i, p] - bg)
+            md = wp.max(md, dist)
     chosen = int(-1)
     best = wp.float64(-1.0e300)
-    for p in range(w * w):
-        if lab[i, p] == p:
-            dist = peak_distance(p, w, lx, ly)
-            if dist <= radius:
-                ta = wp.float64(1.0)
-                ti = wp.float64(1.0)
-                td = wp.float64(1.0)
-                if ma > wp.float64(0.0):
-                    ta = wp.float64(area[i, p]) / ma
-                if mi > wp.float64(0.0):
-                    ti = (win[i, p] - bg) / mi
-                if md > wp.float64(0.0):
-                    td = wp.float64(1.0) - dist / md
-                score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
-                if score > best:
-                    best = score
-                    chosen = p
+    for k in range(nblobs):
+        p = roots[i, k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ta = wp.float64(1.0)
+            ti = wp.float64(1.0)
+            td = wp.float64(1.0)
+            if ma > wp.float64(0.0):
+                ta = wp.float64(area[i, p]) / ma
+            if mi > wp.float64(0.0):
+                ti = (win[i, p] - bg) / mi
+            if md > wp.float64(0.0):
+                td = wp.float64(1.0) - dist / md
+            score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+            if score > best:
+                best = score
+                chosen = p
     return chosen
 
 
@@ -237,9 +243,13 @@ def cut_dot_map(
     bg: wp.float64,
     hc: int,
     k: int,
+    full: int,
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero."""
+    """Dot map ``dotmap[k]`` centred on the chosen peak: the blob and its rim minus background, others zero.
+
+    Without ``full`` only the peak and its four neighbours are cut (what the three-point fit needs), the
+    rest of the map is zero."""
     c = 2 * hc + 1
     rr = chosen // w
     rc = chosen % w
@@ -248,7 +258,8 @@ def cut_dot_map(
             qr = rr + a - hc
             qc = rc + b - hc
             val = wp.float64(0.0)
-            if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            wanted = full != 0 or (a == hc and b >= hc - 1 and b <= hc + 1) or (b == hc and a >= hc - 1 and a <= hc + 1)
+            if wanted and chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
                 l = lab[i, qr * w + qc]
                 if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
                     val = win[i, qr * w + qc] - bg
@@ -275,16 +286,21 @@ def measure_windows_kernel(
     ring: wp.array2d(dtype=wp.float64),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    full_maps: int,
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
 ):
-    """Segment the window of dot i, choose its blob with Eq. 1 and cut out its dot map.
+    """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
+    (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
+    neighbouring pixels); without ``full_maps`` only the map's centre cross (``cut_dot_map``).
 
-    ``win``, ``ring``, ``lab`` and ``area`` are scratch rows: thread i uses row ``i % rows`` (one row is
+    ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
     """
-    i = wp.tid()
+    i = order[wp.tid()]
     s = i % win.shape[0]
     w = 2 * half + 1
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
@@ -292,8 +308,8 @@ def measure_windows_kernel(
     if use_min == 0:
         bg = edge_median(win, s, w, ring)
     thr = bg + wp.max(frac * (mm[1] - bg), floor)
-    nblobs = segment_window(win, s, w, thr, lab, area)
-    chosen = choose_blob(win, lab, area, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
+    nblobs = segment_window(win, s, w, thr, lab, area, roots)
+    chosen = choose_blob(win, area, roots, nblobs, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
     out_int[i, 2] = 0
@@ -304,7 +320,7 @@ def measure_windows_kernel(
         out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
         out_float[i, 1] = win[s, chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, dotmap)
+    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, full_maps, dotmap)
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------
@@ -339,9 +355,18 @@ def integrated_profile(
     z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
     g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
     e0 = erf_from_gauss(z0 * k0, g0)
+    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2) (h = 1 / s), a ratio that itself
+    # changes by exp(-h^2) per edge: three exponentials per axis, unless the first ratio would overflow
+    # or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
+    direct = z0 < wp.float64(-20.0) or z0 * inv < wp.float64(-200.0)
+    ratio = wp.exp(-z0 * inv - wp.float64(0.5) * inv * inv)
+    step = wp.exp(-inv * inv)
     for k in range(n):
         z1 = z0 + inv
-        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        g1 = g0 * ratio
+        ratio = ratio * step
+        if direct:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
         e1 = erf_from_gauss(z1 * k0, g1)
         p = scale * (e1 - e0)
         prof[i, row, k] = p
@@ -407,7 +432,9 @@ def render_dots_kernel(
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
     a = params[i, 2]
-    cs = common_shape(params, partner, i)
+    cs = wp.vec2d(a, params[i, 3])
+    if common != 0:  # the partner's shape only where it is drawn (a scattered read)
+        cs = common_shape(params, partner, i)
     ds = cs[1] - params[i, 3]
     for r in range(n):
         row = oy + r
@@ -529,6 +556,159 @@ def normal_matrix(
 
 
 @wp.func
+def window_is_whole(
+    image: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), i: int, half: int, sat: wp.float64
+) -> bool:
+    """True where dot i's ``2 half + 1`` window lies inside the image and holds no pixel at or above ``sat``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    if ox < 0 or oy < 0 or ox + n > image.shape[1] or oy + n > image.shape[0]:
+        return False
+    if sat < wp.float64(1.0e300):
+        for rr in range(n):
+            for cc in range(n):
+                if image[oy + rr, ox + cc] >= sat:
+                    return False
+    return True
+
+
+@wp.func
+def normal_matrix_separable(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array4d(dtype=wp.int64),
+    inv_scale: wp.float64,
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    common: int,
+    prof: wp.array3d(dtype=wp.float64),
+) -> NormalEquations:
+    """``normal_matrix`` for a whole window (``window_is_whole``): every Jacobian column is a product of
+    an x and a y profile term, so ``J^T J`` comes from 1-D sums over the rows and columns, and ``J^T r``
+    from one pass that sums each row against the x terms first. ``J^T r'`` only if ``common``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) ...
+    xpp = zero
+    xdd = zero
+    xss = zero
+    xpd = zero
+    xps = zero
+    xds = zero
+    xp = zero
+    xd = zero
+    xs = zero
+    for k in range(n):
+        p = prof[i, 0, k + skip]
+        d = prof[i, 1, k + skip]
+        sg = prof[i, 2, k + skip]
+        xpp += p * p
+        xdd += d * d
+        xss += sg * sg
+        xpd += p * d
+        xps += p * sg
+        xds += d * sg
+        xp += p
+        xd += d
+        xs += sg
+    # ... and of the y terms
+    ypp = zero
+    ydd = zero
+    yss = zero
+    ypd = zero
+    yps = zero
+    yds = zero
+    yp = zero
+    yd = zero
+    ys = zero
+    for k in range(n):
+        p = prof[i, 3, k + skip]
+        d = prof[i, 4, k + skip]
+        sg = prof[i, 5, k + skip]
+        ypp += p * p
+        ydd += d * d
+        yss += sg * sg
+        ypd += p * d
+        yps += p * sg
+        yds += d * sg
+        yp += p
+        yd += d
+        ys += sg
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
+    for rr in range(n):
+        row = oy + rr
+        r0 = zero
+        r1 = zero
+        r2 = zero
+        r3 = zero
+        t0 = zero
+        t1 = zero
+        t3 = zero
+        for cc in range(n):
+            col = ox + cc
+            res = image[row, col] - b - wp.float64(models[0, f, row, col]) * inv_scale
+            r0 += prof[i, 1, cc + skip] * res
+            r1 += prof[i, 0, cc + skip] * res
+            r2 += prof[i, 2, cc + skip] * res
+            r3 += res
+            if common != 0:
+                res2 = image[row, col] - b - wp.float64(models[1, f, row, col]) * inv_scale
+                t0 += prof[i, 1, cc + skip] * res2
+                t1 += prof[i, 0, cc + skip] * res2
+                t3 += res2
+        py = prof[i, 3, rr + skip]
+        dy = prof[i, 4, rr + skip]
+        sy = prof[i, 5, rr + skip]
+        g0 += py * r0
+        g1 += dy * r1
+        g2 += py * r1
+        g3 += sy * r1 + py * r2
+        g4 += r3
+        h0 += py * t0
+        h1 += dy * t1
+        h4 += t3
+    a2 = a * a
+    eps = wp.float64(1.0e-12)
+    s00 = a2 * ypp * xdd
+    s01 = a2 * ypd * xpd
+    s02 = a * ypp * xpd
+    s03 = a2 * (yps * xpd + ypp * xds)
+    s04 = a * yp * xd
+    s11 = a2 * ydd * xpp
+    s12 = a * ypd * xpp
+    s13 = a2 * (yds * xpp + ypd * xps)
+    s14 = a * yd * xp
+    s22 = ypp * xpp
+    s23 = a * (yps * xpp + ypp * xps)
+    s24 = yp * xp
+    s33 = a2 * (yss * xpp + wp.float64(2.0) * yps * xps + ypp * xss)
+    s34 = a * (ys * xp + yp * xs)
+    s44 = wp.float64(n * n)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(a * g0, a * g1, g4)
+    ne.g2 = wp.vec2d(g2, a * g3)
+    ne.h1 = wp.vec3d(a * h0, a * h1, h4)
+    return ne
+
+
+@wp.func
 def limited(step: vec5d) -> vec5d:
     """The step scaled so that the position moves at most half a pixel per axis."""
     big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
@@ -550,6 +730,7 @@ def fit_dot_step_kernel(
     saturation: wp.array(dtype=wp.float64),
     half: int,
     render_half: int,
+    common: int,
     max_move: wp.float64,
     smin: wp.float64,
     smax: wp.float64,
@@ -563,17 +744,26 @@ def fit_dot_step_kernel(
     ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
 
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
-    at the new parameters ``out``. ``shared_xy`` gets the position of the step for position and
-    background against the common-shape model image (NaN without a partner).
+    at the new parameters ``out``, except in the last step (``common``), after which none are needed.
+    If ``common``, ``shared_xy`` gets the position of the step for position and background against
+    the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
+    is not drawn).
     """
     i = wp.tid()
     p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
     f = frame[i]
+    skip = render_half - half
     ne = NormalEquations()
     if f == 0:
-        ne = normal_matrix(image0, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
+        if window_is_whole(image0, params, i, half, saturation[f]):
+            ne = normal_matrix_separable(image0, models, inv_scale, f, params, i, half, skip, common, prof)
+        else:
+            ne = normal_matrix(image0, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
     else:
-        ne = normal_matrix(image1, models, inv_scale, f, params, i, half, render_half - half, saturation[f], prof)
+        if window_is_whole(image1, params, i, half, saturation[f]):
+            ne = normal_matrix_separable(image1, models, inv_scale, f, params, i, half, skip, common, prof)
+        else:
+            ne = normal_matrix(image1, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
     # Block elimination: the shape step from the Schur complement, then position and background.
     pinv = wp.inverse(ne.p)
     pq = pinv * ne.q
@@ -592,10 +782,241 @@ def fit_dot_step_kernel(
     nan = wp.float64(wp.nan)
     shared_xy[i, 0] = nan
     shared_xy[i, 1] = nan
-    if partner[i] >= 0:
+    if common != 0 and partner[i] >= 0:
         shared_xy[i, 0] = p[0] + qs[0]
         shared_xy[i, 1] = p[1] + qs[1]
     for k in range(5):
         out[i, k] = q[k]
     ok[i] = int(good)
-    dot_profiles(out, i, render_half, prof)
+    if common == 0:  # not the last step: the next one needs the profiles at the new parameters
+        dot_profiles(out, i, render_half, prof)
+
+
+# --- the local linear fit of scattered vectors from each point's nearest neighbours -----------------
+
+
+@wp.func
+def keep_nearest(
+    d: wp.float64, p: int, found: int, s: int, dist: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32)
+) -> int:
+    """Insert point ``p`` at squared distance ``d`` into row ``s`` of the sorted lists of the ``k`` nearest
+    (``k = dist.shape[1]``; ties broken by the lower index, so the set does not depend on the visiting
+    order); return the new count."""
+    k = dist.shape[1]
+    if found == k:
+        if d > dist[s, k - 1] or (d == dist[s, k - 1] and p > idx[s, k - 1]):
+            return found
+    m = found
+    if found == k:
+        m = k - 1
+    while m > 0 and (dist[s, m - 1] > d or (dist[s, m - 1] == d and idx[s, m - 1] > p)):
+        dist[s, m] = dist[s, m - 1]
+        idx[s, m] = idx[s, m - 1]
+        m -= 1
+    dist[s, m] = d
+    idx[s, m] = wp.int32(p)
+    return wp.min(found + 1, k)
+
+
+@wp.kernel
+def neighbour_fit_kernel(
+    query_order: wp.array(dtype=wp.int32),
+    xy: wp.array2d(dtype=wp.float64),
+    uv: wp.array2d(dtype=wp.float64),
+    query: wp.array2d(dtype=wp.float64),
+    self_index: wp.array(dtype=wp.int32),
+    cell_start: wp.array(dtype=wp.int32),
+    cell_points: wp.array(dtype=wp.int32),
+    x0: wp.float64,
+    y0: wp.float64,
+    cell: wp.float64,
+    nx: int,
+    ny: int,
+    dist: wp.array2d(dtype=wp.float64),
+    idx: wp.array2d(dtype=wp.int32),
+    value: wp.array2d(dtype=wp.float64),
+    spread: wp.array(dtype=wp.float64),
+):
+    """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
+    ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
+    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``).
+
+    The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
+    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
+    run). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
+    nearest is closer than the block's edge. Thread t takes query ``query_order[t]`` (queries in the
+    order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
+    of length k: query q uses row ``q % rows``.
+    """
+    q = query_order[wp.tid()]
+    s = q % dist.shape[0]
+    k = dist.shape[1]
+    qx = query[q, 0]
+    qy = query[q, 1]
+    own = self_index[q]
+    cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
+    cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
+    found = int(0)
+    r = int(1)
+    while True:
+        found = int(0)
+        worst = wp.float64(float(0.0))
+        ix0 = wp.max(cx - r, 0)
+        ix1 = wp.min(cx + r, nx - 1)
+        for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
+            for j in range(cell_start[iy * nx + ix0], cell_start[iy * nx + ix1 + 1]):
+                p = int(cell_points[j])
+                dx = xy[p, 0] - qx
+                dy = xy[p, 1] - qy
+                d = dx * dx + dy * dy
+                if p != own and (found < k or d <= worst):
+                    found = keep_nearest(d, p, found, s, dist, idx)
+                    if found == k:
+                        worst = dist[s, k - 1]
+        # distance from q to the nearest edge of the block that is not the edge of the grid
+        edge = wp.float64(1.0e300)
+        if cx - r > 0:
+            edge = wp.min(edge, qx - (x0 + wp.float64(cx - r) * cell))
+        if cx + r < nx - 1:
+            edge = wp.min(edge, x0 + wp.float64(cx + r + 1) * cell - qx)
+        if cy - r > 0:
+            edge = wp.min(edge, qy - (y0 + wp.float64(cy - r) * cell))
+        if cy + r < ny - 1:
+            edge = wp.min(edge, y0 + wp.float64(cy + r + 1) * cell - qy)
+        if found == k and (edge >= wp.float64(1.0e300) or worst <= edge * edge):
+            break
+        if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
+            break  # the block holds every point
+        r += 1
+    # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
+    kf = wp.float64(k)
+    dmx = wp.float64(0.0)
+    dmy = wp.float64(0.0)
+    for j in range(k):
+        dmx += xy[idx[s, j], 0] - qx
+        dmy += xy[idx[s, j], 1] - qy
+    dmx = dmx / kf
+    dmy = dmy / kf
+    sxx = wp.float64(0.0)
+    syy = wp.float64(0.0)
+    sxy = wp.float64(0.0)
+    fmu = wp.float64(0.0)
+    fmv = wp.float64(0.0)
+    for j in range(k):
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        sxx += ex * ex
+        syy += ey * ey
+        sxy += ex * ey
+        fmu += uv[idx[s, j], 0]
+        fmv += uv[idx[s, j], 1]
+    fmu = fmu / kf
+    fmv = fmv / kf
+    ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
+    bxu = wp.float64(0.0)
+    byu = wp.float64(0.0)
+    bxv = wp.float64(0.0)
+    byv = wp.float64(0.0)
+    for j in range(k):
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        gu = uv[idx[s, j], 0] - fmu
+        gv = uv[idx[s, j], 1] - fmv
+        bxu += ex * gu
+        byu += ey * gu
+        bxv += ex * gv
+        byv += ey * gv
+    gxu = (syy * bxu - sxy * byu) / det
+    gyu = (sxx * byu - sxy * bxu) / det
+    gxv = (syy * bxv - sxy * byv) / det
+    gyv = (sxx * byv - sxy * bxv) / det
+    value[q, 0] = fmu - dmx * gxu - dmy * gyu
+    value[q, 1] = fmv - dmx * gxv - dmy * gyv
+    # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
+    for j in range(k):
+        ex = xy[idx[s, j], 0] - qx - dmx
+        ey = xy[idx[s, j], 1] - qy - dmy
+        gu = uv[idx[s, j], 0] - fmu - ex * gxu - ey * gyu
+        gv = uv[idx[s, j], 1] - fmv - ex * gxv - ey * gyv
+        dist[s, j] = gu * gu + gv * gv
+    # median of the distances: insertion sort of the squares (the root is monotonic)
+    for j in range(1, k):
+        v = dist[s, j]
+        m = j - 1
+        while m >= 0 and dist[s, m] > v:
+            dist[s, m + 1] = dist[s, m]
+            m -= 1
+        dist[s, m + 1] = v
+    if k % 2 == 1:
+        spread[q] = wp.sqrt(dist[s, k / 2])
+    else:
+        spread[q] = wp.float64(0.5) * (wp.sqrt(dist[s, k / 2 - 1]) + wp.sqrt(dist[s, k / 2]))
+
+
+# --- the predictor's nearest-pixel window deformation ------------------------------------------------
+
+
+@wp.func
+def bilinear_field(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int, tx: wp.float64) -> wp.float64:
+    """Bilinear interpolation of a tile field in cell (iy, ix) at fractions (ty, tx) (beyond [0, 1]:
+    linear extrapolation)."""
+    iy1 = wp.min(iy + 1, field.shape[0] - 1)
+    ix1 = wp.min(ix + 1, field.shape[1] - 1)
+    one = wp.float64(1.0)
+    top = (one - tx) * field[iy, ix] + tx * field[iy, ix1]
+    bottom = (one - tx) * field[iy1, ix] + tx * field[iy1, ix1]
+    return (one - ty) * top + ty * bottom
+
+
+@wp.kernel
+def deform_nearest_kernel(
+    image: wp.array2d(dtype=wp.float32),
+    valid: wp.array2d(dtype=wp.float32),
+    use_valid: int,
+    field_u: wp.array2d(dtype=wp.float64),
+    field_v: wp.array2d(dtype=wp.float64),
+    row_cell: wp.array(dtype=wp.int32),
+    row_frac: wp.array(dtype=wp.float64),
+    col_cell: wp.array(dtype=wp.int32),
+    col_frac: wp.array(dtype=wp.float64),
+    strip: int,
+    out: wp.array2d(dtype=wp.float32),
+    out_valid: wp.array2d(dtype=wp.float32),
+    shift: wp.array3d(dtype=wp.int32),
+    outside: wp.array(dtype=wp.int32),
+):
+    """Pixels of one row and a strip of ``strip`` columns of ``image`` moved back by the tile field
+    rounded to whole pixels: ``out`` takes the pixel at (row + rint(v), col + rint(u)) (the edge pixel
+    beyond the image), ``out_valid`` 1 where that lies inside the image (times ``valid`` there if
+    ``use_valid``), ``shift`` the two rounded shifts (u, v); ``outside[0]`` counts the pixels whose
+    source lies outside. The field is interpolated bilinearly, each row and column given by its cell of
+    tile centres and fraction in it."""
+    row, k = wp.tid()
+    h = image.shape[0]
+    w = image.shape[1]
+    iy = row_cell[row]
+    ty = row_frac[row]
+    n_out = int(0)
+    for col in range(k * strip, wp.min(k * strip + strip, w)):
+        ix = col_cell[col]
+        tx = col_frac[col]
+        su = int(wp.rint(bilinear_field(field_u, iy, ty, ix, tx)))
+        sv = int(wp.rint(bilinear_field(field_v, iy, ty, ix, tx)))
+        ry = row + sv
+        rx = col + su
+        v = wp.float32(0.0)
+        if ry >= 0 and ry < h and rx >= 0 and rx < w:
+            v = wp.float32(1.0)
+            if use_valid != 0:
+                v = valid[ry, rx]
+        else:
+            n_out += 1
+        out[row, col] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
+        out_valid[row, col] = v
+        shift[0, row, col] = su
+        shift[1, row, col] = sv
+    if n_out > 0:
+        wp.atomic_add(outside, 0, n_out)

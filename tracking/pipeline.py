@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from synthbos import SynthbosError
 
-from .centroid import CENTROID_METHODS, fit_centroids
+from .centroid import CENTROID_METHODS, fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
 from .dotfit import fit_dots, fit_dots_numpy, fit_window_half
@@ -43,6 +43,7 @@ from .identify import (
     static_threshold_identification,
 )
 from .match import MATCH_METHODS, match_multiparametric, match_nearest
+from .neighbours import neighbour_fit, neighbour_fit_numpy
 from .predict import predict_displacement
 from .residual import subtract_gaussians
 from .windows import measure_windows, measure_windows_numpy
@@ -346,9 +347,10 @@ def _check_image(name, image):
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise SynthbosError(f"{name} image must hold real numbers, got dtype {a.dtype}")
     a = np.asarray(a, dtype=np.float64)  # no copy for float64 input: the images are only read
-    if not np.isfinite(a).all():
+    lo, hi = a.min(), a.max()  # NaN propagates to both, inf shows in one
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise SynthbosError(f"{name} image contains non-finite pixels (NaN or inf)")
-    if not a.any():
+    if lo == 0 and hi == 0:
         raise SynthbosError(f"{name} image is all zero")
     return a
 
@@ -360,13 +362,12 @@ def _saturation_level(image, level):
     return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
 
 
-def _identify(
-    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device
-):
+def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
-    dot's peak pixel, and dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
+    dot's peak pixel, and, for the paper's correction (the only user), dotmap (N, c, c): its
+    background-free pixels centred on the peak, others zero.
     """
     h_img, w_img = image.shape
     n = len(pred)
@@ -379,8 +380,10 @@ def _identify(
         "iteration": np.zeros(n, dtype=np.int16),
         "flags": np.zeros(n, dtype=np.int32),
         "root": np.zeros((n, 2), dtype=np.int64),
-        "dotmap": np.zeros((n, c, c)),
     }
+    keep_maps = settings.correction == "paper"
+    if keep_maps:
+        out["dotmap"] = np.zeros((n, c, c))
     finite = np.isfinite(pred).all(axis=1)
     safe = np.where(finite[:, None], pred, -1e9)
     inside = finite & (safe[:, 0] > -0.5) & (safe[:, 0] < w_img - 0.5)
@@ -397,7 +400,9 @@ def _identify(
     residual = image
     ref_peak = None
     measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
-    extra = {"device": device} if settings.backend == "warp" else {}
+    method = "gaussian3" if settings.centroid == "model" else settings.centroid
+    # the three-point start needs only the centre of the dot maps
+    extra = {"device": device, "full_maps": keep_maps or method != "gaussian3"} if settings.backend == "warp" else {}
     for it in range(1, max_iterations + 1):
         sel = np.flatnonzero(todo)
         if sel.size == 0:
@@ -430,24 +435,32 @@ def _identify(
         # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
         absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
         cidx = np.flatnonzero(ok)
-        order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = absroot[order][1:] != absroot[order][:-1]
-        win_idx = order[first]
-        out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
+        claimed = np.sort(absroot[cidx])
+        if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
+            win_idx = cidx  # every blob claimed once (the usual case): nothing to resolve
+        else:
+            order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
+            first = np.ones(len(order), dtype=bool)
+            first[1:] = absroot[order][1:] != absroot[order][:-1]
+            win_idx = order[first]
+            out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
         if win_idx.size == 0:
             break
-        dotmap = m["dotmap"][win_idx]
-        hc = np.full(len(win_idx), map_half)
-        # The model fit (centroid="model") starts from the three-point estimate.
-        method = "gaussian3" if settings.centroid == "model" else settings.centroid
-        xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
+        # The model fit (centroid="model") starts from the three-point estimate, which needs only the
+        # peak pixel and its four neighbours.
+        if method == "gaussian3":
+            flat = m["dotmap"].reshape(len(sel), c * c)
+            k0 = map_half * c + map_half
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(
+                *(flat[win_idx, k0 + k] for k in (0, -1, 1, -c, c))  # peak, left, right, up, down
+            )
+            xw, yw = map_half + dx, map_half + dy
+        else:
+            dotmap = m["dotmap"][win_idx]
+            hc = np.full(len(win_idx), map_half)
+            xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = (
-            ~(np.isfinite(xw) & np.isfinite(yw))
-            | (np.abs(xw - map_half) > 1.0)
-            | (np.abs(yw - map_half) > 1.0)
-        )
+        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
@@ -461,7 +474,8 @@ def _identify(
         out["i0"][g] = i0
         out["iteration"][g] = it
         out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
-        out["dotmap"][g] = dotmap
+        if keep_maps:
+            out["dotmap"][g] = m["dotmap"][win_idx]
         flags = np.zeros(len(g), dtype=np.int32)
         flags[m["nblobs"][win_idx] > 1] |= DotStatus.OVERLAPPED
         flags[~fit_ok] |= DotStatus.FIT_FALLBACK
@@ -502,9 +516,7 @@ def _model_start(found, sigma0):
     idx = np.flatnonzero(np.isfinite(found["x"]))
     # The three-point peak is that of the pixel-broadened dot (variance sigma0^2 + 1/12, same flux).
     peak = found["i0"][idx] * (1.0 + 1.0 / (12.0 * sigma0**2))
-    start = np.stack(
-        [found["x"][idx], found["y"][idx], peak, np.full(idx.size, sigma0), np.zeros(idx.size)], axis=1
-    )
+    start = np.stack([found["x"][idx], found["y"][idx], peak, np.full(idx.size, sigma0), np.zeros(idx.size)], axis=1)
     return idx, start
 
 
@@ -606,47 +618,14 @@ def _standard_candidates(image, settings, noise):
     return np.stack([props["x"], props["y"]], axis=1)
 
 
-def _neighbour_fit(xy, uv, query, self_index, k):
-    """Local linear fit (value at the point) of the vectors ``uv`` at ``xy`` around each ``query`` point
-    from its ``k`` nearest points (``self_index``: the query's own index in ``xy``, or -1), and the
-    median distance of those neighbours' vectors from the fit."""
-    _, idx = cKDTree(xy).query(query, k=k + 1)
-    drop = np.where((idx == self_index[:, None]).any(axis=1), np.argmax(idx == self_index[:, None], axis=1), k)
-    keep = np.ones(idx.shape, dtype=bool)
-    keep[np.arange(len(idx)), drop] = False
-    nb = idx[keep].reshape(len(idx), k)
-    # Least squares of f = c + G d over the neighbours (offsets d from the query point, vectors f) in
-    # closed form: with both centred on their means, G solves the 2x2 normal equations and
-    # c = mean f - G mean d (a tiny ridge, relative to the spread of the offsets, keeps collinear
-    # neighbourhoods finite). Components as separate (n, k) arrays: contiguous and cheap to gather.
-    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
-    ex -= query[:, 0:1]
-    ey -= query[:, 1:2]
-    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
-    ex -= dmx
-    ey -= dmy
-    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
-    ridge = 1e-6 * (k + sxx + syy)
-    sxx += ridge
-    syy += ridge
-    det = sxx * syy - sxy * sxy
-    value = np.empty((len(nb), 2))
-    resid2 = np.zeros(nb.shape)
-    for c in range(2):
-        g = uv[:, c][nb]
-        fm = g.mean(axis=1, keepdims=True)
-        g -= fm
-        bx, by = (ex * g).sum(1), (ey * g).sum(1)
-        gx = ((syy * bx - sxy * by) / det)[:, None]
-        gy = ((sxx * by - sxy * bx) / det)[:, None]
-        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
-        g -= ex * gx
-        g -= ey * gy
-        resid2 += g * g
-    return value, np.median(np.sqrt(resid2), axis=1)
+def _neighbour_fit(xy, uv, query, self_index, settings, device):
+    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``, on the settings' backend."""
+    if settings.backend == "warp":
+        return neighbour_fit(xy, uv, query, self_index, k=settings.outlier_neighbours, device=device)
+    return neighbour_fit_numpy(xy, uv, query, self_index, k=settings.outlier_neighbours)
 
 
-def _confirmed_by_neighbours(out, good, query, settings):
+def _confirmed_by_neighbours(out, good, query, settings, device):
     """True where a queried dot's displacement agrees with the local linear fit of the ``good`` dots'
     (within the outlier test and ``predictor_tolerance``): its neighbours overrule a poor prediction
     (the correlation is least reliable in the windows at the image edge)."""
@@ -662,30 +641,32 @@ def _confirmed_by_neighbours(out, good, query, settings):
 
     gxy, guv = xy_uv(gi)
     qxy, quv = xy_uv(qi)
-    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), k)
+    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), settings, device)
     r = np.linalg.norm(quv - fit, axis=1)
     limit = np.minimum(settings.outlier_threshold * (spread + settings.outlier_epsilon), settings.predictor_tolerance)
     ok[qi] = r <= limit
     return ok
 
 
-def _neighbour_outliers(xy, uv, *, neighbours, epsilon, threshold):
-    """True where a vector is further from the local linear fit of its ``neighbours`` nearest vectors than
-    ``threshold`` times (their median distance from that fit + ``epsilon``): a normalised median test
+def _neighbour_outliers(xy, uv, settings, device):
+    """True where a vector is further from the local linear fit of its ``settings.outlier_neighbours``
+    nearest vectors than ``outlier_threshold`` times (their median distance from that fit +
+    ``outlier_epsilon``; :mod:`tracking.neighbours`): a normalised median test
     for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as in Duncan
     et al. 2010 so that smooth gradients do not count as outliers). Two rounds: the second fits only
     the vectors the first one kept."""
     n = len(xy)
+    neighbours, epsilon, threshold = settings.outlier_neighbours, settings.outlier_epsilon, settings.outlier_threshold
     if n <= neighbours + 3 or not np.isfinite(threshold):
         return np.zeros(n, dtype=bool)
     own = np.arange(n)
-    fit, spread = _neighbour_fit(xy, uv, xy, own, neighbours)
+    fit, spread = _neighbour_fit(xy, uv, xy, own, settings, device)
     bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     clean = np.flatnonzero(~bad)
     if bad.any() and len(clean) > neighbours + 3:
         where = np.full(n, -1)
         where[clean] = np.arange(len(clean))
-        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, neighbours)
+        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, settings, device)
         bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     return bad
 
@@ -976,7 +957,7 @@ def track_pair(
         dv = out["y_gradient"] - out["y"] - pred_uv[:, 1]
         off = found_r & found_g & ~(np.hypot(du, dv) <= settings.predictor_tolerance)
         weak = found_r & ~(pred_q >= settings.predictor_min_correlation)
-        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings)
+        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings, device)
         status[off] |= DotStatus.PREDICTOR_MISMATCH
         status[weak] |= DotStatus.PREDICTOR_WEAK
         matched &= ~(off | weak)
@@ -991,9 +972,8 @@ def track_pair(
     wrong = _neighbour_outliers(
         np.stack([out["x"][mi], out["y"][mi]], axis=1),
         np.stack([out["x_gradient"][mi] - out["x"][mi], out["y_gradient"][mi] - out["y"][mi]], axis=1),
-        neighbours=settings.outlier_neighbours,
-        epsilon=settings.outlier_epsilon,
-        threshold=settings.outlier_threshold,
+        settings,
+        device,
     )
     status[mi[wrong]] |= DotStatus.OUTLIER
     matched[mi[wrong]] = False

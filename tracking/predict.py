@@ -21,9 +21,13 @@ tiles a few times the field's scale of variation.
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 from scipy import ndimage
 from synthbos.correlation.peak import three_point_offset
 from synthbos.correlation.xcorr import cross_correlate
+
+from .kernels import deform_nearest_kernel
+from .workspace import scratch
 
 __all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
 
@@ -115,16 +119,26 @@ def _cell(t, centres):
     return i, f - i
 
 
+def _nanmedian0(stack):
+    """Median over the first axis of the finite values (NaN where there are none): ``np.nanmedian``
+    without its slow path for small arrays (the values sorted, NaN last, and the middle one or two read
+    off by the count of finite values)."""
+    srt = np.sort(stack, axis=0)
+    count = np.isfinite(stack).sum(axis=0)
+    lo = np.maximum(count - 1, 0) // 2
+    hi = np.maximum(count, 1) // 2
+    hi = np.where(count % 2 == 1, lo, hi)
+    a = np.take_along_axis(srt, lo[None], axis=0)[0]
+    b = np.take_along_axis(srt, hi[None], axis=0)[0]
+    return np.where(count > 0, 0.5 * (a + b), np.nan)
+
+
 def _neighbour_median(u):
     """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none)."""
     ny, nx = u.shape
     pad = np.pad(u, 1, constant_values=np.nan)
     stack = [pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    stack = np.stack(stack)
-    out = np.full(u.shape, np.nan)
-    some = np.isfinite(stack).any(axis=0)
-    out[some] = np.nanmedian(stack[:, some], axis=0)
-    return out
+    return _nanmedian0(np.stack(stack))
 
 
 def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
@@ -138,9 +152,8 @@ def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
     pad = np.pad(u, 1, constant_values=np.nan)
     shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
     spread = np.stack([np.abs(pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] - med) for dy, dx in shifts])
-    some = np.isfinite(spread).any(axis=0)
-    scale = np.full(u.shape, np.inf)
-    scale[some] = np.nanmedian(spread[:, some], axis=0)
+    scale = _nanmedian0(spread)
+    scale[np.isnan(scale)] = np.inf
     bad = np.isfinite(med) & ~(np.abs(u - med) <= threshold * (scale + epsilon))
     return np.where(bad, med, u)
 
@@ -186,13 +199,53 @@ def _tiles(image, ys, xs, size):
     return block.reshape(len(ys), size, len(xs), size).swapaxes(1, 2)
 
 
-def _interpolation_matrix(n, centres):
-    """(n, len(centres)) weights of :func:`_bilinear` along one axis at the pixels 0 .. n - 1."""
-    m = np.zeros((n, len(centres)))
-    i, t = _cell(np.arange(n), centres)
-    m[np.arange(n), i] = 1.0 - t
-    m[np.arange(n), np.minimum(i + 1, len(centres) - 1)] += t
-    return m
+def _deform_nearest(image, valid, field, device):
+    """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
+    and rounded to whole pixels at every pixel (Warp kernel ``deform_nearest_kernel``).
+
+    Returns the moved image, the weights of its pixels (1 where the source pixel lies inside the image,
+    times ``valid`` there; None where that is every pixel and there is no ``valid``) and the rounded
+    shifts u and v (int32 images): views of the thread's workspace, valid until the next call.
+    """
+    h, w = image.shape
+    u, v, cy, cx = field
+    strip = 64
+
+    def on_device(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
+
+    row_cell, row_frac = _cell(np.arange(h), cy)
+    col_cell, col_frac = _cell(np.arange(w), cx)
+    # from the thread's workspace: the views returned are used within the pass only
+    out = scratch("predict_moved", (h, w), wp.float32, device)
+    out_valid = scratch("predict_weights", (h, w), wp.float32, device)
+    shift = scratch("predict_shift", (2, h, w), wp.int32, device)
+    outside = wp.zeros(1, dtype=wp.int32, device=device)
+    img = on_device(image, wp.float32)
+    wp.launch(
+        deform_nearest_kernel,
+        dim=(h, (w + strip - 1) // strip),
+        inputs=[
+            img,
+            img if valid is None else on_device(valid, wp.float32),
+            int(valid is not None),
+            on_device(np.asarray(u, dtype=np.float64), wp.float64),
+            on_device(np.asarray(v, dtype=np.float64), wp.float64),
+            on_device(row_cell.astype(np.int32), wp.int32),
+            on_device(row_frac, wp.float64),
+            on_device(col_cell.astype(np.int32), wp.int32),
+            on_device(col_frac, wp.float64),
+            strip,
+            out,
+            out_valid,
+            shift,
+            outside,
+        ],
+        device=device,
+    )
+    weights = None if valid is None and int(outside.numpy()[0]) == 0 else out_valid.numpy()
+    sh = shift.numpy()
+    return out.numpy(), weights, sh[0], sh[1]
 
 
 def _correlate_tiles(a, b, va, vb, ys, xs, size):
@@ -259,7 +312,8 @@ def predict_displacement(
     mask : (H, W) bool array, optional
         True on pixels to exclude: they take no part in the correlation.
     device : str, optional
-        Unused (the predictor runs on the CPU with NumPy's and SciPy's FFTs); kept for the callers.
+        Warp device of the window deformation ("cpu", "cuda:0"; Warp's default when None); the
+        correlations run on the CPU with SciPy's FFTs.
 
     Returns
     -------
@@ -287,7 +341,6 @@ def predict_displacement(
     is the normalised correlation at the predicted displacement (Raffel et al. 2018, section 5.5: a
     correct displacement leaves two nearly identical images).
     """
-    del device
     a = np.asarray(reference, dtype=np.float32)
     b = np.asarray(gradient, dtype=np.float32)
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -314,7 +367,6 @@ def predict_displacement(
         return np.zeros((n, 2)), np.zeros(n)
     valid = None if mask is None else (~np.asarray(mask, dtype=bool)).astype(np.float32)
 
-    rows, cols = np.arange(h), np.arange(w)
     field = None  # (u, v, centres_y, centres_x) of the previous pass
     for size in sizes:
         ys, xs = _tile_grid(h, size), _tile_grid(w, size)
@@ -325,33 +377,20 @@ def predict_displacement(
         else:
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
-            wy, wx = _interpolation_matrix(h, field[2]), _interpolation_matrix(w, field[3])
-            su = np.rint(wy @ field[0] @ wx.T).astype(np.int64)
-            sv = np.rint(wy @ field[1] @ wx.T).astype(np.int64)
-            ry, rx = rows[:, None] + sv, cols[None, :] + su
-            inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
-            flat = (np.clip(ry, 0, h - 1) * w + np.clip(rx, 0, w - 1)).ravel()
-            bd = b.ravel().take(flat).reshape(h, w)
-            vd = inside.astype(np.float32)
-            if valid is not None:
-                vd *= valid.ravel().take(flat).reshape(h, w)
-            elif inside.all():
-                vd = None
+            bd, vd, su, sv = _deform_nearest(b, valid, field, device)
             base_u = _tiles(su, ys, xs, size).mean(axis=(-2, -1))
             base_v = _tiles(sv, ys, xs, size).mean(axis=(-2, -1))
             prev_u = _bilinear(field[0], field[2], field[3], cy[:, None], cx[None, :])
             prev_v = _bilinear(field[1], field[2], field[3], cy[:, None], cx[None, :])
         planes, usable, energy = _correlate_tiles(a, bd, valid, vd, ys, xs, size)
         half = size // 2
-        search = planes
-        if field is not None:  # the coarser pass placed the window: look for the residual within a quarter
-            q = size // 4
-            search = np.full_like(planes, -np.inf)
-            inner = np.s_[..., half - q : half + q + 1, half - q : half + q + 1]
-            search[inner] = planes[inner]
         pl = planes.reshape(-1, size, size)
-        idx = np.argmax(search.reshape(len(pl), -1), axis=1)
-        r, c = np.divmod(idx, size)
+        if field is None:
+            r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
+        else:  # the coarser pass placed the window: look for the residual within a quarter
+            lo, m = half - size // 4, 2 * (size // 4) + 1
+            r, c = np.divmod(np.argmax(pl[:, lo : lo + m, lo : lo + m].reshape(len(pl), -1), axis=1), m)
+            r, c = r + lo, c + lo
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
         rv = (r + three_point_offset(pl[i, r - 1, c], pl[i, r, c], pl[i, r + 1, c]) - half).reshape(usable.shape)

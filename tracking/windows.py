@@ -148,12 +148,16 @@ def measure_windows(
     use_minimum=False,
     saturation=np.inf,
     fill=0.0,
+    full_maps=True,
     device=None,
 ):
     """Same as :func:`measure_windows_numpy`, as a Warp kernel with one thread per dot.
 
     Parameters
     ----------
+    full_maps : bool, keyword-only
+        False: only the centre of each dot map (the peak pixel and its four neighbours) is cut, the
+        other map pixels are zero (what the three-point fit needs, for less work).
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -177,24 +181,24 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
-    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels.
-    order = np.lexsort((origin[:, 0], origin[:, 1] // 8))
-    back = np.empty_like(order)
-    back[order] = np.arange(n)
+    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels (the
+    # kernel takes them in that order and writes each at its own row). Only the speed depends on it.
+    order = np.argsort((origin[:, 1] // 8) * (image.shape[1] + 4 * w) + origin[:, 0]).astype(np.int32)
     img = wp.array(
         np.ascontiguousarray(image, dtype=np.float64),
         dtype=wp.float64,
         device=device,
         copy=not wp.get_device(device).is_cpu,  # on the CPU, share the NumPy array's memory
     )
-    org = wp.array(np.ascontiguousarray(origin[order], dtype=np.int32), dtype=wp.int32, device=device)
-    loc = wp.array(np.ascontiguousarray(local[order], dtype=np.float64), dtype=wp.float64, device=device)
+    org = wp.array(np.ascontiguousarray(origin, dtype=np.int32), dtype=wp.int32, device=device)
+    loc = wp.array(np.ascontiguousarray(local, dtype=np.float64), dtype=wp.float64, device=device)
     # Per-thread scratch; CPU threads run one after another, so one row serves them all.
     rows = 1 if wp.get_device(device).is_cpu else n
     win = wp.empty((rows, w * w), dtype=wp.float64, device=device)
     ring = wp.empty((rows, 4 * (w - 1)), dtype=wp.float64, device=device)
     lab = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     area = wp.empty((rows, w * w), dtype=wp.int32, device=device)
+    roots = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
     out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
     dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
@@ -221,13 +225,16 @@ def measure_windows(
             ring,
             lab,
             area,
+            roots,
+            wp.array(order, dtype=wp.int32, device=device),
+            int(bool(full_maps)),
             out_i,
             out_f,
             dotmap,
         ],
         device=device,
     )
-    oi, of = out_i.numpy()[back], out_f.numpy()[back]
+    oi, of = out_i.numpy(), out_f.numpy()
     return {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
@@ -235,5 +242,5 @@ def measure_windows(
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy()[back],
+        "dotmap": dotmap.numpy(),
     }

@@ -24,6 +24,7 @@ from synthbos.tracking import (
     static_threshold_identification,
     subtract_gaussians,
 )
+from synthbos.tracking.neighbours import neighbour_fit, neighbour_fit_numpy
 from synthbos.tracking.windows import measure_windows, measure_windows_numpy
 
 from synthbos import SynthbosError
@@ -124,9 +125,7 @@ def test_soloff_fits_cubic_distortion():
     rng = np.random.default_rng(4)
     t = rng.uniform(-50, 50, (200, 2))
     u, v = t[:, 0] / 50, t[:, 1] / 50
-    img = np.stack(
-        [300 + 4 * t[:, 0] + 2 * u**2 - 3 * u * v**2, 200 + 4 * t[:, 1] + 1.5 * u**3 + v * u], axis=1
-    )
+    img = np.stack([300 + 4 * t[:, 0] + 2 * u**2 - 3 * u * v**2, 200 + 4 * t[:, 1] + 1.5 * u**3 + v * u], axis=1)
     m = fit_soloff(t, img, order=3)
     assert m.rms < 1e-8
     assert_allclose(m(t[:5]), img[:5], atol=1e-8)
@@ -218,3 +217,36 @@ def test_window_kernel_matches_numpy_reference(device):
         b = measure_windows(img, origin, pred - origin, device=device, **kw)
         for key in a:
             assert_allclose(b[key], a[key], rtol=0, atol=1e-12, err_msg=key)
+        # only the maps' centre cross (what the three-point fit reads), the rest zero
+        cross = np.zeros((5, 5), dtype=bool)
+        cross[2, 1:4] = cross[1:4, 2] = True
+        c = measure_windows(img, origin, pred - origin, device=device, full_maps=False, **kw)
+        assert_allclose(c["dotmap"], np.where(cross, a["dotmap"], 0.0), rtol=0, atol=1e-12)
+        for key in ("chosen", "nblobs", "nsat", "bg", "peak", "dist"):
+            assert_allclose(c[key], a[key], rtol=0, atol=1e-12, err_msg=key)
+
+
+def test_neighbour_fit_kernel_matches_numpy_reference(device):
+    """The cell-grid kernel finds the same k nearest neighbours as the k-d tree and fits the same planes,
+    with and without the query among the points, for queries inside and outside the points' box."""
+    rng = np.random.default_rng(12)
+    xy = dot_pattern(rng, (256, 256), per_32x32=15)
+    uv = np.stack([0.01 * xy[:, 0] - 0.02 * xy[:, 1], 0.005 * xy[:, 1]], axis=1) + 0.05 * rng.standard_normal(xy.shape)
+    for k in (12, 7):
+        a = neighbour_fit_numpy(xy, uv, xy, np.arange(len(xy)), k=k)
+        b = neighbour_fit(xy, uv, xy, np.arange(len(xy)), k=k, device=device)
+        for x, y in zip(a, b, strict=True):
+            assert_allclose(y, x, rtol=0, atol=1e-12)
+    sub = rng.choice(len(xy), len(xy) // 3, replace=False)
+    query = rng.uniform(-40.0, 300.0, (200, 2))
+    a = neighbour_fit_numpy(xy[sub], uv[sub], query, np.full(len(query), -1), k=12)
+    b = neighbour_fit(xy[sub], uv[sub], query, np.full(len(query), -1), k=12, device=device)
+    for x, y in zip(a, b, strict=True):
+        assert_allclose(y, x, rtol=0, atol=1e-12)
+    # a plane is fitted exactly (but for the tiny ridge): the value is the field at the query, the spread zero
+    plane = np.stack([0.3 + 0.01 * xy[:, 0], -0.2 + 0.02 * xy[:, 1] - 0.01 * xy[:, 0]], axis=1)
+    query = query[((query > 0) & (query < 256)).all(axis=1)]  # beyond the points the ridge's bias grows
+    value, spread = neighbour_fit(xy, plane, query, np.full(len(query), -1), k=12, device=device)
+    truth = np.stack([0.3 + 0.01 * query[:, 0], -0.2 + 0.02 * query[:, 1] - 0.01 * query[:, 0]], axis=1)
+    assert_allclose(value, truth, atol=1e-5)
+    assert_allclose(spread, 0.0, atol=1e-6)

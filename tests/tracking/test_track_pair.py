@@ -132,10 +132,7 @@ def test_missing_dots_are_flagged_not_nan():
     res = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings(diameter=D))
     ok = _check_no_nan_in_valid(res)
     lost = ~ok
-    print(
-        f"{gone.sum()} dots vanished: {(gone & ~ok).sum()} reported unmatched, "
-        f"{(~gone & ~ok).sum()} others lost"
-    )
+    print(f"{gone.sum()} dots vanished: {(gone & ~ok).sum()} reported unmatched, {(~gone & ~ok).sum()} others lost")
     assert (gone & ok).sum() <= 0.02 * gone.sum(), "vanished dots reported as matched"
     assert (~gone & lost).mean() < 0.005
     assert (res["status"][gone] & DotStatus.FOUND_REFERENCE).all()
@@ -257,9 +254,7 @@ def test_numpy_and_warp_backends_agree(device):
     disp = smooth_displacement(xy, (128, 128), 1.5)
     ref, grad = _pair(rng, xy, disp, noise=0.03, shape=(128, 128))
     a = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings(diameter=D, backend="numpy"))
-    b = track_pair(
-        ref, grad, prior_xy=xy, settings=TrackingSettings(diameter=D, backend="warp"), device=device
-    )
+    b = track_pair(ref, grad, prior_xy=xy, settings=TrackingSettings(diameter=D, backend="warp"), device=device)
     assert_allclose(b["status"], a["status"])
     for name in FLOATS:
         assert_allclose(b[name], a[name], atol=1e-10, equal_nan=True, err_msg=name)

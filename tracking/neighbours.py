@@ -1,0 +1,157 @@
+"""Local linear fit of scattered vectors from each point's nearest neighbours.
+
+The reference of the tracker's outlier tests (a normalised median test on scattered data, Westerweel and
+Scarano 2005, with a local linear reference as in Duncan et al. 2010): for every query point, the least
+squares plane ``f = c + G d`` through the vectors of its ``k`` nearest points and the median distance of
+those vectors from it. :func:`neighbour_fit` is a Warp kernel (one thread per query, the points sorted
+into square cells, rings of cells searched outwards); :func:`neighbour_fit_numpy` is the array-program
+reference (a k-d tree) that defines the result.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+from scipy.spatial import cKDTree
+
+from .kernels import neighbour_fit_kernel
+
+__all__ = ["neighbour_fit", "neighbour_fit_numpy"]
+
+#: Points per cell, on average, of the kernel's cell grid.
+_POINTS_PER_CELL = 4.5
+
+
+def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
+    """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
+
+    Parameters
+    ----------
+    xy : (M, 2) array
+        Points (finite), ``M > k``.
+    uv : (M, 2) array
+        Their vectors.
+    query : (N, 2) array
+        Points at which to fit (finite).
+    self_index : (N,) int array
+        The query's own row in ``xy`` (left out of its neighbours), or -1.
+    k : int, keyword-only
+        Neighbours per fit.
+
+    Returns
+    -------
+    value : (N, 2) array
+        The fit's value at the query point.
+    spread : (N,) array
+        Median distance of the neighbours' vectors from the fit.
+
+    Notes
+    -----
+    ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
+    ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    query = np.asarray(query, dtype=np.float64)
+    self_index = np.asarray(self_index)
+    _, idx = cKDTree(xy).query(query, k=k + 1)
+    drop = np.where((idx == self_index[:, None]).any(axis=1), np.argmax(idx == self_index[:, None], axis=1), k)
+    keep = np.ones(idx.shape, dtype=bool)
+    keep[np.arange(len(idx)), drop] = False
+    nb = idx[keep].reshape(len(idx), k)
+    # Components as separate (n, k) arrays: contiguous and cheap to gather.
+    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
+    ex -= query[:, 0:1]
+    ey -= query[:, 1:2]
+    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
+    ex -= dmx
+    ey -= dmy
+    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
+    ridge = 1e-6 * (k + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
+    value = np.empty((len(nb), 2))
+    resid2 = np.zeros(nb.shape)
+    for c in range(2):
+        g = uv[:, c][nb]
+        fm = g.mean(axis=1, keepdims=True)
+        g -= fm
+        bx, by = (ex * g).sum(1), (ey * g).sum(1)
+        gx = ((syy * bx - sxy * by) / det)[:, None]
+        gy = ((sxx * by - sxy * bx) / det)[:, None]
+        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
+        g -= ex * gx
+        g -= ey * gy
+        resid2 += g * g
+    return value, np.median(np.sqrt(resid2), axis=1)
+
+
+def _cell_grid(xy, query, count):
+    """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
+    side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
+    lo = np.minimum(xy.min(axis=0), query.min(axis=0))
+    hi = np.maximum(xy.max(axis=0), query.max(axis=0))
+    extent = np.maximum(hi - lo, 1e-9)
+    side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
+    side = max(side, float(extent.max()) / 4096.0, 1e-9)
+    nx, ny = (int(np.floor(e / side)) + 1 for e in extent)
+    cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
+    cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
+    cell = cy * nx + cx
+    order = np.argsort(cell, kind="stable")
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
+    return float(lo[0]), float(lo[1]), side, nx, ny, start, order
+
+
+def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
+    """Same as :func:`neighbour_fit_numpy`, as a Warp kernel with one thread per query point.
+
+    Parameters
+    ----------
+    device : str or None, keyword-only
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
+    Other parameters and the result are those of :func:`neighbour_fit_numpy`.
+    """
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    query = np.ascontiguousarray(query, dtype=np.float64)
+    n = len(query)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    if len(xy) <= k:
+        raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
+    x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
+    qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
+    qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
+    query_order = np.argsort(qy * nx + qx).astype(np.int32)
+    # the query's own index where it is one of the points; -1 (never a point's index) otherwise
+    own = np.asarray(self_index, dtype=np.int32)
+    rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
+    value = wp.empty((n, 2), dtype=wp.float64, device=device)
+    spread = wp.empty(n, dtype=wp.float64, device=device)
+    wp.launch(
+        neighbour_fit_kernel,
+        dim=n,
+        inputs=[
+            wp.array(query_order, dtype=wp.int32, device=device),
+            wp.array(xy, dtype=wp.float64, device=device),
+            wp.array(np.ascontiguousarray(uv, dtype=np.float64), dtype=wp.float64, device=device),
+            wp.array(query, dtype=wp.float64, device=device),
+            wp.array(own, dtype=wp.int32, device=device),
+            wp.array(start.astype(np.int32), dtype=wp.int32, device=device),
+            wp.array(order.astype(np.int32), dtype=wp.int32, device=device),
+            x0,
+            y0,
+            side,
+            nx,
+            ny,
+            wp.empty((rows, k), dtype=wp.float64, device=device),
+            wp.empty((rows, k), dtype=wp.int32, device=device),
+            value,
+            spread,
+        ],
+        device=device,
+    )
+    return value.numpy(), spread.numpy()
