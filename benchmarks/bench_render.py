@@ -54,6 +54,12 @@ DEFAULT_VARIANTS = [
     "field=texture,dot_order=morton,rays_per_group=8,block_dim=128",
     "field=float32_vec,dot_order=morton,rays_per_group=8,step_mm=0.25",
 ]
+# On the CPU (software textures are slow there, and the launch order matters little): a short list.
+CPU_VARIANTS = [
+    "default",
+    "dot_order=morton,rays_per_group=8",
+    *(f"field={field},dot_order=morton,rays_per_group=8" for field in ("float32_vec", "float16", "texture")),
+]
 
 
 def paper_config(rays_per_dot: int) -> dict:
@@ -157,18 +163,23 @@ def main(argv=None):
     parser.add_argument("--rays", type=int, default=10_000, help="rays per dot on CUDA devices")
     parser.add_argument("--cpu-rays", type=int, default=100, help="rays per dot on the CPU (rates do not depend on it)")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS,
-                        help='"default" or key=value,... over [rays] keys; the first is the reference')
+    parser.add_argument("--variants", nargs="+",
+                        help='"default" or key=value,... over [rays] keys; the first is the reference '
+                             "(default: DEFAULT_VARIANTS)")
+    parser.add_argument("--cpu-variants", nargs="+", default=None,
+                        help="the variants timed on the CPU (default: a short list, or --variants when given)")
     parser.add_argument("--profile", action="store_true", help="one trace per image and variant, for ncu")
     parser.add_argument("--json", help="write the results here too")
     args = parser.parse_args(argv)
+    variants = args.variants or DEFAULT_VARIANTS
+    cpu_variants = args.cpu_variants or args.variants or CPU_VARIANTS
     init_warp()
     rows = []
     for dev in args.devices:
         rays = args.cpu_rays if dev == "cpu" else args.rays
         repeats = 1 if dev == "cpu" or args.profile else args.repeats
         base = None
-        for variant in args.variants:
+        for variant in cpu_variants if dev == "cpu" else variants:
             row = time_variant(dev, rays, variant, repeats, warm_up=not args.profile)
             base = base or row
             compare(row, base)
