@@ -4,7 +4,7 @@ The paper configuration: 512 x 512 px, 10 um pixels, f = 105 mm, f/11, target at
 Z_D = 250 mm, a 32 x 32 x 10 mm volume on a 256 x 256 grid, 20 dots per 32 x 32 px, 3 px dots,
 10,000 rays per dot. Every device given is timed in the same process after a warm-up render that
 compiles and loads the kernels, once per variant of the renderer's speed settings (``[rays]`` keys
-``field``, ``dot_order``, ``rays_per_group``, ``block_dim``, or any other ``rays`` key such as
+``field``, ``dot_order``, ``rays_per_group``, ``block_dim``, ``max_registers``, or any other ``rays`` key such as
 ``step_mm``). Each variant's displacements are compared with those of the first variant on the same
 device (the exact float32 default unless ``--variants`` says otherwise): launch settings and the exact
 fields must give the same bits; the approximate fields report their max and RMS difference in px.
@@ -52,6 +52,8 @@ DEFAULT_VARIANTS = [
     "field=float32_vec,dot_order=morton,rays_per_group=8,block_dim=128",
     "field=float16,dot_order=morton,rays_per_group=8,block_dim=128",
     "field=texture,dot_order=morton,rays_per_group=8,block_dim=128",
+    *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=64"
+      for field in ("float32", "float32_vec", "float16")),
     "field=float32_vec,dot_order=morton,rays_per_group=8,step_mm=0.25",
 ]
 # On the CPU (software textures are slow there, and the launch order matters little): a short list.

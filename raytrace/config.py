@@ -33,7 +33,8 @@ Keys
   all give the same bits) | "float16" | "texture" | "texture16" (approximate: float16 nodes, the
   texture unit's trilinear filter with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
   order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
-  one dot); block_dim (threads per CUDA block). The launch settings never change a bit of the result.
+  one dot); block_dim (threads per CUDA block); max_registers = 0 | 64 (the compiler's choice, or at
+  most 64 registers a thread on CUDA). The launch settings never change a bit of the result.
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -77,7 +78,7 @@ _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
         "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32", "dot_order": "pattern",
-        "rays_per_group": 1, "block_dim": 256,
+        "rays_per_group": 1, "block_dim": 256, "max_registers": 0,
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
@@ -186,6 +187,10 @@ def _validate(cfg):
     rays["dot_order"] = _choice("rays.dot_order", rays["dot_order"], ("pattern", "morton"))
     rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
     rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])
+    if rays["max_registers"] not in (0, 64) or isinstance(rays["max_registers"], bool):
+        raise SynthbosError(
+            f"rays.max_registers must be 0 (the compiler's choice) or 64, got {rays['max_registers']!r}"
+        )
 
     if sen["spot_diameter_px"] not in ("auto", "diffraction"):
         sen["spot_diameter_px"] = _num("sensor.spot_diameter_px", sen["spot_diameter_px"])

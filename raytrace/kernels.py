@@ -67,11 +67,19 @@ class MediumHalf:
 @wp.struct
 class MediumTexture:
     # The nodes as a 4-channel 3D texture (float32, or float16 scaled like MediumHalf), unnormalised
-    # coordinates, clamped. filtered = 1: the texture unit's trilinear filter (on CUDA its weights
-    # have 8 fractional bits); 0: eight point fetches and the same arithmetic as ``Medium``.
+    # coordinates, clamped, read through the texture unit's trilinear filter (on CUDA its weights have
+    # 8 fractional bits).
     tex: wp.Texture3D
-    filtered: int
     unscale: wp.vec4
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumTexels:
+    # The float32 nodes as a point-sampled texture: eight texel fetches and the arithmetic of ``Medium``.
+    tex: wp.Texture3D
     half: wp.vec3
     inv_spacing: wp.vec3
     centre: wp.vec3
@@ -239,31 +247,35 @@ def sample_medium(m: MediumHalf, p: wp.vec3):  # noqa: F811 (an overload)
 
 
 @wp.func
-def texel(m: MediumTexture, i: int, j: int, k: int):
+def sample_medium(m: MediumTexture, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` through the texture unit's trilinear filter: one fetch per sample."""
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, m.tex.width, m.tex.height, m.tex.depth) == 0:
+        return wp.vec4(0.0)
+    return wp.cw_mul(wp.texture_sample(m.tex, f + wp.vec3(0.5), dtype=wp.vec4), m.unscale)
+
+
+@wp.func
+def texel(m: MediumTexels, i: int, j: int, k: int):
     """Node (k, j, i) of a point-sampled texture (texel centres at integer + 0.5)."""
     return wp.texture_sample(m.tex, wp.vec3(float(i) + 0.5, float(j) + 0.5, float(k) + 0.5), dtype=wp.vec4)
 
 
 @wp.func
-def sample_medium(m: MediumTexture, p: wp.vec3):  # noqa: F811 (an overload)
-    """``sample_medium`` from a texture: the texture unit's filter, or eight texel fetches."""
+def sample_medium(m: MediumTexels, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` of ``Medium`` from eight texel fetches: the same numbers."""
     nz = m.tex.depth
     ny = m.tex.height
     nx = m.tex.width
     f = node_coords(m.half, m.inv_spacing, p)
     if in_grid(f, nx, ny, nz) == 0:
         return wp.vec4(0.0)
-    s = wp.vec4(0.0)
-    if m.filtered == 1:
-        s = wp.texture_sample(m.tex, f + wp.vec3(0.5), dtype=wp.vec4)
-    else:
-        i, j, k, a = cell_of(f, nx, ny, nz)
-        s = trilinear(
-            texel(m, i, j, k), texel(m, i + 1, j, k), texel(m, i, j + 1, k), texel(m, i + 1, j + 1, k),
-            texel(m, i, j, k + 1), texel(m, i + 1, j, k + 1),
-            texel(m, i, j + 1, k + 1), texel(m, i + 1, j + 1, k + 1), a,
-        )
-    return wp.cw_mul(s, m.unscale)
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    return trilinear(
+        texel(m, i, j, k), texel(m, i + 1, j, k), texel(m, i, j + 1, k), texel(m, i + 1, j + 1, k),
+        texel(m, i, j, k + 1), texel(m, i + 1, j, k + 1),
+        texel(m, i, j + 1, k + 1), texel(m, i + 1, j + 1, k + 1), a,
+    )
 
 
 @wp.func
@@ -616,7 +628,13 @@ def deposit_spots(
     deposit_gaussian(image, sen, px[i], energy[i])
 
 
+# ``render_rays`` held to at most 64 registers a thread on CUDA (``rays.max_registers = 64``): four
+# blocks of 256 threads per SM instead of three, at the price of spills to local memory.
+render_rays_64 = wp.kernel(render_rays.func, name="render_rays_64", cuda_max_registers=64)
+MAX_REGISTERS = {0: render_rays, 64: render_rays_64}
+
 # The media ``render_rays`` and ``trace_to_exit`` are compiled for (one module build covers them all).
-for _medium in (Medium, MediumVec, MediumHalf, MediumTexture):
+for _medium in (Medium, MediumVec, MediumHalf, MediumTexture, MediumTexels):
     wp.overload(render_rays, {"medium": _medium})
+    wp.overload(render_rays_64, {"medium": _medium})
     wp.overload(trace_to_exit, {"medium": _medium})

@@ -100,8 +100,8 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
     """Upload the medium to a Warp device as the struct ``render_rays`` reads (see ``FIELDS``).
 
     "float32" and "float32_vec" give ``kernels.Medium`` / ``kernels.MediumVec`` over the packed nodes;
-    "float16" gives ``kernels.MediumHalf`` (node pairs along x); "texture", "texture16" and
-    "texture_nearest" give ``kernels.MediumTexture``.
+    "float16" gives ``kernels.MediumHalf`` (node pairs along x); "texture" and "texture16"
+    ``kernels.MediumTexture``; "texture_nearest" ``kernels.MediumTexels``.
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
@@ -115,19 +115,22 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
         m = kernels.MediumHalf()
         m.pairs = wp.array(np.ascontiguousarray(pairs), dtype=kernels.vec8h, device=device)
         m.unscale = wp.vec4(*(1.0 / scale))
+    elif field == "texture_nearest":
+        m = kernels.MediumTexels()
+        m.tex = wp.Texture3D(
+            medium.field, filter_mode=wp.TextureFilterMode.CLOSEST, address_mode=wp.TextureAddressMode.CLAMP,
+            normalized_coords=False, device=device,
+        )
     else:
-        m = kernels.MediumTexture()
         data, unscale = medium.field, np.ones(4)
         if field == "texture16":
             scale = half_scale(medium.field)
-            data, unscale = (medium.field * scale).astype(np.float16), 1.0 / scale
-        nearest = field == "texture_nearest"
+            data, unscale = np.ascontiguousarray((medium.field * scale).astype(np.float16)), 1.0 / scale
+        m = kernels.MediumTexture()
         m.tex = wp.Texture3D(
-            np.ascontiguousarray(data),
-            filter_mode=wp.TextureFilterMode.CLOSEST if nearest else wp.TextureFilterMode.LINEAR,
-            address_mode=wp.TextureAddressMode.CLAMP, normalized_coords=False, device=device,
+            data, filter_mode=wp.TextureFilterMode.LINEAR, address_mode=wp.TextureAddressMode.CLAMP,
+            normalized_coords=False, device=device,
         )
-        m.filtered = 0 if nearest else 1
         m.unscale = wp.vec4(*unscale)
     m.half = wp.vec3(*(0.5 * s for s in medium.size))
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))

@@ -72,6 +72,7 @@ class RenderPlan:
         self.field = rays["field"]
         self.rays_per_group = rays["rays_per_group"]
         self.block_dim = rays["block_dim"]
+        self.max_registers = rays["max_registers"]
         self.launch_order = morton_order(px) if rays["dot_order"] == "morton" else np.arange(len(px), dtype=np.int32)
         if self.n_dots * self.rays_per_dot > _INT32_MAX:
             raise SynthbosError(
@@ -178,8 +179,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     Notes
     -----
     The plan's speed settings (``rays.field``, ``rays.dot_order``, ``rays.rays_per_group``,
-    ``rays.block_dim``) choose how the medium is stored and read and which thread traces which ray;
-    only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
+    ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored and read and which
+    thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
     """
     init_warp()
     W, H = plan.camera.pixels
@@ -205,7 +206,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
         count = min(rays_per_launch, plan.rays_per_dot - start)
         threads = -(-count // group) * group * n
         wp.launch(
-            kernels.render_rays, dim=threads,
+            kernels.MAX_REGISTERS[plan.max_registers], dim=threads,
             inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.step,
                     plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group],
             outputs=[image, sum_x, sum_y, hits, lost, tir], device=device, block_dim=plan.block_dim,

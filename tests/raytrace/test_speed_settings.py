@@ -19,7 +19,7 @@ _RAYS = {"per_dot": 100, "chunk": 9000}
 _EXACT = [
     {"dot_order": "morton"},
     {"dot_order": "morton", "rays_per_group": 7},
-    {"rays_per_group": 32, "block_dim": 64},
+    {"rays_per_group": 32, "block_dim": 64, "max_registers": 64},
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture_nearest", "rays_per_group": 3},
 ]
@@ -80,7 +80,8 @@ def test_morton_order_is_a_permutation_along_a_z_curve():
 def test_speed_settings_are_checked():
     assert set(EXACT_FIELDS) < set(FIELDS)
     for rays, word in [({"field": "float8"}, "rays.field"), ({"dot_order": "hilbert"}, "rays.dot_order"),
-                       ({"rays_per_group": 0}, "rays.rays_per_group"), ({"block_dim": 4096}, "rays.block_dim")]:
+                       ({"rays_per_group": 0}, "rays.rays_per_group"), ({"block_dim": 4096}, "rays.block_dim"),
+                       ({"max_registers": 48}, "rays.max_registers")]:
         with pytest.raises(SynthbosError, match=word):
             plan_render(small_config(rays=rays))
     plan = plan_render(small_config(rays={"dot_order": "morton"}))
