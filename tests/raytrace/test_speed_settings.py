@@ -19,7 +19,7 @@ _RAYS = {"per_dot": 100, "chunk": 9000}
 _EXACT = [
     {"dot_order": "morton"},
     {"dot_order": "morton", "rays_per_group": 7},
-    {"rays_per_group": 32, "block_dim": 64, "max_registers": 64},
+    {"rays_per_group": 32, "block_dim": 128, "max_registers": 64},
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture_nearest", "rays_per_group": 3},
 ]
