@@ -16,6 +16,7 @@ from typing import Any
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no banner or module-load lines from library code
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 LENS_THIN = wp.constant(0)
 LENS_THICK = wp.constant(1)
@@ -631,7 +632,9 @@ def deposit_spots(
 # ``render_rays`` held to at most 64 registers a thread on CUDA (``rays.max_registers = 64``): four
 # blocks of 256 threads per SM instead of three, at the price of spills to local memory.
 # Its own module, compiled only when first launched.
-render_rays_64 = wp.kernel(render_rays.func, name="render_rays_64", cuda_max_registers=64, module="unique")
+render_rays_64 = wp.kernel(
+    render_rays.func, name="render_rays_64", cuda_max_registers=64, module="unique", enable_backward=False
+)
 MAX_REGISTERS = {0: render_rays, 64: render_rays_64}
 
 # The media ``render_rays`` is compiled for (one module build covers them all); ``trace_to_exit``
