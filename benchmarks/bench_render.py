@@ -46,12 +46,12 @@ DEFAULT_VARIANTS = [
     "dot_order=morton,rays_per_group=32",
     *(
         f"field={field}" + ("" if group is None else f",dot_order=morton,rays_per_group={group}")
-        for field in ("float32_vec", "texture_nearest", "float16", "texture", "texture16")
+        for field in ("float32_vec", "texture_nearest", "float16", "float16_nodes", "texture", "texture16")
         for group in (None, 1, 8, 32)
     ),
     "field=float32_vec,dot_order=morton,rays_per_group=8,step_mm=0.25",
     *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=64"
-      for field in ("float32", "float32_vec", "float16", "texture")),
+      for field in ("float32", "float32_vec", "float16", "float16_nodes", "texture")),
     # Last: another block_dim compiles the whole kernel module again (Warp builds a module per block size).
     *(f"field={field},dot_order=morton,rays_per_group=8,block_dim=128" for field in ("float32_vec", "float16")),
 ]
@@ -59,7 +59,8 @@ DEFAULT_VARIANTS = [
 CPU_VARIANTS = [
     "default",
     "dot_order=morton,rays_per_group=8",
-    *(f"field={field},dot_order=morton,rays_per_group=8" for field in ("float32_vec", "float16", "texture")),
+    *(f"field={field},dot_order=morton,rays_per_group=8"
+      for field in ("float32_vec", "float16", "float16_nodes", "texture")),
 ]
 
 

@@ -30,8 +30,9 @@ Keys
   images every ray from a point to one point).
   Speed settings (see ``raytrace.render.trace_rays``): field = "float32" | "float32_vec" |
   "texture_nearest" (the exact float32 nodes: scalar loads, 128-bit loads, a point-sampled texture;
-  all give the same bits) | "float16" | "texture" | "texture16" (approximate: float16 nodes, the
-  texture unit's trilinear filter with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
+  all give the same bits) | "float16" | "float16_nodes" | "texture" | "texture16" (approximate:
+  float16 node pairs along x or nodes, which agree bitwise with each other; the texture unit's
+  trilinear filter, with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
   order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
   one dot); block_dim (threads per CUDA block); max_registers = 0 | 64 (the compiler's choice, or at
   most 64 registers a thread on CUDA). The launch settings never change a bit of the result.

@@ -79,9 +79,9 @@ def medium_from_config(cfg: dict) -> MediumData:
 
 
 # How the renderer stores and reads the medium on the device (``rays.field``): the exact float32 nodes
-# read with scalar or 128-bit loads, float16 node pairs, or a 3D texture (hardware-filtered in float32
-# or float16, or point-sampled with the same arithmetic as float32).
-FIELDS = ("float32", "float32_vec", "float16", "texture", "texture16", "texture_nearest")
+# read with scalar or 128-bit loads, float16 node pairs or nodes (the same numbers), or a 3D texture
+# (hardware-filtered in float32 or float16, or point-sampled with the same arithmetic as float32).
+FIELDS = ("float32", "float32_vec", "float16", "float16_nodes", "texture", "texture16", "texture_nearest")
 EXACT_FIELDS = ("float32", "float32_vec", "texture_nearest")  # bitwise the same samples as "float32"
 
 
@@ -100,7 +100,8 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
     """Upload the medium to a Warp device as the struct ``render_rays`` reads (see ``FIELDS``).
 
     "float32" and "float32_vec" give ``kernels.Medium`` / ``kernels.MediumVec`` over the packed nodes;
-    "float16" gives ``kernels.MediumHalf`` (node pairs along x); "texture" and "texture16"
+    "float16" gives ``kernels.MediumHalf`` (node pairs along x), "float16_nodes"
+    ``kernels.MediumHalfNodes``; "texture" and "texture16"
     ``kernels.MediumTexture``; "texture_nearest" ``kernels.MediumTexels``.
     """
     if field not in FIELDS:
@@ -114,6 +115,11 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
         pairs = np.concatenate([nodes[:, :, :-1], nodes[:, :, 1:]], axis=-1)
         m = kernels.MediumHalf()
         m.pairs = wp.array(np.ascontiguousarray(pairs), dtype=kernels.vec8h, device=device)
+        m.unscale = wp.vec4(*(1.0 / scale))
+    elif field == "float16_nodes":
+        scale = half_scale(medium.field)
+        m = kernels.MediumHalfNodes()
+        m.nodes = wp.array((medium.field * scale).astype(np.float16), dtype=wp.vec4h, device=device)
         m.unscale = wp.vec4(*(1.0 / scale))
     elif field == "texture_nearest":
         m = kernels.MediumTexels()

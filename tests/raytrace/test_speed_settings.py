@@ -28,7 +28,7 @@ _EXACT = [
 # significant bits (measured ~2e-4 px on the paper's flow); CUDA's texture filter uses weights with 8
 # fractional bits (a float64 emulation on the paper's flow gives up to 3e-3 px per ray when the weights
 # are truncated, 4e-4 px when rounded), exact weights on the CPU.
-APPROXIMATE_TOLERANCE_PX = {"float16": 1e-3, "texture": 5e-3, "texture16": 5e-3}
+APPROXIMATE_TOLERANCE_PX = {"float16": 1e-3, "float16_nodes": 1e-3, "texture": 5e-3, "texture16": 5e-3}
 
 _cache = {}
 
@@ -50,6 +50,12 @@ def test_launch_settings_and_exact_fields_give_the_default_bits(device, rays):
     np.testing.assert_array_equal(b.reference_px, a.reference_px)
     np.testing.assert_array_equal(b.displacement_px, a.displacement_px)
     np.testing.assert_array_equal(b.valid, a.valid)
+
+
+def test_float16_pairs_and_nodes_agree_bitwise(device):
+    a, b = _pair(device, field="float16"), _pair(device, field="float16_nodes", rays_per_group=8)
+    np.testing.assert_array_equal(b.gradient, a.gradient)
+    np.testing.assert_array_equal(b.displacement_px, a.displacement_px)
 
 
 @pytest.mark.parametrize("field", sorted(APPROXIMATE_TOLERANCE_PX))
@@ -92,6 +98,7 @@ def test_speed_settings_are_checked():
 @pytest.mark.parametrize("rays", [
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "float16", "dot_order": "morton", "rays_per_group": 8},
+    {"field": "float16_nodes", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture", "dot_order": "morton", "rays_per_group": 8},
 ], ids=lambda r: r["field"])
 def test_cpu_and_cuda_agree_for_fast_settings(rays):
