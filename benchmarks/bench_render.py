@@ -49,7 +49,7 @@ DEFAULT_VARIANTS = [
         for field in ("float32_vec", "texture_nearest", "float16", "float16_nodes", "texture", "texture16")
         for group in (None, 1, 8, 32)
     ),
-    "field=float32_vec,dot_order=morton,rays_per_group=8,step_mm=0.25",
+    *(f"field={field},dot_order=morton,rays_per_group=8,step_mm=0.25" for field in ("float32_vec", "float16")),
     *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=64"
       for field in ("float32", "float32_vec", "float16", "float16_nodes", "texture")),
     # Last: another block_dim compiles the whole kernel module again (Warp builds a module per block size).
