@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 from _small import small_config
-from synthbos.raytrace.medium import EXACT_FIELDS, FIELDS
+from synthbos.raytrace.medium import EXACT_FIELDS, FIELDS, half_scale
 from synthbos.raytrace.render import morton_order, plan_render, render_pair
 
 from synthbos import SynthbosError
@@ -112,3 +112,16 @@ def test_cpu_and_cuda_agree_for_fast_settings(rays):
     print(f"\nCPU vs CUDA, {rays}: max |displacement difference| {diff:.2e} px over {cpu.n_dots} dots")
     np.testing.assert_array_equal(cpu.valid, gpu.valid)
     assert diff < (APPROXIMATE_TOLERANCE_PX["texture"] if rays["field"] == "texture" else 1e-4)
+
+
+def test_half_scale_keeps_weak_fields_clear_of_float16_subnormals():
+    field = np.zeros((3, 4, 5, 4))
+    field[..., 0] = np.linspace(-3e-9, 1e-9, 60).reshape(3, 4, 5)  # a gradient far below float16's 6e-5
+    field[..., 3] = 2.76e-4
+    scale = half_scale(field)
+    top = np.abs(field * scale).reshape(-1, 4).max(axis=0)
+    assert np.all((top[[0, 3]] >= 2**13) & (top[[0, 3]] < 2**14))
+    np.testing.assert_array_equal(scale[[1, 2]], 1.0)  # all-zero channels are left alone
+    assert np.all(np.log2(scale) == np.round(np.log2(scale)))  # powers of two: exact scaling
+    back = (field * scale).astype(np.float16).astype(np.float64) / scale
+    np.testing.assert_allclose(back, field, rtol=2**-11, atol=0)
