@@ -52,6 +52,8 @@ DEFAULT_VARIANTS = [
     *(f"field={field},dot_order=morton,rays_per_group=8,step_mm=0.25" for field in ("float32_vec", "float16")),
     *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=64"
       for field in ("float32", "float32_vec", "float16", "float16_nodes", "texture")),
+    *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=80"
+      for field in ("float32_vec", "texture_nearest")),
     # Last: another block_dim compiles the whole kernel module again (Warp builds a module per block size).
     *(f"field={field},dot_order=morton,rays_per_group=8,block_dim=128" for field in ("float32_vec", "float16")),
 ]

@@ -34,8 +34,8 @@ Keys
   float16 node pairs along x or nodes, which agree bitwise with each other; the texture unit's
   trilinear filter, with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
   order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
-  one dot); block_dim (threads per CUDA block); max_registers = 0 | 64 (the compiler's choice, or at
-  most 64 registers a thread on CUDA). The launch settings never change a bit of the result.
+  one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
+  or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -188,9 +188,9 @@ def _validate(cfg):
     rays["dot_order"] = _choice("rays.dot_order", rays["dot_order"], ("pattern", "morton"))
     rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
     rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])
-    if rays["max_registers"] not in (0, 64) or isinstance(rays["max_registers"], bool):
+    if rays["max_registers"] not in (0, 64, 80) or isinstance(rays["max_registers"], bool):
         raise SynthbosError(
-            f"rays.max_registers must be 0 (the compiler's choice) or 64, got {rays['max_registers']!r}"
+            f"rays.max_registers must be 0 (the compiler's choice), 64 or 80, got {rays['max_registers']!r}"
         )
 
     if sen["spot_diameter_px"] not in ("auto", "diffraction"):

@@ -681,17 +681,21 @@ def deposit_spots(
     deposit_gaussian(image, sen, px[i], energy[i])
 
 
-# ``render_rays`` held to at most 64 registers a thread on CUDA (``rays.max_registers = 64``): four
-# blocks of 256 threads per SM instead of three, at the price of spills to local memory.
-# Its own module, compiled only when first launched.
+# ``render_rays`` held to at most 80 or 64 registers a thread on CUDA (``rays.max_registers``): with
+# 256-thread blocks, 3 or 4 blocks per SM instead of 2 for kernels above 80 registers, at the price of
+# spills to local memory. Each in its own module, compiled only when first launched.
+render_rays_80 = wp.kernel(
+    render_rays.func, name="render_rays_80", cuda_max_registers=80, module="unique", enable_backward=False
+)
 render_rays_64 = wp.kernel(
     render_rays.func, name="render_rays_64", cuda_max_registers=64, module="unique", enable_backward=False
 )
-MAX_REGISTERS = {0: render_rays, 64: render_rays_64}
+MAX_REGISTERS = {0: render_rays, 80: render_rays_80, 64: render_rays_64}
 
 # The media ``render_rays`` is compiled for (one module build covers them all); ``trace_to_exit``
 # serves the tests of the float32 medium.
 for _medium in (Medium, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels):
     wp.overload(render_rays, {"medium": _medium})
+    wp.overload(render_rays_80, {"medium": _medium})
     wp.overload(render_rays_64, {"medium": _medium})
 wp.overload(trace_to_exit, {"medium": Medium})
