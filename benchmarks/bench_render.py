@@ -97,13 +97,14 @@ def variant_config(rays_per_dot: int, variant: str) -> dict:
 
 
 def _trace_pair(plan, device):
-    """Upload the medium and trace both images as ``render_pair`` does; returns seconds and results."""
+    """Upload the medium, trace the reference (straight rays) and the gradient image through it, as
+    ``render_pair`` does; returns the seconds of each and the results."""
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     medium = to_warp(plan.medium, device=device, field=plan.field)
     wp.synchronize_device(device)
     t1 = time.perf_counter()
-    ref = render.trace_rays(plan, active=False, device=device, medium=medium)
+    ref = render.trace_rays(plan, active=False, device=device)
     wp.synchronize_device(device)
     t2 = time.perf_counter()
     grad = render.trace_rays(plan, active=True, device=device, medium=medium)

@@ -46,6 +46,15 @@ class Medium:
 
 
 @wp.struct
+class MediumStraight:
+    # Only the box's placement: the reference image's rays (``active = 0``) never read the medium, and
+    # a kernel compiled without its loads needs fewer registers.
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
 class MediumVec:
     # The same nodes as ``Medium``, read with one 128-bit load per node on CUDA (bitwise the same values).
     field: wp.array3d(dtype=wp.vec4)
@@ -243,6 +252,12 @@ def sample_medium(m: Medium, p: wp.vec3):
         m.field[k, j, i], m.field[k, j, i + 1], m.field[k, j + 1, i], m.field[k, j + 1, i + 1],
         m.field[k + 1, j, i], m.field[k + 1, j, i + 1], m.field[k + 1, j + 1, i], m.field[k + 1, j + 1, i + 1], a,
     )
+
+
+@wp.func
+def sample_medium(m: MediumStraight, p: wp.vec3):  # noqa: F811 (an overload)
+    """The undisturbed medium: no gradient anywhere (the reference image)."""
+    return wp.vec4(0.0)
 
 
 @wp.func
@@ -694,7 +709,7 @@ MAX_REGISTERS = {0: render_rays, 80: render_rays_80, 64: render_rays_64}
 
 # The media ``render_rays`` is compiled for (one module build covers them all); ``trace_to_exit``
 # serves the tests of the float32 medium.
-for _medium in (Medium, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels):
+for _medium in (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels):
     wp.overload(render_rays, {"medium": _medium})
     wp.overload(render_rays_80, {"medium": _medium})
     wp.overload(render_rays_64, {"medium": _medium})

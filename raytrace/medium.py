@@ -19,7 +19,7 @@ from .checks import check_density
 
 __all__ = [
     "EXACT_FIELDS", "FIELDS", "MAX_INDEX", "MediumData", "half_scale", "medium_from_config", "medium_from_density",
-    "to_warp",
+    "straight_to_warp", "to_warp",
 ]
 
 
@@ -94,6 +94,15 @@ def half_scale(field) -> np.ndarray:
     top = np.abs(field).reshape(-1, field.shape[-1]).max(axis=0).astype(np.float64)
     exponent = np.where(top > 0, 13 - np.floor(np.log2(np.where(top > 0, top, 1.0))), 0.0)
     return np.exp2(exponent)
+
+
+def straight_to_warp(medium: MediumData) -> kernels.MediumStraight:
+    """The box's placement only, for the reference image's straight rays (nothing to upload)."""
+    m = kernels.MediumStraight()
+    m.half = wp.vec3(*(0.5 * s for s in medium.size))
+    m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
+    m.centre = wp.vec3(*medium.centre)
+    return m
 
 
 def to_warp(medium: MediumData, *, device=None, field="float32"):

@@ -21,7 +21,7 @@ from synthbos.device import check_device, init_warp
 from . import checks, kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import MediumData, medium_from_config, to_warp
+from .medium import MediumData, medium_from_config, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
@@ -166,8 +166,9 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     progress : tqdm or None
         A bar to advance by the number of rays traced.
     medium : optional
-        The plan's medium already on ``device`` (``to_warp(plan.medium, field=plan.field)``), to share
-        one upload between the two images; uploaded here if None.
+        The plan's medium already on ``device`` (``to_warp(plan.medium, field=plan.field)``) for the
+        gradient image, uploaded here if None. The reference image reads no medium: its rays run
+        through ``straight_to_warp(plan.medium)``, the box's placement alone.
 
     Returns
     -------
@@ -185,7 +186,9 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     init_warp()
     W, H = plan.camera.pixels
     n = plan.n_dots
-    if medium is None:
+    if not active:
+        medium = straight_to_warp(plan.medium)
+    elif medium is None:
         medium = to_warp(plan.medium, device=device, field=plan.field)
     cam = _camera_struct(plan.camera)
     sen = _sensor_struct(plan)
@@ -318,10 +321,8 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     bar = tqdm(total=total, unit="ray", unit_scale=True, desc="render", disable=not progress)
     t0 = time.perf_counter()
     with bar:
-        medium = to_warp(plan.medium, device=device, field=plan.field)
-        ref_img, ref_px, ref_ok, tir_ref = trace_rays(plan, active=False, device=device, progress=bar, medium=medium)
-        grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar, medium=medium)
-        del medium
+        ref_img, ref_px, ref_ok, tir_ref = trace_rays(plan, active=False, device=device, progress=bar)
+        grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar)
         theory, density_chief = chief_ray_truth(plan, device=device)
         theory_cone, density_cone = cone_truth(plan, device=device)
         wp.synchronize_device(device)
