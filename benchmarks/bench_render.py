@@ -179,13 +179,18 @@ def main(argv=None):
     variants = args.variants or DEFAULT_VARIANTS
     cpu_variants = args.cpu_variants or args.variants or CPU_VARIANTS
     init_warp()
-    rows = []
+    rows, failed = [], []
     for dev in args.devices:
         rays = args.cpu_rays if dev == "cpu" else args.rays
         repeats = 1 if dev == "cpu" or args.profile else args.repeats
         base = None
         for variant in cpu_variants if dev == "cpu" else variants:
-            row = time_variant(dev, rays, variant, repeats, warm_up=not args.profile)
+            try:
+                row = time_variant(dev, rays, variant, repeats, warm_up=not args.profile)
+            except Exception as exc:  # one failing variant must not lose the others' numbers
+                print(f"{dev} {variant}: FAILED: {type(exc).__name__}: {exc}", flush=True)
+                failed.append({"device": dev, "variant": variant, "error": f"{type(exc).__name__}: {exc}"})
+                continue
             base = base or row
             compare(row, base)
             rows.append(row)
@@ -195,9 +200,11 @@ def main(argv=None):
                   f"diff max {row['max_diff_px']:.2e} px rms {row['rms_diff_px']:.2e} px, "
                   f"{'identical' if row['identical'] else 'differs'}", flush=True)
             if args.json:
-                _write_json(args.json, rows)
+                _write_json(args.json, rows, failed)
         for row in rows:
             row.pop("_results", None)
+    if not rows:
+        raise SynthbosError(f"every variant failed: {failed}")
     r0 = rows[0]
     print(f"\nrender speed, paper configuration ({r0['dots']} dots, {r0['steps_per_ray']} RK4 steps per ray); "
           "diff: displacement against each device's first variant")
@@ -209,15 +216,17 @@ def main(argv=None):
               f"{r['gradient_ray_steps_per_s']:>12.3e} {r['speedup_gradient']:>7.2f} {r['max_diff_px']:>9.2e} "
               f"{r['rms_diff_px']:>9.2e} {'yes' if r['identical'] else 'no':>5} "
               f"{r['rays_per_s'] / PREDECESSOR_RAYS_PER_S:>7.1f}")
+    for f in failed:
+        print(f"{f['device']:<7} {f['variant'][:58]:<58} FAILED: {f['error']}")
     if args.json:
-        _write_json(args.json, rows)
+        _write_json(args.json, rows, failed)
     return rows
 
 
-def _write_json(path, rows):
+def _write_json(path, rows, failed):
     """Write the rows so far (without their result arrays): a run cut short still leaves its numbers."""
     with open(path, "w") as f:
-        json.dump({"date": time.strftime("%Y-%m-%d"),
+        json.dump({"date": time.strftime("%Y-%m-%d"), "failed": failed,
                    "rows": [{k: v for k, v in r.items() if k != "_results"} for r in rows]}, f, indent=2)
 
 
