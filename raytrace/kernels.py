@@ -9,6 +9,13 @@ unit tangent ``t``: ``dx/ds = t``, ``dt/ds = (grad n - (t . grad n) t) / n`` (th
 d/ds(n t) expanded), by classical 4th-order Runge-Kutta with the tangent renormalised after each step.
 Where grad n vanishes the tangent never changes, so a uniform medium gives bit-identical rays to the
 reference trace, whatever its density.
+
+Media. ``render_rays`` is generic over the struct that holds the medium; ``sample_medium`` has one
+overload per struct (``raytrace.medium.FIELDS`` names them for the configuration): ``Medium`` (float32
+nodes), ``MediumVec`` (the same, 128-bit loads), ``MediumTexels`` (the same, point-sampled texture),
+``MediumHalf`` / ``MediumHalfNodes`` (float16), ``MediumTexture`` (the texture unit's filter) and
+``MediumStraight`` (no medium: the reference image). All share ``node_coords``, ``in_grid``,
+``cell_of`` and ``trilinear``.
 """
 
 from typing import Any
