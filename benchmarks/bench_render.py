@@ -50,6 +50,8 @@ DEFAULT_VARIANTS = [
         for group in (None, 1, 8, 32)
     ),
     *(f"field={field},dot_order=morton,rays_per_group=8,step_mm=0.25" for field in ("float32_vec", "float16")),
+    # Dot-major: every ray of a launch of one dot before the next dot.
+    *(f"field={field},dot_order=morton,rays_per_group=65536" for field in ("float32_vec", "float16", "texture")),
     *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=64"
       for field in ("float32", "float32_vec", "float16", "float16_nodes", "texture")),
     *(f"field={field},dot_order=morton,rays_per_group=8,max_registers=80"

@@ -201,8 +201,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     hits = wp.zeros(n, dtype=wp.int32, device=device)
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
-    group = plan.rays_per_group
     rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
+    group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
     if rays_per_launch > group:
         rays_per_launch -= rays_per_launch % group  # whole groups, except in the last launch
     for start in range(0, plan.rays_per_dot, rays_per_launch):

@@ -23,6 +23,7 @@ _EXACT = [
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture_nearest", "rays_per_group": 3},
     {"field": "float32_vec", "max_registers": 80},
+    {"dot_order": "morton", "rays_per_group": 65536},
 ]
 
 # Largest |displacement difference| (px) of an approximate field against float32. Float16 nodes keep 11
