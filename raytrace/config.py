@@ -28,6 +28,14 @@ Keys
   crosses the aperture stop at its sampled point ("auto": 1 for the thick lens, whose aberrations
   make the landing point depend on where a ray crosses the stop; 0 for the ideal thin lens, which
   images every ray from a point to one point).
+  Speed settings (see ``raytrace.render.trace_rays``): field = "float32" | "float32_vec" |
+  "texture_nearest" (the exact float32 nodes: scalar loads, 128-bit loads, a point-sampled texture;
+  all give the same bits) | "float16" | "float16_nodes" | "texture" | "texture16" (approximate:
+  float16 node pairs along x or nodes, which agree bitwise with each other; the texture unit's
+  trilinear filter, with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
+  order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
+  one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
+  or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -60,6 +68,7 @@ from synthbos import SynthbosError
 
 from . import checks, sources
 from .defaults import DEFAULT_CONFIG
+from .medium import FIELDS
 
 __all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 
@@ -68,7 +77,10 @@ __all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 # Keys allowed beyond the defaults, with their defaults.
 _OPTIONAL = {
     "target": {"min_spacing_px": None},
-    "rays": {"chunk": 4_194_304, "aim_iterations": "auto"},
+    "rays": {
+        "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32", "dot_order": "pattern",
+        "rays_per_group": 1, "block_dim": 256, "max_registers": 0,
+    },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
     "limits": {"memory_gb": None, "ray_steps": None, "steps_per_ray": 10_000},
@@ -101,6 +113,8 @@ _RANGES = {
     },
     "rays.chunk": {"integer": True, "minimum": 1, "maximum": 2**28},
     "rays.aim_iterations": {"integer": True, "minimum": 0, "maximum": 100},
+    "rays.rays_per_group": {"integer": True, "minimum": 1, "maximum": 2**16},
+    "rays.block_dim": {"integer": True, "minimum": 32, "maximum": 1024},
     "rays.step_mm": {"minimum": 1.0e-6, "maximum": 1.0e6},
     "sensor.spot_diameter_px": {"minimum": 0.1, "maximum": checks.MAX_SPOT_PX},
     "sensor.peak_intensity": {"minimum": 1.0e-3, "maximum": 1.0e5},
@@ -170,6 +184,14 @@ def _validate(cfg):
         rays["aim_iterations"] = _num("rays.aim_iterations", rays["aim_iterations"])
     if rays["step_mm"] != "grid":
         rays["step_mm"] = _num("rays.step_mm", rays["step_mm"])
+    rays["field"] = _choice("rays.field", rays["field"], FIELDS)
+    rays["dot_order"] = _choice("rays.dot_order", rays["dot_order"], ("pattern", "morton"))
+    rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
+    rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])
+    if rays["max_registers"] not in (0, 64, 80) or isinstance(rays["max_registers"], bool):
+        raise SynthbosError(
+            f"rays.max_registers must be 0 (the compiler's choice), 64 or 80, got {rays['max_registers']!r}"
+        )
 
     if sen["spot_diameter_px"] not in ("auto", "diffraction"):
         sen["spot_diameter_px"] = _num("sensor.spot_diameter_px", sen["spot_diameter_px"])

@@ -9,11 +9,21 @@ unit tangent ``t``: ``dx/ds = t``, ``dt/ds = (grad n - (t . grad n) t) / n`` (th
 d/ds(n t) expanded), by classical 4th-order Runge-Kutta with the tangent renormalised after each step.
 Where grad n vanishes the tangent never changes, so a uniform medium gives bit-identical rays to the
 reference trace, whatever its density.
+
+Media. ``render_rays`` is generic over the struct that holds the medium; ``sample_medium`` has one
+overload per struct (``raytrace.medium.FIELDS`` names them for the configuration): ``Medium`` (float32
+nodes), ``MediumVec`` (the same, 128-bit loads), ``MediumTexels`` (the same, point-sampled texture),
+``MediumHalf`` / ``MediumHalfNodes`` (float16), ``MediumTexture`` (the texture unit's filter) and
+``MediumStraight`` (no medium: the reference image). All share ``node_coords``, ``in_grid``,
+``cell_of`` and ``trilinear``.
 """
+
+from typing import Any
 
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING  # no banner or module-load lines from library code
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 LENS_THIN = wp.constant(0)
 LENS_THICK = wp.constant(1)
@@ -29,6 +39,10 @@ RAY_MISSED_LENS = wp.constant(1)
 RAY_TIR = wp.constant(2)
 
 
+# Float16 node pair along x: (grad n, n - 1) of node i, then of node i + 1, both scaled (see MediumHalf).
+vec8h = wp.types.vector(length=8, dtype=wp.float16)
+
+
 @wp.struct
 class Medium:
     # (nz, ny, nx) nodes holding (dn/dx, dn/dy, dn/dz, n - 1)
@@ -36,6 +50,67 @@ class Medium:
     half: wp.vec3  # half extents of the box (local frame spans [-half, +half])
     inv_spacing: wp.vec3  # 1 / node spacing along x, y, z
     centre: wp.vec3  # box centre in the global frame
+
+
+@wp.struct
+class MediumStraight:
+    # Only the box's placement: the reference image's rays (``active = 0``) never read the medium, and
+    # a kernel compiled without its loads needs fewer registers.
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumVec:
+    # The same nodes as ``Medium``, read with one 128-bit load per node on CUDA (bitwise the same values).
+    field: wp.array3d(dtype=wp.vec4)
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumHalf:
+    # (nz, ny, nx - 1) records: nodes (k, j, i) and (k, j, i + 1) in float16, each channel multiplied by
+    # a power of two (so weak fields stay clear of float16's subnormals); ``unscale`` undoes it.
+    pairs: wp.array3d(dtype=vec8h)
+    unscale: wp.vec4
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumHalfNodes:
+    # (nz, ny, nx) nodes in float16, scaled as in MediumHalf: half the bytes of ``Medium`` (the paper's
+    # volume, 42 MB, fits in an H200's L2), eight 64-bit loads per sample.
+    nodes: wp.array3d(dtype=wp.vec4h)
+    unscale: wp.vec4
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumTexture:
+    # The nodes as a 4-channel 3D texture (float32, or float16 scaled like MediumHalf), unnormalised
+    # coordinates, clamped, read through the texture unit's trilinear filter (on CUDA its weights have
+    # 8 fractional bits).
+    tex: wp.Texture3D
+    unscale: wp.vec4
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumTexels:
+    # The float32 nodes as a point-sampled texture: eight texel fetches and the arithmetic of ``Medium``.
+    tex: wp.Texture3D
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
 
 
 @wp.struct
@@ -67,36 +142,219 @@ class Sensor:
 
 
 @wp.func
+def node_coords(half: wp.vec3, inv_spacing: wp.vec3, p: wp.vec3):
+    """Fractional node coordinates (x, y, z) of local point p."""
+    return wp.vec3(
+        (p[0] + half[0]) * inv_spacing[0], (p[1] + half[1]) * inv_spacing[1], (p[2] + half[2]) * inv_spacing[2]
+    )
+
+
+@wp.func
+def in_grid(f: wp.vec3, nx: int, ny: int, nz: int):
+    """1 if fractional node coordinates f lie in the grid (with a margin of 1e-4 node), else 0."""
+    eps = 1.0e-4
+    if f[0] < -eps or f[1] < -eps or f[2] < -eps:
+        return 0
+    if f[0] > float(nx - 1) + eps or f[1] > float(ny - 1) + eps or f[2] > float(nz - 1) + eps:
+        return 0
+    return 1
+
+
+@wp.func
+def cell_of(f: wp.vec3, nx: int, ny: int, nz: int):
+    """The cell (i, j, k) holding f (edges clamped) and the weights of its far corner along x, y, z."""
+    i = wp.clamp(int(wp.floor(f[0])), 0, nx - 2)
+    j = wp.clamp(int(wp.floor(f[1])), 0, ny - 2)
+    k = wp.clamp(int(wp.floor(f[2])), 0, nz - 2)
+    a = wp.vec3(
+        wp.clamp(f[0] - float(i), 0.0, 1.0), wp.clamp(f[1] - float(j), 0.0, 1.0), wp.clamp(f[2] - float(k), 0.0, 1.0)
+    )
+    return i, j, k, a
+
+
+@wp.func
+def trilinear(
+    c000: wp.vec4, c100: wp.vec4, c010: wp.vec4, c110: wp.vec4,
+    c001: wp.vec4, c101: wp.vec4, c011: wp.vec4, c111: wp.vec4, a: wp.vec3,
+):
+    """Trilinear blend of a cell's corners c(x)(y)(z) with far-corner weights a."""
+    c00 = c000 * (1.0 - a[0]) + c100 * a[0]
+    c10 = c010 * (1.0 - a[0]) + c110 * a[0]
+    c01 = c001 * (1.0 - a[0]) + c101 * a[0]
+    c11 = c011 * (1.0 - a[0]) + c111 * a[0]
+    c0 = c00 * (1.0 - a[1]) + c10 * a[1]
+    c1 = c01 * (1.0 - a[1]) + c11 * a[1]
+    return c0 * (1.0 - a[2]) + c1 * a[2]
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float4 v = __ldg(reinterpret_cast<const float4*>(wp::address(field, k, j, i)));
+return wp::vec4(v.x, v.y, v.z, v.w);
+#else
+return wp::index(field, k, j, i);
+#endif
+""")
+def load_node(field: wp.array3d(dtype=wp.vec4), k: int, j: int, i: int) -> wp.vec4:
+    """Node (k, j, i) of a vec4 array, in one 128-bit read-only load on CUDA."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const uint4 v = __ldg(reinterpret_cast<const uint4*>(wp::address(pairs, k, j, i)));
+wp::vec_t<8, wp::half> out;
+memcpy(&out, &v, 16);
+return out;
+#else
+return wp::index(pairs, k, j, i);
+#endif
+""")
+def load_pair(pairs: wp.array3d(dtype=vec8h), k: int, j: int, i: int) -> vec8h:
+    """Record (k, j, i) of a float16 pair array, in one 128-bit read-only load on CUDA."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const uint2 v = __ldg(reinterpret_cast<const uint2*>(wp::address(nodes, k, j, i)));
+wp::vec_t<4, wp::half> out;
+memcpy(&out, &v, 8);
+return out;
+#else
+return wp::index(nodes, k, j, i);
+#endif
+""")
+def load_half_node(nodes: wp.array3d(dtype=wp.vec4h), k: int, j: int, i: int) -> wp.vec4h:
+    """Node (k, j, i) of a float16 node array, in one 64-bit read-only load on CUDA."""
+    ...
+
+
+@wp.func
+def half_node(nodes: wp.array3d(dtype=wp.vec4h), k: int, j: int, i: int):
+    """Node (k, j, i) of a float16 node array as float32."""
+    v = load_half_node(nodes, k, j, i)
+    return wp.vec4(float(v[0]), float(v[1]), float(v[2]), float(v[3]))
+
+
+@wp.func
+def pair_nodes(r: vec8h):
+    """The two nodes of a float16 pair record as float32 (node i, node i + 1)."""
+    lo = wp.vec4(float(r[0]), float(r[1]), float(r[2]), float(r[3]))
+    hi = wp.vec4(float(r[4]), float(r[5]), float(r[6]), float(r[7]))
+    return lo, hi
+
+
+@wp.func
 def sample_medium(m: Medium, p: wp.vec3):
     """Trilinear sample of (grad n, n - 1) at local point p; zero outside the box."""
     nz = m.field.shape[0]
     ny = m.field.shape[1]
     nx = m.field.shape[2]
-    fx = (p[0] + m.half[0]) * m.inv_spacing[0]
-    fy = (p[1] + m.half[1]) * m.inv_spacing[1]
-    fz = (p[2] + m.half[2]) * m.inv_spacing[2]
-    eps = 1.0e-4
-    if fx < -eps or fy < -eps or fz < -eps:
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, nx, ny, nz) == 0:
         return wp.vec4(0.0)
-    if fx > float(nx - 1) + eps or fy > float(ny - 1) + eps or fz > float(nz - 1) + eps:
-        return wp.vec4(0.0)
-    i = wp.clamp(int(wp.floor(fx)), 0, nx - 2)
-    j = wp.clamp(int(wp.floor(fy)), 0, ny - 2)
-    k = wp.clamp(int(wp.floor(fz)), 0, nz - 2)
-    ax = wp.clamp(fx - float(i), 0.0, 1.0)
-    ay = wp.clamp(fy - float(j), 0.0, 1.0)
-    az = wp.clamp(fz - float(k), 0.0, 1.0)
-    c00 = m.field[k, j, i] * (1.0 - ax) + m.field[k, j, i + 1] * ax
-    c10 = m.field[k, j + 1, i] * (1.0 - ax) + m.field[k, j + 1, i + 1] * ax
-    c01 = m.field[k + 1, j, i] * (1.0 - ax) + m.field[k + 1, j, i + 1] * ax
-    c11 = m.field[k + 1, j + 1, i] * (1.0 - ax) + m.field[k + 1, j + 1, i + 1] * ax
-    c0 = c00 * (1.0 - ay) + c10 * ay
-    c1 = c01 * (1.0 - ay) + c11 * ay
-    return c0 * (1.0 - az) + c1 * az
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    return trilinear(
+        m.field[k, j, i], m.field[k, j, i + 1], m.field[k, j + 1, i], m.field[k, j + 1, i + 1],
+        m.field[k + 1, j, i], m.field[k + 1, j, i + 1], m.field[k + 1, j + 1, i], m.field[k + 1, j + 1, i + 1], a,
+    )
 
 
 @wp.func
-def tangent_rate(m: Medium, active: int, x: wp.vec3, t: wp.vec3):
+def sample_medium(m: MediumStraight, p: wp.vec3):  # noqa: F811 (an overload)
+    """The undisturbed medium: no gradient anywhere (the reference image)."""
+    return wp.vec4(0.0)
+
+
+@wp.func
+def sample_medium(m: MediumVec, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` of ``Medium`` with 128-bit node loads: the same numbers."""
+    nz = m.field.shape[0]
+    ny = m.field.shape[1]
+    nx = m.field.shape[2]
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, nx, ny, nz) == 0:
+        return wp.vec4(0.0)
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    return trilinear(
+        load_node(m.field, k, j, i), load_node(m.field, k, j, i + 1),
+        load_node(m.field, k, j + 1, i), load_node(m.field, k, j + 1, i + 1),
+        load_node(m.field, k + 1, j, i), load_node(m.field, k + 1, j, i + 1),
+        load_node(m.field, k + 1, j + 1, i), load_node(m.field, k + 1, j + 1, i + 1), a,
+    )
+
+
+@wp.func
+def sample_medium(m: MediumHalf, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` from float16 node pairs: four 128-bit loads per sample."""
+    nz = m.pairs.shape[0]
+    ny = m.pairs.shape[1]
+    nx = m.pairs.shape[2] + 1
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, nx, ny, nz) == 0:
+        return wp.vec4(0.0)
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    c000, c100 = pair_nodes(load_pair(m.pairs, k, j, i))
+    c010, c110 = pair_nodes(load_pair(m.pairs, k, j + 1, i))
+    c001, c101 = pair_nodes(load_pair(m.pairs, k + 1, j, i))
+    c011, c111 = pair_nodes(load_pair(m.pairs, k + 1, j + 1, i))
+    return wp.cw_mul(trilinear(c000, c100, c010, c110, c001, c101, c011, c111, a), m.unscale)
+
+
+@wp.func
+def sample_medium(m: MediumHalfNodes, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` from float16 nodes: the numbers of ``MediumHalf``, eight 64-bit loads."""
+    nz = m.nodes.shape[0]
+    ny = m.nodes.shape[1]
+    nx = m.nodes.shape[2]
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, nx, ny, nz) == 0:
+        return wp.vec4(0.0)
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    c = trilinear(
+        half_node(m.nodes, k, j, i), half_node(m.nodes, k, j, i + 1),
+        half_node(m.nodes, k, j + 1, i), half_node(m.nodes, k, j + 1, i + 1),
+        half_node(m.nodes, k + 1, j, i), half_node(m.nodes, k + 1, j, i + 1),
+        half_node(m.nodes, k + 1, j + 1, i), half_node(m.nodes, k + 1, j + 1, i + 1), a,
+    )
+    return wp.cw_mul(c, m.unscale)
+
+
+@wp.func
+def sample_medium(m: MediumTexture, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` through the texture unit's trilinear filter: one fetch per sample."""
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, m.tex.width, m.tex.height, m.tex.depth) == 0:
+        return wp.vec4(0.0)
+    return wp.cw_mul(wp.texture_sample(m.tex, f + wp.vec3(0.5), dtype=wp.vec4), m.unscale)
+
+
+@wp.func
+def texel(m: MediumTexels, i: int, j: int, k: int):
+    """Node (k, j, i) of a point-sampled texture (texel centres at integer + 0.5)."""
+    return wp.texture_sample(m.tex, wp.vec3(float(i) + 0.5, float(j) + 0.5, float(k) + 0.5), dtype=wp.vec4)
+
+
+@wp.func
+def sample_medium(m: MediumTexels, p: wp.vec3):  # noqa: F811 (an overload)
+    """``sample_medium`` of ``Medium`` from eight texel fetches: the same numbers."""
+    nz = m.tex.depth
+    ny = m.tex.height
+    nx = m.tex.width
+    f = node_coords(m.half, m.inv_spacing, p)
+    if in_grid(f, nx, ny, nz) == 0:
+        return wp.vec4(0.0)
+    i, j, k, a = cell_of(f, nx, ny, nz)
+    return trilinear(
+        texel(m, i, j, k), texel(m, i + 1, j, k), texel(m, i, j + 1, k), texel(m, i + 1, j + 1, k),
+        texel(m, i, j, k + 1), texel(m, i + 1, j, k + 1),
+        texel(m, i, j + 1, k + 1), texel(m, i + 1, j + 1, k + 1), a,
+    )
+
+
+@wp.func
+def tangent_rate(m: Any, active: int, x: wp.vec3, t: wp.vec3):
     """dt/ds of Fermat's equation at local point x with unit tangent t."""
     if active == 0:
         return wp.vec3(0.0)
@@ -106,7 +364,7 @@ def tangent_rate(m: Medium, active: int, x: wp.vec3, t: wp.vec3):
 
 
 @wp.func
-def rk4_step(m: Medium, active: int, x: wp.vec3, t: wp.vec3, h: float):
+def rk4_step(m: Any, active: int, x: wp.vec3, t: wp.vec3, h: float):
     """One classical Runge-Kutta step of length h for (x, t); returns the new position and tangent."""
     k1t = tangent_rate(m, active, x, t)
     t2 = t + 0.5 * h * k1t
@@ -121,14 +379,14 @@ def rk4_step(m: Medium, active: int, x: wp.vec3, t: wp.vec3, h: float):
 
 
 @wp.func
-def n_steps(m: Medium, t: wp.vec3, step: float):
+def n_steps(m: Any, t: wp.vec3, step: float):
     """Number of equal RK4 steps that carry a straight ray of tangent t through the box's depth."""
     length = 2.0 * m.half[2] / t[2]
     return wp.max(int(wp.ceil(length / step - 1.0e-4)), 1)
 
 
 @wp.func
-def trace_volume(m: Medium, active: int, x_global: wp.vec3, t: wp.vec3, step: float):
+def trace_volume(m: Any, active: int, x_global: wp.vec3, t: wp.vec3, step: float):
     """Carry a ray from anywhere in front of the box to its back face.
 
     Straight to the front face plane, then RK4 across the whole depth of the box in equal steps that
@@ -147,7 +405,7 @@ def trace_volume(m: Medium, active: int, x_global: wp.vec3, t: wp.vec3, step: fl
 
 
 @wp.func
-def aimed_ray(m: Medium, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.vec3, step: float, iterations: int):
+def aimed_ray(m: Any, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.vec3, step: float, iterations: int):
     """Trace a ray from ``origin`` through the volume so that it crosses the stop plane at ``stop_point``.
 
     The first ray is aimed straight at the stop point; each iteration then re-aims it by the amount the
@@ -274,17 +532,20 @@ def sample_disk(state: wp.uint32, radius: float):
 
 @wp.kernel
 def render_rays(
-    medium: Medium,
+    medium: Any,
     active: int,
     cam: Camera,
     sen: Sensor,
     dots: wp.array(dtype=wp.vec2),
     nominal_px: wp.array(dtype=wp.vec2),
+    launch_order: wp.array(dtype=wp.int32),
     dot_radius: float,
     step: float,
     aim_iterations: int,
     seed: int,
     ray_start: int,
+    ray_count: int,
+    group: int,
     image: wp.array2d(dtype=wp.int64),
     sum_x: wp.array(dtype=wp.int64),
     sum_y: wp.array(dtype=wp.int64),
@@ -294,14 +555,23 @@ def render_rays(
 ):
     """One thread per ray: emit from a dot towards the aperture, trace, image, deposit, accumulate.
 
-    Thread ``tid`` is ray ``ray_start + tid // n_dots`` of dot ``tid % n_dots``; its random numbers
-    depend only on (seed, dot, ray), so the reference and gradient images see the same ray set on
-    every device.
+    Rays ``ray_start .. ray_start + ray_count - 1`` of every dot, in groups of ``group`` consecutive
+    rays of one dot: thread ``tid`` is in group ``g = tid // group``, which takes dot
+    ``launch_order[g % n_dots]`` and rays ``(g // n_dots) * group ...`` (threads past ``ray_count``
+    do nothing). ``group = 1`` with the identity order is one ray of each dot in turn; a spatial
+    ``launch_order`` and a larger group make a warp's rays read nearby nodes. The order changes
+    nothing else: a ray's random numbers depend only on (seed, dot, ray), and the images and sums are
+    accumulated in fixed point, so every order gives the same bits.
     """
     tid = wp.tid()
     n_dots = dots.shape[0]
-    dot = tid % n_dots
-    ray = ray_start + tid / n_dots
+    g = tid / group
+    block = g / n_dots
+    local = block * group + (tid - g * group)
+    if local >= ray_count:
+        return
+    dot = launch_order[g - block * n_dots]
+    ray = ray_start + local
     state = wp.rand_init(seed, ray * n_dots + dot)
     e2 = dots[dot] + sample_disk(state, dot_radius)
     a2 = sample_disk(state, cam.aperture_radius)
@@ -406,7 +676,7 @@ def integrate_cone(
 
 @wp.kernel
 def trace_to_exit(
-    medium: Medium,
+    medium: Any,
     active: int,
     origins: wp.array(dtype=wp.vec3),
     tangents: wp.array(dtype=wp.vec3),
@@ -431,3 +701,23 @@ def deposit_spots(
     """Deposit one Gaussian spot per entry (used by tests to compare against the NumPy reference)."""
     i = wp.tid()
     deposit_gaussian(image, sen, px[i], energy[i])
+
+
+# ``render_rays`` held to at most 80 or 64 registers a thread on CUDA (``rays.max_registers``): with
+# 256-thread blocks, 3 or 4 blocks per SM instead of 2 for kernels above 80 registers, at the price of
+# spills to local memory. Each in its own module, compiled only when first launched.
+render_rays_80 = wp.kernel(
+    render_rays.func, name="render_rays_80", cuda_max_registers=80, module="unique", enable_backward=False
+)
+render_rays_64 = wp.kernel(
+    render_rays.func, name="render_rays_64", cuda_max_registers=64, module="unique", enable_backward=False
+)
+MAX_REGISTERS = {0: render_rays, 80: render_rays_80, 64: render_rays_64}
+
+# The media ``render_rays`` is compiled for (one module build covers them all); ``trace_to_exit``
+# serves the tests of the float32 medium.
+for _medium in (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels):
+    wp.overload(render_rays, {"medium": _medium})
+    wp.overload(render_rays_80, {"medium": _medium})
+    wp.overload(render_rays_64, {"medium": _medium})
+wp.overload(trace_to_exit, {"medium": Medium})

@@ -17,7 +17,10 @@ from synthbos import SynthbosError
 from . import kernels, sources
 from .checks import check_density
 
-__all__ = ["MAX_INDEX", "MediumData", "medium_from_config", "medium_from_density", "to_warp"]
+__all__ = [
+    "EXACT_FIELDS", "FIELDS", "MAX_INDEX", "MediumData", "half_scale", "medium_from_config", "medium_from_density",
+    "straight_to_warp", "to_warp",
+]
 
 
 @dataclass(frozen=True)
@@ -75,10 +78,75 @@ def medium_from_config(cfg: dict) -> MediumData:
     )
 
 
-def to_warp(medium: MediumData, *, device=None) -> kernels.Medium:
-    """Upload the medium to a Warp device as the kernels' ``Medium`` struct."""
-    m = kernels.Medium()
-    m.field = wp.array(medium.field, dtype=wp.vec4, device=device)
+# How the renderer stores and reads the medium on the device (``rays.field``): the exact float32 nodes
+# read with scalar or 128-bit loads, float16 node pairs or nodes (the same numbers), or a 3D texture
+# (hardware-filtered in float32 or float16, or point-sampled with the same arithmetic as float32).
+FIELDS = ("float32", "float32_vec", "float16", "float16_nodes", "texture", "texture16", "texture_nearest")
+EXACT_FIELDS = ("float32", "float32_vec", "texture_nearest")  # bitwise the same samples as "float32"
+
+
+def half_scale(field) -> np.ndarray:
+    """Per channel power of two that brings the largest magnitude of ``field`` (..., 4) to [2^13, 2^14).
+
+    Float16 then keeps 11 significant bits for the strongest values and weak fields stay clear of its
+    subnormals; scaling by a power of two is exact.
+    """
+    top = np.abs(field).reshape(-1, field.shape[-1]).max(axis=0).astype(np.float64)
+    exponent = np.where(top > 0, 13 - np.floor(np.log2(np.where(top > 0, top, 1.0))), 0.0)
+    return np.exp2(exponent)
+
+
+def straight_to_warp(medium: MediumData) -> kernels.MediumStraight:
+    """The box's placement only, for the reference image's straight rays (nothing to upload)."""
+    m = kernels.MediumStraight()
+    m.half = wp.vec3(*(0.5 * s for s in medium.size))
+    m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
+    m.centre = wp.vec3(*medium.centre)
+    return m
+
+
+def to_warp(medium: MediumData, *, device=None, field="float32"):
+    """Upload the medium to a Warp device as the struct ``render_rays`` reads (see ``FIELDS``).
+
+    "float32" and "float32_vec" give ``kernels.Medium`` / ``kernels.MediumVec`` over the packed nodes;
+    "float16" gives ``kernels.MediumHalf`` (node pairs along x), "float16_nodes"
+    ``kernels.MediumHalfNodes``; "texture" and "texture16"
+    ``kernels.MediumTexture``; "texture_nearest" ``kernels.MediumTexels``.
+    """
+    if field not in FIELDS:
+        raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
+    if field in ("float32", "float32_vec"):
+        m = kernels.Medium() if field == "float32" else kernels.MediumVec()
+        m.field = wp.array(medium.field, dtype=wp.vec4, device=device)
+    elif field == "float16":
+        scale = half_scale(medium.field)
+        nodes = (medium.field * scale).astype(np.float16)
+        pairs = np.concatenate([nodes[:, :, :-1], nodes[:, :, 1:]], axis=-1)
+        m = kernels.MediumHalf()
+        m.pairs = wp.array(np.ascontiguousarray(pairs), dtype=kernels.vec8h, device=device)
+        m.unscale = wp.vec4(*(1.0 / scale))
+    elif field == "float16_nodes":
+        scale = half_scale(medium.field)
+        m = kernels.MediumHalfNodes()
+        m.nodes = wp.array((medium.field * scale).astype(np.float16), dtype=wp.vec4h, device=device)
+        m.unscale = wp.vec4(*(1.0 / scale))
+    elif field == "texture_nearest":
+        m = kernels.MediumTexels()
+        m.tex = wp.Texture3D(
+            medium.field, filter_mode=wp.TextureFilterMode.CLOSEST, address_mode=wp.TextureAddressMode.CLAMP,
+            normalized_coords=False, device=device,
+        )
+    else:
+        data, unscale = medium.field, np.ones(4)
+        if field == "texture16":
+            scale = half_scale(medium.field)
+            data, unscale = np.ascontiguousarray((medium.field * scale).astype(np.float16)), 1.0 / scale
+        m = kernels.MediumTexture()
+        m.tex = wp.Texture3D(
+            data, filter_mode=wp.TextureFilterMode.LINEAR, address_mode=wp.TextureAddressMode.CLAMP,
+            normalized_coords=False, device=device,
+        )
+        m.unscale = wp.vec4(*unscale)
     m.half = wp.vec3(*(0.5 * s for s in medium.size))
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
     m.centre = wp.vec3(*medium.centre)

@@ -21,11 +21,11 @@ from synthbos.device import check_device, init_warp
 from . import checks, kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import MediumData, medium_from_config, to_warp
+from .medium import MediumData, medium_from_config, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
-__all__ = ["RenderPlan", "chief_ray_truth", "cone_truth", "plan_render", "render_pair", "trace_rays"]
+__all__ = ["RenderPlan", "chief_ray_truth", "cone_truth", "morton_order", "plan_render", "render_pair", "trace_rays"]
 
 _INT32_MAX = 2**31 - 1
 
@@ -69,6 +69,11 @@ class RenderPlan:
         self.aim_iterations = (1 if self.camera.lens == "thick" else 0) if aim == "auto" else int(aim)
         step = rays["step_mm"]
         self.step = min(self.medium.spacing) if step == "grid" else step * 1e-3
+        self.field = rays["field"]
+        self.rays_per_group = rays["rays_per_group"]
+        self.block_dim = rays["block_dim"]
+        self.max_registers = rays["max_registers"]
+        self.launch_order = morton_order(px) if rays["dot_order"] == "morton" else np.arange(len(px), dtype=np.int32)
         if self.n_dots * self.rays_per_dot > _INT32_MAX:
             raise SynthbosError(
                 f"{self.n_dots} dots x {self.rays_per_dot} rays exceeds 2^31 rays per image; use fewer rays.per_dot"
@@ -104,6 +109,21 @@ class RenderPlan:
             )
 
 
+def morton_order(px) -> np.ndarray:
+    """Indices of the points ``px`` (N, 2) along a Z-order (Morton) curve over the image.
+
+    Consecutive points of the curve are neighbours on the image, so threads that take the dots in
+    this order read nearby nodes of the volume.
+    """
+    q = np.asarray(px, dtype=np.float64)
+    q = np.clip(np.round(q - q.min(axis=0)), 0, 2**16 - 1).astype(np.uint64)
+    code = np.zeros(len(q), dtype=np.uint64)
+    for bit in range(16):
+        code |= ((q[:, 0] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit)
+        code |= ((q[:, 1] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit + 1)
+    return np.argsort(code, kind="stable").astype(np.int32)
+
+
 def plan_render(config=None) -> RenderPlan:
     """Resolve a configuration (dict, path or None for the defaults) into a render plan."""
     return RenderPlan(load_config(config))
@@ -133,7 +153,7 @@ def _sensor_struct(plan: RenderPlan) -> kernels.Sensor:
     return s
 
 
-def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, label=""):
+def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, label="", medium=None):
     """Trace every ray of every dot once and deposit it.
 
     Parameters
@@ -145,6 +165,10 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
         Warp device ("cpu", "cuda:0"); Warp's default if None.
     progress : tqdm or None
         A bar to advance by the number of rays traced.
+    medium : optional
+        The plan's medium already on ``device`` (``to_warp(plan.medium, field=plan.field)``) for the
+        gradient image, uploaded here if None. The reference image reads no medium: its rays run
+        through ``straight_to_warp(plan.medium)``, the box's placement alone.
 
     Returns
     -------
@@ -152,15 +176,25 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     mean_px : (N, 2) float64 ray-mean position of each dot (x = column, y = row)
     ok : (N,) bool, every ray of the dot reached the sensor
     n_tir : int, rays lost to total internal reflection
+
+    Notes
+    -----
+    The plan's speed settings (``rays.field``, ``rays.dot_order``, ``rays.rays_per_group``,
+    ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored and read and which
+    thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
     """
     init_warp()
     W, H = plan.camera.pixels
     n = plan.n_dots
-    medium = to_warp(plan.medium, device=device)
+    if not active:
+        medium = straight_to_warp(plan.medium)
+    elif medium is None:
+        medium = to_warp(plan.medium, device=device, field=plan.field)
     cam = _camera_struct(plan.camera)
     sen = _sensor_struct(plan)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     nominal = wp.array(plan.nominal_px.astype(np.float32), dtype=wp.vec2, device=device)
+    order = wp.array(plan.launch_order, dtype=wp.int32, device=device)
     image = wp.zeros((H, W), dtype=wp.int64, device=device)
     sum_x = wp.zeros(n, dtype=wp.int64, device=device)
     sum_y = wp.zeros(n, dtype=wp.int64, device=device)
@@ -168,13 +202,17 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
+    group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
+    if rays_per_launch > group:
+        rays_per_launch -= rays_per_launch % group  # whole groups, except in the last launch
     for start in range(0, plan.rays_per_dot, rays_per_launch):
         count = min(rays_per_launch, plan.rays_per_dot - start)
+        threads = -(-count // group) * group * n
         wp.launch(
-            kernels.render_rays, dim=count * n,
-            inputs=[medium, int(active), cam, sen, dots, nominal, plan.dot_radius, plan.step,
-                    plan.aim_iterations, plan.cfg["rays"]["seed"], start],
-            outputs=[image, sum_x, sum_y, hits, lost, tir], device=device,
+            kernels.MAX_REGISTERS[plan.max_registers], dim=threads,
+            inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.step,
+                    plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group],
+            outputs=[image, sum_x, sum_y, hits, lost, tir], device=device, block_dim=plan.block_dim,
         )
         if progress is not None:
             wp.synchronize_device(device)
