@@ -30,12 +30,15 @@ Keys
   images every ray from a point to one point).
   Speed settings (see ``raytrace.render.trace_rays``): field = "float32" | "float32_vec" |
   "texture_nearest" (the exact float32 nodes: scalar loads, 128-bit loads, a point-sampled texture;
-  all give the same bits) | "float16" | "float16_nodes" | "texture" | "texture16" (approximate:
+  the same bits on the CPU, within ~1e-8 px on CUDA, whose compiler orders the trilinear sums'
+  fused multiply-adds differently for each) | "float16" | "float16_nodes" | "texture" | "texture16" (approximate:
   float16 node pairs along x or nodes, which agree bitwise with each other; the texture unit's
   trilinear filter, with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
   order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
   one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
   or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
+  Defaults: field "float32_vec", dot_order "morton", rays_per_group 8, block_dim 256 (the fastest exact
+  choice on an H200: see the README's renderer section).
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -78,8 +81,8 @@ __all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
 _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
-        "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32", "dot_order": "pattern",
-        "rays_per_group": 1, "block_dim": 256, "max_registers": 0,
+        "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32_vec", "dot_order": "morton",
+        "rays_per_group": 8, "block_dim": 256, "max_registers": 0,
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).

@@ -16,15 +16,27 @@ from synthbos import SynthbosError
 _BLOB = {"source": "gaussian", "sigma_mm": 4.0, "amplitude_kg_m3": 0.05, "grid": [48, 48, 16]}
 _RAYS = {"per_dot": 100, "chunk": 9000}
 
-_EXACT = [
+# The renderer before its speed settings: float32 scalar loads, dots in pattern order, one ray per dot in turn.
+_PLAIN = {"field": "float32", "dot_order": "pattern", "rays_per_group": 1}
+
+# Launch settings: which thread takes which ray. Random numbers depend only on (seed, dot, ray) and the
+# sums are fixed point, so they give the same bits on every device.
+_LAUNCH = [
     {"dot_order": "morton"},
     {"dot_order": "morton", "rays_per_group": 7},
     {"rays_per_group": 32, "block_dim": 128, "max_registers": 64},
+    {"dot_order": "morton", "rays_per_group": 65536},
+]
+
+# Exact fields: the same float32 values and the same arithmetic, read another way. The same bits on the
+# CPU; CUDA's compiler contracts the trilinear sums into fused multiply-adds in another order for each
+# form of load, which moves displacements by ~1e-8 px (2.4e-8 px measured at the paper's set-up).
+_EXACT_FIELDS = [
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture_nearest", "rays_per_group": 3},
     {"field": "float32_vec", "max_registers": 80},
-    {"dot_order": "morton", "rays_per_group": 65536},
 ]
+EXACT_FIELD_TOLERANCE_CUDA_PX = 1e-6
 
 # Largest |displacement difference| (px) of an approximate field against float32. Float16 nodes keep 11
 # significant bits (measured ~2e-4 px on the paper's flow); CUDA's texture filter uses weights with 8
@@ -38,20 +50,43 @@ _cache = {}
 def _pair(device, volume=None, **rays):
     key = (device, repr(volume), tuple(sorted(rays.items())))
     if key not in _cache:
-        cfg = small_config(camera={"pixels": [128, 128]}, volume=volume or _BLOB, rays={**_RAYS, **rays})
+        cfg = small_config(camera={"pixels": [128, 128]}, volume=volume or _BLOB, rays={**_RAYS, **_PLAIN, **rays})
         _cache[key] = render_pair(cfg, device=device)
     return _cache[key]
 
 
-@pytest.mark.parametrize("rays", _EXACT, ids=lambda r: ",".join(f"{k}={v}" for k, v in r.items()))
-def test_launch_settings_and_exact_fields_give_the_default_bits(device, rays):
-    a, b = _pair(device), _pair(device, **rays)
+def _assert_same_pair(a, b, *, atol_px=0.0):
     assert a.valid.mean() > 0.9 and np.abs(a.displacement_px[a.valid]).max() > 0.02
-    np.testing.assert_array_equal(b.reference, a.reference)
-    np.testing.assert_array_equal(b.gradient, a.gradient)
+    np.testing.assert_array_equal(b.reference, a.reference)  # straight rays: no field read
     np.testing.assert_array_equal(b.reference_px, a.reference_px)
-    np.testing.assert_array_equal(b.displacement_px, a.displacement_px)
     np.testing.assert_array_equal(b.valid, a.valid)
+    if atol_px == 0.0:
+        np.testing.assert_array_equal(b.gradient, a.gradient)
+        np.testing.assert_array_equal(b.displacement_px, a.displacement_px)
+    else:
+        np.testing.assert_allclose(b.displacement_px, a.displacement_px, rtol=0, atol=atol_px)
+        np.testing.assert_allclose(b.gradient, a.gradient, rtol=0, atol=1e-4 * float(a.gradient.max()))
+
+
+@pytest.mark.parametrize("rays", _LAUNCH, ids=lambda r: ",".join(f"{k}={v}" for k, v in r.items()))
+def test_launch_settings_give_the_same_bits(device, rays):
+    _assert_same_pair(_pair(device), _pair(device, **rays))
+
+
+@pytest.mark.parametrize("rays", _EXACT_FIELDS, ids=lambda r: ",".join(f"{k}={v}" for k, v in r.items()))
+def test_exact_fields_give_the_plain_result(device, rays):
+    a, b = _pair(device), _pair(device, **rays)
+    _assert_same_pair(a, b, atol_px=0.0 if device == "cpu" else EXACT_FIELD_TOLERANCE_CUDA_PX)
+    if device != "cpu":
+        print(f"\n{rays} on {device}: max |displacement difference| "
+              f"{np.abs(b.displacement_px - a.displacement_px)[a.valid].max():.1e} px")
+
+
+def test_default_speed_settings_are_an_exact_field():
+    from synthbos.raytrace.config import load_config
+
+    rays = load_config(small_config())["rays"]
+    assert rays["field"] in EXACT_FIELDS and rays["dot_order"] == "morton" and rays["rays_per_group"] == 8
 
 
 def test_float16_pairs_and_nodes_agree_bitwise(device):
