@@ -167,6 +167,15 @@ def finish_item(pair_path: str, method: str, res, out: str, device=None, *, pair
     return out
 
 
+def process_items(hosts, items) -> list[str]:
+    """In a worker: :func:`finish_items` for ``hosts``, then measure and finish each score item of
+    ``items`` (:func:`measure_item` arguments without the pair), on the same noisy images of one pair."""
+    done = finish_items(hosts)
+    for args in items:
+        done.append(finish_item(*measure_item(read_pair_cached(args[0]), *args)))
+    return done
+
+
 def finish_items(hosts) -> list[str]:
     """:func:`finish_item` for several items in turn (``hosts``: their :func:`measure_item` tuples).
 

@@ -71,6 +71,11 @@ class Method:
         (``TrackingSettings.paper``).
     in_default_campaign : bool
         Whether ``paper``, ``sweep`` and ``regress`` run it unless methods are named.
+    device_resident : bool
+        Whether its run keeps the images on a CUDA processing device from upload to result, with no
+        host work between its kernels. A campaign that processes on a GPU runs such methods in the
+        process that drives the GPU and the others, whose host code would hold that process up, in
+        its worker processes (on the same device): ``scheduling.run_pipeline``.
     """
 
     name: str
@@ -85,6 +90,7 @@ class Method:
     settings_key: str = ""
     make_settings: Callable | None = None
     in_default_campaign: bool = True
+    device_resident: bool = False
 
     def settings(self, overrides: dict | None = None):
         """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
@@ -196,7 +202,7 @@ METHODS: dict[str, Method] = {
     for m in (
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
-               settings_key="correlation"),
+               settings_key="correlation", device_resident=True),
         Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
                label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,
                settings_key="tracking"),

@@ -110,19 +110,23 @@ def same_image_runs(scores) -> list[list]:
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process") -> None:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
-    Pair after pair, this process reads the pair and, for each of its score items, adds the noise and
-    runs the method on the item's processing device (``items.measure_item``); the result goes to a
-    worker process that scores it and writes the score file (``items.finish_item``) while this
-    process goes on with the next item. Consecutive items on the same noisy images (one noise level's
-    methods) go to a worker together (``items.finish_items``), so the work they share is done once
-    there (``tracking`` and ``tracking-cc`` measure the same dots: one triangulation). Meanwhile a
-    thread renders the next pair (when its file is missing), so the renderer's kernels run while this
-    thread processes. At most ``4 * workers`` such batches wait for a worker, so memory stays bounded
-    when the host is the slower side. With ``workers <= 1`` the host work runs here, after each item.
+    Pair after pair, this process reads the pair and, for each of its score items whose method is
+    device resident (``Method.device_resident``: the correlation's Warp path), adds the noise and runs
+    the method on the item's processing device (``items.measure_item``); the result goes to a worker
+    process that scores it and writes the score file (``items.finish_item``) while this process goes
+    on with the next item. Methods with host work between their kernels (tracking) would hold this
+    process up, so workers measure them too, on the same processing device. Consecutive items on the
+    same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
+    so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
+    ``track_pair`` and one triangulation). Meanwhile a thread renders the next pair (when its file is
+    missing), so the renderer's kernels run while this thread processes. At most ``4 * workers`` such
+    batches wait for a worker, so memory stays bounded when the host is the slower side. With
+    ``workers <= 1`` everything runs here, item after item.
     """
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
-    from .items import finish_item, finish_items, measure_item, render_item
+    from .items import finish_item, measure_item, process_items, render_item
+    from .registry import get_method
 
     tasks = pair_tasks(renders, scores)
     if not tasks:
@@ -155,17 +159,15 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     bar.update(1)
                 pair = read_pair(items[0][0]) if items else None
                 for run in same_image_runs(items):
-                    batch = []
-                    for args in run:
-                        host = measure_item(pair, *args)
-                        if pool is None:
-                            finish_item(*host, pair=pair)
-                            bar.update(1)
-                        else:
-                            batch.append(host)
                     if pool is None:
+                        for args in run:
+                            finish_item(*measure_item(pair, *args), pair=pair)
+                            bar.update(1)
                         continue
-                    pending[pool.submit(finish_items, batch)] = len(batch)
+                    here = [args for args in run if get_method(args[1]).device_resident]
+                    there = [args for args in run if not get_method(args[1]).device_resident]
+                    batch = [measure_item(pair, *args) for args in here]
+                    pending[pool.submit(process_items, batch, there)] = len(run)
                     collect(block=False)
                     while len(pending) >= 4 * workers:
                         collect(block=True)
