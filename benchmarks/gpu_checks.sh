@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
-# The GPU evidence behind the README, in two parts that each fit one device call:
+# The GPU evidence behind the README, in parts that each fit one device call:
 #   bash benchmarks/gpu_checks.sh tests      the test suite's CUDA cases (every device-parametrised test
 #                                            on cuda:0, CPU/CUDA agreement), the renderer speed benchmark and
-#                                            the correlation's NumPy path against its Warp path on cuda:0
+#                                            the correlation's NumPy path against its Warp path on cuda:0, and
+#                                            an Nsight Compute profile of the renderer before/after its speed settings
 #   bash benchmarks/gpu_checks.sh campaign   `synthbos paper --full` on cuda:0 and an f-number sweep
 #   bash benchmarks/gpu_checks.sh scaling    campaign throughput on 1, 2, 4 GPUs through Dask (bench_scaling)
 #   bash benchmarks/gpu_checks.sh stages     per-stage times of a pair on cuda:0 and the CPU (bench_stages), and
-#                                            `synthbos paper --full` processing on the GPU and on the CPU
+#                                            `synthbos paper --full` processing on the GPU (ALSO_CPU=1: and on the CPU)
 # The device image lacks some pure-Python dependencies (dask, pynrrd, imageio, hypothesis): carry them as
 # wheels in .whl/ and install them into /tmp/site first (see the README's GPU section).
 # Logs, tables and figures are packed into ${OUT:-gpu-out}/gpu-<part>.tar.gz.
@@ -24,15 +25,26 @@ if [ "$part" = tests ]; then
   python3 -m pytest -q -rA -p no:cacheprovider -m gpu tests \
     > "$work/pytest_gpu.log" 2>&1
   grep -E "passed|failed|CPU vs CUDA|^FAILED" "$work/pytest_gpu.log" | tail -12
-  python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --json "$work/bench_render.json" \
-    > "$work/bench_render.log" 2>&1
-  tail -5 "$work/bench_render.log"
+  # the renderer before its speed settings first (the reference of the differences), then today's default
+  plain=field=float32,dot_order=pattern,rays_per_group=1
+  python3 -m synthbos.benchmarks.bench_render --devices cuda:0 cpu --rays 10000 --cpu-rays 50 --repeats 3 \
+    --variants $plain default field=float16 field=texture16 --cpu-variants $plain default \
+    --json "$work/bench_render.json" > "$work/bench_render.log" 2>&1
+  tail -8 "$work/bench_render.log"
+  if command -v ncu >/dev/null; then  # what limits the gradient image's kernel, before and after
+    timeout 240 ncu --clock-control none -k regex:render_rays --section SpeedOfLight --section MemoryWorkloadAnalysis \
+      --section Occupancy --section LaunchStats --section WarpStateStats \
+      python3 -m synthbos.benchmarks.bench_render --devices cuda:0 --rays 2000 --profile --variants $plain default \
+      > "$work/ncu_render.log" 2>&1
+    grep -E "render_rays|Duration|L1/TEX Cache Throughput|L2 Cache Throughput|DRAM Throughput|Compute \(SM\) Throughput|Registers Per|Achieved Occupancy|Theoretical Occupancy" \
+      "$work/ncu_render.log" | head -48
+  fi
   python3 -m synthbos.benchmarks.bench_correlation --devices cuda:0 --sizes 512 1024 --repeat 10 --profile \
     > "$work/bench_correlation.log" 2>&1
   grep -A12 "^pair" "$work/bench_correlation.log"
 elif [ "$part" = stages ]; then
   python3 -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --rays 10000 --cpu-rays 100 --paper-full \
-    --also-cpu-processing --workers 14 --json "$work/bench_stages.json" > "$work/bench_stages.log" 2>&1
+    ${ALSO_CPU:+--also-cpu-processing} --workers 14 --json "$work/bench_stages.json" > "$work/bench_stages.log" 2>&1
   cat "$work/bench_stages.log"
   cp "$work/bench_stages.json" "$work/bench_stages.log" "$out/" 2>/dev/null
 elif [ "$part" = scaling ]; then
