@@ -29,6 +29,8 @@ from multiprocessing import get_context
 
 from tqdm.auto import tqdm
 
+from synthbos.device import shared_by_threads
+
 __all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline", "same_image_runs"]
 
 _PR_SET_PDEATHSIG = 1
@@ -150,7 +152,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     renderer = ThreadPoolExecutor(1, thread_name_prefix="synthbos-render")
     rendering = []
     try:
-        with bar:
+        with bar, shared_by_threads():  # the render thread launches too: no CUDA graph capture here
             rendering.append(render(0))
             for k, (_, items) in enumerate(tasks):
                 rendering.append(render(k + 1))  # the next pair renders while this one is processed

@@ -24,6 +24,7 @@ from collections import OrderedDict
 import numpy as np
 
 from synthbos import SynthbosError
+from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
 from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
@@ -83,8 +84,9 @@ def _correlate_kernel(wp, k, n, rpc):
 
 
 def _graph_replay(device):
-    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`)."""
-    return USE_CUDA_GRAPH and device.is_cuda
+    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`): not when
+    other threads launch work on the devices meanwhile (``synthbos.device.shared_by_threads``)."""
+    return USE_CUDA_GRAPH and device.is_cuda and graph_capture_allowed()
 
 
 class _Iteration:

@@ -18,11 +18,13 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["check_device", "describe_device", "init_warp", "resolve_device"]
+__all__ = ["check_device", "describe_device", "graph_capture_allowed", "init_warp", "resolve_device",
+           "shared_by_threads"]
 
 # What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 _initialised = False
+_sharing_threads = 0  # how many shared_by_threads() blocks are open
 
 
 @contextlib.contextmanager
@@ -99,3 +101,24 @@ def describe_device(device: str) -> str:
     if device == "cpu":
         return "device: cpu" if wp.is_cuda_available() else "device: cpu (no CUDA device found)"
     return f"device: {device} ({wp.get_device(device).name})"
+
+
+@contextlib.contextmanager
+def shared_by_threads():
+    """Within this block several threads of the process launch Warp work on the same devices.
+
+    CUDA graph capture takes a stream for itself, and another thread's launch or allocation during
+    a capture breaks it (and that thread's call); code that records graphs asks
+    :func:`graph_capture_allowed` first and launches plainly inside such a block.
+    """
+    global _sharing_threads
+    _sharing_threads += 1
+    try:
+        yield
+    finally:
+        _sharing_threads -= 1
+
+
+def graph_capture_allowed() -> bool:
+    """False inside :func:`shared_by_threads`: do not record CUDA graphs."""
+    return _sharing_threads == 0

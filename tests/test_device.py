@@ -19,3 +19,19 @@ def test_device_is_resolved_and_described_once():
     line = describe_device(device)
     assert line.startswith(f"device: {device}")
     assert resolve_device("cpu") == "cpu"
+
+
+def test_no_graph_capture_while_threads_share_the_devices():
+    from synthbos.correlation.device_pass import _graph_replay
+
+    from synthbos.device import graph_capture_allowed, shared_by_threads
+
+    class Cuda:
+        is_cuda = True
+
+    assert graph_capture_allowed() and _graph_replay(Cuda())
+    with shared_by_threads():
+        with shared_by_threads():
+            assert not graph_capture_allowed()
+        assert not _graph_replay(Cuda())
+    assert graph_capture_allowed()
