@@ -29,7 +29,7 @@ __all__ = ["check_spec", "resolve_process_device", "run_campaign"]
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
-                 scheduler=None, wait=False, process_device=None, pipeline=None):
+                 scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
 
     ``device`` renders; ``process_device`` runs the methods (default: ``device``, and the CPU when
@@ -39,7 +39,10 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     items in a pool of ``workers`` processes; one that processes on a GPU runs as a pipeline
     (``scheduling.run_pipeline``): this process does the device work of pair after pair while
     ``workers - 1`` processes score the results. ``pipeline`` (True or False) chooses either way
-    whatever the device; the files are byte-identical.
+    whatever the device; the files are byte-identical. In the pipeline the methods that are not
+    device resident (tracking) run in the worker processes, on ``worker_device`` when given (e.g.
+    ``"cpu"``, so that many processes do not share one GPU by time slices), else on ``process_device``;
+    each score file records the device that processed it.
 
     Everything a user can get wrong (the configuration, the methods and their settings, the folder) is
     checked before any work starts. The folder is locked (``folder/.lock``) for the campaign's life: a
@@ -63,7 +66,8 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     make_folder(folder)
     with folder_lock(folder, wait=wait):
         return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
-                           figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline)
+                           figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline,
+                           worker_device=worker_device)
 
 
 def resolve_process_device(device=None, process_device=None) -> str:
@@ -88,7 +92,8 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
         checks.check_ray_steps(plan_render(spec.pair_config(s, p)), device)  # configuration, limits, view
 
 
-def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline):
+def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline,
+                worker_device=None):
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
     for sub in (folder, folder / "pairs", folder / "scores"):
@@ -115,7 +120,8 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress,
                   process_device=process_device)
     elif pipeline:  # the device work here, pair after pair; scoring in worker processes
-        run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress)
+        run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
+                     worker_device=worker_device)
     else:
         workers = workers or default_workers()
         run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)

@@ -197,6 +197,7 @@ def _process_device(args, device: str) -> str:
 def _paper(args):
     device = _device(args.device)
     process_device = _process_device(args, device)
+    worker_device = _worker_device(args)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = FULL if full else QUICK
     if args.methods:
@@ -208,7 +209,8 @@ def _paper(args):
           f"-> {out}")
     t0 = time.perf_counter()
     rows = run_campaign(spec, out, device=device, process_device=process_device, workers=args.workers,
-                        progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
+                        progress=not args.quiet, scheduler=args.scheduler, wait=args.wait,
+                        worker_device=worker_device)
     print(format_summary(rows))
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
@@ -236,8 +238,10 @@ def _sweep(args):
     params = [parse_parameter(p) for p in args.param]
     check_output_folder(args.out)
     device = _device(args.device)
+    process_device, worker_device = _process_device(args, device), _worker_device(args)
     rows = run_sweep(base, params, args.out, size=args.size, device=device,
-                     process_device=_process_device(args, device), workers=args.workers,
+                     process_device=process_device, worker_device=worker_device,
+                     workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
     return 0
@@ -283,6 +287,14 @@ def _add_process_device_option(p) -> None:
     p.add_argument("--process-device", default=None, metavar="DEVICE",
                    help="Warp device for the processing when it differs from --device (e.g. render on cuda:0, "
                         "process on cpu)")
+    p.add_argument("--worker-device", default=None, metavar="DEVICE",
+                   help="when processing on a GPU: the device of the worker processes that run the methods with "
+                        "host work between their kernels (tracking), e.g. cpu (default: the processing device)")
+
+
+def _worker_device(args):
+    """``--worker-device``, checked, or None."""
+    return None if args.worker_device is None else resolve_device(args.worker_device)
 
 
 _WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"

@@ -91,6 +91,21 @@ def pair_tasks(renders, scores):
     return [(r, s) for r, s in by_pair.values()]
 
 
+def split_by_residency(run, *, worker_device=None) -> tuple[list, list]:
+    """Split score items into those whose method is device resident (run by the process that drives
+    the GPU) and the others (run by worker processes), the latter moved to ``worker_device`` when given.
+
+    Score items are ``(pair path, method, noise, seeds, out, overrides, processing device)``.
+    """
+    from .registry import get_method
+
+    here = [args for args in run if get_method(args[1]).device_resident]
+    there = [args for args in run if not get_method(args[1]).device_resident]
+    if worker_device is not None:
+        there = [(*args[:-1], worker_device) for args in there]
+    return here, there
+
+
 def same_image_runs(scores) -> list[list]:
     """Split score items into runs of consecutive items on the same noisy images (same pair, noise and seeds).
 
@@ -109,7 +124,8 @@ def same_image_runs(scores) -> list[list]:
     return runs
 
 
-def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process") -> None:
+def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
+                 worker_device=None) -> None:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items whose method is
@@ -117,7 +133,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     the method on the item's processing device (``items.measure_item``); the result goes to a worker
     process that scores it and writes the score file (``items.finish_item``) while this process goes
     on with the next item. Methods with host work between their kernels (tracking) would hold this
-    process up, so workers measure them too, on the same processing device. Consecutive items on the
+    process up, so workers measure them, on the item's processing device or on ``worker_device`` when
+    given (score items end with their processing device). Consecutive items on the
     same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
     so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
     ``track_pair`` and one triangulation). Meanwhile a thread renders the next pair (when its file is
@@ -128,7 +145,6 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
     from .items import finish_item, measure_item, process_items, render_item
-    from .registry import get_method
 
     tasks = pair_tasks(renders, scores)
     if not tasks:
@@ -166,8 +182,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    here = [args for args in run if get_method(args[1]).device_resident]
-                    there = [args for args in run if not get_method(args[1]).device_resident]
+                    here, there = split_by_residency(run, worker_device=worker_device)
                     batch = [measure_item(pair, *args) for args in here]
                     pending[pool.submit(process_items, batch, there)] = len(run)
                     collect(block=False)

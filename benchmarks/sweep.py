@@ -126,7 +126,7 @@ def _slug(name, value):
 
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
-              scheduler=None, wait=False, process_device=None):
+              scheduler=None, wait=False, process_device=None, worker_device=None):
     """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
 
     ``device`` renders and ``process_device`` processes (default: ``device``; see ``run_campaign``).
@@ -166,6 +166,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         if progress and runner is None:
             print(f"sweep point {label}")
         point_rows = run_campaign(spec, folder / "points" / label, device=device, process_device=process_device,
+                                  worker_device=worker_device,
                                   workers=workers, progress=progress, figures=False, scheduler=runner, wait=wait)
         return [{"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r} for r in point_rows]
 

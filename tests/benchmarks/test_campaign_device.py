@@ -231,3 +231,21 @@ def test_pipeline_scores_a_noise_levels_items_together():
     missing = scores[1:2] + scores[4:8]
     assert [[a[4] for a in r] for r in same_image_runs(missing)] == [
         ["10.0tracking.npz"], ["13.0tracking.npz", "13.0tracking-cc.npz"], ["20.0correlation.npz", "20.0tracking.npz"]]
+
+
+def test_worker_device_moves_only_the_methods_with_host_work():
+    from synthbos.benchmarks.scheduling import split_by_residency
+
+    run = [("p.h5", m, 1.0, (1, 2), f"{m}.npz", {}, "cuda:0") for m in ("correlation", "tracking", "tracking-cc")]
+    here, there = split_by_residency(run)
+    assert [a[1] for a in here] == ["correlation"] and [a[1] for a in there] == ["tracking", "tracking-cc"]
+    assert {a[-1] for a in here + there} == {"cuda:0"}
+    here, there = split_by_residency(run, worker_device="cpu")
+    assert here == run[:1] and there == [(*a[:-1], "cpu") for a in run[1:]]
+
+
+def test_bad_worker_device_is_one_line(tmp_path, capsys):
+    assert main(["paper", "--quick", "--device", "cpu", "--worker-device", "gpu:3", "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gpu:3" in err[0]
+    assert not (tmp_path / "w").exists()
