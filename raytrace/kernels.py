@@ -648,18 +648,21 @@ def integrate_cone(
     rays_per_thread: int,
     seed: int,
     n_samples: int,
+    launch_order: wp.array(dtype=wp.int32),
     out: wp.array2d(dtype=wp.vec3),
 ):
     """Eq. 4's integral and the depth-averaged n - 1 summed over the rays the renderer traces for a dot.
 
-    Thread ``tid`` takes dot ``tid % n_dots`` and rays ``c * rays_per_thread ...`` of it, c = tid //
-    n_dots; each ray draws its emission point and aperture point exactly as ``render_rays`` does (same
-    seed, same (dot, ray) stream), and is followed as the straight line of the undisturbed medium.
-    ``out[c, dot]`` = (sum of integral dn/dx dz, sum of integral dn/dy dz, sum of depth-mean n - 1).
+    Thread ``tid`` takes dot ``launch_order[tid % n_dots]`` and rays ``c * rays_per_thread ...`` of it,
+    c = tid // n_dots; each ray draws its emission point and aperture point exactly as ``render_rays``
+    does (same seed, same (dot, ray) stream), and is followed as the straight line of the undisturbed
+    medium. ``out[c, dot]`` = (sum of integral dn/dx dz, sum of integral dn/dy dz, sum of depth-mean
+    n - 1). The order only decides which thread does which sum (neighbouring dots in neighbouring
+    threads read nearby nodes), never a bit of a sum.
     """
     tid = wp.tid()
     n_dots = dots.shape[0]
-    dot = tid % n_dots
+    dot = launch_order[tid % n_dots]
     c = tid / n_dots
     acc = wp.vec3(0.0)
     r0 = c * rays_per_thread

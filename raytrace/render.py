@@ -287,9 +287,10 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     chunks = -(-plan.rays_per_dot // rays_per_thread)
     out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
+    order = wp.array(plan.launch_order, dtype=wp.int32, device=device)
     wp.launch(kernels.integrate_cone, dim=chunks * n,
               inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
-                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step)],
+                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), order],
               outputs=[out], device=device)
     sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
     return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale
