@@ -836,10 +836,12 @@ def neighbour_fit_kernel(
     idx: wp.array2d(dtype=wp.int32),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
+    neighbours: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
-    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``).
+    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``); ``neighbours[q]`` gets the ``k``
+    points' indices, nearest first (ties: the lower index first).
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
@@ -888,6 +890,8 @@ def neighbour_fit_kernel(
         if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
             break  # the block holds every point
         r += 1
+    for j in range(k):
+        neighbours[q, j] = idx[s, j]
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
     kf = wp.float64(k)
     dmx = wp.float64(0.0)

@@ -22,7 +22,7 @@ __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 _POINTS_PER_CELL = 4.5
 
 
-def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
+def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False):
     """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
 
     Parameters
@@ -37,6 +37,8 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         The query's own row in ``xy`` (left out of its neighbours), or -1.
     k : int, keyword-only
         Neighbours per fit.
+    return_neighbours : bool, keyword-only
+        Also return the neighbours' rows.
 
     Returns
     -------
@@ -44,6 +46,9 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         The fit's value at the query point.
     spread : (N,) array
         Median distance of the neighbours' vectors from the fit.
+    neighbours : (N, k) int array
+        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
+        order within a row is not part of the result).
 
     Notes
     -----
@@ -84,7 +89,8 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         g -= ex * gx
         g -= ey * gy
         resid2 += g * g
-    return value, np.median(np.sqrt(resid2), axis=1)
+    spread = np.median(np.sqrt(resid2), axis=1)
+    return (value, spread, nb) if return_neighbours else (value, spread)
 
 
 def _cell_grid(xy, query, count):
@@ -105,7 +111,7 @@ def _cell_grid(xy, query, count):
     return float(lo[0]), float(lo[1]), side, nx, ny, start, order
 
 
-def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
+def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, device=None):
     """Same as :func:`neighbour_fit_numpy`, as a Warp kernel with one thread per query point.
 
     Parameters
@@ -119,7 +125,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
     query = np.ascontiguousarray(query, dtype=np.float64)
     n = len(query)
     if n == 0:
-        return np.zeros((0, 2)), np.zeros(0)
+        return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros((0, k), dtype=np.int64),) if return_neighbours else ())
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
@@ -131,6 +137,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
     rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
     value = wp.empty((n, 2), dtype=wp.float64, device=device)
     spread = wp.empty(n, dtype=wp.float64, device=device)
+    nb = wp.empty((n, k), dtype=wp.int32, device=device)
     wp.launch(
         neighbour_fit_kernel,
         dim=n,
@@ -151,7 +158,10 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
             wp.empty((rows, k), dtype=wp.int32, device=device),
             value,
             spread,
+            nb,
         ],
         device=device,
     )
+    if return_neighbours:
+        return value.numpy(), spread.numpy(), nb.numpy().astype(np.int64)
     return value.numpy(), spread.numpy()
