@@ -212,8 +212,11 @@ def choose_blob(
 def count_saturated(
     win: wp.array2d(dtype=wp.float64), lab: wp.array2d(dtype=wp.int32), i: int, w: int, chosen: int, sat: wp.float64
 ) -> int:
-    """Pixels of the chosen blob at or above the saturation level."""
+    """Pixels of the chosen blob at or above the saturation level (none below 1e300, the level of an image
+    without saturation: no pixel is read)."""
     nsat = int(0)
+    if sat >= wp.float64(1.0e300):
+        return nsat
     for p in range(w * w):
         if lab[i, p] == chosen and win[i, p] >= sat:
             nsat += 1
