@@ -269,6 +269,40 @@ def cut_dot_map(
             dotmap[k, a, b] = val
 
 
+@wp.func
+def cut_cross(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    chosen: int,
+    bg: wp.float64,
+    k: int,
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """The centre cross of ``cut_dot_map``'s map into ``cross[k]``: the peak, left, right, upper and lower
+    pixels (what the three-point fit reads), each as in the map (zero where not the blob or its rim)."""
+    rr = chosen // w
+    rc = chosen % w
+    for j in range(5):
+        qr = rr
+        qc = rc
+        if j == 1:
+            qc = rc - 1
+        elif j == 2:
+            qc = rc + 1
+        elif j == 3:
+            qr = rr - 1
+        elif j == 4:
+            qr = rr + 1
+        val = wp.float64(0.0)
+        if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            l = lab[i, qr * w + qc]
+            if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
+                val = win[i, qr * w + qc] - bg
+        cross[k, j] = val
+
+
 @wp.kernel
 def measure_windows_kernel(
     image: wp.array2d(dtype=wp.float64),
@@ -295,10 +329,11 @@ def measure_windows_kernel(
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
 ):
     """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
     (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
-    neighbouring pixels); without ``full_maps`` only the map's centre cross (``cut_dot_map``).
+    neighbouring pixels); without ``full_maps`` only the map's centre cross, into ``cross`` (``cut_cross``).
 
     ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
@@ -323,7 +358,10 @@ def measure_windows_kernel(
         out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
         out_float[i, 1] = win[s, chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, full_maps, dotmap)
+    if full_maps != 0:
+        cut_dot_map(win, lab, s, w, chosen, bg, hc, i, 1, dotmap)
+    else:
+        cut_cross(win, lab, s, w, chosen, bg, i, cross)
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------

@@ -449,11 +449,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         # The model fit (centroid="model") starts from the three-point estimate, which needs only the
         # peak pixel and its four neighbours.
         if method == "gaussian3":
-            flat = m["dotmap"].reshape(len(sel), c * c)
-            k0 = map_half * c + map_half
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(
-                *(flat[win_idx, k0 + k] for k in (0, -1, 1, -c, c))  # peak, left, right, up, down
-            )
+            if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
+                cross = m["cross"][win_idx]
+            else:
+                k0 = map_half * c + map_half
+                cross = m["dotmap"].reshape(len(sel), c * c)[win_idx][:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*cross.T)
             xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]

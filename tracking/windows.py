@@ -156,8 +156,8 @@ def measure_windows(
     Parameters
     ----------
     full_maps : bool, keyword-only
-        False: only the centre of each dot map (the peak pixel and its four neighbours) is cut, the
-        other map pixels are zero (what the three-point fit needs, for less work).
+        False: instead of ``dotmap``, ``cross`` (N, 5): only the centre of each dot map, its peak pixel
+        and left, right, upper and lower neighbours (what the three-point fit needs, for less work).
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -201,7 +201,8 @@ def measure_windows(
     roots = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
     out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
-    dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
+    dotmap = wp.empty((n if full_maps else 1, c, c), dtype=wp.float64, device=device)
+    cross = wp.empty((1 if full_maps else n, 5), dtype=wp.float64, device=device)
     wa, wi, wd = (float(x) for x in weights)
     wp.launch(
         measure_windows_kernel,
@@ -231,16 +232,21 @@ def measure_windows(
             out_i,
             out_f,
             dotmap,
+            cross,
         ],
         device=device,
     )
     oi, of = out_i.numpy(), out_f.numpy()
-    return {
+    out = {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
         "nsat": oi[:, 2].astype(np.int64),
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy(),
     }
+    if full_maps:
+        out["dotmap"] = dotmap.numpy()
+    else:
+        out["cross"] = cross.numpy()
+    return out
