@@ -22,8 +22,8 @@ import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .kernels import clear_stamps_kernel, dot_profiles_kernel, fit_dot_step_kernel, render_dots_kernel
-from .workspace import scratch, zeroed_scratch
+from .kernels import dot_profiles_kernel, fit_dot_step_kernel, render_dots_kernel
+from .workspace import scratch
 
 __all__ = [
     "PARAMS",
@@ -413,7 +413,10 @@ def fit_dots(
     fr = _on_device(frame[order], wp.int32, device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
     pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
+    # The free model image every step; the common-shape one only for the last step (the only one whose
+    # common-shape positions are kept).
     # Working arrays from the thread's workspace (results are copied out at the end).
+    models = scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device)
     cur = scratch("fit_params", (n, 5), wp.float64, device)
     nxt = scratch("fit_params_next", (n, 5), wp.float64, device)
     start = scratch("fit_start", (n, 5), wp.float64, device)
@@ -424,46 +427,43 @@ def fit_dots(
     prof = scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device)
     wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
     peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
-    # The free model image every step; the common-shape one only for the last step (the only one whose
-    # common-shape positions are kept). They start at zero, and each step clears the stamps it drew.
-    with zeroed_scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device) as models:
-        for it in range(iterations):
-            last = it == iterations - 1
-            if it:
-                peak = float(np.max(np.abs(cur.numpy()[:, 2])))
-            scale = _fixed_point_scale(peak)
-            wp.launch(
-                render_dots_kernel,
-                dim=n,
-                inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, models],
-                device=device,
-            )
-            wp.launch(
-                fit_dot_step_kernel,
-                dim=n,
-                inputs=[
-                    img0,
-                    img1,
-                    models,
-                    1.0 / scale,
-                    cur,
-                    start,
-                    fr,
-                    pa,
-                    sat,
-                    int(half),
-                    int(render_half),
-                    int(last),
-                    float(max_move),
-                    float(sigma_range[0]),
-                    float(sigma_range[1]),
-                    prof,
-                    nxt,
-                    ok,
-                    shared,
-                ],
-                device=device,
-            )
-            wp.launch(clear_stamps_kernel, dim=n, inputs=[cur, fr, int(render_half), int(last), models], device=device)
-            cur, nxt = nxt, cur
+    for it in range(iterations):
+        last = it == iterations - 1
+        if it:
+            peak = float(np.max(np.abs(cur.numpy()[:, 2])))
+        scale = _fixed_point_scale(peak)
+        (models if last else models[0]).zero_()
+        wp.launch(
+            render_dots_kernel,
+            dim=n,
+            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, models],
+            device=device,
+        )
+        wp.launch(
+            fit_dot_step_kernel,
+            dim=n,
+            inputs=[
+                img0,
+                img1,
+                models,
+                1.0 / scale,
+                cur,
+                start,
+                fr,
+                pa,
+                sat,
+                int(half),
+                int(render_half),
+                int(last),
+                float(max_move),
+                float(sigma_range[0]),
+                float(sigma_range[1]),
+                prof,
+                nxt,
+                ok,
+                shared,
+            ],
+            device=device,
+        )
+        cur, nxt = nxt, cur
     return cur.numpy()[back], ok.numpy()[back].astype(bool), shared.numpy()[back]

@@ -492,34 +492,6 @@ def render_dots_kernel(
                         wp.atomic_add(models, 1, f, row, col, to_fixed(shared, scale))
 
 
-@wp.kernel
-def clear_stamps_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    frame: wp.array(dtype=wp.int32),
-    half: int,
-    common: int,
-    models: wp.array4d(dtype=wp.int64),
-):
-    """Set dot i's ``2 half + 1`` stamp back to zero in the model images that ``render_dots_kernel`` drew with
-    the same ``params``, ``half`` and ``common``: with every dot cleared the images are zero again, at the
-    cost of the stamps instead of the whole images. (Threads may store the same zero into a pixel.)"""
-    i = wp.tid()
-    f = frame[i]
-    n = 2 * half + 1
-    ox = int(wp.rint(params[i, 0])) - half
-    oy = int(wp.rint(params[i, 1])) - half
-    zero = wp.int64(0)
-    for r in range(n):
-        row = oy + r
-        if row >= 0 and row < models.shape[2]:
-            for c in range(n):
-                col = ox + c
-                if col >= 0 and col < models.shape[3]:
-                    models[0, f, row, col] = zero
-                    if common != 0:
-                        models[1, f, row, col] = zero
-
-
 @wp.func
 def normal_matrix(
     image: wp.array2d(dtype=wp.float64),

@@ -7,14 +7,12 @@ smooth random fields of up to 2 px with gradients up to 0.08 px/px, white noise 
 
 import numpy as np
 import pytest
-import warp as wp
 from _synth import dot_pattern, jittered_grid, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import TrackingSettings, is_valid, track_pair
 from synthbos.tracking.crlb import displacement_crlb, position_crlb
 from synthbos.tracking.dotfit import fit_dots, fit_dots_numpy, fit_window_half
-from synthbos.tracking.workspace import scratch
 
 SHAPE = (256, 256)
 D = 3.0
@@ -201,8 +199,6 @@ def test_fit_dots_kernel_matches_numpy_reference(device):
     c = fit_dots(stack, params, device=device, **kw)
     for x, y in zip(b, c, strict=True):
         assert_array_equal(y, x)
-    # each step cleared the stamps it drew: the model images are left all zero for the next fit
-    assert not scratch("fit_models", (2, 2, *shape), wp.int64, device).numpy().any()
 
 
 def test_tracking_is_bit_reproducible(device):

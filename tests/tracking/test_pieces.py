@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import warp as wp
 from _synth import dot_pattern
 from numpy.testing import assert_allclose
 from synthbos.raytrace.dots import draw_dots
@@ -27,7 +26,6 @@ from synthbos.tracking import (
 )
 from synthbos.tracking.neighbours import neighbour_fit, neighbour_fit_numpy
 from synthbos.tracking.windows import measure_windows, measure_windows_numpy
-from synthbos.tracking.workspace import zeroed_scratch
 
 from synthbos import SynthbosError
 
@@ -252,16 +250,3 @@ def test_neighbour_fit_kernel_matches_numpy_reference(device):
     truth = np.stack([0.3 + 0.01 * query[:, 0], -0.2 + 0.02 * query[:, 1] - 0.01 * query[:, 0]], axis=1)
     assert_allclose(value, truth, atol=1e-5)
     assert_allclose(spread, 0.0, atol=1e-6)
-
-
-def test_zeroed_scratch_is_zero_on_entry_even_after_a_user_failed(device):
-    """A user leaves the array zero on a normal exit; one that raised may not have, so the next entry clears it."""
-    with zeroed_scratch("test_zeroed", (3, 5), wp.int64, device) as a:
-        assert not a.numpy().any()
-    with pytest.raises(RuntimeError), zeroed_scratch("test_zeroed", (3, 5), wp.int64, device) as a:
-        a.fill_(7)
-        raise RuntimeError("failed half-way")
-    with zeroed_scratch("test_zeroed", (5, 3), wp.int64, device) as a:
-        assert not a.numpy().any()
-    with zeroed_scratch("test_zeroed", (40, 40), wp.int64, device) as a:  # grown: a new array, cleared
-        assert not a.numpy().any()
