@@ -868,6 +868,7 @@ def neighbour_fit_kernel(
     self_index: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
     cell_points: wp.array(dtype=wp.int32),
+    cell_xy: wp.array2d(dtype=wp.float64),
     x0: wp.float64,
     y0: wp.float64,
     cell: wp.float64,
@@ -886,7 +887,7 @@ def neighbour_fit_kernel(
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
-    run). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
+    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
     nearest is closer than the block's edge. Thread t takes query ``query_order[t]`` (queries in the
     order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
     of length k: query q uses row ``q % rows``.
@@ -909,8 +910,8 @@ def neighbour_fit_kernel(
         for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
             for j in range(cell_start[iy * nx + ix0], cell_start[iy * nx + ix1 + 1]):
                 p = int(cell_points[j])
-                dx = xy[p, 0] - qx
-                dy = xy[p, 1] - qy
+                dx = cell_xy[j, 0] - qx
+                dy = cell_xy[j, 1] - qy
                 d = dx * dx + dy * dy
                 if p != own and (found < k or d <= worst):
                     found = keep_nearest(d, p, found, s, dist, idx)

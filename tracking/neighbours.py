@@ -149,6 +149,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             wp.array(own, dtype=wp.int32, device=device),
             wp.array(start.astype(np.int32), dtype=wp.int32, device=device),
             wp.array(order.astype(np.int32), dtype=wp.int32, device=device),
+            wp.array(xy[order], dtype=wp.float64, device=device),
             x0,
             y0,
             side,
