@@ -64,25 +64,34 @@ def load_window(
 
 
 @wp.func
-def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Median of the window's ``4 (w - 1)`` edge pixels: the ``2 (w - 1) + 1`` smallest kept sorted in
-    ``ring[i]`` by insertion (larger ones are dropped), the middle two averaged."""
-    keep = 2 * (w - 1) + 1
+def edge_median(
+    win: wp.array2d(dtype=wp.float64),
+    i: int,
+    w: int,
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+) -> wp.float64:
+    """Median of the window's ``n = 4 (w - 1)`` edge pixels: copied into ``ring[i]``, put in place by the
+    compare-exchange ``network`` (rows ``(a, b)``: ``ring[a], ring[b] = min, max``; one that brings the
+    middle two of any n values to ``n / 2 - 1`` and ``n / 2``, without data-dependent branches), and the
+    middle two averaged."""
     n = int(0)
     for r in range(w):
         step = int(1)
         if r != 0 and r != w - 1:
             step = w - 1
         for c in range(0, w, step):
-            v = win[i, r * w + c]
-            if n < keep or v < ring[i, keep - 1]:
-                k = wp.min(n, keep - 1) - 1
-                while k >= 0 and ring[i, k] > v:
-                    ring[i, k + 1] = ring[i, k]
-                    k -= 1
-                ring[i, k + 1] = v
-                n = wp.min(n + 1, keep)
-    return (ring[i, keep - 2] + ring[i, keep - 1]) / wp.float64(2.0)
+            ring[i, n] = win[i, r * w + c]
+            n += 1
+    for k in range(network.shape[0]):
+        a = network[k, 0]
+        b = network[k, 1]
+        va = ring[i, a]
+        vb = ring[i, b]
+        ring[i, a] = wp.min(va, vb)
+        ring[i, b] = wp.max(va, vb)
+    h = n / 2
+    return (ring[i, h - 1] + ring[i, h]) / wp.float64(2.0)
 
 
 @wp.func
@@ -321,6 +330,7 @@ def measure_windows_kernel(
     sat: wp.float64,
     win: wp.array2d(dtype=wp.float64),
     ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
     roots: wp.array2d(dtype=wp.int32),
@@ -344,7 +354,7 @@ def measure_windows_kernel(
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:
-        bg = edge_median(win, s, w, ring)
+        bg = edge_median(win, s, w, ring, network)
     thr = bg + wp.max(frac * (mm[1] - bg), floor)
     nblobs = segment_window(win, s, w, thr, lab, area, roots)
     chosen = choose_blob(win, area, roots, nblobs, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
@@ -887,8 +897,9 @@ def neighbour_fit_kernel(
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
-    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
-    nearest is closer than the block's edge. Thread t takes query ``query_order[t]`` (queries in the
+    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
+    ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th nearest is closer than
+    the block's edge. Thread t takes query ``query_order[t]`` (queries in the
     order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
     of length k: query q uses row ``q % rows``.
     """

@@ -25,7 +25,7 @@ from synthbos.tracking import (
     subtract_gaussians,
 )
 from synthbos.tracking.neighbours import neighbour_fit, neighbour_fit_numpy
-from synthbos.tracking.windows import measure_windows, measure_windows_numpy
+from synthbos.tracking.windows import measure_windows, measure_windows_numpy, median_network
 
 from synthbos import SynthbosError
 
@@ -250,3 +250,18 @@ def test_neighbour_fit_kernel_matches_numpy_reference(device):
     truth = np.stack([0.3 + 0.01 * query[:, 0], -0.2 + 0.02 * query[:, 1] - 0.01 * query[:, 0]], axis=1)
     assert_allclose(value, truth, atol=1e-5)
     assert_allclose(spread, 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [4, 8, 12, 24, 40, 56])
+def test_median_network_puts_the_middle_two_in_place(n):
+    """The edge median's compare-exchange network (ties and all: few distinct values) against a sort."""
+    rng = np.random.default_rng(n)
+    net = median_network(n)
+    assert (net[:, 0] < net[:, 1]).all() and net.max() < n
+    v = rng.integers(0, 4, (3000, n)).astype(float)
+    v[:1000] = rng.standard_normal((1000, n))
+    for a, b in net:
+        lo, hi = np.minimum(v[:, a], v[:, b]), np.maximum(v[:, a], v[:, b])
+        v[:, a], v[:, b] = lo, hi
+    srt = np.sort(v, axis=1)
+    np.testing.assert_array_equal(v[:, n // 2 - 1 : n // 2 + 1], srt[:, n // 2 - 1 : n // 2 + 1])
