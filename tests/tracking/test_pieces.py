@@ -265,3 +265,16 @@ def test_median_network_puts_the_middle_two_in_place(n):
         v[:, a], v[:, b] = lo, hi
     srt = np.sort(v, axis=1)
     np.testing.assert_array_equal(v[:, n // 2 - 1 : n // 2 + 1], srt[:, n // 2 - 1 : n // 2 + 1])
+
+
+def test_estimate_noise_quartile_is_numpys_percentile():
+    """The partial-sort lower quartile gives NumPy's percentile, bit for bit (ties, odd sizes, NaN)."""
+    from synthbos.tracking.identify import _lower_quartile
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 5, 7, 100, 1001, 4096):
+        for values in (rng.standard_normal(n), np.round(rng.standard_normal(n), 1), np.ones(n)):
+            assert _lower_quartile(values.copy()) == np.percentile(values, 25)
+    v = rng.standard_normal(50)
+    v[7] = np.nan
+    assert np.isnan(_lower_quartile(v.copy()))
