@@ -105,7 +105,7 @@ def _cell_grid(xy, query, count):
     cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
     cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
     cell = cy * nx + cx
-    order = np.argsort(cell, kind="stable")
+    order = np.argsort(cell)  # the order within a cell does not matter (ties go to the lower index)
     start = np.zeros(nx * ny + 1, dtype=np.int64)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
     return float(lo[0]), float(lo[1]), side, nx, ny, start, order
@@ -164,5 +164,5 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
         device=device,
     )
     if return_neighbours:
-        return value.numpy(), spread.numpy(), nb.numpy().astype(np.int64)
+        return value.numpy(), spread.numpy(), nb.numpy()
     return value.numpy(), spread.numpy()
