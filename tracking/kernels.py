@@ -889,6 +889,7 @@ def neighbour_fit_kernel(
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
+    network: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
@@ -999,14 +1000,15 @@ def neighbour_fit_kernel(
         gu = uv[idx[s, j], 0] - fmu - ex * gxu - ey * gyu
         gv = uv[idx[s, j], 1] - fmv - ex * gxv - ey * gyv
         dist[s, j] = gu * gu + gv * gv
-    # median of the distances: insertion sort of the squares (the root is monotonic)
-    for j in range(1, k):
-        v = dist[s, j]
-        m = j - 1
-        while m >= 0 and dist[s, m] > v:
-            dist[s, m + 1] = dist[s, m]
-            m -= 1
-        dist[s, m + 1] = v
+    # median of the distances: the middle squares put in place by the compare-exchange ``network``
+    # (``tracking.windows.median_network(k)``; the root is monotonic)
+    for t in range(network.shape[0]):
+        a = network[t, 0]
+        b = network[t, 1]
+        va = dist[s, a]
+        vb = dist[s, b]
+        dist[s, a] = wp.min(va, vb)
+        dist[s, b] = wp.max(va, vb)
     if k % 2 == 1:
         spread[q] = wp.sqrt(dist[s, k / 2])
     else:

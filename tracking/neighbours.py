@@ -15,6 +15,7 @@ import warp as wp
 from scipy.spatial import cKDTree
 
 from .kernels import neighbour_fit_kernel
+from .windows import median_network
 
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 
@@ -160,6 +161,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             value,
             spread,
             nb,
+            wp.array(median_network(k), dtype=wp.int32, device=device),
         ],
         device=device,
     )

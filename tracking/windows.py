@@ -31,10 +31,11 @@ def _ring(w):
 
 @functools.lru_cache(maxsize=16)
 def median_network(n):
-    """Compare-exchange pairs ``(a, b)`` (``a < b``) that bring the middle two of any ``n`` values (n even)
-    to positions ``n / 2 - 1`` and ``n / 2``: Batcher's odd-even merge sort for the next power of two
-    (Knuth, TAOCP vol. 3, 5.3.4), less the pairs that touch a position ``>= n`` (as if padded with +inf,
-    which those pairs never move) and those that cannot reach the two middle positions.
+    """Compare-exchange pairs ``(a, b)`` (``a < b``) that bring the middle two of any ``n`` values to
+    positions ``n // 2 - 1`` and ``n // 2`` (for odd n the median is the latter): Batcher's odd-even
+    merge sort for the next power of two (Knuth, TAOCP vol. 3, 5.3.4), less the pairs that touch a
+    position ``>= n`` (as if padded with +inf, which those pairs never move) and those that cannot reach
+    the two middle positions. Used by the windows' edge median and the neighbour fit's median.
 
     Returns
     -------

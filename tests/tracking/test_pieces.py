@@ -252,7 +252,7 @@ def test_neighbour_fit_kernel_matches_numpy_reference(device):
     assert_allclose(spread, 0.0, atol=1e-6)
 
 
-@pytest.mark.parametrize("n", [4, 8, 12, 24, 40, 56])
+@pytest.mark.parametrize("n", [4, 7, 8, 12, 13, 24, 40, 56])
 def test_median_network_puts_the_middle_two_in_place(n):
     """The edge median's compare-exchange network (ties and all: few distinct values) against a sort."""
     rng = np.random.default_rng(n)
