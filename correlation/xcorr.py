@@ -69,13 +69,13 @@ def _shifted_inverse(spec, shape, workers):
     """Inverse real FFT of a half spectrum, laid out with zero displacement at ``(h // 2, w // 2)``.
 
     For even sizes the half-size circular shift (``fftshift``) is folded into the spectrum as a sign
-    pattern, which costs one multiplication instead of a copy of the planes.
+    pattern, which costs one multiplication instead of a copy of the planes. ``spec`` is overwritten.
     """
     h, w = shape
     if h % 2 == 0 and w % 2 == 0:
         spec *= _shift_signs(shape, spec.real.dtype)
-        return sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers)
-    corr = sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers)
+        return sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers, overwrite_x=True)
+    corr = sfft.irfft2(spec, s=(h, w), axes=(-2, -1), workers=workers, overwrite_x=True)
     return np.fft.fftshift(corr, axes=(-2, -1))
 
 

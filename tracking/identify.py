@@ -50,7 +50,24 @@ def estimate_noise(image):
     d = np.abs(np.diff(image, axis=1)).ravel()
     if d.size == 0:
         return 0.0
-    return float(np.percentile(d, 25) / (0.31864 * np.sqrt(2.0)))
+    return float(_lower_quartile(d) / (0.31864 * np.sqrt(2.0)))
+
+
+def _lower_quartile(d):
+    """``np.percentile(d, 25)`` (linear interpolation), by one partial sort of ``d`` in place.
+
+    The quartile lies between the order statistics ``lo = floor(0.25 (n - 1))`` and ``lo + 1`` (the
+    smallest value after the partition point), interpolated as NumPy does; NaN input goes to NumPy.
+    """
+    if np.isnan(d).any():
+        return np.percentile(d, 25)
+    pos = 0.25 * (d.size - 1)  # exact: 0.25 is a power of two
+    lo = int(pos)
+    t = pos - lo
+    d.partition(lo)
+    a = d[lo]
+    b = d[lo + 1 :].min() if lo + 1 < d.size else a
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def static_threshold_identification(image, *, threshold):

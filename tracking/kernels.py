@@ -64,25 +64,34 @@ def load_window(
 
 
 @wp.func
-def edge_median(win: wp.array2d(dtype=wp.float64), i: int, w: int, ring: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Median of the window's ``4 (w - 1)`` edge pixels: the ``2 (w - 1) + 1`` smallest kept sorted in
-    ``ring[i]`` by insertion (larger ones are dropped), the middle two averaged."""
-    keep = 2 * (w - 1) + 1
+def edge_median(
+    win: wp.array2d(dtype=wp.float64),
+    i: int,
+    w: int,
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+) -> wp.float64:
+    """Median of the window's ``n = 4 (w - 1)`` edge pixels: copied into ``ring[i]``, put in place by the
+    compare-exchange ``network`` (rows ``(a, b)``: ``ring[a], ring[b] = min, max``; one that brings the
+    middle two of any n values to ``n / 2 - 1`` and ``n / 2``, without data-dependent branches), and the
+    middle two averaged."""
     n = int(0)
     for r in range(w):
         step = int(1)
         if r != 0 and r != w - 1:
             step = w - 1
         for c in range(0, w, step):
-            v = win[i, r * w + c]
-            if n < keep or v < ring[i, keep - 1]:
-                k = wp.min(n, keep - 1) - 1
-                while k >= 0 and ring[i, k] > v:
-                    ring[i, k + 1] = ring[i, k]
-                    k -= 1
-                ring[i, k + 1] = v
-                n = wp.min(n + 1, keep)
-    return (ring[i, keep - 2] + ring[i, keep - 1]) / wp.float64(2.0)
+            ring[i, n] = win[i, r * w + c]
+            n += 1
+    for k in range(network.shape[0]):
+        a = network[k, 0]
+        b = network[k, 1]
+        va = ring[i, a]
+        vb = ring[i, b]
+        ring[i, a] = wp.min(va, vb)
+        ring[i, b] = wp.max(va, vb)
+    h = n / 2
+    return (ring[i, h - 1] + ring[i, h]) / wp.float64(2.0)
 
 
 @wp.func
@@ -212,8 +221,11 @@ def choose_blob(
 def count_saturated(
     win: wp.array2d(dtype=wp.float64), lab: wp.array2d(dtype=wp.int32), i: int, w: int, chosen: int, sat: wp.float64
 ) -> int:
-    """Pixels of the chosen blob at or above the saturation level."""
+    """Pixels of the chosen blob at or above the saturation level (none below 1e300, the level of an image
+    without saturation: no pixel is read)."""
     nsat = int(0)
+    if sat >= wp.float64(1.0e300):
+        return nsat
     for p in range(w * w):
         if lab[i, p] == chosen and win[i, p] >= sat:
             nsat += 1
@@ -266,6 +278,40 @@ def cut_dot_map(
             dotmap[k, a, b] = val
 
 
+@wp.func
+def cut_cross(
+    win: wp.array2d(dtype=wp.float64),
+    lab: wp.array2d(dtype=wp.int32),
+    i: int,
+    w: int,
+    chosen: int,
+    bg: wp.float64,
+    k: int,
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """The centre cross of ``cut_dot_map``'s map into ``cross[k]``: the peak, left, right, upper and lower
+    pixels (what the three-point fit reads), each as in the map (zero where not the blob or its rim)."""
+    rr = chosen // w
+    rc = chosen % w
+    for j in range(5):
+        qr = rr
+        qc = rc
+        if j == 1:
+            qc = rc - 1
+        elif j == 2:
+            qc = rc + 1
+        elif j == 3:
+            qr = rr - 1
+        elif j == 4:
+            qr = rr + 1
+        val = wp.float64(0.0)
+        if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            l = lab[i, qr * w + qc]
+            if l == chosen or (l < 0 and touches_blob(lab, i, w, qr, qc, chosen)):
+                val = win[i, qr * w + qc] - bg
+        cross[k, j] = val
+
+
 @wp.kernel
 def measure_windows_kernel(
     image: wp.array2d(dtype=wp.float64),
@@ -284,6 +330,7 @@ def measure_windows_kernel(
     sat: wp.float64,
     win: wp.array2d(dtype=wp.float64),
     ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
     roots: wp.array2d(dtype=wp.int32),
@@ -292,10 +339,11 @@ def measure_windows_kernel(
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
     dotmap: wp.array3d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
 ):
     """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
     (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
-    neighbouring pixels); without ``full_maps`` only the map's centre cross (``cut_dot_map``).
+    neighbouring pixels); without ``full_maps`` only the map's centre cross, into ``cross`` (``cut_cross``).
 
     ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
     enough where threads run one after another, as on the CPU).
@@ -306,7 +354,7 @@ def measure_windows_kernel(
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:
-        bg = edge_median(win, s, w, ring)
+        bg = edge_median(win, s, w, ring, network)
     thr = bg + wp.max(frac * (mm[1] - bg), floor)
     nblobs = segment_window(win, s, w, thr, lab, area, roots)
     chosen = choose_blob(win, area, roots, nblobs, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
@@ -320,7 +368,10 @@ def measure_windows_kernel(
         out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
         out_float[i, 1] = win[s, chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    cut_dot_map(win, lab, s, w, chosen, bg, hc, i, full_maps, dotmap)
+    if full_maps != 0:
+        cut_dot_map(win, lab, s, w, chosen, bg, hc, i, 1, dotmap)
+    else:
+        cut_cross(win, lab, s, w, chosen, bg, i, cross)
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------
@@ -827,6 +878,7 @@ def neighbour_fit_kernel(
     self_index: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
     cell_points: wp.array(dtype=wp.int32),
+    cell_xy: wp.array2d(dtype=wp.float64),
     x0: wp.float64,
     y0: wp.float64,
     cell: wp.float64,
@@ -836,15 +888,19 @@ def neighbour_fit_kernel(
     idx: wp.array2d(dtype=wp.int32),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
+    neighbours: wp.array2d(dtype=wp.int32),
+    network: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
-    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``).
+    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``); ``neighbours[q]`` gets the ``k``
+    points' indices, nearest first (ties: the lower index first).
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
-    run). The block of ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th
-    nearest is closer than the block's edge. Thread t takes query ``query_order[t]`` (queries in the
+    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
+    ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th nearest is closer than
+    the block's edge. Thread t takes query ``query_order[t]`` (queries in the
     order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
     of length k: query q uses row ``q % rows``.
     """
@@ -866,8 +922,8 @@ def neighbour_fit_kernel(
         for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
             for j in range(cell_start[iy * nx + ix0], cell_start[iy * nx + ix1 + 1]):
                 p = int(cell_points[j])
-                dx = xy[p, 0] - qx
-                dy = xy[p, 1] - qy
+                dx = cell_xy[j, 0] - qx
+                dy = cell_xy[j, 1] - qy
                 d = dx * dx + dy * dy
                 if p != own and (found < k or d <= worst):
                     found = keep_nearest(d, p, found, s, dist, idx)
@@ -888,6 +944,8 @@ def neighbour_fit_kernel(
         if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
             break  # the block holds every point
         r += 1
+    for j in range(k):
+        neighbours[q, j] = idx[s, j]
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
     kf = wp.float64(k)
     dmx = wp.float64(0.0)
@@ -942,14 +1000,15 @@ def neighbour_fit_kernel(
         gu = uv[idx[s, j], 0] - fmu - ex * gxu - ey * gyu
         gv = uv[idx[s, j], 1] - fmv - ex * gxv - ey * gyv
         dist[s, j] = gu * gu + gv * gv
-    # median of the distances: insertion sort of the squares (the root is monotonic)
-    for j in range(1, k):
-        v = dist[s, j]
-        m = j - 1
-        while m >= 0 and dist[s, m] > v:
-            dist[s, m + 1] = dist[s, m]
-            m -= 1
-        dist[s, m + 1] = v
+    # median of the distances: the middle squares put in place by the compare-exchange ``network``
+    # (``tracking.windows.median_network(k)``; the root is monotonic)
+    for t in range(network.shape[0]):
+        a = network[t, 0]
+        b = network[t, 1]
+        va = dist[s, a]
+        vb = dist[s, b]
+        dist[s, a] = wp.min(va, vb)
+        dist[s, b] = wp.max(va, vb)
     if k % 2 == 1:
         spread[q] = wp.sqrt(dist[s, k / 2])
     else:

@@ -15,6 +15,7 @@ import warp as wp
 from scipy.spatial import cKDTree
 
 from .kernels import neighbour_fit_kernel
+from .windows import median_network
 
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 
@@ -22,7 +23,7 @@ __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 _POINTS_PER_CELL = 4.5
 
 
-def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
+def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False):
     """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
 
     Parameters
@@ -37,6 +38,8 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         The query's own row in ``xy`` (left out of its neighbours), or -1.
     k : int, keyword-only
         Neighbours per fit.
+    return_neighbours : bool, keyword-only
+        Also return the neighbours' rows.
 
     Returns
     -------
@@ -44,6 +47,9 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         The fit's value at the query point.
     spread : (N,) array
         Median distance of the neighbours' vectors from the fit.
+    neighbours : (N, k) int array
+        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
+        order within a row is not part of the result).
 
     Notes
     -----
@@ -84,7 +90,8 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k):
         g -= ex * gx
         g -= ey * gy
         resid2 += g * g
-    return value, np.median(np.sqrt(resid2), axis=1)
+    spread = np.median(np.sqrt(resid2), axis=1)
+    return (value, spread, nb) if return_neighbours else (value, spread)
 
 
 def _cell_grid(xy, query, count):
@@ -99,13 +106,13 @@ def _cell_grid(xy, query, count):
     cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
     cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
     cell = cy * nx + cx
-    order = np.argsort(cell, kind="stable")
+    order = np.argsort(cell)  # the order within a cell does not matter (ties go to the lower index)
     start = np.zeros(nx * ny + 1, dtype=np.int64)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
     return float(lo[0]), float(lo[1]), side, nx, ny, start, order
 
 
-def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
+def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, device=None):
     """Same as :func:`neighbour_fit_numpy`, as a Warp kernel with one thread per query point.
 
     Parameters
@@ -119,7 +126,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
     query = np.ascontiguousarray(query, dtype=np.float64)
     n = len(query)
     if n == 0:
-        return np.zeros((0, 2)), np.zeros(0)
+        return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros((0, k), dtype=np.int64),) if return_neighbours else ())
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
@@ -131,6 +138,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
     rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
     value = wp.empty((n, 2), dtype=wp.float64, device=device)
     spread = wp.empty(n, dtype=wp.float64, device=device)
+    nb = wp.empty((n, k), dtype=wp.int32, device=device)
     wp.launch(
         neighbour_fit_kernel,
         dim=n,
@@ -142,6 +150,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
             wp.array(own, dtype=wp.int32, device=device),
             wp.array(start.astype(np.int32), dtype=wp.int32, device=device),
             wp.array(order.astype(np.int32), dtype=wp.int32, device=device),
+            wp.array(xy[order], dtype=wp.float64, device=device),
             x0,
             y0,
             side,
@@ -151,7 +160,11 @@ def neighbour_fit(xy, uv, query, self_index, *, k, device=None):
             wp.empty((rows, k), dtype=wp.int32, device=device),
             value,
             spread,
+            nb,
+            wp.array(median_network(k), dtype=wp.int32, device=device),
         ],
         device=device,
     )
+    if return_neighbours:
+        return value.numpy(), spread.numpy(), nb.numpy()
     return value.numpy(), spread.numpy()

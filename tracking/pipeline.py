@@ -449,11 +449,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         # The model fit (centroid="model") starts from the three-point estimate, which needs only the
         # peak pixel and its four neighbours.
         if method == "gaussian3":
-            flat = m["dotmap"].reshape(len(sel), c * c)
-            k0 = map_half * c + map_half
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(
-                *(flat[win_idx, k0 + k] for k in (0, -1, 1, -c, c))  # peak, left, right, up, down
-            )
+            if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
+                cross = m["cross"][win_idx]
+            else:
+                k0 = map_half * c + map_half
+                cross = m["dotmap"].reshape(len(sel), c * c)[win_idx][:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*cross.T)
             xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]
@@ -618,11 +619,12 @@ def _standard_candidates(image, settings, noise):
     return np.stack([props["x"], props["y"]], axis=1)
 
 
-def _neighbour_fit(xy, uv, query, self_index, settings, device):
+def _neighbour_fit(xy, uv, query, self_index, settings, device, *, return_neighbours=False):
     """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``, on the settings' backend."""
+    k = settings.outlier_neighbours
     if settings.backend == "warp":
-        return neighbour_fit(xy, uv, query, self_index, k=settings.outlier_neighbours, device=device)
-    return neighbour_fit_numpy(xy, uv, query, self_index, k=settings.outlier_neighbours)
+        return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
+    return neighbour_fit_numpy(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours)
 
 
 def _confirmed_by_neighbours(out, good, query, settings, device):
@@ -654,19 +656,21 @@ def _neighbour_outliers(xy, uv, settings, device):
     ``outlier_epsilon``; :mod:`tracking.neighbours`): a normalised median test
     for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as in Duncan
     et al. 2010 so that smooth gradients do not count as outliers). Two rounds: the second fits only
-    the vectors the first one kept."""
+    the vectors the first one kept (refitted only where a neighbour was dropped: elsewhere the nearest
+    kept vectors are the same, and so is the fit)."""
     n = len(xy)
     neighbours, epsilon, threshold = settings.outlier_neighbours, settings.outlier_epsilon, settings.outlier_threshold
     if n <= neighbours + 3 or not np.isfinite(threshold):
         return np.zeros(n, dtype=bool)
     own = np.arange(n)
-    fit, spread = _neighbour_fit(xy, uv, xy, own, settings, device)
+    fit, spread, near = _neighbour_fit(xy, uv, xy, own, settings, device, return_neighbours=True)
     bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     clean = np.flatnonzero(~bad)
     if bad.any() and len(clean) > neighbours + 3:
         where = np.full(n, -1)
         where[clean] = np.arange(len(clean))
-        fit, spread = _neighbour_fit(xy[clean], uv[clean], xy, where, settings, device)
+        redo = np.flatnonzero(bad[near].any(axis=1))
+        fit[redo], spread[redo] = _neighbour_fit(xy[clean], uv[clean], xy[redo], where[redo], settings, device)
         bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
     return bad
 

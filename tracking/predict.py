@@ -199,6 +199,15 @@ def _tiles(image, ys, xs, size):
     return block.reshape(len(ys), size, len(xs), size).swapaxes(1, 2)
 
 
+def _tile_mean(shift, ys, xs, size):
+    """Mean of an integer image over each tile of :func:`_tiles` (exact sums: the mean of the view, bit
+    for bit, with contiguous reductions instead of one over a strided view)."""
+    y0, x0 = ys[0], xs[0]
+    block = shift[y0 : y0 + len(ys) * size, x0 : x0 + len(xs) * size]
+    sums = block.reshape(len(ys), size, len(xs) * size).sum(axis=1, dtype=np.int64)
+    return sums.reshape(len(ys), len(xs), size).sum(axis=2) / float(size * size)
+
+
 def _deform_nearest(image, valid, field, device):
     """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
     and rounded to whole pixels at every pixel (Warp kernel ``deform_nearest_kernel``).
@@ -378,8 +387,7 @@ def predict_displacement(
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
             bd, vd, su, sv = _deform_nearest(b, valid, field, device)
-            base_u = _tiles(su, ys, xs, size).mean(axis=(-2, -1))
-            base_v = _tiles(sv, ys, xs, size).mean(axis=(-2, -1))
+            base_u, base_v = _tile_mean(su, ys, xs, size), _tile_mean(sv, ys, xs, size)
             prev_u = _bilinear(field[0], field[2], field[3], cy[:, None], cx[None, :])
             prev_v = _bilinear(field[1], field[2], field[3], cy[:, None], cx[None, :])
         planes, usable, energy = _correlate_tiles(a, bd, valid, vd, ys, xs, size)

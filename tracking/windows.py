@@ -8,6 +8,8 @@ reference that defines the result and that the tests compare the kernel with.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
@@ -15,7 +17,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from .identify import blob_score, segment_windows
 from .kernels import measure_windows_kernel
 
-__all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy"]
+__all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy", "median_network"]
 
 WINDOW_FIELDS = ("chosen", "nblobs", "nsat", "bg", "peak", "dist")
 
@@ -25,6 +27,41 @@ def _ring(w):
     for row in range(1, w - 1):
         idx += [row * w, row * w + w - 1]
     return np.array(idx)
+
+
+@functools.lru_cache(maxsize=16)
+def median_network(n):
+    """Compare-exchange pairs ``(a, b)`` (``a < b``) that bring the middle two of any ``n`` values to
+    positions ``n // 2 - 1`` and ``n // 2`` (for odd n the median is the latter): Batcher's odd-even
+    merge sort for the next power of two (Knuth, TAOCP vol. 3, 5.3.4), less the pairs that touch a
+    position ``>= n`` (as if padded with +inf, which those pairs never move) and those that cannot reach
+    the two middle positions. Used by the windows' edge median and the neighbour fit's median.
+
+    Returns
+    -------
+    (K, 2) int32 array
+    """
+    m = 1
+    while m < n:
+        m *= 2
+    pairs = []
+    p = 1
+    while p < m:
+        k = p
+        while k >= 1:
+            for j in range(k % p, m - k, 2 * k):
+                for i in range(min(k, m - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p) and i + j + k < n:
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    need = {n // 2 - 1, n // 2}
+    kept = []
+    for a, b in reversed(pairs):
+        if a in need or b in need:
+            kept.append((a, b))
+            need |= {a, b}
+    return np.array(kept[::-1], dtype=np.int32).reshape(-1, 2)
 
 
 def _dilate(mask):
@@ -156,8 +193,8 @@ def measure_windows(
     Parameters
     ----------
     full_maps : bool, keyword-only
-        False: only the centre of each dot map (the peak pixel and its four neighbours) is cut, the
-        other map pixels are zero (what the three-point fit needs, for less work).
+        False: instead of ``dotmap``, ``cross`` (N, 5): only the centre of each dot map, its peak pixel
+        and left, right, upper and lower neighbours (what the three-point fit needs, for less work).
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -201,7 +238,8 @@ def measure_windows(
     roots = wp.empty((rows, w * w), dtype=wp.int32, device=device)
     out_i = wp.empty((n, 3), dtype=wp.int32, device=device)
     out_f = wp.empty((n, 3), dtype=wp.float64, device=device)
-    dotmap = wp.empty((n, c, c), dtype=wp.float64, device=device)
+    dotmap = wp.empty((n if full_maps else 1, c, c), dtype=wp.float64, device=device)
+    cross = wp.empty((1 if full_maps else n, 5), dtype=wp.float64, device=device)
     wa, wi, wd = (float(x) for x in weights)
     wp.launch(
         measure_windows_kernel,
@@ -223,6 +261,7 @@ def measure_windows(
             float(min(saturation, 1e300)),
             win,
             ring,
+            wp.array(median_network(4 * (w - 1)), dtype=wp.int32, device=device),
             lab,
             area,
             roots,
@@ -231,16 +270,21 @@ def measure_windows(
             out_i,
             out_f,
             dotmap,
+            cross,
         ],
         device=device,
     )
     oi, of = out_i.numpy(), out_f.numpy()
-    return {
+    out = {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
         "nsat": oi[:, 2].astype(np.int64),
         "bg": of[:, 0],
         "peak": of[:, 1],
         "dist": of[:, 2],
-        "dotmap": dotmap.numpy(),
     }
+    if full_maps:
+        out["dotmap"] = dotmap.numpy()
+    else:
+        out["cross"] = cross.numpy()
+    return out

@@ -25,7 +25,7 @@ from synthbos.tracking import (
     subtract_gaussians,
 )
 from synthbos.tracking.neighbours import neighbour_fit, neighbour_fit_numpy
-from synthbos.tracking.windows import measure_windows, measure_windows_numpy
+from synthbos.tracking.windows import measure_windows, measure_windows_numpy, median_network
 
 from synthbos import SynthbosError
 
@@ -217,11 +217,11 @@ def test_window_kernel_matches_numpy_reference(device):
         b = measure_windows(img, origin, pred - origin, device=device, **kw)
         for key in a:
             assert_allclose(b[key], a[key], rtol=0, atol=1e-12, err_msg=key)
-        # only the maps' centre cross (what the three-point fit reads), the rest zero
-        cross = np.zeros((5, 5), dtype=bool)
-        cross[2, 1:4] = cross[1:4, 2] = True
+        # only the maps' centre cross (what the three-point fit reads): peak, left, right, up, down
         c = measure_windows(img, origin, pred - origin, device=device, full_maps=False, **kw)
-        assert_allclose(c["dotmap"], np.where(cross, a["dotmap"], 0.0), rtol=0, atol=1e-12)
+        centre = a["dotmap"][:, [2, 2, 2, 1, 3], [2, 1, 3, 2, 2]]
+        assert "dotmap" not in c
+        assert_allclose(c["cross"], centre, rtol=0, atol=1e-12)
         for key in ("chosen", "nblobs", "nsat", "bg", "peak", "dist"):
             assert_allclose(c[key], a[key], rtol=0, atol=1e-12, err_msg=key)
 
@@ -250,3 +250,31 @@ def test_neighbour_fit_kernel_matches_numpy_reference(device):
     truth = np.stack([0.3 + 0.01 * query[:, 0], -0.2 + 0.02 * query[:, 1] - 0.01 * query[:, 0]], axis=1)
     assert_allclose(value, truth, atol=1e-5)
     assert_allclose(spread, 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [4, 7, 8, 12, 13, 24, 40, 56])
+def test_median_network_puts_the_middle_two_in_place(n):
+    """The edge median's compare-exchange network (ties and all: few distinct values) against a sort."""
+    rng = np.random.default_rng(n)
+    net = median_network(n)
+    assert (net[:, 0] < net[:, 1]).all() and net.max() < n
+    v = rng.integers(0, 4, (3000, n)).astype(float)
+    v[:1000] = rng.standard_normal((1000, n))
+    for a, b in net:
+        lo, hi = np.minimum(v[:, a], v[:, b]), np.maximum(v[:, a], v[:, b])
+        v[:, a], v[:, b] = lo, hi
+    srt = np.sort(v, axis=1)
+    np.testing.assert_array_equal(v[:, n // 2 - 1 : n // 2 + 1], srt[:, n // 2 - 1 : n // 2 + 1])
+
+
+def test_estimate_noise_quartile_is_numpys_percentile():
+    """The partial-sort lower quartile gives NumPy's percentile, bit for bit (ties, odd sizes, NaN)."""
+    from synthbos.tracking.identify import _lower_quartile
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 5, 7, 100, 1001, 4096):
+        for values in (rng.standard_normal(n), np.round(rng.standard_normal(n), 1), np.ones(n)):
+            assert _lower_quartile(values.copy()) == np.percentile(values, 25)
+    v = rng.standard_normal(50)
+    v[7] = np.nan
+    assert np.isnan(_lower_quartile(v.copy()))
