@@ -163,6 +163,18 @@ def sample_taps4(image: wp.array2d(dtype=wp.float32), iy: int, ix: int, wy: wp.v
     return total
 
 
+@wp.func
+def sample_image(image: wp.array2d(dtype=wp.float32), y: float, x: float, interpolator: int) -> float:
+    """``image`` at (y, x): 0 cubic B-spline (image = coefficients), 1 Keys cubic, 2 Lanczos-3."""
+    if interpolator == 2:
+        return sample_lanczos3(image, y, x)
+    fy = wp.floor(y)
+    fx = wp.floor(x)
+    if interpolator == 0:
+        return sample_taps4(image, int(fy), int(fx), bspline3_weights(y - fy), bspline3_weights(x - fx))
+    return sample_taps4(image, int(fy), int(fx), keys_weights(y - fy), keys_weights(x - fx))
+
+
 @wp.kernel
 def deform_rows_cubic(
     first: wp.array2d(dtype=wp.float32),
@@ -182,23 +194,5 @@ def deform_rows_cubic(
         x = col0 + float(j)
         hu = 0.5 * du[i, j]
         hv = 0.5 * dv[i, j]
-        ya = y - hv
-        xa = x - hu
-        yb = y + hv
-        xb = x + hu
-        fya = wp.floor(ya)
-        fxa = wp.floor(xa)
-        fyb = wp.floor(yb)
-        fxb = wp.floor(xb)
-        if keys == 0:
-            out_first[i, j] = sample_taps4(
-                first, int(fya), int(fxa), bspline3_weights(ya - fya), bspline3_weights(xa - fxa)
-            )
-            out_second[i, j] = sample_taps4(
-                second, int(fyb), int(fxb), bspline3_weights(yb - fyb), bspline3_weights(xb - fxb)
-            )
-        else:
-            out_first[i, j] = sample_taps4(first, int(fya), int(fxa), keys_weights(ya - fya), keys_weights(xa - fxa))
-            out_second[i, j] = sample_taps4(
-                second, int(fyb), int(fxb), keys_weights(yb - fyb), keys_weights(xb - fxb)
-            )
+        out_first[i, j] = sample_image(first, y - hv, x - hu, keys)
+        out_second[i, j] = sample_image(second, y + hv, x + hu, keys)

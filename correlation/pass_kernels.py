@@ -19,7 +19,7 @@ from typing import Any
 
 import warp as wp
 
-from .kernels import bspline3_weights, keys_weights, sample_lanczos3, sample_taps4
+from .kernels import sample_image
 
 wp.config.quiet = True
 wp.config.log_level = wp.LOG_WARNING
@@ -241,18 +241,6 @@ def spline_cols(
 
 
 # ---------------------------------------------------------------- symmetric deformation and edge weights
-
-
-@wp.func
-def sample_image(image: wp.array2d(dtype=wp.float32), y: float, x: float, interpolator: int) -> float:
-    """``image`` at (y, x): 0 cubic B-spline (image = coefficients), 1 Keys cubic, 2 Lanczos-3."""
-    if interpolator == 2:
-        return sample_lanczos3(image, y, x)
-    fy = wp.floor(y)
-    fx = wp.floor(x)
-    if interpolator == 0:
-        return sample_taps4(image, int(fy), int(fx), bspline3_weights(y - fy), bspline3_weights(x - fx))
-    return sample_taps4(image, int(fy), int(fx), keys_weights(y - fy), keys_weights(x - fx))
 
 
 @wp.kernel
