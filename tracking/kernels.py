@@ -625,6 +625,36 @@ def window_is_whole(
 
 
 @wp.func
+def profile_moments(prof: wp.array3d(dtype=wp.float64), i: int, axis0: int, n: int, skip: int):
+    """Sums over one axis of dot ``i``'s profile terms ``p = prof[i, axis0]``, ``d = prof[i, axis0 + 1]``,
+    ``s = prof[i, axis0 + 2]`` (entries ``skip ... skip + n - 1``): pp, dd, ss, pd, ps, ds, p, d, s."""
+    zero = wp.float64(0.0)
+    pp = zero
+    dd = zero
+    ss = zero
+    pd = zero
+    ps = zero
+    ds = zero
+    sp = zero
+    sd = zero
+    s_ = zero
+    for k in range(n):
+        p = prof[i, axis0, k + skip]
+        d = prof[i, axis0 + 1, k + skip]
+        sg = prof[i, axis0 + 2, k + skip]
+        pp += p * p
+        dd += d * d
+        ss += sg * sg
+        pd += p * d
+        ps += p * sg
+        ds += d * sg
+        sp += p
+        sd += d
+        s_ += sg
+    return pp, dd, ss, pd, ps, ds, sp, sd, s_
+
+
+@wp.func
 def normal_matrix_separable(
     image: wp.array2d(dtype=wp.float64),
     models: wp.array4d(dtype=wp.int64),
@@ -646,52 +676,9 @@ def normal_matrix_separable(
     a = params[i, 2]
     b = params[i, 4]
     zero = wp.float64(0.0)
-    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) ...
-    xpp = zero
-    xdd = zero
-    xss = zero
-    xpd = zero
-    xps = zero
-    xds = zero
-    xp = zero
-    xd = zero
-    xs = zero
-    for k in range(n):
-        p = prof[i, 0, k + skip]
-        d = prof[i, 1, k + skip]
-        sg = prof[i, 2, k + skip]
-        xpp += p * p
-        xdd += d * d
-        xss += sg * sg
-        xpd += p * d
-        xps += p * sg
-        xds += d * sg
-        xp += p
-        xd += d
-        xs += sg
-    # ... and of the y terms
-    ypp = zero
-    ydd = zero
-    yss = zero
-    ypd = zero
-    yps = zero
-    yds = zero
-    yp = zero
-    yd = zero
-    ys = zero
-    for k in range(n):
-        p = prof[i, 3, k + skip]
-        d = prof[i, 4, k + skip]
-        sg = prof[i, 5, k + skip]
-        ypp += p * p
-        ydd += d * d
-        yss += sg * sg
-        ypd += p * d
-        yps += p * sg
-        yds += d * sg
-        yp += p
-        yd += d
-        ys += sg
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
+    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
+    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
     g0 = zero
     g1 = zero
     g2 = zero
