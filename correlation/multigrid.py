@@ -23,7 +23,7 @@ from synthbos import SynthbosError
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
 from .validation import neighbour_median, normalized_median_test, replace_outliers
-from .windows import extract_windows, window_starts, window_step
+from .windows import checked_mask, extract_windows, window_starts, window_step
 from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = [
@@ -387,17 +387,6 @@ def _checked_image(image, name):
     return arr.astype(np.float32)
 
 
-def _checked_mask(mask, shape):
-    if mask is None:
-        return None
-    m = np.asarray(mask)
-    if m.shape != shape:
-        raise SynthbosError(f"mask has shape {m.shape} but the images are {shape}")
-    if m.dtype.kind not in "biuf" or (m.dtype.kind == "f" and not np.all(np.isfinite(m))):
-        raise SynthbosError("mask must be a finite boolean or 0/1 array (True = excluded)")
-    return m.astype(bool)
-
-
 def _mean_subtracted(wa, wb, valid):
     """Windows minus their mean; with a (K, N, N) pixel weight stack, mean over valid pixels, 0 elsewhere."""
     wa = wa - wa.mean(axis=(-2, -1), keepdims=True, dtype=np.float32)
@@ -627,7 +616,7 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     biggest = max(settings.window_sizes)
     if biggest > min(shape):
         raise SynthbosError(f"window size {biggest} px does not fit in the {shape[0]}x{shape[1]} px image")
-    excluded = _checked_mask(mask, shape)
+    excluded = checked_mask(mask, shape)
     valid_px = None if excluded is None else (~excluded).astype(np.float32)
     if settings.uses_warp():
         return _correlate_pair_warp(a, b, valid_px, settings)

@@ -1,11 +1,29 @@
-"""Interrogation-window grids and batched window extraction."""
+"""Interrogation-window grids, batched window extraction, and the check of a user's pixel mask."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-__all__ = ["extract_windows", "window_starts", "window_step"]
+from synthbos import SynthbosError
+
+__all__ = ["checked_mask", "extract_windows", "window_starts", "window_step"]
+
+
+def checked_mask(mask, shape):
+    """A user's pixel mask as a bool array of the images' ``shape`` (True = excluded), or None.
+
+    Raises :class:`synthbos.SynthbosError` for another shape, or values that are neither boolean nor
+    finite numbers.
+    """
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != shape:
+        raise SynthbosError(f"mask has shape {m.shape} but the images are {shape}")
+    if m.dtype.kind not in "biuf" or (m.dtype.kind == "f" and not np.all(np.isfinite(m))):
+        raise SynthbosError("mask must be a finite boolean or 0/1 array (True = excluded)")
+    return m.astype(bool)
 
 
 def window_step(size, overlap):

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
+from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
 
@@ -696,15 +697,8 @@ def _disk(radius):
 
 
 def _check_mask(mask, shape):
-    if mask is None:
-        return None
-    m = np.asarray(mask)
-    if m.shape != shape:
-        raise SynthbosError(f"mask has shape {m.shape} but the images are {shape}")
-    if m.dtype.kind not in "biuf" or (m.dtype.kind == "f" and not np.isfinite(m).all()):
-        raise SynthbosError("mask must be a finite boolean or 0/1 array (True = excluded)")
-    m = m.astype(bool)
-    if m.all():
+    m = checked_mask(mask, shape)
+    if m is not None and m.all():
         raise SynthbosError("the mask excludes every pixel: nothing can be tracked")
     return m
 
