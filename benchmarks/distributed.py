@@ -231,13 +231,14 @@ class DaskRunner:
                 if d not in ("cuda", "cuda:0"):
                     raise SynthbosError(f"--device {d}: with --scheduler local every worker has its own GPU, "
                                         "its cuda:0; choose the GPUs with CUDA_VISIBLE_DEVICES")
-            gpus = self.gpus if self.gpus is not None else visible_gpus()
+            host_gpus = visible_gpus()
+            gpus = self.gpus if self.gpus is not None else host_gpus
             if not gpus:
                 raise SynthbosError(f"--device {cuda[0]} but no CUDA device is visible")
             n = self.workers or len(gpus)
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
-            threads = _thread_share(max(n, len(gpus), len(visible_gpus())))
+            threads = _thread_share(max(n, len(gpus), len(host_gpus)))
             envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:
