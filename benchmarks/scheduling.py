@@ -140,7 +140,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     ``track_pair`` and one triangulation). Meanwhile a thread renders the next pair (when its file is
     missing), so the renderer's kernels run while this thread processes. At most ``4 * workers`` such
     batches wait for a worker, so memory stays bounded when the host is the slower side. With
-    ``workers <= 1`` everything runs here, item after item.
+    ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
     """
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
@@ -177,12 +177,12 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     bar.update(1)
                 pair = read_pair(items[0][0]) if items else None
                 for run in same_image_runs(items):
+                    here, there = split_by_residency(run, worker_device=worker_device)
                     if pool is None:
-                        for args in run:
+                        for args in [*here, *there]:
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    here, there = split_by_residency(run, worker_device=worker_device)
                     batch = [measure_item(pair, *args) for args in here]
                     pending[pool.submit(process_items, batch, there)] = len(run)
                     collect(block=False)
