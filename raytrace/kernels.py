@@ -598,12 +598,13 @@ def render_rays(
 
 
 @wp.func
-def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: int):
+def straight_ray_integrals(m: Any, origin: wp.vec3, aim: wp.vec3, n_samples: int):
     """Along the straight line from ``origin`` towards ``aim``, through the depth of the box (midpoint
     rule in z): the integral of (dn/dx, dn/dy) dz (Eq. 4's integral) and the depth average of n - 1.
 
     Where the line passes beside the box, n - 1 is read at the nearest point of the box's side (the
     volume's edge density continued outwards): the renderer sees no gradient there, so no jump either.
+    Inside the box that point is the sample itself, which is read once.
     """
     t = wp.normalize(aim - origin)
     z0 = m.centre[2] - m.half[2]
@@ -616,13 +617,16 @@ def straight_ray_integrals(m: Medium, origin: wp.vec3, aim: wp.vec3, n_samples: 
         s = sample_medium(m, p)
         acc = acc + wp.vec2(s[0], s[1]) * dz
         edge = wp.vec3(wp.clamp(p[0], -m.half[0], m.half[0]), wp.clamp(p[1], -m.half[1], m.half[1]), p[2])
-        nm1 = nm1 + sample_medium(m, edge)[3]
+        if edge[0] == p[0] and edge[1] == p[1]:
+            nm1 = nm1 + s[3]
+        else:
+            nm1 = nm1 + sample_medium(m, edge)[3]
     return acc, nm1 / float(n_samples)
 
 
 @wp.kernel
 def integrate_grad_n(
-    medium: Medium,
+    medium: Any,
     cam: Camera,
     dots: wp.array(dtype=wp.vec2),
     n_samples: int,
@@ -640,7 +644,7 @@ def integrate_grad_n(
 
 @wp.kernel
 def integrate_cone(
-    medium: Medium,
+    medium: Any,
     cam: Camera,
     dots: wp.array(dtype=wp.vec2),
     dot_radius: float,
@@ -724,3 +728,7 @@ for _medium in (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, 
     wp.overload(render_rays_80, {"medium": _medium})
     wp.overload(render_rays_64, {"medium": _medium})
 wp.overload(trace_to_exit, {"medium": Medium})
+# the truths read the exact float32 nodes, packed (``Medium``) or with 128-bit loads (``MediumVec``)
+for _medium in (Medium, MediumVec):
+    wp.overload(integrate_grad_n, {"medium": _medium})
+    wp.overload(integrate_cone, {"medium": _medium})

@@ -241,8 +241,22 @@ def _n_samples(plan: RenderPlan, samples_per_step=1):
     return max(8, samples_per_step * plan.steps_per_ray)
 
 
-def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
+def truth_medium(plan: RenderPlan, *, device=None, medium=None):
+    """The medium the ground truths read: the exact float32 nodes on ``device``.
+
+    ``medium`` (the plan's medium already uploaded for the gradient image, ``to_warp(plan.medium,
+    field=plan.field)``) is reused where it holds them ("float32", "float32_vec"); otherwise (None, or
+    an approximate field) the nodes are uploaded as "float32_vec".
+    """
+    if medium is not None and plan.field in ("float32", "float32_vec"):
+        return medium
+    return to_warp(plan.medium, device=device, field="float32_vec")
+
+
+def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium=None):
     """Eq. 4 and the depth-averaged density along each dot's chief ray (dot centre to aperture centre).
+
+    ``medium``: the plan's medium already on ``device`` (see :func:`truth_medium`), uploaded if None.
 
     Returns
     -------
@@ -253,7 +267,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
         density continued where the ray passes beside the volume).
     """
     init_warp()
-    medium = to_warp(plan.medium, device=device)
+    medium = truth_medium(plan, device=device, medium=medium)
     cam = _camera_struct(plan.camera)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
@@ -265,13 +279,14 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1):
     return _eq4_px(plan, out.numpy()), out_nm1.numpy().astype(np.float64) / k
 
 
-def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per_step=1):
+def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per_step=1, medium=None):
     """Eq. 4 and the depth-averaged density averaged over the rays the renderer traces for each dot.
 
     Every ray of a dot is drawn as ``kernels.render_rays`` draws it (the same seed, emission point on
     the dot and point on the aperture) and followed as the straight line of the undisturbed medium,
     the reference image's ray. The mean over those rays of Eq. 4 is what the ray-traced displacement
     tends to when deflections are weak: the camera's finite aperture averages the flow over the cone.
+    ``medium``: the plan's medium already on ``device`` (see :func:`truth_medium`), uploaded if None.
 
     Returns
     -------
@@ -282,7 +297,7 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     """
     init_warp()
     n = plan.n_dots
-    medium = to_warp(plan.medium, device=device)
+    medium = truth_medium(plan, device=device, medium=medium)
     cam = _camera_struct(plan.camera)
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     chunks = -(-plan.rays_per_dot // rays_per_thread)
@@ -322,10 +337,13 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     bar = tqdm(total=total, unit="ray", unit_scale=True, desc="render", disable=not progress)
     t0 = time.perf_counter()
     with bar:
+        medium = to_warp(plan.medium, device=device, field=plan.field)  # uploaded once for all three
         ref_img, ref_px, ref_ok, tir_ref = trace_rays(plan, active=False, device=device, progress=bar)
-        grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar)
-        theory, density_chief = chief_ray_truth(plan, device=device)
-        theory_cone, density_cone = cone_truth(plan, device=device)
+        grad_img, grad_px, grad_ok, tir_grad = trace_rays(plan, active=True, device=device, progress=bar,
+                                                          medium=medium)
+        medium = truth_medium(plan, device=device, medium=medium)
+        theory, density_chief = chief_ray_truth(plan, device=device, medium=medium)
+        theory_cone, density_cone = cone_truth(plan, device=device, medium=medium)
         wp.synchronize_device(device)
     seconds = time.perf_counter() - t0
     if tir_ref + tir_grad:
