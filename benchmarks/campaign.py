@@ -17,7 +17,7 @@ from synthbos.raytrace import checks, plan_render
 from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
-from .figures import figure4, figure5, figure_density
+from .figures import CAMPAIGN_FIGURES, campaign_figure
 from .items import render_item, score_item
 from .registry import get_method
 from .scheduling import default_workers, run_items, run_pipeline
@@ -128,8 +128,8 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         run_items(scores, score_item, workers=workers, desc="process", progress=progress)
     rows = summarise(spec, folder)
     write_tables(rows, folder)
-    if figures:
-        figure4(spec, folder, folder / "fig4")
-        figure5(spec, folder, folder / "fig5")
-        figure_density(spec, folder, folder / "fig_density")
+    if figures:  # side by side in worker processes: matplotlib draws on one core
+        jobs = [(stem, spec, str(folder)) for stem in CAMPAIGN_FIGURES]
+        run_items(jobs, campaign_figure, workers=min(len(jobs), workers or default_workers()), desc="figures",
+                  progress=progress)
     return rows

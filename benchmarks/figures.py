@@ -12,7 +12,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.colors import BoundaryNorm
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
+from matplotlib.tri import LinearTriInterpolator, Triangulation
 from synthbos.raytrace import load_config, read_pair
 from synthbos.raytrace.sources import density_from_config
 
@@ -23,9 +25,23 @@ from .registry import METHODS
 from .storage import DENSITY_TRUTHS, load_density_map, load_scores, pair_path
 from .tables import split_masks
 
-__all__ = ["FORMATS", "figure4", "figure5", "figure_density", "method_style", "save_figure", "sweep_figure"]
+__all__ = [
+    "CAMPAIGN_FIGURES",
+    "FORMATS",
+    "campaign_figure",
+    "figure4",
+    "figure5",
+    "figure_density",
+    "method_style",
+    "save_figure",
+    "sweep_figure",
+]
 
 FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
+
+#: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
+#: 300 dpi panel, however many errors a campaign scored.
+_CDF_POINTS = 4096
 
 
 def method_style(name: str) -> dict:
@@ -47,7 +63,7 @@ def save_figure(fig, path) -> list[Path]:
     for fmt in FORMATS:
         out = stem.with_name(f"{stem.name}.{fmt}")
         with atomic_output(out) as tmp:
-            fig.savefig(tmp, dpi=300, bbox_inches="tight", format=fmt)
+            fig.savefig(tmp, dpi=300, format=fmt)  # the figures' constrained layout already fits them
         written.append(out)
     plt.close(fig)
     return written
@@ -56,6 +72,25 @@ def save_figure(fig, path) -> list[Path]:
 def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
     """Contour levels from 0 to at least ``vmax`` at round steps (0.05, 0.1, 0.2, ...)."""
     return MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, max(float(vmax), 1e-9))
+
+
+def _level_map(ax, xy, values, shape, levels, *, cell=2.0):
+    """Values at scattered dots as filled bands between ``levels`` over an image of ``shape`` (px).
+
+    The dots' values are interpolated linearly (Delaunay) onto a grid of ``cell`` px and shown as an
+    image in the colour of each level band (what ``tricontourf`` draws, as one small image instead
+    of thousands of polygons: quick to draw, and a small PDF); blank outside the dots' hull.
+    """
+    h, w = shape
+    gx = np.arange(0.0, w + cell / 2, cell)
+    gy = np.arange(0.0, h + cell / 2, cell)
+    grid = LinearTriInterpolator(Triangulation(xy[:, 0], xy[:, 1]), values)(*np.meshgrid(gx, gy))
+    cmap = plt.get_cmap("cividis")
+    im = ax.imshow(grid, extent=(gx[0] - cell / 2, gx[-1] + cell / 2, gy[-1] + cell / 2, gy[0] - cell / 2),
+                   cmap=cmap, norm=BoundaryNorm(levels, cmap.N), interpolation="nearest")
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    return im
 
 
 def figure4(spec, folder, path):
@@ -99,12 +134,8 @@ def figure4(spec, folder, path):
                 ax[k].text(0.5, 0.5, "not in this pair file", ha="center", va="center", transform=ax[k].transAxes)
                 continue
             levels = _nice_levels(vals.max())
-            cs = ax[k].tricontourf(xy[:, 0], xy[:, 1], vals, levels=levels, cmap="cividis")
-            cs.set_rasterized(True)  # thousands of contour polygons: pixels in the PDF, axes and text stay vector
-            ax[k].set_xlim(0, pair.reference.shape[1])
-            ax[k].set_ylim(pair.reference.shape[0], 0)
-            ax[k].set_aspect("equal")
-            fig.colorbar(cs, ax=ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
+            im = _level_map(ax[k], xy, vals, pair.reference.shape, levels)
+            fig.colorbar(im, ax=ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
             ax[k].set_xlabel("x (px)")
             ax[k].set_ylabel("y (px)")
         for a in ax[:2]:
@@ -183,7 +214,7 @@ def figure5(spec, folder, path):
                 lo, hi = min(lo, crb / 1.25), max(hi, crb * 1.25)
             counts = []
             for method, e in curves[c]:
-                x, y = scoring.empirical_cdf(e)
+                x, y = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
                 if len(x):  # start each curve at zero on the left edge
                     x, y = np.concatenate([[lo], np.maximum(x, lo)]), np.concatenate([[0.0], y])
                 ax.step(x, y, where="post", **method_style(method))
@@ -254,7 +285,7 @@ def figure_density(spec, folder, path):
             for k, noise in enumerate(noises):
                 sc = load_scores(spec, folder, method, noise)
                 e = sc[f"density_{truth}_rel"]
-                xs, ys = scoring.empirical_cdf(e)
+                xs, ys = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
                 ax[c].step(np.maximum(xs, 1e-6), ys, where="post", color=style.get("color"), ls=style.get("ls"),
                            lw=widths[k], alpha=1.0 - 0.6 * k / max(len(noises) - 1, 1),
                            label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})")
@@ -269,6 +300,20 @@ def figure_density(spec, folder, path):
     fig.suptitle(f"Campaign '{spec.name}': depth-averaged density from each method's displacements "
                  "(least squares), against the cone and chief-ray truths", fontsize=11)
     save_figure(fig, path)
+
+
+#: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path)``).
+CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density}
+
+
+def campaign_figure(stem: str, spec, folder) -> str:
+    """Draw the campaign figure ``stem`` (a key of ``CAMPAIGN_FIGURES``) into ``folder``; return its stem path.
+
+    One figure per call, so that a campaign can draw its figures side by side in worker processes.
+    """
+    path = Path(folder) / stem
+    CAMPAIGN_FIGURES[stem](spec, folder, path)
+    return str(path)
 
 
 def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_label=None, percentiles=(50, 90)):

@@ -22,6 +22,24 @@ def test_cdf_and_percentiles_of_known_errors():
     assert np.isnan(scoring.error_percentiles([np.nan])[50])
 
 
+def test_thinned_cdf_keeps_exact_probabilities_and_stays_within_one_step():
+    rng = np.random.default_rng(3)
+    e = rng.lognormal(-4.0, 1.5, 250_000)
+    x_full, y_full = scoring.empirical_cdf(e)
+    x, y = scoring.empirical_cdf(e, max_points=1000)
+    assert 1000 <= len(x) <= 1080
+    assert x[0] == x_full[0] and x[-1] == x_full[-1]  # the extremes are kept
+    assert_allclose(x[-64:], x_full[-64:])  # and the largest errors, one by one
+    # every kept point is a point of the full curve, with its exact probability
+    k = np.searchsorted(x_full, x, side="right") - 1
+    assert_allclose(y, y_full[k])
+    # the thinned step curve, read at every error, is within 1/1000 of the full one
+    drawn = y[np.searchsorted(x, x_full, side="right") - 1]
+    assert np.max(y_full - drawn) <= 1.0 / 1000 + 1e-12
+    # small samples are not thinned
+    assert len(scoring.empirical_cdf(e[:500], max_points=1000)[0]) == 500
+
+
 def test_vector_error_is_the_magnitude_of_the_difference():
     assert_allclose(scoring.vector_errors([[3.0, 4.0], [1.0, 1.0]], [[0.0, 0.0], [1.0, 2.0]]), [5.0, 1.0])
 
