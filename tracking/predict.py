@@ -485,10 +485,17 @@ def predict_displacement(
     ea, eb = (np.where(usable, e, 0.0) for e in energy)
     cov = np.where(usable, coef, 0.0) * np.sqrt(ea * eb)
     k = max(1 + 2 * int(np.ceil((np.sqrt(min_dots_per_box / density) / size - 1.0) / 2.0)), 1)
+    pooled = usable
     if k > 1:
-        cov, ea, eb = (ndimage.uniform_filter(f, size=k, mode="constant") for f in (cov, ea, eb))
-    den = np.sqrt(np.maximum(ea * eb, 0.0))  # the filter's sums can end a hair below zero
-    coef = np.where(den > 0, cov / np.where(den > 0, den, 1.0), 0.0)
+        cov, ea, eb, share = (
+            ndimage.uniform_filter(f, size=k, mode="constant") for f in (cov, ea, eb, usable.astype(np.float64))
+        )
+        # a block without usable tiles pools to rounding residues of the filter's running sums (which
+        # can even end a hair below zero): no coefficient there
+        pooled = share > 0.5 / (k * k)
+    den = np.sqrt(np.maximum(ea * eb, 0.0))
+    ok = pooled & (den > 0)
+    coef = np.where(ok, cov / np.where(ok, den, 1.0), 0.0)
 
     pts = np.where(fin[:, None], xy, 0.0)
     u, v, quality = _bilinear(np.stack([u, v, coef]), cy, cx, pts[:, 1], pts[:, 0])
