@@ -1006,15 +1006,11 @@ def neighbour_fit_kernel(
 
 
 @wp.func
-def bilinear_field(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int, tx: wp.float64) -> wp.float64:
-    """Bilinear interpolation of a tile field in cell (iy, ix) at fractions (ty, tx) (beyond [0, 1]:
-    linear extrapolation)."""
+def field_at_row(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int) -> wp.float64:
+    """A tile field's column ``ix`` of centres interpolated linearly to a row in cell ``iy`` at fraction
+    ``ty`` (beyond [0, 1]: linear extrapolation): the first half of a separable bilinear interpolation."""
     iy1 = wp.min(iy + 1, field.shape[0] - 1)
-    ix1 = wp.min(ix + 1, field.shape[1] - 1)
-    one = wp.float64(1.0)
-    top = (one - tx) * field[iy, ix] + tx * field[iy, ix1]
-    bottom = (one - tx) * field[iy1, ix] + tx * field[iy1, ix1]
-    return (one - ty) * top + ty * bottom
+    return (wp.float64(1.0) - ty) * field[iy, ix] + ty * field[iy1, ix]
 
 
 @wp.kernel
@@ -1028,29 +1024,52 @@ def deform_nearest_kernel(
     row_frac: wp.array(dtype=wp.float64),
     col_cell: wp.array(dtype=wp.int32),
     col_frac: wp.array(dtype=wp.float64),
-    strip: int,
+    y0: int,
+    x0: int,
+    size: int,
     out: wp.array2d(dtype=wp.float32),
     out_valid: wp.array2d(dtype=wp.float32),
-    shift: wp.array3d(dtype=wp.int32),
-    outside: wp.array(dtype=wp.int32),
+    tile_sums: wp.array3d(dtype=wp.int32),
 ):
-    """Pixels of one row and a strip of ``strip`` columns of ``image`` moved back by the tile field
-    rounded to whole pixels: ``out`` takes the pixel at (row + rint(v), col + rint(u)) (the edge pixel
-    beyond the image), ``out_valid`` 1 where that lies inside the image (times ``valid`` there if
-    ``use_valid``), ``shift`` the two rounded shifts (u, v); ``outside[0]`` counts the pixels whose
-    source lies outside. The field is interpolated bilinearly, each row and column given by its cell of
-    tile centres and fraction in it."""
-    row, k = wp.tid()
+    """One row of one ``size`` x ``size`` tile of the block of tiles starting at (``y0``, ``x0``):
+    ``image`` moved back by the tile field rounded to whole pixels. ``out[r, c]`` (block coordinates)
+    takes the pixel at (y0 + r + rint(v), x0 + c + rint(u)) (the edge pixel beyond the image),
+    ``out_valid`` 1 where that lies inside the image (times ``valid`` there if ``use_valid``);
+    ``tile_sums[0|1, tile row, tile column]`` sum the rounded shifts u and v over the tile's pixels
+    and ``tile_sums[2, ...]`` counts its pixels whose weight is not 1. The field is interpolated
+    bilinearly, each row and column given by its cell of tile centres and fraction in it: first along
+    the rows at the two centre columns around the pixel, then along the row."""
+    r, t = wp.tid()
     h = image.shape[0]
     w = image.shape[1]
+    last = field_u.shape[1] - 1
+    row = y0 + r
     iy = row_cell[row]
     ty = row_frac[row]
-    n_out = int(0)
-    for col in range(k * strip, wp.min(k * strip + strip, w)):
+    one = wp.float64(1.0)
+    cell = int(-1)
+    u0 = wp.float64(0.0)
+    u1 = wp.float64(0.0)
+    v0 = wp.float64(0.0)
+    v1 = wp.float64(0.0)
+    sum_u = int(0)
+    sum_v = int(0)
+    n_part = int(0)
+    for c in range(t * size, t * size + size):
+        col = x0 + c
         ix = col_cell[col]
+        if ix != cell:
+            cell = ix
+            ix1 = wp.min(ix + 1, last)
+            u0 = field_at_row(field_u, iy, ty, ix)
+            u1 = field_at_row(field_u, iy, ty, ix1)
+            v0 = field_at_row(field_v, iy, ty, ix)
+            v1 = field_at_row(field_v, iy, ty, ix1)
         tx = col_frac[col]
-        su = int(wp.rint(bilinear_field(field_u, iy, ty, ix, tx)))
-        sv = int(wp.rint(bilinear_field(field_v, iy, ty, ix, tx)))
+        su = int(wp.rint((one - tx) * u0 + tx * u1))
+        sv = int(wp.rint((one - tx) * v0 + tx * v1))
+        sum_u += su
+        sum_v += sv
         ry = row + sv
         rx = col + su
         v = wp.float32(0.0)
@@ -1058,11 +1077,11 @@ def deform_nearest_kernel(
             v = wp.float32(1.0)
             if use_valid != 0:
                 v = valid[ry, rx]
-        else:
-            n_out += 1
-        out[row, col] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
-        out_valid[row, col] = v
-        shift[0, row, col] = su
-        shift[1, row, col] = sv
-    if n_out > 0:
-        wp.atomic_add(outside, 0, n_out)
+        if v != wp.float32(1.0):
+            n_part += 1
+        out[r, c] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
+        out_valid[r, c] = v
+    wp.atomic_add(tile_sums, 0, r / size, t, sum_u)
+    wp.atomic_add(tile_sums, 1, r / size, t, sum_v)
+    if n_part > 0:
+        wp.atomic_add(tile_sums, 2, r / size, t, n_part)

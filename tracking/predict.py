@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
+from scipy import fft as sfft
 from scipy import ndimage
 from synthbos.correlation.peak import three_point_offset
-from synthbos.correlation.xcorr import cross_correlate
 
 from .kernels import deform_nearest_kernel
 from .workspace import scratch
@@ -39,6 +39,9 @@ PREDICTOR_WINDOWS = (64, 32, 16, 16)
 #: A pass that changes no tile's displacement by more than this (px) from the coarser pass's field
 #: (interpolated to its tile centres) ends the pyramid: the field is resolved for the tracker's needs.
 _RESOLVED = 0.25
+
+#: The samples of a correlation plane around its peak that the three-point fits read (row, column offsets).
+_CROSS = ((-1, 0), (0, -1), (0, 0), (0, 1), (1, 0))
 
 #: A tile takes part only where at least this fraction of its reference pixels is not masked.
 _MIN_VALID_FRACTION = 0.25
@@ -99,13 +102,14 @@ def _tile_grid(n, size):
 
 
 def _bilinear(field, centres_y, centres_x, y, x):
-    """Bilinear interpolation of a tile field at points (x, y), extrapolated linearly past the outer centres."""
+    """Bilinear interpolation of a tile field (or a stack of them, ``(..., ny, nx)``) at points (x, y),
+    extrapolated linearly past the outer centres."""
     iy, ty = _cell(y, centres_y)
     ix, tx = _cell(x, centres_x)
-    ny, nx = field.shape
+    ny, nx = field.shape[-2:]
     iy1, ix1 = np.minimum(iy + 1, ny - 1), np.minimum(ix + 1, nx - 1)
-    return (1 - ty) * ((1 - tx) * field[iy, ix] + tx * field[iy, ix1]) + ty * (
-        (1 - tx) * field[iy1, ix] + tx * field[iy1, ix1]
+    return (1 - ty) * ((1 - tx) * field[..., iy, ix] + tx * field[..., iy, ix1]) + ty * (
+        (1 - tx) * field[..., iy1, ix] + tx * field[..., iy1, ix1]
     )
 
 
@@ -158,8 +162,9 @@ def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
     return np.where(bad, med, u)
 
 
-def _gaussian_sample(planes, row, col):
-    """Value of each correlation plane at a sub-pixel position, from a separable three-point Gaussian.
+def _gaussian_sample(planes, row, col, scale):
+    """Value of each correlation plane, divided by its ``scale``, at a sub-pixel position, from a
+    separable three-point Gaussian.
 
     Around the sample nearest the position the plane is modelled as ``C exp(b t + c t^2)`` along each
     axis (fitted to that sample and its two neighbours), which a correlation peak of Gaussian dots
@@ -171,12 +176,11 @@ def _gaussian_sample(planes, row, col):
     on = (r >= 1) & (r <= h - 2) & (c >= 1) & (c <= w - 2)
     r, c = np.clip(r, 1, h - 2), np.clip(c, 1, w - 2)
     i = np.arange(k)
-    centre = planes[i, r, c].astype(np.float64)
-    value = centre.copy()
+    centre = (planes[i, r, c] / scale).astype(np.float64)
     tr, tc = row - r, col - c
     trip = (
-        (planes[i, r - 1, c], planes[i, r + 1, c], tr),
-        (planes[i, r, c - 1], planes[i, r, c + 1], tc),
+        (planes[i, r - 1, c] / scale, planes[i, r + 1, c] / scale, tr),
+        (planes[i, r, c - 1] / scale, planes[i, r, c + 1] / scale, tc),
     )
     ok = centre > 0
     for lo, hi, _ in trip:
@@ -192,33 +196,105 @@ def _gaussian_sample(planes, row, col):
     return np.where(on, value, 0.0)
 
 
-def _tiles(image, ys, xs, size):
-    """The ``(ny, nx, size, size)`` stack of side-by-side tiles starting at rows ``ys`` and columns ``xs``."""
-    y0, x0 = ys[0], xs[0]
-    block = image[y0 : y0 + len(ys) * size, x0 : x0 + len(xs) * size]
-    return block.reshape(len(ys), size, len(xs), size).swapaxes(1, 2)
+def _tile_stack(block, ny, nx, size, *, roll=False, which=None):
+    """The ``ny`` x ``nx`` side-by-side tiles of ``block`` (or those where the ``(ny, nx)`` bool array
+    ``which`` is True) as a contiguous ``(tiles, size * size)`` float32 array, tiles row by row; with
+    ``roll`` each tile is rolled circularly by ``-(size // 2)`` along both axes (its pixel (0, 0) taken
+    from (size // 2, size // 2))."""
+    view = block[: ny * size, : nx * size].reshape(ny, size, nx, size).swapaxes(1, 2)
+    if which is not None:
+        view = view[which]
+    out = np.empty((*view.shape[:-2], size, size), dtype=np.float32)
+    if roll:
+        k = size // 2
+        for dst_r, src_r in ((np.s_[: size - k], np.s_[k:]), (np.s_[size - k :], np.s_[:k])):
+            for dst_c, src_c in ((np.s_[: size - k], np.s_[k:]), (np.s_[size - k :], np.s_[:k])):
+                out[..., dst_r, dst_c] = view[..., src_r, src_c]
+    else:
+        out[...] = view
+    return out.reshape(-1, size * size)
 
 
-def _tile_mean(shift, ys, xs, size):
-    """Mean of an integer image over each tile of :func:`_tiles` (exact sums: the mean of the view, bit
-    for bit, with contiguous reductions instead of one over a strided view)."""
-    y0, x0 = ys[0], xs[0]
-    block = shift[y0 : y0 + len(ys) * size, x0 : x0 + len(xs) * size]
-    sums = block.reshape(len(ys), size, len(xs) * size).sum(axis=1, dtype=np.int64)
-    return sums.reshape(len(ys), len(xs), size).sum(axis=2) / float(size * size)
+def _partial_tiles(weights, ny, nx, size):
+    """Which of the ``ny`` x ``nx`` tiles of the weights block have pixels of weight other than 1
+    (None: no weights, no such tile)."""
+    if weights is None:
+        return None
+    tiles = weights[: ny * size, : nx * size].reshape(ny, size, nx, size)
+    return (tiles != 1).any(axis=(1, 3))
 
 
-def _deform_nearest(image, valid, field, device):
+def _centre_tiles(t, block, partial, ny, nx, size, *, roll=False):
+    """Subtract in place each tile's mean over its pixels that take part and zero the others.
+
+    ``t`` holds the tiles of :func:`_tile_stack` (``roll`` as there); ``block`` the weights of their
+    pixels (1 take part, 0 not, or fractions) and ``partial`` which tiles have weights other than 1
+    (None: every pixel of every tile takes part). Returns the tiles' weight sums and sums of squares
+    (after the subtraction).
+    """
+    t -= t.mean(axis=1, keepdims=True)
+    count = np.full(len(t), float(size * size))
+    if partial is not None and partial.any():
+        rows = np.flatnonzero(partial.ravel())
+        wt = _tile_stack(block, ny, nx, size, roll=roll, which=partial)
+        sub = t[rows]
+        n = wt.sum(axis=1, dtype=np.float64)
+        sub -= (np.einsum("ij,ij->i", sub, wt) / np.maximum(n, 1.0)).astype(np.float32)[:, None]
+        sub *= wt
+        t[rows] = sub
+        count[rows] = n
+    return count, np.einsum("ij,ij->i", t, t).astype(np.float64)
+
+
+def _reference_spectra(a, valid, ys, xs, size):
+    """Conjugate spectra of the mean-subtracted reference tiles (rolled by half a tile, so that the
+    inverse transform of a cross spectrum puts zero displacement at ``size // 2``), with the tiles'
+    weight sums and sums of squares: what :func:`_correlate_tiles` needs of the reference."""
+    y0, x0, ny, nx = ys[0], xs[0], len(ys), len(xs)
+    block = np.s_[y0 : y0 + ny * size, x0 : x0 + nx * size]
+    ta = _tile_stack(a[block], ny, nx, size, roll=True)
+    va = None if valid is None else valid[block]
+    count, energy = _centre_tiles(ta, va, _partial_tiles(va, ny, nx, size), ny, nx, size, roll=True)
+    spec = sfft.rfft2(ta.reshape(-1, size, size), axes=(-2, -1), overwrite_x=True)
+    return np.conjugate(spec, out=spec), count, energy
+
+
+def _correlate_tiles(reference, b, vb, partial, size):
+    """Circular correlation of each reference tile with the same tile of ``b``, not normalised.
+
+    ``reference`` is :func:`_reference_spectra`'s result; ``b`` the block of tiles (rows and columns
+    a multiple of ``size``), ``vb`` its pixels' weights (1 take part, 0 masked; None: all pixels) and
+    ``partial`` the tiles with weights other than 1 (None: none).
+    Tiles are mean-subtracted over their unmasked pixels. Returns the ``(k, size, size)`` float32
+    planes (zero displacement at ``size // 2``), the norms ``sqrt(sum a^2 sum b^2)`` that make a
+    perfect match peak at 1, which tiles have enough unmasked pixels and the tiles' sums of squares
+    (reference, b).
+    """
+    spec_a, na, ea = reference
+    ny, nx = b.shape[0] // size, b.shape[1] // size
+    tb = _tile_stack(b, ny, nx, size)
+    nb, eb = _centre_tiles(tb, vb, partial, ny, nx, size)
+    spec = sfft.rfft2(tb.reshape(-1, size, size), axes=(-2, -1), overwrite_x=True)
+    spec *= spec_a
+    planes = sfft.irfft2(spec, s=(size, size), axes=(-2, -1), overwrite_x=True)
+    norm = np.sqrt(ea * eb)
+    enough = _MIN_VALID_FRACTION * size * size
+    usable = ((na >= enough) & (nb >= enough) & (norm > 0)).reshape(ny, nx)
+    return planes, norm, usable, (ea.reshape(ny, nx), eb.reshape(ny, nx))
+
+
+def _deform_nearest(image, valid, field, ys, xs, size, device):
     """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
-    and rounded to whole pixels at every pixel (Warp kernel ``deform_nearest_kernel``).
+    and rounded to whole pixels at every pixel, over the block of the finer pass's tiles (rows ``ys``,
+    columns ``xs``, side ``size``) only (Warp kernel ``deform_nearest_kernel``).
 
-    Returns the moved image, the weights of its pixels (1 where the source pixel lies inside the image,
-    times ``valid`` there; None where that is every pixel and there is no ``valid``) and the rounded
-    shifts u and v (int32 images): views of the thread's workspace, valid until the next call.
+    Returns the moved block, the weights of its pixels (1 where the source pixel lies inside the image,
+    times ``valid`` there) — views of the thread's workspace, valid until the next call —, the mean
+    rounded shifts u and v of each tile and which tiles have pixels of weight other than 1.
     """
     h, w = image.shape
     u, v, cy, cx = field
-    strip = 64
+    ny, nx = len(ys), len(xs)
 
     def on_device(a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not wp.get_device(device).is_cpu)
@@ -226,14 +302,13 @@ def _deform_nearest(image, valid, field, device):
     row_cell, row_frac = _cell(np.arange(h), cy)
     col_cell, col_frac = _cell(np.arange(w), cx)
     # from the thread's workspace: the views returned are used within the pass only
-    out = scratch("predict_moved", (h, w), wp.float32, device)
-    out_valid = scratch("predict_weights", (h, w), wp.float32, device)
-    shift = scratch("predict_shift", (2, h, w), wp.int32, device)
-    outside = wp.zeros(1, dtype=wp.int32, device=device)
+    out = scratch("predict_moved", (ny * size, nx * size), wp.float32, device)
+    out_valid = scratch("predict_weights", (ny * size, nx * size), wp.float32, device)
+    tile_sums = wp.zeros((3, ny, nx), dtype=wp.int32, device=device)
     img = on_device(image, wp.float32)
     wp.launch(
         deform_nearest_kernel,
-        dim=(h, (w + strip - 1) // strip),
+        dim=(ny * size, nx),
         inputs=[
             img,
             img if valid is None else on_device(valid, wp.float32),
@@ -244,46 +319,33 @@ def _deform_nearest(image, valid, field, device):
             on_device(row_frac, wp.float64),
             on_device(col_cell.astype(np.int32), wp.int32),
             on_device(col_frac, wp.float64),
-            strip,
+            int(ys[0]),
+            int(xs[0]),
+            size,
             out,
             out_valid,
-            shift,
-            outside,
+            tile_sums,
         ],
         device=device,
     )
-    weights = None if valid is None and int(outside.numpy()[0]) == 0 else out_valid.numpy()
-    sh = shift.numpy()
-    return out.numpy(), weights, sh[0], sh[1]
+    sums = tile_sums.numpy()
+    return out.numpy(), out_valid.numpy(), sums[0] / float(size * size), sums[1] / float(size * size), sums[2] > 0
 
 
-def _correlate_tiles(a, b, va, vb, ys, xs, size):
-    """Normalised circular correlation of each reference tile with the same tile of ``b``.
-
-    Tiles are mean-subtracted over their unmasked pixels (``va``, ``vb`` 1 there, 0 on masked ones;
-    None: all pixels take part).
-    Returns the planes (zero displacement at ``size // 2``; a perfect match peaks at 1), which tiles
-    have enough unmasked pixels, and the two tiles' sums of squares (after mean subtraction).
-    """
-    ta, tb = _tiles(a, ys, xs, size), _tiles(b, ys, xs, size)
-    full = float(size * size)
-    stacks, counts = [], []
-    for t, v in ((ta, va), (tb, vb)):
-        if v is None:  # every pixel takes part
-            stacks.append(t - t.mean(axis=(-2, -1), keepdims=True, dtype=np.float32))
-            counts.append(np.full(t.shape[:2], full))
-        else:
-            wt = _tiles(v, ys, xs, size)
-            nt = wt.sum(axis=(-2, -1))
-            stacks.append((t - (t * wt).sum(axis=(-2, -1), keepdims=True) / np.maximum(nt, 1)[..., None, None]) * wt)
-            counts.append(nt)
-    (ta, tb), (na, nb) = stacks, counts
-    planes = cross_correlate(ta, tb, subtract_mean=False)
-    energy = (ta * ta).sum(axis=(-2, -1), dtype=np.float64), (tb * tb).sum(axis=(-2, -1), dtype=np.float64)
-    norm = np.sqrt(energy[0] * energy[1])
-    planes /= np.where(norm > 0, norm, 1.0).astype(planes.dtype)[..., None, None]
-    enough = _MIN_VALID_FRACTION * size * size
-    return planes, (na >= enough) & (nb >= enough) & (norm > 0), energy
+def deform_nearest_numpy(image, valid, field, ys, xs, size):
+    """NumPy reference of :func:`_deform_nearest` (for the tests)."""
+    h, w = image.shape
+    u, v, cy, cx = field
+    rows = ys[0] + np.arange(len(ys) * size)
+    cols = xs[0] + np.arange(len(xs) * size)
+    shifts = [np.rint(_bilinear(f, cy, cx, rows[:, None], cols[None, :])).astype(np.int64) for f in (u, v)]
+    ry, rx = rows[:, None] + shifts[1], cols[None, :] + shifts[0]
+    inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
+    ry, rx = np.clip(ry, 0, h - 1), np.clip(rx, 0, w - 1)
+    weights = inside.astype(np.float32) * (1.0 if valid is None else valid[ry, rx])
+    means = [s.reshape(len(ys), size, len(xs), size).mean(axis=(1, 3)) for s in shifts]
+    partial = (weights != 1).reshape(len(ys), size, len(xs), size).any(axis=(1, 3))
+    return image[ry, rx].astype(np.float32), weights.astype(np.float32), means[0], means[1], partial
 
 
 def predict_displacement(
@@ -376,23 +438,25 @@ def predict_displacement(
         return np.zeros((n, 2)), np.zeros(n)
     valid = None if mask is None else (~np.asarray(mask, dtype=bool)).astype(np.float32)
 
+    spectra = {}  # the reference tiles' spectra of each tile grid, computed once
     field = None  # (u, v, centres_y, centres_x) of the previous pass
     for size in sizes:
         ys, xs = _tile_grid(h, size), _tile_grid(w, size)
         cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
+        if size not in spectra:
+            spectra[size] = _reference_spectra(a, valid, ys, xs, size)
         if field is None:
-            bd, vd = b, valid
+            block = np.s_[ys[0] : ys[0] + len(ys) * size, xs[0] : xs[0] + len(xs) * size]
+            bd, vd = b[block], None if valid is None else valid[block]
+            partial = _partial_tiles(vd, len(ys), len(xs), size)
             base_u = base_v = prev_u = prev_v = 0.0
         else:
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
-            bd, vd, su, sv = _deform_nearest(b, valid, field, device)
-            base_u, base_v = _tile_mean(su, ys, xs, size), _tile_mean(sv, ys, xs, size)
-            prev_u = _bilinear(field[0], field[2], field[3], cy[:, None], cx[None, :])
-            prev_v = _bilinear(field[1], field[2], field[3], cy[:, None], cx[None, :])
-        planes, usable, energy = _correlate_tiles(a, bd, valid, vd, ys, xs, size)
+            bd, vd, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
+            prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
+        pl, norm, usable, energy = _correlate_tiles(spectra[size], bd, vd, partial, size)
         half = size // 2
-        pl = planes.reshape(-1, size, size)
         if field is None:
             r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
         else:  # the coarser pass placed the window: look for the residual within a quarter
@@ -401,8 +465,10 @@ def predict_displacement(
             r, c = r + lo, c + lo
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
-        rv = (r + three_point_offset(pl[i, r - 1, c], pl[i, r, c], pl[i, r + 1, c]) - half).reshape(usable.shape)
-        ru = (c + three_point_offset(pl[i, r, c - 1], pl[i, r, c], pl[i, r, c + 1]) - half).reshape(usable.shape)
+        scaled = np.where(norm > 0, norm, 1.0).astype(np.float32)  # the planes normalised where read
+        up, left, centre, right, down = (pl[i, r + dr, c + dc] / scaled for dr, dc in _CROSS)
+        rv = (r + three_point_offset(up, centre, down) - half).reshape(usable.shape)
+        ru = (c + three_point_offset(left, centre, right) - half).reshape(usable.shape)
         ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
         u, v = _replace_outliers(base_u + ru), _replace_outliers(base_v + rv)
         field = (_fill_nan(u), _fill_nan(v), cy, cx)
@@ -413,20 +479,27 @@ def predict_displacement(
 
     # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
     mu, mv = _fill_nan(_neighbour_median(ru)), _fill_nan(_neighbour_median(rv))
-    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half).reshape(u.shape)
+    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled).reshape(u.shape)
     # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
     # variances, so tiles without dots (variance of the noise only) hardly count
     ea, eb = (np.where(usable, e, 0.0) for e in energy)
     cov = np.where(usable, coef, 0.0) * np.sqrt(ea * eb)
     k = max(1 + 2 * int(np.ceil((np.sqrt(min_dots_per_box / density) / size - 1.0) / 2.0)), 1)
+    pooled = usable
     if k > 1:
-        cov, ea, eb = (ndimage.uniform_filter(f, size=k, mode="constant") for f in (cov, ea, eb))
-    den = np.sqrt(ea * eb)
-    coef = np.where(den > 0, cov / np.where(den > 0, den, 1.0), 0.0)
+        cov, ea, eb, share = (
+            ndimage.uniform_filter(f, size=k, mode="constant") for f in (cov, ea, eb, usable.astype(np.float64))
+        )
+        # a block without usable tiles pools to rounding residues of the filter's running sums (which
+        # can even end a hair below zero): no coefficient there
+        pooled = share > 0.5 / (k * k)
+    den = np.sqrt(np.maximum(ea * eb, 0.0))
+    ok = pooled & (den > 0)
+    coef = np.where(ok, cov / np.where(ok, den, 1.0), 0.0)
 
     pts = np.where(fin[:, None], xy, 0.0)
-    uv = np.stack([_bilinear(f, cy, cx, pts[:, 1], pts[:, 0]) for f in (u, v)], axis=1)
-    quality = _bilinear(coef, cy, cx, pts[:, 1], pts[:, 0])
+    u, v, quality = _bilinear(np.stack([u, v, coef]), cy, cx, pts[:, 1], pts[:, 0])
+    uv = np.stack([u, v], axis=1)
     uv[~fin] = np.nan
     quality = np.where(fin, quality, np.nan)
     return uv, quality
