@@ -437,7 +437,7 @@ def fit_dots(
         wp.launch(
             render_dots_kernel,
             dim=n,
-            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, models],
+            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, *stack[0].shape, models.flatten()],
             device=device,
         )
         wp.launch(
@@ -446,7 +446,7 @@ def fit_dots(
             inputs=[
                 img0,
                 img1,
-                models,
+                models.flatten(),
                 1.0 / scale,
                 cur,
                 start,
