@@ -392,51 +392,67 @@ def erf_from_gauss(x: wp.float64, g: wp.float64) -> wp.float64:
 
 
 @wp.func
-def integrated_profile(
-    first: int, n: int, c: wp.float64, s: wp.float64, i: int, row: int, prof: wp.array3d(dtype=wp.float64)
-):
-    """1-D pixel profile of a unit-peak Gaussian and its c- and s-derivatives into ``prof[i, row:row + 3]``.
-
-    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
-    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``.
-    """
-    inv = wp.float64(1.0) / s
-    k0 = wp.float64(0.7071067811865476)
-    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+def profile_start(first: int, c: wp.float64, inv: wp.float64):
+    """Standardised first edge ``z0 = (first - 1/2 - c) / s`` of a 1-D pixel profile (``inv = 1 / s``),
+    ``g0 = exp(-z0^2 / 2)``, ``erf(z0 / sqrt 2)``, the ratio ``exp(-z0 h - h^2 / 2)`` of ``g`` at the
+    next edge to ``g0`` (``h = 1 / s``) and whether every edge takes its own exponential instead."""
     z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
     g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
-    e0 = erf_from_gauss(z0 * k0, g0)
-    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2) (h = 1 / s), a ratio that itself
-    # changes by exp(-h^2) per edge: three exponentials per axis, unless the first ratio would overflow
-    # or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
+    e0 = erf_from_gauss(z0 * wp.float64(0.7071067811865476), g0)
+    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2), a ratio that itself changes by
+    # exp(-h^2) per edge: two exponentials per axis and one per dot, unless the first ratio would
+    # overflow or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
     direct = z0 < wp.float64(-20.0) or z0 * inv < wp.float64(-200.0)
     ratio = wp.exp(-z0 * inv - wp.float64(0.5) * inv * inv)
-    step = wp.exp(-inv * inv)
-    k = int(0)
-    while k < n:
-        z1 = z0 + inv
-        g1 = g0 * ratio
-        ratio = ratio * step
-        if direct:
-            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
-        e1 = erf_from_gauss(z1 * k0, g1)
-        p = scale * (e1 - e0)
-        prof[i, row, k] = p
-        prof[i, row + 1, k] = g0 - g1
-        prof[i, row + 2, k] = z0 * g0 - z1 * g1 + p * inv
-        z0 = z1
-        g0 = g1
-        e0 = e1
-        k += 1
+    return z0, g0, e0, ratio, direct
 
 
 @wp.func
 def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
-    """Both axes' profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel (rows 0-5)."""
-    ox = int(wp.rint(params[i, 0])) - half
-    oy = int(wp.rint(params[i, 1])) - half
-    integrated_profile(ox, 2 * half + 1, params[i, 0], params[i, 3], i, 0, prof)
-    integrated_profile(oy, 2 * half + 1, params[i, 1], params[i, 3], i, 3, prof)
+    """Both axes' pixel profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel.
+
+    Rows 0-2 of ``prof[i]``: the x profile of a unit-peak Gaussian and its c- and s-derivatives,
+    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
+    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``;
+    rows 3-5: the same along y. Both axes in one loop (they share ``s``).
+    """
+    n = 2 * half + 1
+    s = params[i, 3]
+    inv = wp.float64(1.0) / s
+    k0 = wp.float64(0.7071067811865476)
+    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+    step = wp.exp(-inv * inv)
+    zx, gx, ex, rx, dx = profile_start(int(wp.rint(params[i, 0])) - half, params[i, 0], inv)
+    zy, gy, ey, ry, dy = profile_start(int(wp.rint(params[i, 1])) - half, params[i, 1], inv)
+    k = int(0)
+    while k < n:
+        z1 = zx + inv
+        g1 = gx * rx
+        rx = rx * step
+        if dx:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = erf_from_gauss(z1 * k0, g1)
+        p = scale * (e1 - ex)
+        prof[i, 0, k] = p
+        prof[i, 1, k] = gx - g1
+        prof[i, 2, k] = zx * gx - z1 * g1 + p * inv
+        zx = z1
+        gx = g1
+        ex = e1
+        z1 = zy + inv
+        g1 = gy * ry
+        ry = ry * step
+        if dy:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = erf_from_gauss(z1 * k0, g1)
+        p = scale * (e1 - ey)
+        prof[i, 3, k] = p
+        prof[i, 4, k] = gy - g1
+        prof[i, 5, k] = zy * gy - z1 * g1 + p * inv
+        zy = z1
+        gy = g1
+        ey = e1
+        k += 1
 
 
 @wp.kernel
