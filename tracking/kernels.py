@@ -392,49 +392,67 @@ def erf_from_gauss(x: wp.float64, g: wp.float64) -> wp.float64:
 
 
 @wp.func
-def integrated_profile(
-    first: int, n: int, c: wp.float64, s: wp.float64, i: int, row: int, prof: wp.array3d(dtype=wp.float64)
-):
-    """1-D pixel profile of a unit-peak Gaussian and its c- and s-derivatives into ``prof[i, row:row + 3]``.
-
-    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
-    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``.
-    """
-    inv = wp.float64(1.0) / s
-    k0 = wp.float64(0.7071067811865476)
-    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+def profile_start(first: int, c: wp.float64, inv: wp.float64):
+    """Standardised first edge ``z0 = (first - 1/2 - c) / s`` of a 1-D pixel profile (``inv = 1 / s``),
+    ``g0 = exp(-z0^2 / 2)``, ``erf(z0 / sqrt 2)``, the ratio ``exp(-z0 h - h^2 / 2)`` of ``g`` at the
+    next edge to ``g0`` (``h = 1 / s``) and whether every edge takes its own exponential instead."""
     z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
     g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
-    e0 = erf_from_gauss(z0 * k0, g0)
-    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2) (h = 1 / s), a ratio that itself
-    # changes by exp(-h^2) per edge: three exponentials per axis, unless the first ratio would overflow
-    # or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
+    e0 = erf_from_gauss(z0 * wp.float64(0.7071067811865476), g0)
+    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2), a ratio that itself changes by
+    # exp(-h^2) per edge: two exponentials per axis and one per dot, unless the first ratio would
+    # overflow or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
     direct = z0 < wp.float64(-20.0) or z0 * inv < wp.float64(-200.0)
     ratio = wp.exp(-z0 * inv - wp.float64(0.5) * inv * inv)
-    step = wp.exp(-inv * inv)
-    for k in range(n):
-        z1 = z0 + inv
-        g1 = g0 * ratio
-        ratio = ratio * step
-        if direct:
-            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
-        e1 = erf_from_gauss(z1 * k0, g1)
-        p = scale * (e1 - e0)
-        prof[i, row, k] = p
-        prof[i, row + 1, k] = g0 - g1
-        prof[i, row + 2, k] = z0 * g0 - z1 * g1 + p * inv
-        z0 = z1
-        g0 = g1
-        e0 = e1
+    return z0, g0, e0, ratio, direct
 
 
 @wp.func
 def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
-    """Both axes' profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel (rows 0-5)."""
-    ox = int(wp.rint(params[i, 0])) - half
-    oy = int(wp.rint(params[i, 1])) - half
-    integrated_profile(ox, 2 * half + 1, params[i, 0], params[i, 3], i, 0, prof)
-    integrated_profile(oy, 2 * half + 1, params[i, 1], params[i, 3], i, 3, prof)
+    """Both axes' pixel profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel.
+
+    Rows 0-2 of ``prof[i]``: the x profile of a unit-peak Gaussian and its c- and s-derivatives,
+    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
+    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``;
+    rows 3-5: the same along y. Both axes in one loop (they share ``s``).
+    """
+    n = 2 * half + 1
+    s = params[i, 3]
+    inv = wp.float64(1.0) / s
+    k0 = wp.float64(0.7071067811865476)
+    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+    step = wp.exp(-inv * inv)
+    zx, gx, ex, rx, dx = profile_start(int(wp.rint(params[i, 0])) - half, params[i, 0], inv)
+    zy, gy, ey, ry, dy = profile_start(int(wp.rint(params[i, 1])) - half, params[i, 1], inv)
+    k = int(0)
+    while k < n:
+        z1 = zx + inv
+        g1 = gx * rx
+        rx = rx * step
+        if dx:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = erf_from_gauss(z1 * k0, g1)
+        p = scale * (e1 - ex)
+        prof[i, 0, k] = p
+        prof[i, 1, k] = gx - g1
+        prof[i, 2, k] = zx * gx - z1 * g1 + p * inv
+        zx = z1
+        gx = g1
+        ex = e1
+        z1 = zy + inv
+        g1 = gy * ry
+        ry = ry * step
+        if dy:
+            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+        e1 = erf_from_gauss(z1 * k0, g1)
+        p = scale * (e1 - ey)
+        prof[i, 3, k] = p
+        prof[i, 4, k] = gy - g1
+        prof[i, 5, k] = zy * gy - z1 * g1 + p * inv
+        zy = z1
+        gy = g1
+        ey = e1
+        k += 1
 
 
 @wp.kernel
@@ -468,44 +486,60 @@ def render_dots_kernel(
     common: int,
     prof: wp.array3d(dtype=wp.float64),
     scale: wp.float64,
-    models: wp.array4d(dtype=wp.int64),
+    height: int,
+    width: int,
+    models: wp.array(dtype=wp.int64),
 ):
     """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
 
-    ``models[0, f]``: ``I0 p_x p_y``; if ``common``, ``models[1, f]``: the same at the pair's common
-    shape, linearised in sigma. ``prof`` holds the dot's profiles on its stamp (``dot_profiles``).
+    ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;
+    if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
+    holds the dot's profiles on its stamp (``dot_profiles``).
     The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
     dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
     i = wp.tid()
-    f = frame[i]
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
+    # the part of the stamp inside the image, rows r0 <= r < r1 and columns c0 <= c < c1
+    c0 = wp.max(-ox, 0)
+    c1 = wp.min(n, width - ox)
+    r0 = wp.max(-oy, 0)
+    r1 = wp.min(n, height - oy)
+    base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
     a = params[i, 2]
-    cs = wp.vec2d(a, params[i, 3])
+    r = int(r0)
+    while r < r1:
+        apy = a * prof[i, 3, r]
+        at = base + r * width
+        c = int(c0)
+        while c < c1:
+            wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
+            c += 1
+        r += 1
     if common != 0:  # the partner's shape only where it is drawn (a scattered read)
         cs = common_shape(params, partner, i)
-    ds = cs[1] - params[i, 3]
-    for r in range(n):
-        row = oy + r
-        if row >= 0 and row < models.shape[2]:
+        ds = cs[1] - params[i, 3]
+        base += models.shape[0] // 2
+        r = int(r0)
+        while r < r1:
             py = prof[i, 3, r]
             spy = prof[i, 5, r]
-            for c in range(n):
-                col = ox + c
-                if col >= 0 and col < models.shape[3]:
-                    px = prof[i, 0, c]
-                    wp.atomic_add(models, 0, f, row, col, to_fixed(a * py * px, scale))
-                    if common != 0:
-                        shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
-                        wp.atomic_add(models, 1, f, row, col, to_fixed(shared, scale))
+            at = base + r * width
+            c = int(c0)
+            while c < c1:
+                px = prof[i, 0, c]
+                shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                wp.atomic_add(models, at + c, to_fixed(shared, scale))
+                c += 1
+            r += 1
 
 
 @wp.func
 def normal_matrix(
     image: wp.array2d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.int64),
+    models: wp.array(dtype=wp.int64),
     inv_scale: wp.float64,
     f: int,
     params: wp.array2d(dtype=wp.float64),
@@ -521,6 +555,7 @@ def normal_matrix(
     pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
     this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
     against the common-shape model image ``models[1]`` (both fixed point: ``inv_scale`` per unit).
+    ``models`` holds the model images ``[2, frames, height, width]`` flat (``image`` is ``height x width``).
     ``J`` is the derivative of the model with
     respect to x, y, I0, sigma and the background. Pixels at or above ``sat`` (saturated: they only
     bound the intensity) take no part.
@@ -566,8 +601,9 @@ def normal_matrix(
                 if col >= 0 and col < image.shape[1] and image[row, col] < sat:
                     px = prof[i, 0, cc + skip]
                     v = image[row, col] - b
-                    res = v - wp.float64(models[0, f, row, col]) * inv_scale
-                    res2 = v - wp.float64(models[1, f, row, col]) * inv_scale
+                    at = (f * image.shape[0] + row) * image.shape[1] + col
+                    res = v - wp.float64(models[at]) * inv_scale
+                    res2 = v - wp.float64(models[at + models.shape[0] // 2]) * inv_scale
                     j0 = apy * prof[i, 1, cc + skip]
                     j1 = dpy * px
                     j2 = py * px
@@ -638,10 +674,11 @@ def profile_moments(prof: wp.array3d(dtype=wp.float64), i: int, axis0: int, n: i
     sp = zero
     sd = zero
     s_ = zero
-    for k in range(n):
-        p = prof[i, axis0, k + skip]
-        d = prof[i, axis0 + 1, k + skip]
-        sg = prof[i, axis0 + 2, k + skip]
+    k = int(skip)
+    while k < skip + n:
+        p = prof[i, axis0, k]
+        d = prof[i, axis0 + 1, k]
+        sg = prof[i, axis0 + 2, k]
         pp += p * p
         dd += d * d
         ss += sg * sg
@@ -651,13 +688,14 @@ def profile_moments(prof: wp.array3d(dtype=wp.float64), i: int, axis0: int, n: i
         sp += p
         sd += d
         s_ += sg
+        k += 1
     return pp, dd, ss, pd, ps, ds, sp, sd, s_
 
 
 @wp.func
 def normal_matrix_separable(
     image: wp.array2d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.int64),
+    models: wp.array(dtype=wp.int64),
     inv_scale: wp.float64,
     f: int,
     params: wp.array2d(dtype=wp.float64),
@@ -687,7 +725,11 @@ def normal_matrix_separable(
     h0 = zero
     h1 = zero
     h4 = zero
-    for rr in range(n):
+    width = image.shape[1]
+    layer = models.shape[0] // 2
+    at = (f * image.shape[0] + oy) * width + ox  # flat index of the window's first pixel in models
+    rr = int(0)
+    while rr < n:
         row = oy + rr
         r0 = zero
         r1 = zero
@@ -696,21 +738,30 @@ def normal_matrix_separable(
         t0 = zero
         t1 = zero
         t3 = zero
-        for cc in range(n):
+        cc = int(0)
+        while cc < n:
             col = ox + cc
-            res = image[row, col] - b - wp.float64(models[0, f, row, col]) * inv_scale
-            r0 += prof[i, 1, cc + skip] * res
-            r1 += prof[i, 0, cc + skip] * res
-            r2 += prof[i, 2, cc + skip] * res
+            k = cc + skip
+            res = image[row, col] - b - wp.float64(models[at + cc]) * inv_scale
+            r0 += prof[i, 1, k] * res
+            r1 += prof[i, 0, k] * res
+            r2 += prof[i, 2, k] * res
             r3 += res
-            if common != 0:
-                res2 = image[row, col] - b - wp.float64(models[1, f, row, col]) * inv_scale
-                t0 += prof[i, 1, cc + skip] * res2
-                t1 += prof[i, 0, cc + skip] * res2
+            cc += 1
+        if common != 0:
+            cc = int(0)
+            while cc < n:
+                col = ox + cc
+                k = cc + skip
+                res2 = image[row, col] - b - wp.float64(models[at + layer + cc]) * inv_scale
+                t0 += prof[i, 1, k] * res2
+                t1 += prof[i, 0, k] * res2
                 t3 += res2
-        py = prof[i, 3, rr + skip]
-        dy = prof[i, 4, rr + skip]
-        sy = prof[i, 5, rr + skip]
+                cc += 1
+        k = rr + skip
+        py = prof[i, 3, k]
+        dy = prof[i, 4, k]
+        sy = prof[i, 5, k]
         g0 += py * r0
         g1 += dy * r1
         g2 += py * r1
@@ -719,6 +770,8 @@ def normal_matrix_separable(
         h0 += py * t0
         h1 += dy * t1
         h4 += t3
+        at += width
+        rr += 1
     a2 = a * a
     eps = wp.float64(1.0e-12)
     s00 = a2 * ypp * xdd
@@ -759,7 +812,7 @@ def limited(step: vec5d) -> vec5d:
 def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
     image1: wp.array2d(dtype=wp.float64),
-    models: wp.array4d(dtype=wp.int64),
+    models: wp.array(dtype=wp.int64),
     inv_scale: wp.float64,
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
@@ -779,7 +832,8 @@ def fit_dot_step_kernel(
 ):
     """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
 
-    ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image).
+    ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image);
+    ``models``: the fixed-point model images ``[2, frames, height, width]``, flat.
 
     ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
     at the new parameters ``out``, except in the last step (``common``), after which none are needed.
