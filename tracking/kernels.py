@@ -873,20 +873,20 @@ def scan_cells(
     count."""
     k = dist.shape[1]
     f = found
+    worst = wp.float64(0.0)  # the k-th nearest's squared distance once there are k
+    if f == k:
+        worst = dist[s, k - 1]
     for j in range(j0, j1):
         dx = cell_xy[j, 0] - qx
         dy = cell_xy[j, 1] - qy
         d = dx * dx + dy * dy
-        if f < k:
+        if f < k or d <= worst:
             p = int(cell_points[j])
             if p != own:
-                f = keep_nearest(d, p, f, s, dist, idx)
-        else:
-            worst = dist[s, k - 1]
-            if d <= worst:
-                p = int(cell_points[j])
-                if p != own and (d < worst or p < idx[s, k - 1]):
+                if f < k or d < worst or p < idx[s, k - 1]:
                     f = keep_nearest(d, p, f, s, dist, idx)
+                    if f == k:
+                        worst = dist[s, k - 1]
     return f
 
 
