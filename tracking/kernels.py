@@ -863,7 +863,7 @@ def scan_cells(
     qy: wp.float64,
     own: int,
     cell_points: wp.array(dtype=wp.int32),
-    cell_xy: wp.array2d(dtype=wp.float64),
+    cell_xy: wp.array(dtype=wp.vec2d),
     found: int,
     s: int,
     dist: wp.array2d(dtype=wp.float64),
@@ -877,8 +877,9 @@ def scan_cells(
     if f == k:
         worst = dist[s, k - 1]
     for j in range(j0, j1):
-        dx = cell_xy[j, 0] - qx
-        dy = cell_xy[j, 1] - qy
+        c = cell_xy[j]
+        dx = c[0] - qx
+        dy = c[1] - qy
         d = dx * dx + dy * dy
         if f < k or d <= worst:
             p = int(cell_points[j])
@@ -893,13 +894,13 @@ def scan_cells(
 @wp.kernel
 def neighbour_fit_kernel(
     query_order: wp.array(dtype=wp.int32),
-    xy: wp.array2d(dtype=wp.float64),
-    uv: wp.array2d(dtype=wp.float64),
-    query: wp.array2d(dtype=wp.float64),
+    xy: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    query: wp.array(dtype=wp.vec2d),
     self_index: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
     cell_points: wp.array(dtype=wp.int32),
-    cell_xy: wp.array2d(dtype=wp.float64),
+    cell_xy: wp.array(dtype=wp.vec2d),
     x0: wp.float64,
     y0: wp.float64,
     cell: wp.float64,
@@ -907,7 +908,7 @@ def neighbour_fit_kernel(
     ny: int,
     dist: wp.array2d(dtype=wp.float64),
     idx: wp.array2d(dtype=wp.int32),
-    work: wp.array3d(dtype=wp.float64),
+    work: wp.array2d(dtype=wp.float64),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
@@ -924,14 +925,15 @@ def neighbour_fit_kernel(
     ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., each step visiting only the ring of cells
     the previous block did not hold, until the k-th nearest is closer than the block's edge. Thread t
     takes query ``query_order[t]`` (queries in the order of their cells: neighbouring threads read the
-    same points). ``dist``, ``idx`` (length k) and ``work`` (4 x k: the neighbours' offsets from q and
+    same points). ``dist``, ``idx`` (length k) and ``work`` (4 k: the neighbours' offsets from q and
     their vectors) are scratch rows: query q uses row ``q % rows``.
     """
     q = query_order[wp.tid()]
     s = q % dist.shape[0]
     k = dist.shape[1]
-    qx = query[q, 0]
-    qy = query[q, 1]
+    qxy = query[q]
+    qx = qxy[0]
+    qy = qxy[1]
     own = self_index[q]
     cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
     cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
@@ -1014,14 +1016,16 @@ def neighbour_fit_kernel(
     for j in range(k):
         p = idx[s, j]
         neighbours[q, j] = p
-        dx = xy[p, 0] - qx
-        dy = xy[p, 1] - qy
-        u = uv[p, 0]
-        v = uv[p, 1]
-        work[s, 0, j] = dx
-        work[s, 1, j] = dy
-        work[s, 2, j] = u
-        work[s, 3, j] = v
+        pxy = xy[p]
+        puv = uv[p]
+        dx = pxy[0] - qx
+        dy = pxy[1] - qy
+        u = puv[0]
+        v = puv[1]
+        work[s, j] = dx
+        work[s, k + j] = dy
+        work[s, 2 * k + j] = u
+        work[s, 3 * k + j] = v
         dmx += dx
         dmy += dy
         fmu += u
@@ -1038,14 +1042,10 @@ def neighbour_fit_kernel(
     bxv = wp.float64(0.0)
     byv = wp.float64(0.0)
     for j in range(k):
-        ex = work[s, 0, j] - dmx
-        ey = work[s, 1, j] - dmy
-        gu = work[s, 2, j] - fmu
-        gv = work[s, 3, j] - fmv
-        work[s, 0, j] = ex
-        work[s, 1, j] = ey
-        work[s, 2, j] = gu
-        work[s, 3, j] = gv
+        ex = work[s, j] - dmx
+        ey = work[s, k + j] - dmy
+        gu = work[s, 2 * k + j] - fmu
+        gv = work[s, 3 * k + j] - fmv
         sxx += ex * ex
         syy += ey * ey
         sxy += ex * ey
@@ -1065,10 +1065,10 @@ def neighbour_fit_kernel(
     value[q, 1] = fmv - dmx * gxv - dmy * gyv
     # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
     for j in range(k):
-        ex = work[s, 0, j]
-        ey = work[s, 1, j]
-        gu = work[s, 2, j] - ex * gxu - ey * gyu
-        gv = work[s, 3, j] - ex * gxv - ey * gyv
+        ex = work[s, j] - dmx
+        ey = work[s, k + j] - dmy
+        gu = work[s, 2 * k + j] - fmu - ex * gxu - ey * gyu
+        gv = work[s, 3 * k + j] - fmv - ex * gxv - ey * gyv
         dist[s, j] = gu * gu + gv * gv
     # median of the distances: the middle squares put in place by the compare-exchange ``network``
     # (``tracking.windows.median_network(k)``; the root is monotonic)

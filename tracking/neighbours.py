@@ -108,8 +108,9 @@ def _network(k):
 def _cell_grid(xy, query, count):
     """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
     side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
-    lo = np.minimum(xy.min(axis=0), query.min(axis=0))
-    hi = np.maximum(xy.max(axis=0), query.max(axis=0))
+    # (reduced along the rows of the transposes: one long loop each, not one short one per point)
+    lo = np.minimum(xy.T.min(axis=1), query.T.min(axis=1))
+    hi = np.maximum(xy.T.max(axis=1), query.T.max(axis=1))
     extent = np.maximum(hi - lo, 1e-9)
     side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
     side = max(side, float(extent.max()) / 4096.0, 1e-9)
@@ -141,9 +142,12 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
-    qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
-    qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
-    query_order = np.argsort(qy * nx + qx).astype(np.int32)
+    if query is xy:  # the points themselves (the outlier test): already in the order of their cells
+        query_order = order
+    else:
+        qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
+        qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
+        query_order = np.argsort(qy * nx + qx).astype(np.int32)
     # the query's own index where it is one of the points; -1 (never a point's index) otherwise
     own = np.ascontiguousarray(self_index, dtype=np.int32)
     rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
@@ -159,13 +163,13 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
         dim=n,
         inputs=[
             arr(query_order, wp.int32),
-            arr(xy, wp.float64),
-            arr(np.ascontiguousarray(uv, dtype=np.float64), wp.float64),
-            arr(query, wp.float64),
+            arr(xy, wp.vec2d),
+            arr(np.ascontiguousarray(uv, dtype=np.float64), wp.vec2d),
+            arr(query, wp.vec2d),
             arr(own, wp.int32),
             arr(start, wp.int32),
             arr(order, wp.int32),
-            arr(xy[order], wp.float64),
+            arr(xy[order], wp.vec2d),
             x0,
             y0,
             side,
@@ -173,7 +177,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             ny,
             scratch("neighbour_dist", (rows, k), wp.float64, device),
             scratch("neighbour_idx", (rows, k), wp.int32, device),
-            scratch("neighbour_work", (rows, 4, k), wp.float64, device),
+            scratch("neighbour_work", (rows, 4 * k), wp.float64, device),
             value,
             spread,
             nb,
