@@ -181,7 +181,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             value,
             spread,
             nb,
-            arr(_network(k), wp.int32),
+            arr(_network(k), wp.vec2i),
         ],
         device=device,
     )
