@@ -835,23 +835,23 @@ def fit_dot_step_kernel(
 
 @wp.func
 def keep_nearest(
-    d: wp.float64, p: int, found: int, dist: wp.array(dtype=wp.float64), idx: wp.array(dtype=wp.int32)
+    d: wp.float64, p: int, found: int, s: int, dist: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32)
 ) -> int:
-    """Insert point ``p`` at squared distance ``d`` into the sorted lists of the ``k`` nearest
-    (``k = dist.shape[0]``; ties broken by the lower index, so the set does not depend on the visiting
+    """Insert point ``p`` at squared distance ``d`` into row ``s`` of the sorted lists of the ``k`` nearest
+    (``k = dist.shape[1]``; ties broken by the lower index, so the set does not depend on the visiting
     order); return the new count. The caller has checked that ``p`` belongs there (``found < k`` or it
     comes before the last entry)."""
-    k = dist.shape[0]
+    k = dist.shape[1]
     m = wp.min(found, k - 1)
     while m > 0:
-        dm = dist[m - 1]
-        if not (dm > d or (dm == d and idx[m - 1] > p)):
+        dm = dist[s, m - 1]
+        if not (dm > d or (dm == d and idx[s, m - 1] > p)):
             break
-        dist[m] = dm
-        idx[m] = idx[m - 1]
+        dist[s, m] = dm
+        idx[s, m] = idx[s, m - 1]
         m -= 1
-    dist[m] = d
-    idx[m] = wp.int32(p)
+    dist[s, m] = d
+    idx[s, m] = wp.int32(p)
     return wp.min(found + 1, k)
 
 
@@ -865,28 +865,29 @@ def scan_cells(
     cell_points: wp.array(dtype=wp.int32),
     cell_xy: wp.array(dtype=wp.vec2d),
     found: int,
-    dist: wp.array(dtype=wp.float64),
-    idx: wp.array(dtype=wp.int32),
+    s: int,
+    dist: wp.array2d(dtype=wp.float64),
+    idx: wp.array2d(dtype=wp.int32),
 ) -> int:
-    """Offer the points ``j0 <= j < j1`` of the cell order to the list of the k nearest; return the new
+    """Offer the points ``j0 <= j < j1`` of the cell order to the k nearest list (row ``s``); return the new
     count."""
-    k = dist.shape[0]
+    k = dist.shape[1]
     f = found
-    worst = wp.float64(0.0)  # the k-th nearest's squared distance once there are k
-    if f == k:
-        worst = dist[k - 1]
     for j in range(j0, j1):
         c = cell_xy[j]
         dx = c[0] - qx
         dy = c[1] - qy
         d = dx * dx + dy * dy
-        if f < k or d <= worst:
+        if f < k:
             p = int(cell_points[j])
             if p != own:
-                if f < k or d < worst or p < idx[k - 1]:
-                    f = keep_nearest(d, p, f, dist, idx)
-                    if f == k:
-                        worst = dist[k - 1]
+                f = keep_nearest(d, p, f, s, dist, idx)
+        else:
+            worst = dist[s, k - 1]
+            if d <= worst:
+                p = int(cell_points[j])
+                if p != own and (d < worst or p < idx[s, k - 1]):
+                    f = keep_nearest(d, p, f, s, dist, idx)
     return f
 
 
@@ -905,13 +906,13 @@ def neighbour_fit_kernel(
     cell: wp.float64,
     nx: int,
     ny: int,
-    rows: wp.array2d(dtype=wp.float64),
-    rows_index: wp.array2d(dtype=wp.int32),
-    rows_work: wp.array2d(dtype=wp.float64),
+    dist: wp.array2d(dtype=wp.float64),
+    idx: wp.array2d(dtype=wp.int32),
+    work: wp.array3d(dtype=wp.float64),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
-    network: wp.array(dtype=wp.vec2i),
+    network: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
@@ -924,16 +925,12 @@ def neighbour_fit_kernel(
     ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., each step visiting only the ring of cells
     the previous block did not hold, until the k-th nearest is closer than the block's edge. Thread t
     takes query ``query_order[t]`` (queries in the order of their cells: neighbouring threads read the
-    same points). ``rows``, ``rows_index`` (length k: the distances and indices of the k nearest, then
-    the squared distances from the fit) and ``rows_work`` (4 k: the neighbours' offsets from q and their
-    vectors) are scratch: query q uses row ``q % rows.shape[0]``.
+    same points). ``dist``, ``idx`` (length k) and ``work`` (4 x k: the neighbours' offsets from q and
+    their vectors) are scratch rows: query q uses row ``q % rows``.
     """
     q = query_order[wp.tid()]
-    s = q % rows.shape[0]
-    k = rows.shape[1]
-    dist = rows[s]
-    idx = rows_index[s]
-    work = rows_work[s]
+    s = q % dist.shape[0]
+    k = dist.shape[1]
     qxy = query[q]
     qx = qxy[0]
     qy = qxy[1]
@@ -959,6 +956,7 @@ def neighbour_fit_kernel(
                 cell_points,
                 cell_xy,
                 found,
+                s,
                 dist,
                 idx,
             )
@@ -974,7 +972,7 @@ def neighbour_fit_kernel(
             edge = wp.min(edge, qy - (y0 + wp.float64(cy - r) * cell))
         if cy + r < ny - 1:
             edge = wp.min(edge, y0 + wp.float64(cy + r + 1) * cell - qy)
-        if found == k and (edge >= wp.float64(1.0e300) or dist[k - 1] <= edge * edge):
+        if found == k and (edge >= wp.float64(1.0e300) or dist[s, k - 1] <= edge * edge):
             break
         if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
             break  # the block holds every point
@@ -993,6 +991,7 @@ def neighbour_fit_kernel(
                     cell_points,
                     cell_xy,
                     found,
+                    s,
                     dist,
                     idx,
                 )
@@ -1000,12 +999,12 @@ def neighbour_fit_kernel(
                 if cx - r >= 0:
                     c0 = iy * nx + cx - r
                     found = scan_cells(
-                        cell_start[c0], cell_start[c0 + 1], qx, qy, own, cell_points, cell_xy, found, dist, idx
+                        cell_start[c0], cell_start[c0 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
                     )
                 if cx + r <= nx - 1:
                     c1 = iy * nx + cx + r
                     found = scan_cells(
-                        cell_start[c1], cell_start[c1 + 1], qx, qy, own, cell_points, cell_xy, found, dist, idx
+                        cell_start[c1], cell_start[c1 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
                     )
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means;
     # each neighbour's position and vector gathered once, into work.
@@ -1015,7 +1014,7 @@ def neighbour_fit_kernel(
     fmu = wp.float64(0.0)
     fmv = wp.float64(0.0)
     for j in range(k):
-        p = idx[j]
+        p = idx[s, j]
         neighbours[q, j] = p
         pxy = xy[p]
         puv = uv[p]
@@ -1023,10 +1022,10 @@ def neighbour_fit_kernel(
         dy = pxy[1] - qy
         u = puv[0]
         v = puv[1]
-        work[j] = dx
-        work[k + j] = dy
-        work[2 * k + j] = u
-        work[3 * k + j] = v
+        work[s, 0, j] = dx
+        work[s, 1, j] = dy
+        work[s, 2, j] = u
+        work[s, 3, j] = v
         dmx += dx
         dmy += dy
         fmu += u
@@ -1043,10 +1042,14 @@ def neighbour_fit_kernel(
     bxv = wp.float64(0.0)
     byv = wp.float64(0.0)
     for j in range(k):
-        ex = work[j] - dmx
-        ey = work[k + j] - dmy
-        gu = work[2 * k + j] - fmu
-        gv = work[3 * k + j] - fmv
+        ex = work[s, 0, j] - dmx
+        ey = work[s, 1, j] - dmy
+        gu = work[s, 2, j] - fmu
+        gv = work[s, 3, j] - fmv
+        work[s, 0, j] = ex
+        work[s, 1, j] = ey
+        work[s, 2, j] = gu
+        work[s, 3, j] = gv
         sxx += ex * ex
         syy += ey * ey
         sxy += ex * ey
@@ -1066,25 +1069,24 @@ def neighbour_fit_kernel(
     value[q, 1] = fmv - dmx * gxv - dmy * gyv
     # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
     for j in range(k):
-        ex = work[j] - dmx
-        ey = work[k + j] - dmy
-        gu = work[2 * k + j] - fmu - ex * gxu - ey * gyu
-        gv = work[3 * k + j] - fmv - ex * gxv - ey * gyv
-        dist[j] = gu * gu + gv * gv
+        ex = work[s, 0, j]
+        ey = work[s, 1, j]
+        gu = work[s, 2, j] - ex * gxu - ey * gyu
+        gv = work[s, 3, j] - ex * gxv - ey * gyv
+        dist[s, j] = gu * gu + gv * gv
     # median of the distances: the middle squares put in place by the compare-exchange ``network``
     # (``tracking.windows.median_network(k)``; the root is monotonic)
     for t in range(network.shape[0]):
-        ab = network[t]
-        a = ab[0]
-        b = ab[1]
-        va = dist[a]
-        vb = dist[b]
-        dist[a] = wp.min(va, vb)
-        dist[b] = wp.max(va, vb)
+        a = network[t, 0]
+        b = network[t, 1]
+        va = dist[s, a]
+        vb = dist[s, b]
+        dist[s, a] = wp.min(va, vb)
+        dist[s, b] = wp.max(va, vb)
     if k % 2 == 1:
-        spread[q] = wp.sqrt(dist[k / 2])
+        spread[q] = wp.sqrt(dist[s, k / 2])
     else:
-        spread[q] = wp.float64(0.5) * (wp.sqrt(dist[k / 2 - 1]) + wp.sqrt(dist[k / 2]))
+        spread[q] = wp.float64(0.5) * (wp.sqrt(dist[s, k / 2 - 1]) + wp.sqrt(dist[s, k / 2]))
 
 
 # --- the predictor's nearest-pixel window deformation ------------------------------------------------

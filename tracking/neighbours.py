@@ -177,11 +177,11 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             ny,
             scratch("neighbour_dist", (rows, k), wp.float64, device),
             scratch("neighbour_idx", (rows, k), wp.int32, device),
-            scratch("neighbour_work", (rows, 4 * k), wp.float64, device),
+            scratch("neighbour_work", (rows, 4, k), wp.float64, device),
             value,
             spread,
             nb,
-            arr(_network(k), wp.vec2i),
+            arr(_network(k), wp.int32),
         ],
         device=device,
     )
