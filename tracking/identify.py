@@ -47,7 +47,8 @@ def estimate_noise(image):
     """
     image = np.asarray(image, dtype=np.float64)
     image = image[:: max(1, image.shape[0] // 256)]
-    d = np.abs(np.diff(image, axis=1)).ravel()
+    d = np.diff(image, axis=1)
+    d = np.abs(d, out=d).ravel()
     if d.size == 0:
         return 0.0
     return float(_lower_quartile(d) / (0.31864 * np.sqrt(2.0)))

@@ -893,16 +893,15 @@ def keep_nearest(
 ) -> int:
     """Insert point ``p`` at squared distance ``d`` into row ``s`` of the sorted lists of the ``k`` nearest
     (``k = dist.shape[1]``; ties broken by the lower index, so the set does not depend on the visiting
-    order); return the new count."""
+    order); return the new count. The caller has checked that ``p`` belongs there (``found < k`` or it
+    comes before the last entry)."""
     k = dist.shape[1]
-    if found == k:
-        if d > dist[s, k - 1] or (d == dist[s, k - 1] and p > idx[s, k - 1]):
-            return found
-    m = found
-    if found == k:
-        m = k - 1
-    while m > 0 and (dist[s, m - 1] > d or (dist[s, m - 1] == d and idx[s, m - 1] > p)):
-        dist[s, m] = dist[s, m - 1]
+    m = wp.min(found, k - 1)
+    while m > 0:
+        dm = dist[s, m - 1]
+        if not (dm > d or (dm == d and idx[s, m - 1] > p)):
+            break
+        dist[s, m] = dm
         idx[s, m] = idx[s, m - 1]
         m -= 1
     dist[s, m] = d
@@ -910,16 +909,52 @@ def keep_nearest(
     return wp.min(found + 1, k)
 
 
+@wp.func
+def scan_cells(
+    j0: int,
+    j1: int,
+    qx: wp.float64,
+    qy: wp.float64,
+    own: int,
+    cell_points: wp.array(dtype=wp.int32),
+    cell_xy: wp.array(dtype=wp.vec2d),
+    found: int,
+    s: int,
+    dist: wp.array2d(dtype=wp.float64),
+    idx: wp.array2d(dtype=wp.int32),
+) -> int:
+    """Offer the points ``j0 <= j < j1`` of the cell order to the k nearest list (row ``s``); return the new
+    count."""
+    k = dist.shape[1]
+    f = found
+    for j in range(j0, j1):
+        c = cell_xy[j]
+        dx = c[0] - qx
+        dy = c[1] - qy
+        d = dx * dx + dy * dy
+        if f < k:
+            p = int(cell_points[j])
+            if p != own:
+                f = keep_nearest(d, p, f, s, dist, idx)
+        else:
+            worst = dist[s, k - 1]
+            if d <= worst:
+                p = int(cell_points[j])
+                if p != own and (d < worst or p < idx[s, k - 1]):
+                    f = keep_nearest(d, p, f, s, dist, idx)
+    return f
+
+
 @wp.kernel
 def neighbour_fit_kernel(
     query_order: wp.array(dtype=wp.int32),
-    xy: wp.array2d(dtype=wp.float64),
-    uv: wp.array2d(dtype=wp.float64),
-    query: wp.array2d(dtype=wp.float64),
+    xy: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    query: wp.array(dtype=wp.vec2d),
     self_index: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
     cell_points: wp.array(dtype=wp.int32),
-    cell_xy: wp.array2d(dtype=wp.float64),
+    cell_xy: wp.array(dtype=wp.vec2d),
     x0: wp.float64,
     y0: wp.float64,
     cell: wp.float64,
@@ -927,6 +962,7 @@ def neighbour_fit_kernel(
     ny: int,
     dist: wp.array2d(dtype=wp.float64),
     idx: wp.array2d(dtype=wp.int32),
+    work: wp.array3d(dtype=wp.float64),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
@@ -940,36 +976,46 @@ def neighbour_fit_kernel(
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
     run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
-    ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., until the k-th nearest is closer than
-    the block's edge. Thread t takes query ``query_order[t]`` (queries in the
-    order of their cells: neighbouring threads read the same points). ``dist``, ``idx`` are scratch rows
-    of length k: query q uses row ``q % rows``.
+    ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., each step visiting only the ring of cells
+    the previous block did not hold, until the k-th nearest is closer than the block's edge. Thread t
+    takes query ``query_order[t]`` (queries in the order of their cells: neighbouring threads read the
+    same points). ``dist``, ``idx`` (length k) and ``work`` (4 x k: the neighbours' offsets from q and
+    their vectors) are scratch rows: query q uses row ``q % rows``.
     """
     q = query_order[wp.tid()]
     s = q % dist.shape[0]
     k = dist.shape[1]
-    qx = query[q, 0]
-    qy = query[q, 1]
+    qxy = query[q]
+    qx = qxy[0]
+    qy = qxy[1]
     own = self_index[q]
     cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
     cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
+    # the 3 x 3 block first, one run of cells per row, q's row first (the nearest points early: fewer
+    # enter the list only to be pushed out again)
     found = int(0)
+    ix0 = wp.max(cx - 1, 0)
+    ix1 = wp.min(cx + 1, nx - 1)
+    for t in range(3):
+        iy = cy + t
+        if t == 2:
+            iy = cy - 1
+        if iy >= 0 and iy < ny:
+            found = scan_cells(
+                cell_start[iy * nx + ix0],
+                cell_start[iy * nx + ix1 + 1],
+                qx,
+                qy,
+                own,
+                cell_points,
+                cell_xy,
+                found,
+                s,
+                dist,
+                idx,
+            )
     r = int(1)
     while True:
-        found = int(0)
-        worst = wp.float64(float(0.0))
-        ix0 = wp.max(cx - r, 0)
-        ix1 = wp.min(cx + r, nx - 1)
-        for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
-            for j in range(cell_start[iy * nx + ix0], cell_start[iy * nx + ix1 + 1]):
-                p = int(cell_points[j])
-                dx = cell_xy[j, 0] - qx
-                dy = cell_xy[j, 1] - qy
-                d = dx * dx + dy * dy
-                if p != own and (found < k or d <= worst):
-                    found = keep_nearest(d, p, found, s, dist, idx)
-                    if found == k:
-                        worst = dist[s, k - 1]
         # distance from q to the nearest edge of the block that is not the edge of the grid
         edge = wp.float64(1.0e300)
         if cx - r > 0:
@@ -980,54 +1026,95 @@ def neighbour_fit_kernel(
             edge = wp.min(edge, qy - (y0 + wp.float64(cy - r) * cell))
         if cy + r < ny - 1:
             edge = wp.min(edge, y0 + wp.float64(cy + r + 1) * cell - qy)
-        if found == k and (edge >= wp.float64(1.0e300) or worst <= edge * edge):
+        if found == k and (edge >= wp.float64(1.0e300) or dist[s, k - 1] <= edge * edge):
             break
         if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
             break  # the block holds every point
         r += 1
-    for j in range(k):
-        neighbours[q, j] = idx[s, j]
-    # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means.
+        # the ring of the block of r that the block of r - 1 did not hold
+        ix0 = wp.max(cx - r, 0)
+        ix1 = wp.min(cx + r, nx - 1)
+        for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
+            if iy == cy - r or iy == cy + r:
+                found = scan_cells(
+                    cell_start[iy * nx + ix0],
+                    cell_start[iy * nx + ix1 + 1],
+                    qx,
+                    qy,
+                    own,
+                    cell_points,
+                    cell_xy,
+                    found,
+                    s,
+                    dist,
+                    idx,
+                )
+            else:
+                if cx - r >= 0:
+                    c0 = iy * nx + cx - r
+                    found = scan_cells(
+                        cell_start[c0], cell_start[c0 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
+                    )
+                if cx + r <= nx - 1:
+                    c1 = iy * nx + cx + r
+                    found = scan_cells(
+                        cell_start[c1], cell_start[c1 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
+                    )
+    # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means;
+    # each neighbour's position and vector gathered once, into work.
     kf = wp.float64(k)
     dmx = wp.float64(0.0)
     dmy = wp.float64(0.0)
-    for j in range(k):
-        dmx += xy[idx[s, j], 0] - qx
-        dmy += xy[idx[s, j], 1] - qy
-    dmx = dmx / kf
-    dmy = dmy / kf
-    sxx = wp.float64(0.0)
-    syy = wp.float64(0.0)
-    sxy = wp.float64(0.0)
     fmu = wp.float64(0.0)
     fmv = wp.float64(0.0)
     for j in range(k):
-        ex = xy[idx[s, j], 0] - qx - dmx
-        ey = xy[idx[s, j], 1] - qy - dmy
-        sxx += ex * ex
-        syy += ey * ey
-        sxy += ex * ey
-        fmu += uv[idx[s, j], 0]
-        fmv += uv[idx[s, j], 1]
+        p = idx[s, j]
+        neighbours[q, j] = p
+        pxy = xy[p]
+        puv = uv[p]
+        dx = pxy[0] - qx
+        dy = pxy[1] - qy
+        u = puv[0]
+        v = puv[1]
+        work[s, 0, j] = dx
+        work[s, 1, j] = dy
+        work[s, 2, j] = u
+        work[s, 3, j] = v
+        dmx += dx
+        dmy += dy
+        fmu += u
+        fmv += v
+    dmx = dmx / kf
+    dmy = dmy / kf
     fmu = fmu / kf
     fmv = fmv / kf
-    ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
-    sxx += ridge
-    syy += ridge
-    det = sxx * syy - sxy * sxy
+    sxx = wp.float64(0.0)
+    syy = wp.float64(0.0)
+    sxy = wp.float64(0.0)
     bxu = wp.float64(0.0)
     byu = wp.float64(0.0)
     bxv = wp.float64(0.0)
     byv = wp.float64(0.0)
     for j in range(k):
-        ex = xy[idx[s, j], 0] - qx - dmx
-        ey = xy[idx[s, j], 1] - qy - dmy
-        gu = uv[idx[s, j], 0] - fmu
-        gv = uv[idx[s, j], 1] - fmv
+        ex = work[s, 0, j] - dmx
+        ey = work[s, 1, j] - dmy
+        gu = work[s, 2, j] - fmu
+        gv = work[s, 3, j] - fmv
+        work[s, 0, j] = ex
+        work[s, 1, j] = ey
+        work[s, 2, j] = gu
+        work[s, 3, j] = gv
+        sxx += ex * ex
+        syy += ey * ey
+        sxy += ex * ey
         bxu += ex * gu
         byu += ey * gu
         bxv += ex * gv
         byv += ey * gv
+    ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
+    sxx += ridge
+    syy += ridge
+    det = sxx * syy - sxy * sxy
     gxu = (syy * bxu - sxy * byu) / det
     gyu = (sxx * byu - sxy * bxu) / det
     gxv = (syy * bxv - sxy * byv) / det
@@ -1036,10 +1123,10 @@ def neighbour_fit_kernel(
     value[q, 1] = fmv - dmx * gxv - dmy * gyv
     # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
     for j in range(k):
-        ex = xy[idx[s, j], 0] - qx - dmx
-        ey = xy[idx[s, j], 1] - qy - dmy
-        gu = uv[idx[s, j], 0] - fmu - ex * gxu - ey * gyu
-        gv = uv[idx[s, j], 1] - fmv - ex * gxv - ey * gyv
+        ex = work[s, 0, j]
+        ey = work[s, 1, j]
+        gu = work[s, 2, j] - ex * gxu - ey * gyu
+        gv = work[s, 3, j] - ex * gxv - ey * gyv
         dist[s, j] = gu * gu + gv * gv
     # median of the distances: the middle squares put in place by the compare-exchange ``network``
     # (``tracking.windows.median_network(k)``; the root is monotonic)

@@ -10,12 +10,15 @@ reference (a k-d tree) that defines the result.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
 from .kernels import neighbour_fit_kernel
 from .windows import median_network
+from .workspace import scratch
 
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
 
@@ -94,11 +97,20 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False
     return (value, spread, nb) if return_neighbours else (value, spread)
 
 
+@functools.lru_cache(maxsize=8)
+def _network(k):
+    """``median_network(k)`` made once per k (read only)."""
+    net = median_network(k)
+    net.flags.writeable = False
+    return net
+
+
 def _cell_grid(xy, query, count):
     """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
     side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
-    lo = np.minimum(xy.min(axis=0), query.min(axis=0))
-    hi = np.maximum(xy.max(axis=0), query.max(axis=0))
+    # (reduced along the rows of the transposes: one long loop each, not one short one per point)
+    lo = np.minimum(xy.T.min(axis=1), query.T.min(axis=1))
+    hi = np.maximum(xy.T.max(axis=1), query.T.max(axis=1))
     extent = np.maximum(hi - lo, 1e-9)
     side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
     side = max(side, float(extent.max()) / 4096.0, 1e-9)
@@ -106,8 +118,8 @@ def _cell_grid(xy, query, count):
     cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
     cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
     cell = cy * nx + cx
-    order = np.argsort(cell)  # the order within a cell does not matter (ties go to the lower index)
-    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    order = np.argsort(cell).astype(np.int32)  # the order within a cell does not matter (ties go to the lower index)
+    start = np.zeros(nx * ny + 1, dtype=np.int32)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
     return float(lo[0]), float(lo[1]), side, nx, ny, start, order
 
@@ -130,12 +142,19 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
-    qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
-    qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
-    query_order = np.argsort(qy * nx + qx).astype(np.int32)
+    if query is xy:  # the points themselves (the outlier test): already in the order of their cells
+        query_order = order
+    else:
+        qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
+        qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
+        query_order = np.argsort(qy * nx + qx).astype(np.int32)
     # the query's own index where it is one of the points; -1 (never a point's index) otherwise
-    own = np.asarray(self_index, dtype=np.int32)
+    own = np.ascontiguousarray(self_index, dtype=np.int32)
     rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
+
+    def arr(a, dtype):  # CPU: the NumPy array itself, no copy
+        return wp.array(a, dtype=dtype, device=device, copy=False)
+
     value = wp.empty((n, 2), dtype=wp.float64, device=device)
     spread = wp.empty(n, dtype=wp.float64, device=device)
     nb = wp.empty((n, k), dtype=wp.int32, device=device)
@@ -143,25 +162,26 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
         neighbour_fit_kernel,
         dim=n,
         inputs=[
-            wp.array(query_order, dtype=wp.int32, device=device),
-            wp.array(xy, dtype=wp.float64, device=device),
-            wp.array(np.ascontiguousarray(uv, dtype=np.float64), dtype=wp.float64, device=device),
-            wp.array(query, dtype=wp.float64, device=device),
-            wp.array(own, dtype=wp.int32, device=device),
-            wp.array(start.astype(np.int32), dtype=wp.int32, device=device),
-            wp.array(order.astype(np.int32), dtype=wp.int32, device=device),
-            wp.array(xy[order], dtype=wp.float64, device=device),
+            arr(query_order, wp.int32),
+            arr(xy, wp.vec2d),
+            arr(np.ascontiguousarray(uv, dtype=np.float64), wp.vec2d),
+            arr(query, wp.vec2d),
+            arr(own, wp.int32),
+            arr(start, wp.int32),
+            arr(order, wp.int32),
+            arr(xy[order], wp.vec2d),
             x0,
             y0,
             side,
             nx,
             ny,
-            wp.empty((rows, k), dtype=wp.float64, device=device),
-            wp.empty((rows, k), dtype=wp.int32, device=device),
+            scratch("neighbour_dist", (rows, k), wp.float64, device),
+            scratch("neighbour_idx", (rows, k), wp.int32, device),
+            scratch("neighbour_work", (rows, 4, k), wp.float64, device),
             value,
             spread,
             nb,
-            wp.array(median_network(k), dtype=wp.int32, device=device),
+            arr(_network(k), wp.int32),
         ],
         device=device,
     )

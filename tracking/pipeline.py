@@ -353,19 +353,21 @@ def _check_image(name, image):
         raise SynthbosError(f"{name} image contains non-finite pixels (NaN or inf)")
     if lo == 0 and hi == 0:
         raise SynthbosError(f"{name} image is all zero")
-    return a
+    return a, hi
 
 
-def _saturation_level(image, level):
+def _saturation_level(image, level, top=None):
+    """The given level, or the image's maximum (``top`` where known) if five or more pixels reach it."""
     if level is not None:
         return float(level)
-    top = image.max()
-    return float(top) if np.count_nonzero(image >= top) >= 5 else np.inf
+    top = image.max() if top is None else top
+    return float(top) if np.count_nonzero(image == top) >= 5 else np.inf
 
 
-def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, device):
+def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, fill, device):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
+    ``fill`` is the value of the pixels outside the image (the median background, :func:`_fill_level`).
     Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
     dot's peak pixel, and, for the paper's correction (the only user), dotmap (N, c, c): its
     background-free pixels centred on the peak, others zero.
@@ -397,7 +399,6 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     out["flags"][inside & border] |= DotStatus.NEAR_BORDER
     todo = inside.copy()
     subtracted = np.zeros(n, dtype=bool)
-    fill = float(np.median(image[::4, ::4]))
     residual = image
     ref_peak = None
     measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
@@ -511,6 +512,12 @@ class _Frame(NamedTuple):
     image: np.ndarray
     noise: float
     saturation: float
+    fill: float
+
+
+def _fill_level(image):
+    """Value of the pixels outside the image in the windows: the median of every fourth row and column."""
+    return float(np.median(image[::4, ::4]))
 
 
 def _model_start(found, sigma0):
@@ -799,15 +806,15 @@ def track_pair(
     dark dots on a bright background are tracked by giving ``max - image`` for both images.
     """
     settings = TrackingSettings() if settings is None else settings
-    ref = _check_image("reference", reference)
-    grad = _check_image("gradient", gradient)
+    ref, top_r = _check_image("reference", reference)
+    grad, top_g = _check_image("gradient", gradient)
     if ref.shape != grad.shape:
         raise SynthbosError(f"reference and gradient images differ in shape: {ref.shape} and {grad.shape}")
     h_img, w_img = ref.shape
     excluded = _check_mask(mask, ref.shape)
     if excluded is not None:
         ref, grad = _masked_fill(ref, excluded), _masked_fill(grad, excluded)
-
+        top_r = top_g = None  # the maxima of the filled images
     if prior_xy is not None:
         prior = np.asarray(prior_xy, dtype=np.float64)
         if prior.ndim != 2 or prior.shape[1] != 2:
@@ -831,8 +838,8 @@ def track_pair(
     map_half = int(np.ceil(d / 2.0 + 0.5))
     noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
 
-    frame_r = _Frame(ref, noise_r, _saturation_level(ref, settings.saturation_level))
-    frame_g = _Frame(grad, noise_g, _saturation_level(grad, settings.saturation_level))
+    frame_r = _Frame(ref, noise_r, _saturation_level(ref, settings.saturation_level, top_r), _fill_level(ref))
+    frame_g = _Frame(grad, noise_g, _saturation_level(grad, settings.saturation_level, top_g), _fill_level(grad))
     search = settings.max_displacement + 1.0 if settings.search_radius is None else settings.search_radius
     use_pred = settings.predictor == "correlation"
     near_mask = None
@@ -857,6 +864,7 @@ def track_pair(
             max_iterations=1 if standard else settings.max_iterations,
             noise=frame.noise,
             sat_level=frame.saturation,
+            fill=frame.fill,
             device=device,
         )
 
