@@ -359,20 +359,24 @@ def measure_small_window(
     win = vec_small_f()
     vmin = wp.float64(1.0e300)
     vmax = wp.float64(-1.0e300)
-    inside = ox >= 0 and oy >= 0 and ox + w <= image.shape[1] and oy + w <= image.shape[0]
+    if ox >= 0 and oy >= 0 and ox + w <= image.shape[1] and oy + w <= image.shape[0]:
+        for r in range(SMALL_W):
+            for c in range(SMALL_W):
+                win[wp.static(7 * r + c)] = image[oy + r, ox + c]
+    else:
+        for r in range(SMALL_W):
+            y = oy + r
+            row_in = y >= 0 and y < image.shape[0]
+            for c in range(SMALL_W):
+                x = ox + c
+                v = fill
+                if row_in and x >= 0 and x < image.shape[1]:
+                    v = image[y, x]
+                win[wp.static(7 * r + c)] = v
     for r in range(SMALL_W):
-        y = oy + r
-        row_in = y >= 0 and y < image.shape[0]
         for c in range(SMALL_W):
-            x = ox + c
-            v = fill
-            if inside:
-                v = image[y, x]
-            elif row_in and x >= 0 and x < image.shape[1]:
-                v = image[y, x]
-            win[r * w + c] = v
-            vmin = wp.min(vmin, v)
-            vmax = wp.max(vmax, v)
+            vmin = wp.min(vmin, win[wp.static(7 * r + c)])
+            vmax = wp.max(vmax, win[wp.static(7 * r + c)])
     # edge_median
     bg = vmin
     if use_min == 0:
@@ -397,13 +401,12 @@ def measure_small_window(
             p = r * w + c
             best = p
             bv = win[p]
-            if c > 0:
-                if win[p - 1] > bv:
-                    best = p - 1
-                    bv = win[p - 1]
+            if c > 0:  # without branches on the pixel values
+                take = win[p - 1] > bv
+                best = wp.where(take, p - 1, best)
+                bv = wp.where(take, win[p - 1], bv)
             if c < w - 1:
-                if win[p + 1] >= bv:
-                    best = p + 1
+                best = wp.where(win[p + 1] >= bv, p + 1, best)
             up[p] = best
     lab = vec_small_i()
     roots = vec_small_i()
