@@ -390,8 +390,10 @@ def measure_small_window(
         for k in range(wp.static(len(_edge_network()))):
             va = ring[wp.static(_edge_network()[k][0])]
             vb = ring[wp.static(_edge_network()[k][1])]
-            ring[wp.static(_edge_network()[k][0])] = wp.min(va, vb)
-            ring[wp.static(_edge_network()[k][1])] = wp.max(va, vb)
+            # wp.min and wp.max as selects (the same result, NaN ignored), so that no branch depends on the data
+            other = wp.where(vb == vb, vb, va)
+            ring[wp.static(_edge_network()[k][0])] = wp.where(va <= vb, va, other)
+            ring[wp.static(_edge_network()[k][1])] = wp.where(va >= vb, va, other)
         bg = (ring[11] + ring[12]) / wp.float64(2.0)
     thr = bg + wp.max(frac * (vmax - bg), floor)
     # segment_window: row-best of three, then steepest ascent, then the roots and areas
