@@ -312,6 +312,222 @@ def cut_cross(
         cross[k, j] = val
 
 
+# The common window, 7 x 7 pixels (3-pixel dots), is measured by ``measure_small_window`` in local
+# vectors with its size known to the compiler (loops unrolled, the edge median's network inlined).
+SMALL_W = wp.constant(7)
+vec_small_f = wp.types.vector(length=49, dtype=wp.float64)
+vec_small_i = wp.types.vector(length=49, dtype=wp.int32)
+vec_ring = wp.types.vector(length=24, dtype=wp.float64)
+
+
+def _edge_network():
+    """Compile-time constant: the edge-median network of the 7 x 7 window's 24 edge pixels."""
+    from .windows import median_network  # here: windows imports this module
+
+    return median_network(24).tolist()
+
+
+@wp.func
+def measure_small_window(
+    image: wp.array2d(dtype=wp.float64),
+    fill: wp.float64,
+    ox: int,
+    oy: int,
+    lx: wp.float64,
+    ly: wp.float64,
+    hc: int,
+    radius: wp.float64,
+    frac: wp.float64,
+    floor: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+    use_min: int,
+    sat: wp.float64,
+    i: int,
+    full_maps: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    dotmap: wp.array3d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """``measure_windows_kernel``'s steps for a 7 x 7 window held in local vectors: the same as
+    ``load_window``, ``edge_median``, ``segment_window``, ``choose_blob``, ``count_saturated`` and
+    ``cut_dot_map`` / ``cut_cross``, with the same result."""
+    w = SMALL_W
+    # load_window
+    win = vec_small_f()
+    vmin = wp.float64(1.0e300)
+    vmax = wp.float64(-1.0e300)
+    if ox >= 0 and oy >= 0 and ox + w <= image.shape[1] and oy + w <= image.shape[0]:
+        for r in range(SMALL_W):
+            for c in range(SMALL_W):
+                win[wp.static(7 * r + c)] = image[oy + r, ox + c]
+    else:
+        for r in range(SMALL_W):
+            y = oy + r
+            row_in = y >= 0 and y < image.shape[0]
+            for c in range(SMALL_W):
+                x = ox + c
+                v = fill
+                if row_in and x >= 0 and x < image.shape[1]:
+                    v = image[y, x]
+                win[wp.static(7 * r + c)] = v
+    for r in range(SMALL_W):
+        for c in range(SMALL_W):
+            vmin = wp.min(vmin, win[wp.static(7 * r + c)])
+            vmax = wp.max(vmax, win[wp.static(7 * r + c)])
+    # edge_median
+    bg = vmin
+    if use_min == 0:
+        ring = vec_ring()
+        for c in range(SMALL_W):
+            ring[c] = win[c]
+            ring[wp.static(17 + c)] = win[wp.static(42 + c)]
+        for r in range(1, 6):
+            ring[wp.static(5 + 2 * r)] = win[wp.static(7 * r)]
+            ring[wp.static(6 + 2 * r)] = win[wp.static(7 * r + 6)]
+        for k in range(wp.static(len(_edge_network()))):
+            va = ring[wp.static(_edge_network()[k][0])]
+            vb = ring[wp.static(_edge_network()[k][1])]
+            # wp.min and wp.max as selects (the same result, NaN ignored), so that no branch depends on the data
+            other = wp.where(vb == vb, vb, va)
+            ring[wp.static(_edge_network()[k][0])] = wp.where(va <= vb, va, other)
+            ring[wp.static(_edge_network()[k][1])] = wp.where(va >= vb, va, other)
+        bg = (ring[11] + ring[12]) / wp.float64(2.0)
+    thr = bg + wp.max(frac * (vmax - bg), floor)
+    # segment_window: row-best of three, then steepest ascent, then the roots and areas
+    up = vec_small_i()
+    for r in range(SMALL_W):
+        for c in range(SMALL_W):
+            p = r * w + c
+            best = p
+            bv = win[p]
+            if c > 0:  # without branches on the pixel values
+                take = win[p - 1] > bv
+                best = wp.where(take, p - 1, best)
+                bv = wp.where(take, win[p - 1], bv)
+            if c < w - 1:
+                best = wp.where(win[p + 1] >= bv, p + 1, best)
+            up[p] = best
+    lab = vec_small_i()
+    roots = vec_small_i()
+    nblobs = int(0)
+    for r in range(SMALL_W):
+        for c in range(SMALL_W):
+            p = r * w + c
+            best = int(-1)
+            bv = win[p]
+            if bv > thr:
+                best = p
+                for rr in range(wp.static(max(r - 1, 0)), wp.static(min(r + 1, 6) + 1)):
+                    q = up[rr * w + c]
+                    vq = win[q]
+                    if vq > bv or (vq == bv and q > best):
+                        best = q
+                        bv = vq
+                if best == p:
+                    roots[nblobs] = p
+                    nblobs += 1
+            lab[p] = best
+    area = vec_small_i()
+    for p in range(w * w):
+        if lab[p] >= 0:
+            rt = lab[p]
+            while lab[rt] != rt:
+                rt = lab[rt]
+            lab[p] = rt
+            area[rt] = area[rt] + 1
+    # choose_blob
+    ma = wp.float64(-1.0e300)
+    mi = wp.float64(-1.0e300)
+    md = wp.float64(-1.0e300)
+    for k in range(nblobs):
+        p = roots[k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ma = wp.max(ma, wp.float64(area[p]))
+            mi = wp.max(mi, win[p] - bg)
+            md = wp.max(md, dist)
+    chosen = int(-1)
+    best_score = wp.float64(-1.0e300)
+    for k in range(nblobs):
+        p = roots[k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ta = wp.float64(1.0)
+            ti = wp.float64(1.0)
+            td = wp.float64(1.0)
+            if ma > wp.float64(0.0):
+                ta = wp.float64(area[p]) / ma
+            if mi > wp.float64(0.0):
+                ti = (win[p] - bg) / mi
+            if md > wp.float64(0.0):
+                td = wp.float64(1.0) - dist / md
+            score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+            if score > best_score:
+                best_score = score
+                chosen = p
+    out_int[i, 0] = chosen
+    out_int[i, 1] = nblobs
+    out_int[i, 2] = 0
+    out_float[i, 0] = bg
+    out_float[i, 1] = wp.float64(0.0)
+    out_float[i, 2] = wp.float64(0.0)
+    if chosen >= 0:
+        # count_saturated
+        nsat = int(0)
+        if sat < wp.float64(1.0e300):
+            for p in range(w * w):
+                if lab[p] == chosen and win[p] >= sat:
+                    nsat += 1
+        out_int[i, 2] = nsat
+        out_float[i, 1] = win[chosen] - bg
+        out_float[i, 2] = peak_distance(chosen, w, lx, ly)
+    # cut_dot_map / cut_cross: a pixel is kept where it is the blob's, or background with a blob neighbour
+    rr = chosen // w
+    rc = chosen % w
+    cw = 2 * hc + 1
+    count = cw * cw
+    if full_maps == 0:
+        count = 5
+    for j in range(count):
+        a = j // cw
+        b = j % cw
+        qr = rr + a - hc
+        qc = rc + b - hc
+        if full_maps == 0:
+            qr = rr
+            qc = rc
+            if j == 1:
+                qc = rc - 1
+            elif j == 2:
+                qc = rc + 1
+            elif j == 3:
+                qr = rr - 1
+            elif j == 4:
+                qr = rr + 1
+        val = wp.float64(0.0)
+        if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            q = qr * w + qc
+            l = lab[q]
+            keep = l == chosen
+            if l < 0:
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        tr = qr + dy
+                        tc = qc + dx
+                        if tr >= 0 and tr < w and tc >= 0 and tc < w:
+                            if lab[tr * w + tc] == chosen:
+                                keep = True
+            if keep:
+                val = win[q] - bg
+        if full_maps == 0:
+            cross[i, j] = val
+        else:
+            dotmap[i, a, b] = val
+
+
 @wp.kernel
 def measure_windows_kernel(
     image: wp.array2d(dtype=wp.float64),
@@ -351,6 +567,31 @@ def measure_windows_kernel(
     i = order[wp.tid()]
     s = i % win.shape[0]
     w = 2 * half + 1
+    if w == SMALL_W:
+        measure_small_window(
+            image,
+            fill,
+            origin[i, 0],
+            origin[i, 1],
+            local[i, 0],
+            local[i, 1],
+            hc,
+            radius,
+            frac,
+            floor,
+            wa,
+            wi,
+            wd,
+            use_min,
+            sat,
+            i,
+            full_maps,
+            out_int,
+            out_float,
+            dotmap,
+            cross,
+        )
+        return
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:

@@ -200,7 +200,7 @@ def test_window_kernel_matches_numpy_reference(device):
     xy = dot_pattern(rng, (128, 128), per_32x32=15)
     img = draw_dots((128, 128), xy, 3.0) + 0.03 * rng.standard_normal((128, 128))
     pred = np.vstack([xy + rng.normal(0, 0.3, xy.shape), [[1.0, 1.0], [126.6, 0.2]]])  # two at the edge
-    for half, use_min in ((3, False), (5, True)):
+    for half, use_min in ((3, False), (3, True), (5, True)):  # 7 x 7: measure_small_window
         origin = np.rint(pred).astype(np.int64) - half
         kw = dict(
             half=half,
