@@ -10,6 +10,7 @@ in progress.
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 from synthbos.raytrace import checks, plan_render
@@ -29,7 +30,7 @@ __all__ = ["check_spec", "resolve_process_device", "run_campaign"]
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
-                 scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None):
+                 scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None, timings=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
 
     ``device`` renders; ``process_device`` runs the methods (default: ``device``, and the CPU when
@@ -52,6 +53,9 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     ``distributed.DaskRunner``) the items run on a Dask cluster, one task per pair (``distributed``);
     the files and the summary are the same.
 
+    ``timings`` (a dict, optional) receives the wall seconds of the phases: ``"render and process"``,
+    ``"tables"`` and ``"figures"``.
+
     Returns
     -------
     list of dict
@@ -67,7 +71,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     with folder_lock(folder, wait=wait):
         return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
                            figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline,
-                           worker_device=worker_device)
+                           worker_device=worker_device, timings={} if timings is None else timings)
 
 
 def resolve_process_device(device=None, process_device=None) -> str:
@@ -93,7 +97,8 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
 
 
 def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline,
-                worker_device=None):
+                worker_device=None, timings):
+    t0 = time.perf_counter()
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
     for sub in (folder, folder / "pairs", folder / "scores"):
@@ -126,10 +131,15 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         workers = workers or default_workers()
         run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)
         run_items(scores, score_item, workers=workers, desc="process", progress=progress)
+    t1 = time.perf_counter()
+    timings["render and process"] = t1 - t0
     rows = summarise(spec, folder)
     write_tables(rows, folder)
+    t2 = time.perf_counter()
+    timings["tables"] = t2 - t1
     if figures:  # side by side in worker processes: matplotlib draws on one core
         jobs = [(stem, spec, str(folder)) for stem in CAMPAIGN_FIGURES]
         run_items(jobs, campaign_figure, workers=min(len(jobs), workers or default_workers()), desc="figures",
                   progress=progress)
+        timings["figures"] = time.perf_counter() - t2
     return rows

@@ -208,12 +208,14 @@ def _paper(args):
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
+    timings = {}
     rows = run_campaign(spec, out, device=device, process_device=process_device, workers=args.workers,
                         progress=not args.quiet, scheduler=args.scheduler, wait=args.wait,
-                        worker_device=worker_device)
+                        worker_device=worker_device, timings=timings)
     print(format_summary(rows))
+    phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s)")
+          f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s: {phases})")
     return 0
 
 
