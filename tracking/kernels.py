@@ -750,29 +750,32 @@ def render_dots_kernel(
     r1 = wp.min(n, height - oy)
     base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
     a = params[i, 2]
-    r = int(r0)
-    while r < r1:
-        apy = a * prof[i, 3, r]
-        at = base + r * width
-        c = int(c0)
-        while c < c1:
-            wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
-            c += 1
-        r += 1
-    if common != 0:  # the partner's shape only where it is drawn (a scattered read)
+    if common == 0:
+        r = int(r0)
+        while r < r1:
+            apy = a * prof[i, 3, r]
+            at = base + r * width
+            c = int(c0)
+            while c < c1:
+                wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
+                c += 1
+            r += 1
+    else:  # both images in one pass over the stamp; the partner's shape is a scattered read
         cs = common_shape(params, partner, i)
         ds = cs[1] - params[i, 3]
-        base += models.shape[0] // 2
+        layer = models.shape[0] // 2
         r = int(r0)
         while r < r1:
             py = prof[i, 3, r]
             spy = prof[i, 5, r]
+            apy = a * py
             at = base + r * width
             c = int(c0)
             while c < c1:
                 px = prof[i, 0, c]
+                wp.atomic_add(models, at + c, to_fixed(apy * px, scale))
                 shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
-                wp.atomic_add(models, at + c, to_fixed(shared, scale))
+                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
                 c += 1
             r += 1
 
