@@ -1052,6 +1052,15 @@ def limited(step: vec5d) -> vec5d:
     return step
 
 
+@wp.func
+def all_finite(q: vec5d) -> bool:
+    """Whether every entry is finite: ``|x| <= DBL_MAX`` fails for NaN and infinity alike (compares inline,
+    where ``wp.isfinite`` on the CPU is a call per entry)."""
+    big = wp.float64(1.7976931348623157e308)
+    xy = wp.abs(q[0]) <= big and wp.abs(q[1]) <= big
+    return xy and wp.abs(q[2]) <= big and wp.abs(q[3]) <= big and wp.abs(q[4]) <= big
+
+
 @wp.kernel
 def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
@@ -1108,7 +1117,7 @@ def fit_dot_step_kernel(
     d1 = pinv * (ne.g1 - ne.q * d2)
     step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
     q = p + limited(step)
-    good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
+    good = all_finite(q)
     good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
     good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
     if not good:
