@@ -750,29 +750,32 @@ def render_dots_kernel(
     r1 = wp.min(n, height - oy)
     base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
     a = params[i, 2]
-    r = int(r0)
-    while r < r1:
-        apy = a * prof[i, 3, r]
-        at = base + r * width
-        c = int(c0)
-        while c < c1:
-            wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
-            c += 1
-        r += 1
-    if common != 0:  # the partner's shape only where it is drawn (a scattered read)
+    if common == 0:
+        r = int(r0)
+        while r < r1:
+            apy = a * prof[i, 3, r]
+            at = base + r * width
+            c = int(c0)
+            while c < c1:
+                wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
+                c += 1
+            r += 1
+    else:  # both images in one pass over the stamp; the partner's shape is a scattered read
         cs = common_shape(params, partner, i)
         ds = cs[1] - params[i, 3]
-        base += models.shape[0] // 2
+        layer = models.shape[0] // 2
         r = int(r0)
         while r < r1:
             py = prof[i, 3, r]
             spy = prof[i, 5, r]
+            apy = a * py
             at = base + r * width
             c = int(c0)
             while c < c1:
                 px = prof[i, 0, c]
+                wp.atomic_add(models, at + c, to_fixed(apy * px, scale))
                 shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
-                wp.atomic_add(models, at + c, to_fixed(shared, scale))
+                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
                 c += 1
             r += 1
 
@@ -1049,6 +1052,15 @@ def limited(step: vec5d) -> vec5d:
     return step
 
 
+@wp.func
+def all_finite(q: vec5d) -> bool:
+    """Whether every entry is finite: ``|x| <= DBL_MAX`` fails for NaN and infinity alike (compares inline,
+    where ``wp.isfinite`` on the CPU is a call per entry)."""
+    big = wp.float64(1.7976931348623157e308)
+    xy = wp.abs(q[0]) <= big and wp.abs(q[1]) <= big
+    return xy and wp.abs(q[2]) <= big and wp.abs(q[3]) <= big and wp.abs(q[4]) <= big
+
+
 @wp.kernel
 def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
@@ -1105,7 +1117,7 @@ def fit_dot_step_kernel(
     d1 = pinv * (ne.g1 - ne.q * d2)
     step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
     q = p + limited(step)
-    good = wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2]) and wp.isfinite(q[3]) and wp.isfinite(q[4])
+    good = all_finite(q)
     good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
     good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
     if not good:
