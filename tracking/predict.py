@@ -339,9 +339,11 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
     out_valid = scratch("predict_weights", (ny * size, nx * size), wp.float32, device)
     tile_sums = wp.zeros((3, ny, nx), dtype=wp.int32, device=device)
     img = on_device(image, wp.float32)
+    # a row of all tiles per thread on the CPU (fewer, longer threads), of one tile on a GPU
+    tiles = nx if wp.get_device(device).is_cpu else 1
     wp.launch(
         deform_nearest_kernel,
-        dim=(ny * size, nx),
+        dim=(ny * size, -(-nx // tiles)),
         inputs=[
             img,
             img if valid is None else on_device(valid, wp.float32),
@@ -355,6 +357,7 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
             int(ys[0]),
             int(xs[0]),
             size,
+            tiles,
             out,
             out_valid,
             tile_sums,
