@@ -102,9 +102,10 @@ def _tile_grid(n, size):
 
 
 def _sparse_grid(h, w, size):
-    """Whether a first pass of ``size`` px tiles may take every other tile along both axes (tiles on a
-    ``2 * size`` stride): where that still leaves at least four tiles along each axis."""
-    return min(h, w) // (2 * size) >= 4
+    """Whether a first pass of ``size`` px tiles may take about every other tile along both axes: where
+    that still leaves at least eight tiles along each axis (on smaller images the side-by-side tiles
+    are few and cheap, and the denser field keeps the finer passes' start as it was)."""
+    return min(h, w) // (2 * size) >= 8
 
 
 def _sparse_tile_grid(n, size):
@@ -408,7 +409,7 @@ def predict_displacement(
         repeat: another pass at that size). The first should be at least four times the largest
         displacement; sizes larger than the image are reduced to it. The passes end early at the first
         one that changes no tile's displacement by more than 0.25 px from the coarser field. Where it
-        leaves at least four tiles along each axis, the first of several passes takes about every other
+        leaves at least eight tiles along each axis, the first of several passes takes about every other
         tile along each axis (evenly spaced, the outer ones at the image edges).
     min_dots_per_window : float, keyword-only
         Passes whose tiles would hold fewer dots than this on average (from the number of ``xy`` inside
