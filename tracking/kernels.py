@@ -1421,11 +1421,13 @@ def deform_nearest_kernel(
     y0: int,
     x0: int,
     size: int,
+    tiles: int,
     out: wp.array2d(dtype=wp.float32),
     out_valid: wp.array2d(dtype=wp.float32),
     tile_sums: wp.array3d(dtype=wp.int32),
 ):
-    """One row of one ``size`` x ``size`` tile of the block of tiles starting at (``y0``, ``x0``):
+    """One row of ``tiles`` consecutive ``size`` x ``size`` tiles (those from tile column ``t * tiles``;
+    1 on a GPU, a whole row of tiles on the CPU) of the block of tiles starting at (``y0``, ``x0``):
     ``image`` moved back by the tile field rounded to whole pixels. ``out[r, c]`` (block coordinates)
     takes the pixel at (y0 + r + rint(v), x0 + c + rint(u)) (the edge pixel beyond the image),
     ``out_valid`` 1 where that lies inside the image (times ``valid`` there if ``use_valid``);
@@ -1446,36 +1448,37 @@ def deform_nearest_kernel(
     u1 = wp.float64(0.0)
     v0 = wp.float64(0.0)
     v1 = wp.float64(0.0)
-    sum_u = int(0)
-    sum_v = int(0)
-    n_part = int(0)
-    for c in range(t * size, t * size + size):
-        col = x0 + c
-        ix = col_cell[col]
-        if ix != cell:
-            cell = ix
-            ix1 = wp.min(ix + 1, last)
-            u0 = field_at_row(field_u, iy, ty, ix)
-            u1 = field_at_row(field_u, iy, ty, ix1)
-            v0 = field_at_row(field_v, iy, ty, ix)
-            v1 = field_at_row(field_v, iy, ty, ix1)
-        tx = col_frac[col]
-        su = int(wp.rint((one - tx) * u0 + tx * u1))
-        sv = int(wp.rint((one - tx) * v0 + tx * v1))
-        sum_u += su
-        sum_v += sv
-        ry = row + sv
-        rx = col + su
-        v = wp.float32(0.0)
-        if ry >= 0 and ry < h and rx >= 0 and rx < w:
-            v = wp.float32(1.0)
-            if use_valid != 0:
-                v = valid[ry, rx]
-        if v != wp.float32(1.0):
-            n_part += 1
-        out[r, c] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
-        out_valid[r, c] = v
-    wp.atomic_add(tile_sums, 0, r / size, t, sum_u)
-    wp.atomic_add(tile_sums, 1, r / size, t, sum_v)
-    if n_part > 0:
-        wp.atomic_add(tile_sums, 2, r / size, t, n_part)
+    for k in range(t * tiles, wp.min(t * tiles + tiles, tile_sums.shape[2])):
+        sum_u = int(0)
+        sum_v = int(0)
+        n_part = int(0)
+        for c in range(k * size, k * size + size):
+            col = x0 + c
+            ix = col_cell[col]
+            if ix != cell:
+                cell = ix
+                ix1 = wp.min(ix + 1, last)
+                u0 = field_at_row(field_u, iy, ty, ix)
+                u1 = field_at_row(field_u, iy, ty, ix1)
+                v0 = field_at_row(field_v, iy, ty, ix)
+                v1 = field_at_row(field_v, iy, ty, ix1)
+            tx = col_frac[col]
+            su = int(wp.rint((one - tx) * u0 + tx * u1))
+            sv = int(wp.rint((one - tx) * v0 + tx * v1))
+            sum_u += su
+            sum_v += sv
+            ry = row + sv
+            rx = col + su
+            v = wp.float32(0.0)
+            if ry >= 0 and ry < h and rx >= 0 and rx < w:
+                v = wp.float32(1.0)
+                if use_valid != 0:
+                    v = valid[ry, rx]
+            if v != wp.float32(1.0):
+                n_part += 1
+            out[r, c] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
+            out_valid[r, c] = v
+        wp.atomic_add(tile_sums, 0, r / size, k, sum_u)
+        wp.atomic_add(tile_sums, 1, r / size, k, sum_v)
+        if n_part > 0:
+            wp.atomic_add(tile_sums, 2, r / size, k, n_part)

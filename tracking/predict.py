@@ -101,6 +101,38 @@ def _tile_grid(n, size):
     return (n - count * size) // 2 + size * np.arange(count)
 
 
+def _sparse_grid(h, w, size):
+    """Whether a first pass of ``size`` px tiles may take about every other tile along both axes: where
+    that still leaves at least eight tiles along each axis (on smaller images the side-by-side tiles
+    are few and cheap, and the denser field keeps the finer passes' start as it was)."""
+    return min(h, w) // (2 * size) >= 8
+
+
+def _sparse_tile_grid(n, size):
+    """Start of each tile of a first pass that takes about every other tile along an axis of ``n`` px:
+    evenly spaced tiles, at most ``2 * size`` apart, the outer ones at the axis's ends (but for the
+    remainder of the division, split between both ends), so that the field's outer centres lie where
+    those of side-by-side tiles would."""
+    count = -(-(n - size) // (2 * size)) + 1
+    stride = (n - size) // (count - 1)
+    return (n - size - stride * (count - 1)) // 2 + stride * np.arange(count)
+
+
+def _gather_tiles(image, ys, xs, size):
+    """The ``size`` px tiles of ``image`` starting at rows ``ys`` and columns ``xs`` (each evenly spaced)
+    side by side in one contiguous block (a strided copy)."""
+    sy = int(ys[1] - ys[0]) if len(ys) > 1 else size
+    sx = int(xs[1] - xs[0]) if len(xs) > 1 else size
+    r0, c0 = image.strides
+    view = np.lib.stride_tricks.as_strided(
+        image[ys[0] :, xs[0] :],
+        shape=(len(ys), size, len(xs), size),
+        strides=(sy * r0, r0, sx * c0, c0),
+        writeable=False,
+    )
+    return np.ascontiguousarray(view).reshape(len(ys) * size, len(xs) * size)
+
+
 def _bilinear(field, centres_y, centres_x, y, x):
     """Bilinear interpolation of a tile field (or a stack of them, ``(..., ny, nx)``) at points (x, y),
     extrapolated linearly past the outer centres."""
@@ -108,9 +140,11 @@ def _bilinear(field, centres_y, centres_x, y, x):
     ix, tx = _cell(x, centres_x)
     ny, nx = field.shape[-2:]
     iy1, ix1 = np.minimum(iy + 1, ny - 1), np.minimum(ix + 1, nx - 1)
-    return (1 - ty) * ((1 - tx) * field[..., iy, ix] + tx * field[..., iy, ix1]) + ty * (
-        (1 - tx) * field[..., iy1, ix] + tx * field[..., iy1, ix1]
-    )
+    iy, ix, iy1, ix1 = np.broadcast_arrays(iy, ix, iy1, ix1)
+    flat = field.reshape(*field.shape[:-2], ny * nx)
+    # the nodes by flat index (np.take: the same values as field[..., iy, ix], without fancy indexing's cost)
+    f00, f01, f10, f11 = (np.take(flat, j * nx + i, axis=-1) for j, i in ((iy, ix), (iy, ix1), (iy1, ix), (iy1, ix1)))
+    return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
 
 
 def _cell(t, centres):
@@ -306,9 +340,11 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
     out_valid = scratch("predict_weights", (ny * size, nx * size), wp.float32, device)
     tile_sums = wp.zeros((3, ny, nx), dtype=wp.int32, device=device)
     img = on_device(image, wp.float32)
+    # a row of all tiles per thread on the CPU (fewer, longer threads), of one tile on a GPU
+    tiles = nx if wp.get_device(device).is_cpu else 1
     wp.launch(
         deform_nearest_kernel,
-        dim=(ny * size, nx),
+        dim=(ny * size, -(-nx // tiles)),
         inputs=[
             img,
             img if valid is None else on_device(valid, wp.float32),
@@ -322,6 +358,7 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
             int(ys[0]),
             int(xs[0]),
             size,
+            tiles,
             out,
             out_valid,
             tile_sums,
@@ -371,7 +408,9 @@ def predict_displacement(
         Tile size of each correlation pass, coarse first (tiles side by side, no overlap; a size may
         repeat: another pass at that size). The first should be at least four times the largest
         displacement; sizes larger than the image are reduced to it. The passes end early at the first
-        one that changes no tile's displacement by more than 0.25 px from the coarser field.
+        one that changes no tile's displacement by more than 0.25 px from the coarser field. Where it
+        leaves at least eight tiles along each axis, the first of several passes takes about every other
+        tile along each axis (evenly spaced, the outer ones at the image edges).
     min_dots_per_window : float, keyword-only
         Passes whose tiles would hold fewer dots than this on average (from the number of ``xy`` inside
         the image) are replaced by one pass with the smallest tile (a multiple of 8 px) that holds that
@@ -441,11 +480,27 @@ def predict_displacement(
     spectra = {}  # the reference tiles' spectra of each tile grid, computed once
     field = None  # (u, v, centres_y, centres_x) of the previous pass
     for size in sizes:
-        ys, xs = _tile_grid(h, size), _tile_grid(w, size)
+        sparse = field is None and len(sizes) > 1 and _sparse_grid(h, w, size)
+        if sparse:
+            # the first pass only places the next one's search (a quarter of its tile): tiles at most twice
+            # their side apart (about a quarter of them), gathered into one block of side-by-side tiles
+            ys, xs = _sparse_tile_grid(h, size), _sparse_tile_grid(w, size)
+            a_first, bd = _gather_tiles(a, ys, xs, size), _gather_tiles(b, ys, xs, size)
+            vd = None if valid is None else _gather_tiles(valid, ys, xs, size)
+            key = (size, "sparse")
+            if key not in spectra:
+                at = size * np.arange(len(ys)), size * np.arange(len(xs))
+                spectra[key] = _reference_spectra(a_first, vd, *at, size)
+        else:
+            ys, xs = _tile_grid(h, size), _tile_grid(w, size)
+            key = size
+            if key not in spectra:
+                spectra[key] = _reference_spectra(a, valid, ys, xs, size)
         cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
-        if size not in spectra:
-            spectra[size] = _reference_spectra(a, valid, ys, xs, size)
-        if field is None:
+        if sparse:
+            partial = _partial_tiles(vd, len(ys), len(xs), size)
+            base_u = base_v = prev_u = prev_v = 0.0
+        elif field is None:
             block = np.s_[ys[0] : ys[0] + len(ys) * size, xs[0] : xs[0] + len(xs) * size]
             bd, vd = b[block], None if valid is None else valid[block]
             partial = _partial_tiles(vd, len(ys), len(xs), size)
@@ -455,7 +510,7 @@ def predict_displacement(
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
             bd, vd, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
             prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
-        pl, norm, usable, energy = _correlate_tiles(spectra[size], bd, vd, partial, size)
+        pl, norm, usable, energy = _correlate_tiles(spectra[key], bd, vd, partial, size)
         half = size // 2
         if field is None:
             r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)

@@ -238,3 +238,23 @@ def test_deform_nearest_kernel_matches_numpy_reference(device):
             assert_array_equal(x, y)
         if v is None:  # tiles at the edge take pixels from beyond it, inner ones not
             assert a[-1].any() and not a[-1].all()
+
+
+@pytest.mark.parametrize("kind", ["uniform", "smooth"])
+def test_predictor_with_a_sparse_first_pass(kind):
+    """On a 1024 px image the 64 px first pass takes about every other tile along each axis (8 x 8 of
+    them): the field it gives still places the finer passes, for large uniform and smooth shifts (on the
+    smooth field the dense first pass gives a 99th percentile error of 0.17 px and a largest of 0.42 px,
+    the sparse one 0.17 and 0.36 px: well within the identification's 1.5 px tolerance)."""
+    shape = (1024, 1024)
+    rng = np.random.default_rng(36)
+    xy = dot_pattern(rng, shape, per_32x32=20, min_distance=D)
+    disp = np.tile([9.3, -4.6], (len(xy), 1)) if kind == "uniform" else smooth_displacement(xy, shape, 8.0)
+    ref = draw_dots(shape, xy, D) + NOISE * rng.standard_normal(shape)
+    grad = draw_dots(shape, xy + disp, D) + NOISE * rng.standard_normal(shape)
+    uv, quality = predict_displacement(ref, grad, xy)
+    inner = (xy > 24).all(axis=1) & (xy < np.array(shape[::-1]) - 24).all(axis=1)
+    err = np.abs(uv[inner] - disp[inner]).max(axis=1)
+    assert err.max() < 0.5
+    assert np.percentile(err, 99) < 0.25
+    assert np.median(quality[inner]) > 0.9
