@@ -74,6 +74,15 @@ def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
     return MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, max(float(vmax), 1e-9))
 
 
+def _colorbar(fig, mappable, ax, **kwargs):
+    """``fig.colorbar`` with its colour strip kept as vector quads: matplotlib rasterises a strip of 50
+    colours or more, and in a PDF every rasterised artist renders the whole figure at 300 dpi once."""
+    cb = fig.colorbar(mappable, ax=ax, **kwargs)
+    if cb.solids is not None:
+        cb.solids.set_rasterized(False)
+    return cb
+
+
 def _level_map(ax, xy, values, shape, levels, *, cell=2.0):
     """Values at scattered dots as filled bands between ``levels`` over an image of ``shape`` (px).
 
@@ -121,9 +130,9 @@ def figure4(spec, folder, path):
         gy, gx = np.gradient(rho, ly * 1e-3 / (rho.shape[0] - 1), lx * 1e-3 / (rho.shape[1] - 1))
         ax = axes[row]
         im = ax[0].imshow(rho, extent=extent, cmap="viridis")
-        fig.colorbar(im, ax=ax[0], label="ρ (kg/m³)", ticks=MaxNLocator(5))
+        _colorbar(fig, im, ax[0], label="ρ (kg/m³)", ticks=MaxNLocator(5))
         im = ax[1].imshow(np.hypot(gx, gy), extent=extent, cmap="magma")
-        fig.colorbar(im, ax=ax[1], label="|∇ρ| (kg/m⁴)", ticks=MaxNLocator(5))
+        _colorbar(fig, im, ax[1], label="|∇ρ| (kg/m⁴)", ticks=MaxNLocator(5))
         ok = pair.valid
         counts.append((int(ok.sum()), pair.n_dots))
         xy = pair.reference_px[ok]
@@ -135,7 +144,7 @@ def figure4(spec, folder, path):
                 continue
             levels = _nice_levels(vals.max())
             im = _level_map(ax[k], xy, vals, pair.reference.shape, levels)
-            fig.colorbar(im, ax=ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
+            _colorbar(fig, im, ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
             ax[k].set_xlabel("x (px)")
             ax[k].set_ylabel("y (px)")
         for a in ax[:2]:
@@ -271,12 +280,12 @@ def figure_density(spec, folder, path):
             lo, hi = np.nanmin(truth), np.nanmax(truth)
             for k, (field, title) in enumerate(((truth, "true (cone) density"), (rec, "reconstructed"))):
                 im = ax[k].imshow(field, extent=ext, vmin=lo, vmax=hi, cmap="viridis", interpolation="nearest")
-                fig.colorbar(im, ax=ax[k], label="ρ (kg/m³)")
+                _colorbar(fig, im, ax[k], label="ρ (kg/m³)")
                 ax[k].set_title(f"{style['label']}: {title}", fontsize=9)
             diff = rec - truth
             lim = max(float(np.nanmax(np.abs(diff))) if np.isfinite(diff).any() else 0.0, 1e-12)
             im = ax[2].imshow(diff, extent=ext, vmin=-lim, vmax=lim, cmap="RdBu_r", interpolation="nearest")
-            fig.colorbar(im, ax=ax[2], label="Δρ (kg/m³)")
+            _colorbar(fig, im, ax[2], label="Δρ (kg/m³)")
             ax[2].set_title(f"reconstructed − true, snapshot {s0}, noise {n0:g}%", fontsize=9)
             for a in ax[:3]:
                 a.set_xlabel("x (mm)")
