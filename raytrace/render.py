@@ -244,11 +244,11 @@ def _n_samples(plan: RenderPlan, samples_per_step=1):
 def truth_medium(plan: RenderPlan, *, device=None, medium=None):
     """The medium the ground truths read: the exact float32 nodes on ``device``.
 
-    ``medium`` (the plan's medium already uploaded for the gradient image, ``to_warp(plan.medium,
-    field=plan.field)``) is reused where it holds them ("float32", "float32_vec"); otherwise (None, or
-    an approximate field) the nodes are uploaded as "float32_vec".
+    ``medium`` (an uploaded medium, e.g. the gradient image's ``to_warp(plan.medium, field=plan.field)``)
+    is reused where it holds them (``kernels.Medium``, ``kernels.MediumVec``); otherwise (None, or an
+    approximate field) the nodes are uploaded as "float32_vec".
     """
-    if medium is not None and plan.field in ("float32", "float32_vec"):
+    if isinstance(medium, (kernels.Medium.instance_type, kernels.MediumVec.instance_type)):
         return medium
     return to_warp(plan.medium, device=device, field="float32_vec")
 
