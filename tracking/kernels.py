@@ -165,6 +165,33 @@ def peak_distance(p: int, w: int, lx: wp.float64, ly: wp.float64) -> wp.float64:
 
 
 @wp.func
+def eq1_score(
+    area: wp.float64,
+    peak: wp.float64,
+    dist: wp.float64,
+    ma: wp.float64,
+    mi: wp.float64,
+    md: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+) -> wp.float64:
+    """Eq. 1 of Rajendran, Bane and Vlachos (2019) for one blob: its area, peak above the background and
+    peak distance scaled by their maxima ``ma``, ``mi``, ``md`` over the candidates (a term is 1 where
+    its maximum is not positive), weighted by ``wa``, ``wi``, ``wd``."""
+    ta = wp.float64(1.0)
+    ti = wp.float64(1.0)
+    td = wp.float64(1.0)
+    if ma > wp.float64(0.0):
+        ta = area / ma
+    if mi > wp.float64(0.0):
+        ti = peak / mi
+    if md > wp.float64(0.0):
+        td = wp.float64(1.0) - dist / md
+    return (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+
+
+@wp.func
 def choose_blob(
     win: wp.array2d(dtype=wp.float64),
     area: wp.array2d(dtype=wp.int32),
@@ -201,16 +228,7 @@ def choose_blob(
         p = roots[i, k]
         dist = peak_distance(p, w, lx, ly)
         if dist <= radius:
-            ta = wp.float64(1.0)
-            ti = wp.float64(1.0)
-            td = wp.float64(1.0)
-            if ma > wp.float64(0.0):
-                ta = wp.float64(area[i, p]) / ma
-            if mi > wp.float64(0.0):
-                ti = (win[i, p] - bg) / mi
-            if md > wp.float64(0.0):
-                td = wp.float64(1.0) - dist / md
-            score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+            score = eq1_score(wp.float64(area[i, p]), win[i, p] - bg, dist, ma, mi, md, wa, wi, wd)
             if score > best:
                 best = score
                 chosen = p
@@ -455,16 +473,7 @@ def measure_small_window(
         p = roots[k]
         dist = peak_distance(p, w, lx, ly)
         if dist <= radius:
-            ta = wp.float64(1.0)
-            ti = wp.float64(1.0)
-            td = wp.float64(1.0)
-            if ma > wp.float64(0.0):
-                ta = wp.float64(area[p]) / ma
-            if mi > wp.float64(0.0):
-                ti = (win[p] - bg) / mi
-            if md > wp.float64(0.0):
-                td = wp.float64(1.0) - dist / md
-            score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
+            score = eq1_score(wp.float64(area[p]), win[p] - bg, dist, ma, mi, md, wa, wi, wd)
             if score > best_score:
                 best_score = score
                 chosen = p
