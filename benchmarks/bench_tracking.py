@@ -68,7 +68,7 @@ def main(argv=None):
     p.add_argument("--diameter", type=float, default=3.0)
     p.add_argument("--noise", type=float, default=0.02, help="noise sigma as a fraction of the dot peak")
     p.add_argument("--amplitude", type=float, default=1.5, help="peak displacement, px")
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=7, help="timed pairs per procedure; the best is reported")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--backend", choices=("warp", "numpy"), default="warp")
     p.add_argument("--trackpy-diameter", type=int, default=5, help="odd feature size for trackpy.locate")

@@ -1,7 +1,14 @@
-"""Timing helper shared by the speed benchmarks."""
+"""Timing helper shared by the speed benchmarks.
+
+As :mod:`timeit` does, the garbage collector is off while a call is timed (a collection triggered by an
+earlier call's garbage would otherwise land in a random repeat), and the best of several repeats is
+reported: on a shared machine the slower ones measure the other processes.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import time
 
 __all__ = ["best_time", "best_times"]
@@ -17,9 +24,10 @@ def best_time(fn, repeat, *, warmup=False):
     times = []
     out = None
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
+        with _gc_off():
+            t0 = time.perf_counter()
+            out = fn()
+            times.append(time.perf_counter() - t0)
     return min(times), out
 
 
@@ -32,8 +40,22 @@ def best_times(fn, repeat):
     walls, cpus = [], []
     out = None
     for _ in range(repeat):
-        w0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        cpus.append(time.process_time() - c0)
-        walls.append(time.perf_counter() - w0)
+        with _gc_off():
+            w0, c0 = time.perf_counter(), time.process_time()
+            out = fn()
+            cpus.append(time.process_time() - c0)
+            walls.append(time.perf_counter() - w0)
     return min(walls), min(cpus), out
+
+
+@contextlib.contextmanager
+def _gc_off():
+    """The garbage collector disabled for the block (re-enabled after it if it was on), as in timeit."""
+    was_on = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_on:
+            gc.enable()
