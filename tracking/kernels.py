@@ -1418,9 +1418,11 @@ def field_at_row(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, i
 
 @wp.kernel
 def deform_nearest_kernel(
-    image: wp.array2d(dtype=wp.float32),
-    valid: wp.array2d(dtype=wp.float32),
+    image: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.float32),
     use_valid: int,
+    h: int,
+    w: int,
     field_u: wp.array2d(dtype=wp.float64),
     field_v: wp.array2d(dtype=wp.float64),
     row_cell: wp.array(dtype=wp.int32),
@@ -1431,38 +1433,43 @@ def deform_nearest_kernel(
     x0: int,
     size: int,
     tiles: int,
-    out: wp.array2d(dtype=wp.float32),
-    out_valid: wp.array2d(dtype=wp.float32),
+    out: wp.array(dtype=wp.float32),
+    out_valid: wp.array(dtype=wp.float32),
     tile_sums: wp.array3d(dtype=wp.int32),
 ):
     """One row of ``tiles`` consecutive ``size`` x ``size`` tiles (those from tile column ``t * tiles``;
     1 on a GPU, a whole row of tiles on the CPU) of the block of tiles starting at (``y0``, ``x0``):
-    ``image`` moved back by the tile field rounded to whole pixels. ``out[r, c]`` (block coordinates)
-    takes the pixel at (y0 + r + rint(v), x0 + c + rint(u)) (the edge pixel beyond the image),
-    ``out_valid`` 1 where that lies inside the image (times ``valid`` there if ``use_valid``);
-    ``tile_sums[0|1, tile row, tile column]`` sum the rounded shifts u and v over the tile's pixels
-    and ``tile_sums[2, ...]`` counts its pixels whose weight is not 1. The field is interpolated
-    bilinearly, each row and column given by its cell of tile centres and fraction in it: first along
-    the rows at the two centre columns around the pixel, then along the row."""
+    the ``h`` x ``w`` ``image`` (flattened, row by row) moved back by the tile field rounded to whole
+    pixels. The tiles' pixel (r, c) (block coordinates) takes the pixel at (y0 + r + rint(v),
+    x0 + c + rint(u)) (the edge pixel beyond the image) as float32; ``out_valid`` 1 where that lies
+    inside the image (times ``valid``, flattened like ``image``, there if ``use_valid``). ``out`` and
+    ``out_valid`` hold the tiles one after the other, row by row of tiles, each ``size * size`` pixels
+    row by row. ``tile_sums[0|1, tile row, tile column]`` sum the rounded shifts u and v over the
+    tile's pixels and ``tile_sums[2, ...]`` counts its pixels whose weight is not 1. The field is
+    interpolated bilinearly, each row and column given by its cell of tile centres and fraction in it:
+    first along the rows at the two centre columns around the pixel, then along the row."""
     r, t = wp.tid()
-    h = image.shape[0]
-    w = image.shape[1]
+    nx = tile_sums.shape[2]
     last = field_u.shape[1] - 1
     row = y0 + r
     iy = row_cell[row]
     ty = row_frac[row]
+    tile_row = r / size
     one = wp.float64(1.0)
     cell = int(-1)
     u0 = wp.float64(0.0)
     u1 = wp.float64(0.0)
     v0 = wp.float64(0.0)
     v1 = wp.float64(0.0)
-    for k in range(t * tiles, wp.min(t * tiles + tiles, tile_sums.shape[2])):
+    for k in range(t * tiles, wp.min(t * tiles + tiles, nx)):
         sum_u = int(0)
         sum_v = int(0)
         n_part = int(0)
-        for c in range(k * size, k * size + size):
-            col = x0 + c
+        # the tile's row r - tile_row * size in the tile-major output
+        at = ((tile_row * nx + k) * size + r - tile_row * size) * size
+        col0 = x0 + k * size
+        for c in range(size):
+            col = col0 + c
             ix = col_cell[col]
             if ix != cell:
                 cell = ix
@@ -1478,16 +1485,17 @@ def deform_nearest_kernel(
             sum_v += sv
             ry = row + sv
             rx = col + su
+            src = wp.clamp(ry, 0, h - 1) * w + wp.clamp(rx, 0, w - 1)
             v = wp.float32(0.0)
             if ry >= 0 and ry < h and rx >= 0 and rx < w:
                 v = wp.float32(1.0)
                 if use_valid != 0:
-                    v = valid[ry, rx]
+                    v = valid[src]
             if v != wp.float32(1.0):
                 n_part += 1
-            out[r, c] = image[wp.clamp(ry, 0, h - 1), wp.clamp(rx, 0, w - 1)]
-            out_valid[r, c] = v
-        wp.atomic_add(tile_sums, 0, r / size, k, sum_u)
-        wp.atomic_add(tile_sums, 1, r / size, k, sum_v)
+            out[at + c] = wp.float32(image[src])
+            out_valid[at + c] = v
+        wp.atomic_add(tile_sums, 0, tile_row, k, sum_u)
+        wp.atomic_add(tile_sums, 1, tile_row, k, sum_v)
         if n_part > 0:
-            wp.atomic_add(tile_sums, 2, r / size, k, n_part)
+            wp.atomic_add(tile_sums, 2, tile_row, k, n_part)
