@@ -195,9 +195,10 @@ def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
     return np.where(bad, med, u)
 
 
-def _gaussian_sample(planes, row, col, scale):
+def _gaussian_sample(planes, row, col, scale, *, top=0, height=None):
     """Value of each correlation plane, divided by its ``scale``, at a sub-pixel position, from a
-    separable three-point Gaussian.
+    separable three-point Gaussian (``planes`` may hold only the rows from ``top`` of planes ``height``
+    rows high: the rows read must be among them).
 
     Around the sample nearest the position the plane is modelled as ``C exp(b t + c t^2)`` along each
     axis (fitted to that sample and its two neighbours), which a correlation peak of Gaussian dots
@@ -205,12 +206,14 @@ def _gaussian_sample(planes, row, col, scale):
     off the plane give 0.
     """
     k, h, w = planes.shape
+    h = h if height is None else height
     r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
     on = (r >= 1) & (r <= h - 2) & (c >= 1) & (c <= w - 2)
     r, c = np.clip(r, 1, h - 2), np.clip(c, 1, w - 2)
     i = np.arange(k)
-    centre = (planes[i, r, c] / scale).astype(np.float64)
     tr, tc = row - r, col - c
+    r = r - top
+    centre = (planes[i, r, c] / scale).astype(np.float64)
     trip = (
         (planes[i, r - 1, c] / scale, planes[i, r + 1, c] / scale, tr),
         (planes[i, r, c - 1] / scale, planes[i, r, c + 1] / scale, tc),
@@ -295,24 +298,38 @@ def _reference_spectra(a, valid, ys, xs, size):
     return np.conjugate(spec, out=spec), count, energy
 
 
-def _correlate_tiles(reference, tb, partial, wt, shape, size):
+def _correlate_tiles(reference, tb, partial, wt, shape, size, *, rows=None):
     """Circular correlation of each reference tile with the same tile of the gradient image, not
     normalised.
 
     ``reference`` is :func:`_reference_spectra`'s result; ``tb`` the gradient image's tiles as
     :func:`_tile_stack` gives them (overwritten), ``partial`` the ``shape`` (tile rows, tile columns)
     array of tiles with weights other than 1 (None: none) and ``wt`` the stacked weights of those
-    tiles' pixels (1 take part, 0 masked; None where no tile is partial).
+    tiles' pixels (1 take part, 0 masked; None where no tile is partial); ``rows`` (start, stop), where
+    given, the only rows of the planes wanted.
     Tiles are mean-subtracted over their unmasked pixels. Returns the ``(k, size, size)`` float32
-    planes (zero displacement at ``size // 2``), the norms ``sqrt(sum a^2 sum b^2)`` that make a
-    perfect match peak at 1, which tiles have enough unmasked pixels and the tiles' sums of squares
-    (reference, b).
+    planes (zero displacement at ``size // 2``; with ``rows`` only those rows, ``(k, stop - start,
+    size)``), the norms ``sqrt(sum a^2 sum b^2)`` that make a perfect match peak at 1, which tiles have
+    enough unmasked pixels and the tiles' sums of squares (reference, b).
+
+    Notes
+    -----
+    With ``rows`` the inverse transform is SciPy's ``irfft2`` in the two steps that pocketfft takes
+    (the complex transform along the rows' axis, then the real one along each row, scaled by
+    ``1 / size**2`` at the end), the second on the rows wanted only: the same float32 values as
+    ``irfft2``'s, bit for bit, with fewer of the real transforms.
     """
     spec_a, na, ea = reference
     nb, eb = _centre_tiles(tb, partial, wt, size)
     spec = sfft.rfft2(tb.reshape(-1, size, size), axes=(-2, -1), overwrite_x=True)
     spec *= spec_a
-    planes = sfft.irfft2(spec, s=(size, size), axes=(-2, -1), overwrite_x=True)
+    if rows is None:
+        planes = sfft.irfft2(spec, s=(size, size), axes=(-2, -1), overwrite_x=True)
+    else:
+        spec = sfft.ifft(spec, axis=-2, norm="forward", overwrite_x=True)
+        planes = sfft.irfft(spec[:, rows[0] : rows[1]], n=size, axis=-1, norm="forward", overwrite_x=True)
+        # irfft2's factor: float32(1 / size**2) from a long double quotient, as pocketfft computes it
+        planes *= np.float32(np.longdouble(1.0) / (size * size))
     norm = np.sqrt(ea * eb)
     enough = _MIN_VALID_FRACTION * size * size
     usable = ((na >= enough) & (nb >= enough) & (norm > 0)).reshape(shape)
@@ -523,18 +540,28 @@ def predict_displacement(
             tb, vb, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
             wt = vb[partial.ravel()] if _any(partial) else None
             prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
-        pl, norm, usable, energy = _correlate_tiles(spectra[size, sparse], tb, partial, wt, (ny, nx), size)
         half = size // 2
         if field is None:
+            top = 0  # the whole plane is searched
+            pl, norm, usable, energy = _correlate_tiles(spectra[size, sparse], tb, partial, wt, (ny, nx), size)
             r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
         else:  # the coarser pass placed the window: look for the residual within a quarter
             lo, m = half - size // 4, 2 * (size // 4) + 1
-            r, c = np.divmod(np.argmax(pl[:, lo : lo + m, lo : lo + m].reshape(len(pl), -1), axis=1), m)
+            # the planes' rows read (from ``top``): those searched and their neighbours, and those of the
+            # significance sample below (the neighbours' median residual lies within the search, so its
+            # nearest row within rint(lo - 0.5) ... rint(lo + m - 0.5)) and their neighbours
+            top = max(min(lo, int(np.rint(lo - 0.5))) - 1, 0)
+            stop = min(max(lo + m - 1, int(np.rint(lo + m - 0.5))) + 2, size)
+            pl, norm, usable, energy = _correlate_tiles(
+                spectra[size, sparse], tb, partial, wt, (ny, nx), size, rows=(top, stop)
+            )
+            search = pl[:, lo - top : lo - top + m, lo : lo + m]
+            r, c = np.divmod(np.argmax(search.reshape(len(pl), -1), axis=1), m)
             r, c = r + lo, c + lo
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
         scaled = np.where(norm > 0, norm, 1.0).astype(np.float32)  # the planes normalised where read
-        up, left, centre, right, down = (pl[i, r + dr, c + dc] / scaled for dr, dc in _CROSS)
+        up, left, centre, right, down = (pl[i, r + dr - top, c + dc] / scaled for dr, dc in _CROSS)
         rv = (r + three_point_offset(up, centre, down) - half).reshape(usable.shape)
         ru = (c + three_point_offset(left, centre, right) - half).reshape(usable.shape)
         ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
@@ -547,7 +574,7 @@ def predict_displacement(
 
     # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
     mu, mv = _fill_nan(_neighbour_median(ru)), _fill_nan(_neighbour_median(rv))
-    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled).reshape(u.shape)
+    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled, top=top, height=size).reshape(u.shape)
     # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
     # variances, so tiles without dots (variance of the noise only) hardly count
     ea, eb = (np.where(usable, e, 0.0) for e in energy)
