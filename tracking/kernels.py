@@ -1433,6 +1433,7 @@ def deform_nearest_kernel(
     x0: int,
     size: int,
     tiles: int,
+    tile_shift: wp.array2d(dtype=wp.int32),
     out: wp.array(dtype=wp.float32),
     out_valid: wp.array(dtype=wp.float32),
     tile_sums: wp.array3d(dtype=wp.int32),
@@ -1447,7 +1448,10 @@ def deform_nearest_kernel(
     row by row. ``tile_sums[0|1, tile row, tile column]`` sum the rounded shifts u and v over the
     tile's pixels and ``tile_sums[2, ...]`` counts its pixels whose weight is not 1. The field is
     interpolated bilinearly, each row and column given by its cell of tile centres and fraction in it:
-    first along the rows at the two centre columns around the pixel, then along the row."""
+    first along the rows at the two centre columns around the pixel, then along the row.
+    ``tile_shift[tile] = (u, v, 1)`` says that every pixel of the tile (row by row of tiles) rounds to
+    the shifts (u, v) (``(0, 0, 0)``: not known): where the tile's row then takes its pixels from inside
+    the image it is copied as a whole, without the interpolation (the same result)."""
     r, t = wp.tid()
     nx = tile_sums.shape[2]
     last = field_u.shape[1] - 1
@@ -1466,9 +1470,28 @@ def deform_nearest_kernel(
         sum_v = int(0)
         n_part = int(0)
         # the tile's row r - tile_row * size in the tile-major output
-        at = ((tile_row * nx + k) * size + r - tile_row * size) * size
+        tile = tile_row * nx + k
+        at = (tile * size + r - tile_row * size) * size
         col0 = x0 + k * size
-        for c in range(size):
+        ru = tile_shift[tile, 0]
+        rv = row + tile_shift[tile, 1]
+        whole = tile_shift[tile, 2] != 0 and rv >= 0 and rv < h and col0 + ru >= 0 and col0 + ru + size <= w
+        pixels = size  # those moved one by one below
+        if whole:
+            pixels = 0
+            # one shift for the whole row, all of it from inside the image: a copy
+            src0 = rv * w + col0 + ru
+            sum_u = ru * size
+            sum_v = tile_shift[tile, 1] * size
+            for c in range(size):
+                v = wp.float32(1.0)
+                if use_valid != 0:
+                    v = valid[src0 + c]
+                    if v != wp.float32(1.0):
+                        n_part += 1
+                out[at + c] = wp.float32(image[src0 + c])
+                out_valid[at + c] = v
+        for c in range(pixels):
             col = col0 + c
             ix = col_cell[col]
             if ix != cell:

@@ -336,6 +336,42 @@ def _correlate_tiles(reference, tb, partial, wt, shape, size, *, rows=None):
     return planes, norm, usable, (ea.reshape(shape), eb.reshape(shape))
 
 
+def _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size):
+    """Which tiles (rows ``ys``, columns ``xs``, side ``size``) the tile ``field`` moves by one whole-pixel
+    shift: ``(tiles, 3)`` int32 rows (rounded u, rounded v, 1) for those, (0, 0, 0) for the others,
+    tiles row by row. ``row_cell`` and ``col_cell`` are the field's cells of the image's rows and
+    columns (:func:`_cell`).
+
+    Within a cell of tile centres the field is bilinear, so over a rectangle of pixels it is largest and
+    smallest at the rectangle's corners: the field is read at each tile's first and last rows and
+    columns and at those on both sides of a change of cell. A tile whose values there all lie more than
+    1e-6 px inside one rounding interval has every pixel rounded alike (the interpolation's rounding
+    errors are many orders smaller).
+    """
+    u, v, cy, cx = field
+    ny, nx = len(ys), len(xs)
+
+    def corners(cells, start, count):
+        """The block's rows (or columns) at the ends of its tiles and of its runs of one cell."""
+        at = np.arange(count * size)
+        change = np.flatnonzero(np.diff(cells[start : start + count * size]) != 0)
+        ends = np.concatenate([at[::size], at[size - 1 :: size], change, change + 1])
+        return np.unique(ends)
+
+    rows, cols = corners(row_cell, ys[0], ny), corners(col_cell, xs[0], nx)
+    f = _bilinear(np.stack([u, v]), cy, cx, (ys[0] + rows)[:, None], (xs[0] + cols)[None, :])
+    # the extremes over each tile's rows, then over its columns (every tile has rows and columns there)
+    row_start, col_start = np.searchsorted(rows, size * np.arange(ny)), np.searchsorted(cols, size * np.arange(nx))
+    lo = np.minimum.reduceat(np.minimum.reduceat(f, row_start, axis=1), col_start, axis=2)
+    hi = np.maximum.reduceat(np.maximum.reduceat(f, row_start, axis=1), col_start, axis=2)
+    shift = np.rint(lo)
+    one = ((lo > shift - 0.5 + 1e-6) & (hi < shift + 0.5 - 1e-6)).all(axis=0)
+    out = np.zeros((ny * nx, 3), dtype=np.int32)
+    out[:, 0], out[:, 1] = (np.where(one, shift[i], 0).ravel() for i in (0, 1))
+    out[:, 2] = one.ravel()
+    return out
+
+
 def _deform_nearest(image, valid, field, ys, xs, size, device):
     """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
     and rounded to whole pixels at every pixel, over the block of the finer pass's tiles (rows ``ys``,
@@ -383,6 +419,7 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
             int(xs[0]),
             size,
             tiles,
+            wp.array(_uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size), dtype=wp.int32, device=device),
             out,
             out_valid,
             tile_sums,
