@@ -1434,6 +1434,7 @@ def deform_nearest_kernel(
     size: int,
     tiles: int,
     tile_shift: wp.array2d(dtype=wp.int32),
+    copy_whole: int,
     out: wp.array(dtype=wp.float32),
     out_valid: wp.array(dtype=wp.float32),
     tile_sums: wp.array3d(dtype=wp.int32),
@@ -1450,8 +1451,9 @@ def deform_nearest_kernel(
     interpolated bilinearly, each row and column given by its cell of tile centres and fraction in it:
     first along the rows at the two centre columns around the pixel, then along the row.
     ``tile_shift[tile] = (u, v, 1)`` says that every pixel of the tile (row by row of tiles) rounds to
-    the shifts (u, v) (``(0, 0, 0)``: not known): where the tile's row then takes its pixels from inside
-    the image it is copied as a whole, without the interpolation (the same result)."""
+    the shifts (u, v) and takes its pixel from inside the image (``(0, 0, 0)``: not known): such a tile
+    is copied row by row without the interpolation (the same result) if ``copy_whole``, else left to
+    the caller (its pixels and weights are not written; its shift sums and count are)."""
     r, t = wp.tid()
     nx = tile_sums.shape[2]
     last = field_u.shape[1] - 1
@@ -1473,17 +1475,14 @@ def deform_nearest_kernel(
         tile = tile_row * nx + k
         at = (tile * size + r - tile_row * size) * size
         col0 = x0 + k * size
-        ru = tile_shift[tile, 0]
-        rv = row + tile_shift[tile, 1]
-        whole = tile_shift[tile, 2] != 0 and rv >= 0 and rv < h and col0 + ru >= 0 and col0 + ru + size <= w
         pixels = size  # those moved one by one below
-        if whole:
+        if tile_shift[tile, 2] != 0:
             pixels = 0
             # one shift for the whole row, all of it from inside the image: a copy
-            src0 = rv * w + col0 + ru
-            sum_u = ru * size
+            sum_u = tile_shift[tile, 0] * size
             sum_v = tile_shift[tile, 1] * size
-            for c in range(size):
+            src0 = (row + tile_shift[tile, 1]) * w + col0 + tile_shift[tile, 0]
+            for c in range(size * copy_whole):
                 v = wp.float32(1.0)
                 if use_valid != 0:
                     v = valid[src0 + c]

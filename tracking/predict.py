@@ -336,11 +336,11 @@ def _correlate_tiles(reference, tb, partial, wt, shape, size, *, rows=None):
     return planes, norm, usable, (ea.reshape(shape), eb.reshape(shape))
 
 
-def _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size):
+def _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size, shape):
     """Which tiles (rows ``ys``, columns ``xs``, side ``size``) the tile ``field`` moves by one whole-pixel
-    shift: ``(tiles, 3)`` int32 rows (rounded u, rounded v, 1) for those, (0, 0, 0) for the others,
-    tiles row by row. ``row_cell`` and ``col_cell`` are the field's cells of the image's rows and
-    columns (:func:`_cell`).
+    shift from inside the image (of ``shape``): ``(tiles, 3)`` int32 rows (rounded u, rounded v, 1) for
+    those, (0, 0, 0) for the others, tiles row by row. ``row_cell`` and ``col_cell`` are the field's
+    cells of the image's rows and columns (:func:`_cell`).
 
     Within a cell of tile centres the field is bilinear, so over a rectangle of pixels it is largest and
     smallest at the rectangle's corners: the field is read at each tile's first and last rows and
@@ -366,13 +366,15 @@ def _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size):
     hi = np.maximum.reduceat(np.maximum.reduceat(f, row_start, axis=1), col_start, axis=2)
     shift = np.rint(lo)
     one = ((lo > shift - 0.5 + 1e-6) & (hi < shift + 0.5 - 1e-6)).all(axis=0)
+    top, left = ys[:, None] + shift[1], xs[None, :] + shift[0]
+    one &= (top >= 0) & (top + size <= shape[0]) & (left >= 0) & (left + size <= shape[1])
     out = np.zeros((ny * nx, 3), dtype=np.int32)
     out[:, 0], out[:, 1] = (np.where(one, shift[i], 0).ravel() for i in (0, 1))
     out[:, 2] = one.ravel()
     return out
 
 
-def _deform_nearest(image, valid, field, ys, xs, size, device):
+def _deform_nearest(image, valid, field, ys, xs, size, device, *, whole_on_host=None):
     """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
     and rounded to whole pixels at every pixel, over the block of the finer pass's tiles (rows ``ys``,
     columns ``xs``, side ``size``) only (Warp kernel ``deform_nearest_kernel``).
@@ -381,6 +383,11 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
     moved block), the weights of their pixels (1 where the source pixel lies inside the image, times
     ``valid`` there; stacked alike) — views of the thread's workspace, valid until the next call —, the
     mean rounded shifts u and v of each tile and which tiles have pixels of weight other than 1.
+
+    Tiles that the field moves by one whole-pixel shift from inside the image
+    (:func:`_uniform_tile_shifts`) are copied as a whole: by NumPy where ``whole_on_host`` (default:
+    on the CPU, where a gather of whole tiles costs far less than the kernel's pixel by pixel), else by
+    the kernel.
     """
     h, w = image.shape
     u, v, cy, cx = field
@@ -398,7 +405,10 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
     # float64 pixels (those of the tracker's images, no copy), rounded to float32 as they are moved
     img = on_device(np.asarray(image, dtype=np.float64).reshape(-1), wp.float64)
     # a row of all tiles per thread on the CPU (fewer, longer threads), of one tile on a GPU
-    tiles = nx if wp.get_device(device).is_cpu else 1
+    is_cpu = wp.get_device(device).is_cpu
+    tiles = nx if is_cpu else 1
+    whole_on_host = is_cpu if whole_on_host is None else whole_on_host
+    shifts = _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size, (h, w))
     # without ``valid`` the kernel reads none: ``out_valid`` stands in for it
     wp.launch(
         deform_nearest_kernel,
@@ -419,7 +429,8 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
             int(xs[0]),
             size,
             tiles,
-            wp.array(_uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size), dtype=wp.int32, device=device),
+            wp.array(shifts, dtype=wp.int32, device=device),
+            int(not whole_on_host),
             out,
             out_valid,
             tile_sums,
@@ -427,13 +438,27 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
         device=device,
     )
     sums = tile_sums.numpy()
+    moved, weights, partial = out.numpy().reshape(ny * nx, size, size), out_valid.numpy(), sums[2] > 0
+    whole = np.flatnonzero(shifts[:, 2]) if whole_on_host else ()
+    if len(whole):
+        # the source tiles' corners, tiles row by row
+        top = ys[whole // nx] + shifts[whole, 1]
+        left = xs[whole % nx] + shifts[whole, 0]
+        windows = np.lib.stride_tricks.sliding_window_view(np.asarray(image), (size, size))
+        moved[whole] = windows[top, left]
+        weights = weights.reshape(ny * nx, size, size)
+        if valid is None:
+            weights[whole] = 1.0
+        else:
+            weights[whole] = np.lib.stride_tricks.sliding_window_view(valid, (size, size))[top, left]
+            partial.ravel()[whole] = (weights[whole] != 1).any(axis=(1, 2))
     stack = (-1, size * size)
     return (
-        out.numpy().reshape(stack),
-        out_valid.numpy().reshape(stack),
+        moved.reshape(stack),
+        weights.reshape(stack),
         sums[0] / float(size * size),
         sums[1] / float(size * size),
-        sums[2] > 0,
+        partial,
     )
 
 
