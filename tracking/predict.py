@@ -170,26 +170,34 @@ def _nanmedian0(stack):
     return np.where(count > 0, 0.5 * (a + b), np.nan)
 
 
+#: The offsets (rows, columns) of a tile's eight neighbours.
+_NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
+
+
+def _neighbours(u):
+    """The eight neighbours of each tile of a field (or a stack of fields, ``(..., ny, nx)``), NaN beyond
+    the edges, stacked along a new first axis."""
+    ny, nx = u.shape[-2:]
+    pad = np.pad(u, [(0, 0)] * (u.ndim - 2) + [(1, 1), (1, 1)], constant_values=np.nan)
+    return np.stack([pad[..., 1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in _NEIGHBOURS])
+
+
 def _neighbour_median(u):
-    """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none)."""
-    ny, nx = u.shape
-    pad = np.pad(u, 1, constant_values=np.nan)
-    stack = [pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    return _nanmedian0(np.stack(stack))
+    """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none),
+    of a field or a stack of fields (``(..., ny, nx)``)."""
+    return _nanmedian0(_neighbours(u))
 
 
 def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
-    """Tiles failing the normalised median test against their neighbours take the neighbours' median.
+    """Tiles failing the normalised median test against their neighbours take the neighbours' median
+    (of a field or of each of a stack of fields, ``(..., ny, nx)``).
 
     Westerweel and Scarano (2005): a tile further from its neighbours' median than ``threshold`` times
     (their median distance from it + ``epsilon`` px) is an outlier.
     """
-    ny, nx = u.shape
-    med = _neighbour_median(u)
-    pad = np.pad(u, 1, constant_values=np.nan)
-    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    spread = np.stack([np.abs(pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] - med) for dy, dx in shifts])
-    scale = _nanmedian0(spread)
+    around = _neighbours(u)
+    med = _nanmedian0(around)
+    scale = _nanmedian0(np.abs(around - med))
     scale[np.isnan(scale)] = np.inf
     bad = np.isfinite(med) & ~(np.abs(u - med) <= threshold * (scale + epsilon))
     return np.where(bad, med, u)
@@ -627,7 +635,7 @@ def predict_displacement(
         rv = (r + three_point_offset(up, centre, down) - half).reshape(usable.shape)
         ru = (c + three_point_offset(left, centre, right) - half).reshape(usable.shape)
         ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
-        u, v = _replace_outliers(base_u + ru), _replace_outliers(base_v + rv)
+        u, v = _replace_outliers(np.stack([base_u + ru, base_v + rv]))
         field = (_fill_nan(u), _fill_nan(v), cy, cx)
         change = np.maximum(np.abs(field[0] - prev_u), np.abs(field[1] - prev_v))
         if np.all(change <= _RESOLVED):
@@ -635,7 +643,7 @@ def predict_displacement(
     u, v = field[0], field[1]
 
     # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
-    mu, mv = _fill_nan(_neighbour_median(ru)), _fill_nan(_neighbour_median(rv))
+    mu, mv = (_fill_nan(f) for f in _neighbour_median(np.stack([ru, rv])))
     coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled, top=top, height=size).reshape(u.shape)
     # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
     # variances, so tiles without dots (variance of the noise only) hardly count
