@@ -388,9 +388,10 @@ def _deform_nearest(image, valid, field, ys, xs, size, device, *, whole_on_host=
     columns ``xs``, side ``size``) only (Warp kernel ``deform_nearest_kernel``).
 
     Returns the moved tiles as a ``(tiles, size * size)`` float32 stack (as :func:`_tile_stack` of the
-    moved block), the weights of their pixels (1 where the source pixel lies inside the image, times
-    ``valid`` there; stacked alike) — views of the thread's workspace, valid until the next call —, the
-    mean rounded shifts u and v of each tile and which tiles have pixels of weight other than 1.
+    moved block; a view of the thread's workspace, valid until the next call), the weights of the pixels
+    of the tiles that have weights other than 1 (1 where the source pixel lies inside the image, times
+    ``valid`` there; stacked alike, those tiles in order; None where there are none), the mean rounded
+    shifts u and v of each tile and which tiles have pixels of weight other than 1.
 
     Tiles that the field moves by one whole-pixel shift from inside the image
     (:func:`_uniform_tile_shifts`) are copied as a whole: by NumPy where ``whole_on_host`` (default:
@@ -446,24 +447,21 @@ def _deform_nearest(image, valid, field, ys, xs, size, device, *, whole_on_host=
         device=device,
     )
     sums = tile_sums.numpy()
-    moved, weights, partial = out.numpy().reshape(ny * nx, size, size), out_valid.numpy(), sums[2] > 0
+    stack = (ny * nx, size * size)
+    moved, weights, partial = out.numpy().reshape(stack), out_valid.numpy().reshape(stack), sums[2] > 0
     whole = np.flatnonzero(shifts[:, 2]) if whole_on_host else ()
     if len(whole):
         # the source tiles' corners, tiles row by row
         top = ys[whole // nx] + shifts[whole, 1]
         left = xs[whole % nx] + shifts[whole, 0]
-        windows = np.lib.stride_tricks.sliding_window_view(np.asarray(image), (size, size))
-        moved[whole] = windows[top, left]
-        weights = weights.reshape(ny * nx, size, size)
-        if valid is None:
-            weights[whole] = 1.0
-        else:
-            weights[whole] = np.lib.stride_tricks.sliding_window_view(valid, (size, size))[top, left]
-            partial.ravel()[whole] = (weights[whole] != 1).any(axis=(1, 2))
-    stack = (-1, size * size)
+        windows = np.lib.stride_tricks.sliding_window_view
+        moved.reshape(-1, size, size)[whole] = windows(np.asarray(image), (size, size))[top, left]
+        if valid is not None:  # (without, the whole tiles' weights are all 1: not partial, not read)
+            weights.reshape(-1, size, size)[whole] = windows(valid, (size, size))[top, left]
+            partial.ravel()[whole] = (weights[whole] != 1).any(axis=1)
     return (
-        moved.reshape(stack),
-        weights.reshape(stack),
+        moved,
+        weights[partial.ravel()] if partial.any() else None,
         sums[0] / float(size * size),
         sums[1] / float(size * size),
         partial,
@@ -487,7 +485,7 @@ def deform_nearest_numpy(image, valid, field, ys, xs, size):
     moved = image[ry, rx].astype(np.float32)
     at = size * np.arange(ny), size * np.arange(nx)
     stacks = [_tile_stack(_tiles_view(f, *at, size)) for f in (moved, weights)]
-    return stacks[0], stacks[1], means[0], means[1], partial
+    return stacks[0], stacks[1][partial.ravel()] if partial.any() else None, means[0], means[1], partial
 
 
 def predict_displacement(
@@ -607,8 +605,7 @@ def predict_displacement(
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
             # (a nearest-pixel window deformation: no interpolation, the residual is measured below),
             # its tiles stacked
-            tb, vb, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
-            wt = vb[partial.ravel()] if _any(partial) else None
+            tb, wt, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
             prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
         half = size // 2
         if field is None:
