@@ -629,8 +629,10 @@ def predict_displacement(
         i = np.arange(len(pl))
         scaled = np.where(norm > 0, norm, 1.0).astype(np.float32)  # the planes normalised where read
         up, left, centre, right, down = (pl[i, r + dr - top, c + dc] / scaled for dr, dc in _CROSS)
-        rv = (r + three_point_offset(up, centre, down) - half).reshape(usable.shape)
-        ru = (c + three_point_offset(left, centre, right) - half).reshape(usable.shape)
+        # the fits along the columns and along the rows in one call
+        off = three_point_offset(np.stack([up, left]), np.stack([centre, centre]), np.stack([down, right]))
+        rv = (r + off[0] - half).reshape(usable.shape)
+        ru = (c + off[1] - half).reshape(usable.shape)
         ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
         u, v = _replace_outliers(np.stack([base_u + ru, base_v + rv]))
         field = (_fill_nan(u), _fill_nan(v), cy, cx)
