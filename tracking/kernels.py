@@ -1416,6 +1416,17 @@ def field_at_row(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, i
     return (wp.float64(1.0) - ty) * field[iy, ix] + ty * field[iy1, ix]
 
 
+@wp.func
+def rounds_to(a: wp.float64, b: wp.float64, s: int) -> int:
+    """1 where ``a`` and ``b`` both lie more than 1e-6 inside the rounding interval of the integer ``s``
+    (so does then anything between them, give or take rounding errors far smaller), else 0."""
+    lo = wp.float64(s) - wp.float64(0.5) + wp.float64(1e-6)
+    hi = wp.float64(s) + wp.float64(0.5) - wp.float64(1e-6)
+    if a > lo and a < hi and b > lo and b < hi:
+        return 1
+    return 0
+
+
 @wp.kernel
 def deform_nearest_kernel(
     image: wp.array(dtype=wp.float64),
@@ -1453,7 +1464,9 @@ def deform_nearest_kernel(
     ``tile_shift[tile] = (u, v, 1)`` says that every pixel of the tile (row by row of tiles) rounds to
     the shifts (u, v) and takes its pixel from inside the image (``(0, 0, 0)``: not known): such a tile
     is copied row by row without the interpolation (the same result) if ``copy_whole``, else left to
-    the caller (its pixels and weights are not written; its shift sums and count are)."""
+    the caller (its pixels and weights are not written; its shift sums and count are). A row of
+    another tile whose ends lie in one cell of centres, round alike there (:func:`rounds_to`) and take
+    their pixels from inside the image is copied alike."""
     r, t = wp.tid()
     nx = tile_sums.shape[2]
     last = field_u.shape[1] - 1
@@ -1475,14 +1488,44 @@ def deform_nearest_kernel(
         tile = tile_row * nx + k
         at = (tile * size + r - tile_row * size) * size
         col0 = x0 + k * size
+        # one shift (su1, sv1) for the tile's whole row, from inside the image: known for the tile
+        # (tile_shift: 1), else found from the row's ends where they lie in one cell of centres (the
+        # field is linear along the row there: 2)
+        one_shift = tile_shift[tile, 2]
+        su1 = tile_shift[tile, 0]
+        sv1 = tile_shift[tile, 1]
+        if one_shift == 0:
+            ix = col_cell[col0]
+            if ix == col_cell[col0 + size - 1]:
+                if ix != cell:
+                    cell = ix
+                    ix1 = wp.min(ix + 1, last)
+                    u0 = field_at_row(field_u, iy, ty, ix)
+                    u1 = field_at_row(field_u, iy, ty, ix1)
+                    v0 = field_at_row(field_v, iy, ty, ix)
+                    v1 = field_at_row(field_v, iy, ty, ix1)
+                ta = col_frac[col0]
+                tb = col_frac[col0 + size - 1]
+                ua = (one - ta) * u0 + ta * u1
+                va = (one - ta) * v0 + ta * v1
+                su1 = int(wp.rint(ua))
+                sv1 = int(wp.rint(va))
+                same = rounds_to(ua, (one - tb) * u0 + tb * u1, su1) * rounds_to(va, (one - tb) * v0 + tb * v1, sv1)
+                rv = row + sv1
+                if same != 0 and rv >= 0 and rv < h and col0 + su1 >= 0 and col0 + su1 + size <= w:
+                    one_shift = 2
         pixels = size  # those moved one by one below
-        if tile_shift[tile, 2] != 0:
+        if one_shift != 0:
             pixels = 0
-            # one shift for the whole row, all of it from inside the image: a copy
-            sum_u = tile_shift[tile, 0] * size
-            sum_v = tile_shift[tile, 1] * size
-            src0 = (row + tile_shift[tile, 1]) * w + col0 + tile_shift[tile, 0]
-            for c in range(size * copy_whole):
+            # one shift for the whole row, all of it from inside the image: a copy (but of the tiles
+            # that the caller copies)
+            sum_u = su1 * size
+            sum_v = sv1 * size
+            src0 = (row + sv1) * w + col0 + su1
+            copied = size
+            if one_shift == 1 and copy_whole == 0:
+                copied = 0
+            for c in range(copied):
                 v = wp.float32(1.0)
                 if use_valid != 0:
                     v = valid[src0 + c]
