@@ -1464,7 +1464,7 @@ def deform_nearest_kernel(
     ``tile_shift[tile] = (u, v, 1)`` says that every pixel of the tile (row by row of tiles) rounds to
     the shifts (u, v) and takes its pixel from inside the image (``(0, 0, 0)``: not known): such a tile
     is copied row by row without the interpolation (the same result) if ``copy_whole``, else left to
-    the caller (its pixels and weights are not written; its shift sums and count are). A row of
+    the caller (its pixels and weights are not written nor its weights counted; its shift sums are). A row of
     another tile whose ends lie in one cell of centres, round alike there (:func:`rounds_to`) and take
     their pixels from inside the image is copied alike."""
     r, t = wp.tid()
