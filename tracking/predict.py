@@ -118,19 +118,18 @@ def _sparse_tile_grid(n, size):
     return (n - size - stride * (count - 1)) // 2 + stride * np.arange(count)
 
 
-def _gather_tiles(image, ys, xs, size):
-    """The ``size`` px tiles of ``image`` starting at rows ``ys`` and columns ``xs`` (each evenly spaced)
-    side by side in one contiguous block (a strided copy)."""
+def _tiles_view(image, ys, xs, size):
+    """The ``size`` px tiles of ``image`` starting at rows ``ys`` and columns ``xs`` (each evenly
+    spaced) as a read-only ``(len(ys), len(xs), size, size)`` view."""
     sy = int(ys[1] - ys[0]) if len(ys) > 1 else size
     sx = int(xs[1] - xs[0]) if len(xs) > 1 else size
     r0, c0 = image.strides
-    view = np.lib.stride_tricks.as_strided(
+    return np.lib.stride_tricks.as_strided(
         image[ys[0] :, xs[0] :],
-        shape=(len(ys), size, len(xs), size),
-        strides=(sy * r0, r0, sx * c0, c0),
+        shape=(len(ys), len(xs), size, size),
+        strides=(sy * r0, sx * c0, r0, c0),
         writeable=False,
     )
-    return np.ascontiguousarray(view).reshape(len(ys) * size, len(xs) * size)
 
 
 def _bilinear(field, centres_y, centres_x, y, x):
@@ -171,34 +170,43 @@ def _nanmedian0(stack):
     return np.where(count > 0, 0.5 * (a + b), np.nan)
 
 
+#: The offsets (rows, columns) of a tile's eight neighbours.
+_NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
+
+
+def _neighbours(u):
+    """The eight neighbours of each tile of a field (or a stack of fields, ``(..., ny, nx)``), NaN beyond
+    the edges, stacked along a new first axis."""
+    ny, nx = u.shape[-2:]
+    pad = np.pad(u, [(0, 0)] * (u.ndim - 2) + [(1, 1), (1, 1)], constant_values=np.nan)
+    return np.stack([pad[..., 1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in _NEIGHBOURS])
+
+
 def _neighbour_median(u):
-    """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none)."""
-    ny, nx = u.shape
-    pad = np.pad(u, 1, constant_values=np.nan)
-    stack = [pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    return _nanmedian0(np.stack(stack))
+    """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none),
+    of a field or a stack of fields (``(..., ny, nx)``)."""
+    return _nanmedian0(_neighbours(u))
 
 
 def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
-    """Tiles failing the normalised median test against their neighbours take the neighbours' median.
+    """Tiles failing the normalised median test against their neighbours take the neighbours' median
+    (of a field or of each of a stack of fields, ``(..., ny, nx)``).
 
     Westerweel and Scarano (2005): a tile further from its neighbours' median than ``threshold`` times
     (their median distance from it + ``epsilon`` px) is an outlier.
     """
-    ny, nx = u.shape
-    med = _neighbour_median(u)
-    pad = np.pad(u, 1, constant_values=np.nan)
-    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    spread = np.stack([np.abs(pad[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] - med) for dy, dx in shifts])
-    scale = _nanmedian0(spread)
+    around = _neighbours(u)
+    med = _nanmedian0(around)
+    scale = _nanmedian0(np.abs(around - med))
     scale[np.isnan(scale)] = np.inf
     bad = np.isfinite(med) & ~(np.abs(u - med) <= threshold * (scale + epsilon))
     return np.where(bad, med, u)
 
 
-def _gaussian_sample(planes, row, col, scale):
+def _gaussian_sample(planes, row, col, scale, *, top=0, height=None):
     """Value of each correlation plane, divided by its ``scale``, at a sub-pixel position, from a
-    separable three-point Gaussian.
+    separable three-point Gaussian (``planes`` may hold only the rows from ``top`` of planes ``height``
+    rows high: the rows read must be among them).
 
     Around the sample nearest the position the plane is modelled as ``C exp(b t + c t^2)`` along each
     axis (fitted to that sample and its two neighbours), which a correlation peak of Gaussian dots
@@ -206,12 +214,14 @@ def _gaussian_sample(planes, row, col, scale):
     off the plane give 0.
     """
     k, h, w = planes.shape
+    h = h if height is None else height
     r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
     on = (r >= 1) & (r <= h - 2) & (c >= 1) & (c <= w - 2)
     r, c = np.clip(r, 1, h - 2), np.clip(c, 1, w - 2)
     i = np.arange(k)
-    centre = (planes[i, r, c] / scale).astype(np.float64)
     tr, tc = row - r, col - c
+    r = r - top
+    centre = (planes[i, r, c] / scale).astype(np.float64)
     trip = (
         (planes[i, r - 1, c] / scale, planes[i, r + 1, c] / scale, tr),
         (planes[i, r, c - 1] / scale, planes[i, r, c + 1] / scale, tc),
@@ -230,47 +240,50 @@ def _gaussian_sample(planes, row, col, scale):
     return np.where(on, value, 0.0)
 
 
-def _tile_stack(block, ny, nx, size, *, roll=False, which=None):
-    """The ``ny`` x ``nx`` side-by-side tiles of ``block`` (or those where the ``(ny, nx)`` bool array
-    ``which`` is True) as a contiguous ``(tiles, size * size)`` float32 array, tiles row by row; with
-    ``roll`` each tile is rolled circularly by ``-(size // 2)`` along both axes (its pixel (0, 0) taken
-    from (size // 2, size // 2))."""
-    view = block[: ny * size, : nx * size].reshape(ny, size, nx, size).swapaxes(1, 2)
+def _tile_stack(tiles, *, roll=False, which=None):
+    """The tiles of a ``(ny, nx, size, size)`` view (:func:`_tiles_view`; or those where the ``(ny, nx)``
+    bool array ``which`` is True) as a contiguous ``(tiles, size * size)`` float32 array, tiles row by
+    row; with ``roll`` each tile is rolled circularly by ``-(size // 2)`` along both axes (its pixel
+    (0, 0) taken from (size // 2, size // 2))."""
+    size = tiles.shape[-1]
     if which is not None:
-        view = view[which]
-    out = np.empty((*view.shape[:-2], size, size), dtype=np.float32)
+        tiles = tiles[which]
+    out = np.empty((*tiles.shape[:-2], size, size), dtype=np.float32)
     if roll:
         k = size // 2
         for dst_r, src_r in ((np.s_[: size - k], np.s_[k:]), (np.s_[size - k :], np.s_[:k])):
             for dst_c, src_c in ((np.s_[: size - k], np.s_[k:]), (np.s_[size - k :], np.s_[:k])):
-                out[..., dst_r, dst_c] = view[..., src_r, src_c]
+                out[..., dst_r, dst_c] = tiles[..., src_r, src_c]
     else:
-        out[...] = view
+        out[...] = tiles
     return out.reshape(-1, size * size)
 
 
-def _partial_tiles(weights, ny, nx, size):
-    """Which of the ``ny`` x ``nx`` tiles of the weights block have pixels of weight other than 1
+def _partial_tiles(weights):
+    """Which tiles of a ``(ny, nx, size, size)`` view of the weights have pixels of weight other than 1
     (None: no weights, no such tile)."""
     if weights is None:
         return None
-    tiles = weights[: ny * size, : nx * size].reshape(ny, size, nx, size)
-    return (tiles != 1).any(axis=(1, 3))
+    return (weights != 1).any(axis=(2, 3))
 
 
-def _centre_tiles(t, block, partial, ny, nx, size, *, roll=False):
+def _any(partial):
+    """Whether any tile is partial (``partial`` None: none)."""
+    return partial is not None and bool(partial.any())
+
+
+def _centre_tiles(t, partial, wt, size):
     """Subtract in place each tile's mean over its pixels that take part and zero the others.
 
-    ``t`` holds the tiles of :func:`_tile_stack` (``roll`` as there); ``block`` the weights of their
-    pixels (1 take part, 0 not, or fractions) and ``partial`` which tiles have weights other than 1
-    (None: every pixel of every tile takes part). Returns the tiles' weight sums and sums of squares
-    (after the subtraction).
+    ``t`` holds the tiles of :func:`_tile_stack`; ``partial`` which tiles have weights other than 1
+    (None: every pixel of every tile takes part) and ``wt`` the stacked weights of those tiles' pixels
+    (1 take part, 0 not, or fractions; tiles in the order of ``t``; None where no tile is partial).
+    Returns the tiles' weight sums and sums of squares (after the subtraction).
     """
     t -= t.mean(axis=1, keepdims=True)
     count = np.full(len(t), float(size * size))
-    if partial is not None and partial.any():
+    if _any(partial):
         rows = np.flatnonzero(partial.ravel())
-        wt = _tile_stack(block, ny, nx, size, roll=roll, which=partial)
         sub = t[rows]
         n = wt.sum(axis=1, dtype=np.float64)
         sub -= (np.einsum("ij,ij->i", sub, wt) / np.maximum(n, 1.0)).astype(np.float32)[:, None]
@@ -284,47 +297,106 @@ def _reference_spectra(a, valid, ys, xs, size):
     """Conjugate spectra of the mean-subtracted reference tiles (rolled by half a tile, so that the
     inverse transform of a cross spectrum puts zero displacement at ``size // 2``), with the tiles'
     weight sums and sums of squares: what :func:`_correlate_tiles` needs of the reference."""
-    y0, x0, ny, nx = ys[0], xs[0], len(ys), len(xs)
-    block = np.s_[y0 : y0 + ny * size, x0 : x0 + nx * size]
-    ta = _tile_stack(a[block], ny, nx, size, roll=True)
-    va = None if valid is None else valid[block]
-    count, energy = _centre_tiles(ta, va, _partial_tiles(va, ny, nx, size), ny, nx, size, roll=True)
+    ta = _tile_stack(_tiles_view(a, ys, xs, size), roll=True)
+    va = None if valid is None else _tiles_view(valid, ys, xs, size)
+    partial = _partial_tiles(va)
+    wt = _tile_stack(va, roll=True, which=partial) if _any(partial) else None
+    count, energy = _centre_tiles(ta, partial, wt, size)
     spec = sfft.rfft2(ta.reshape(-1, size, size), axes=(-2, -1), overwrite_x=True)
     return np.conjugate(spec, out=spec), count, energy
 
 
-def _correlate_tiles(reference, b, vb, partial, size):
-    """Circular correlation of each reference tile with the same tile of ``b``, not normalised.
+def _correlate_tiles(reference, tb, partial, wt, shape, size, *, rows=None):
+    """Circular correlation of each reference tile with the same tile of the gradient image, not
+    normalised.
 
-    ``reference`` is :func:`_reference_spectra`'s result; ``b`` the block of tiles (rows and columns
-    a multiple of ``size``), ``vb`` its pixels' weights (1 take part, 0 masked; None: all pixels) and
-    ``partial`` the tiles with weights other than 1 (None: none).
+    ``reference`` is :func:`_reference_spectra`'s result; ``tb`` the gradient image's tiles as
+    :func:`_tile_stack` gives them (overwritten), ``partial`` the ``shape`` (tile rows, tile columns)
+    array of tiles with weights other than 1 (None: none) and ``wt`` the stacked weights of those
+    tiles' pixels (1 take part, 0 masked; None where no tile is partial); ``rows`` (start, stop), where
+    given, the only rows of the planes wanted.
     Tiles are mean-subtracted over their unmasked pixels. Returns the ``(k, size, size)`` float32
-    planes (zero displacement at ``size // 2``), the norms ``sqrt(sum a^2 sum b^2)`` that make a
-    perfect match peak at 1, which tiles have enough unmasked pixels and the tiles' sums of squares
-    (reference, b).
+    planes (zero displacement at ``size // 2``; with ``rows`` only those rows, ``(k, stop - start,
+    size)``), the norms ``sqrt(sum a^2 sum b^2)`` that make a perfect match peak at 1, which tiles have
+    enough unmasked pixels and the tiles' sums of squares (reference, b).
+
+    Notes
+    -----
+    With ``rows`` the inverse transform is SciPy's ``irfft2`` in the two steps that pocketfft takes
+    (the complex transform along the rows' axis, then the real one along each row, scaled by
+    ``1 / size**2`` at the end), the second on the rows wanted only: the same float32 values as
+    ``irfft2``'s, bit for bit, with fewer of the real transforms.
     """
     spec_a, na, ea = reference
-    ny, nx = b.shape[0] // size, b.shape[1] // size
-    tb = _tile_stack(b, ny, nx, size)
-    nb, eb = _centre_tiles(tb, vb, partial, ny, nx, size)
+    nb, eb = _centre_tiles(tb, partial, wt, size)
     spec = sfft.rfft2(tb.reshape(-1, size, size), axes=(-2, -1), overwrite_x=True)
     spec *= spec_a
-    planes = sfft.irfft2(spec, s=(size, size), axes=(-2, -1), overwrite_x=True)
+    if rows is None:
+        planes = sfft.irfft2(spec, s=(size, size), axes=(-2, -1), overwrite_x=True)
+    else:
+        spec = sfft.ifft(spec, axis=-2, norm="forward", overwrite_x=True)
+        planes = sfft.irfft(spec[:, rows[0] : rows[1]], n=size, axis=-1, norm="forward", overwrite_x=True)
+        # irfft2's factor: float32(1 / size**2) from a long double quotient, as pocketfft computes it
+        planes *= np.float32(np.longdouble(1.0) / (size * size))
     norm = np.sqrt(ea * eb)
     enough = _MIN_VALID_FRACTION * size * size
-    usable = ((na >= enough) & (nb >= enough) & (norm > 0)).reshape(ny, nx)
-    return planes, norm, usable, (ea.reshape(ny, nx), eb.reshape(ny, nx))
+    usable = ((na >= enough) & (nb >= enough) & (norm > 0)).reshape(shape)
+    return planes, norm, usable, (ea.reshape(shape), eb.reshape(shape))
 
 
-def _deform_nearest(image, valid, field, ys, xs, size, device):
+def _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size, shape):
+    """Which tiles (rows ``ys``, columns ``xs``, side ``size``) the tile ``field`` moves by one whole-pixel
+    shift from inside the image (of ``shape``): ``(tiles, 3)`` int32 rows (rounded u, rounded v, 1) for
+    those, (0, 0, 0) for the others, tiles row by row. ``row_cell`` and ``col_cell`` are the field's
+    cells of the image's rows and columns (:func:`_cell`).
+
+    Within a cell of tile centres the field is bilinear, so over a rectangle of pixels it is largest and
+    smallest at the rectangle's corners: the field is read at each tile's first and last rows and
+    columns and at those on both sides of a change of cell. A tile whose values there all lie more than
+    1e-6 px inside one rounding interval has every pixel rounded alike (the interpolation's rounding
+    errors are many orders smaller).
+    """
+    u, v, cy, cx = field
+    ny, nx = len(ys), len(xs)
+
+    def corners(cells, start, count):
+        """The block's rows (or columns) at the ends of its tiles and of its runs of one cell."""
+        at = np.arange(count * size)
+        change = np.flatnonzero(np.diff(cells[start : start + count * size]) != 0)
+        ends = np.concatenate([at[::size], at[size - 1 :: size], change, change + 1])
+        return np.unique(ends)
+
+    rows, cols = corners(row_cell, ys[0], ny), corners(col_cell, xs[0], nx)
+    f = _bilinear(np.stack([u, v]), cy, cx, (ys[0] + rows)[:, None], (xs[0] + cols)[None, :])
+    # the extremes over each tile's rows, then over its columns (every tile has rows and columns there)
+    row_start, col_start = np.searchsorted(rows, size * np.arange(ny)), np.searchsorted(cols, size * np.arange(nx))
+    lo = np.minimum.reduceat(np.minimum.reduceat(f, row_start, axis=1), col_start, axis=2)
+    hi = np.maximum.reduceat(np.maximum.reduceat(f, row_start, axis=1), col_start, axis=2)
+    shift = np.rint(lo)
+    one = ((lo > shift - 0.5 + 1e-6) & (hi < shift + 0.5 - 1e-6)).all(axis=0)
+    top, left = ys[:, None] + shift[1], xs[None, :] + shift[0]
+    one &= (top >= 0) & (top + size <= shape[0]) & (left >= 0) & (left + size <= shape[1])
+    out = np.zeros((ny * nx, 3), dtype=np.int32)
+    out[:, 0], out[:, 1] = (np.where(one, shift[i], 0).ravel() for i in (0, 1))
+    out[:, 2] = one.ravel()
+    return out
+
+
+def _deform_nearest(image, valid, field, ys, xs, size, device, *, whole_on_host=None):
     """``image`` moved back by the tile ``field`` (u, v, centres_y, centres_x), bilinearly interpolated
     and rounded to whole pixels at every pixel, over the block of the finer pass's tiles (rows ``ys``,
     columns ``xs``, side ``size``) only (Warp kernel ``deform_nearest_kernel``).
 
-    Returns the moved block, the weights of its pixels (1 where the source pixel lies inside the image,
-    times ``valid`` there) — views of the thread's workspace, valid until the next call —, the mean
-    rounded shifts u and v of each tile and which tiles have pixels of weight other than 1.
+    Returns the moved tiles as a ``(tiles, size * size)`` float32 stack (as :func:`_tile_stack` of the
+    moved block; a view of the thread's workspace, valid until the next call), the weights of the pixels
+    of the tiles that have weights other than 1 (1 where the source pixel lies inside the image, times
+    ``valid`` there; stacked alike, those tiles in order; None where there are none), the mean rounded
+    shifts u and v of each tile and which tiles have pixels of weight other than 1.
+
+    Tiles that the field moves by one whole-pixel shift from inside the image
+    (:func:`_uniform_tile_shifts`) are copied as a whole: by NumPy where ``whole_on_host`` (default:
+    on the CPU, where a gather of whole tiles costs far less than the kernel's pixel by pixel), else by
+    the kernel.
     """
     h, w = image.shape
     u, v, cy, cx = field
@@ -336,19 +408,26 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
     row_cell, row_frac = _cell(np.arange(h), cy)
     col_cell, col_frac = _cell(np.arange(w), cx)
     # from the thread's workspace: the views returned are used within the pass only
-    out = scratch("predict_moved", (ny * size, nx * size), wp.float32, device)
-    out_valid = scratch("predict_weights", (ny * size, nx * size), wp.float32, device)
+    out = scratch("predict_moved", (ny * nx * size * size,), wp.float32, device)
+    out_valid = scratch("predict_weights", (ny * nx * size * size,), wp.float32, device)
     tile_sums = wp.zeros((3, ny, nx), dtype=wp.int32, device=device)
-    img = on_device(image, wp.float32)
+    # float64 pixels (those of the tracker's images, no copy), rounded to float32 as they are moved
+    img = on_device(np.asarray(image, dtype=np.float64).reshape(-1), wp.float64)
     # a row of all tiles per thread on the CPU (fewer, longer threads), of one tile on a GPU
-    tiles = nx if wp.get_device(device).is_cpu else 1
+    is_cpu = wp.get_device(device).is_cpu
+    tiles = nx if is_cpu else 1
+    whole_on_host = is_cpu if whole_on_host is None else whole_on_host
+    shifts = _uniform_tile_shifts(field, row_cell, col_cell, ys, xs, size, (h, w))
+    # without ``valid`` the kernel reads none: ``out_valid`` stands in for it
     wp.launch(
         deform_nearest_kernel,
         dim=(ny * size, -(-nx // tiles)),
         inputs=[
             img,
-            img if valid is None else on_device(valid, wp.float32),
+            out_valid if valid is None else on_device(np.asarray(valid, dtype=np.float32).reshape(-1), wp.float32),
             int(valid is not None),
+            h,
+            w,
             on_device(np.asarray(u, dtype=np.float64), wp.float64),
             on_device(np.asarray(v, dtype=np.float64), wp.float64),
             on_device(row_cell.astype(np.int32), wp.int32),
@@ -359,6 +438,8 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
             int(xs[0]),
             size,
             tiles,
+            wp.array(shifts, dtype=wp.int32, device=device),
+            int(not whole_on_host),
             out,
             out_valid,
             tile_sums,
@@ -366,23 +447,45 @@ def _deform_nearest(image, valid, field, ys, xs, size, device):
         device=device,
     )
     sums = tile_sums.numpy()
-    return out.numpy(), out_valid.numpy(), sums[0] / float(size * size), sums[1] / float(size * size), sums[2] > 0
+    stack = (ny * nx, size * size)
+    moved, weights, partial = out.numpy().reshape(stack), out_valid.numpy().reshape(stack), sums[2] > 0
+    whole = np.flatnonzero(shifts[:, 2]) if whole_on_host else ()
+    if len(whole):
+        # the source tiles' corners, tiles row by row
+        top = ys[whole // nx] + shifts[whole, 1]
+        left = xs[whole % nx] + shifts[whole, 0]
+        windows = np.lib.stride_tricks.sliding_window_view
+        moved.reshape(-1, size, size)[whole] = windows(np.asarray(image), (size, size))[top, left]
+        if valid is not None:  # (without, the whole tiles' weights are all 1: not partial, not read)
+            weights.reshape(-1, size, size)[whole] = windows(valid, (size, size))[top, left]
+            partial.ravel()[whole] = (weights[whole] != 1).any(axis=1)
+    return (
+        moved,
+        weights[partial.ravel()] if partial.any() else None,
+        sums[0] / float(size * size),
+        sums[1] / float(size * size),
+        partial,
+    )
 
 
 def deform_nearest_numpy(image, valid, field, ys, xs, size):
     """NumPy reference of :func:`_deform_nearest` (for the tests)."""
     h, w = image.shape
     u, v, cy, cx = field
-    rows = ys[0] + np.arange(len(ys) * size)
-    cols = xs[0] + np.arange(len(xs) * size)
+    ny, nx = len(ys), len(xs)
+    rows = ys[0] + np.arange(ny * size)
+    cols = xs[0] + np.arange(nx * size)
     shifts = [np.rint(_bilinear(f, cy, cx, rows[:, None], cols[None, :])).astype(np.int64) for f in (u, v)]
     ry, rx = rows[:, None] + shifts[1], cols[None, :] + shifts[0]
     inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
     ry, rx = np.clip(ry, 0, h - 1), np.clip(rx, 0, w - 1)
     weights = inside.astype(np.float32) * (1.0 if valid is None else valid[ry, rx])
-    means = [s.reshape(len(ys), size, len(xs), size).mean(axis=(1, 3)) for s in shifts]
-    partial = (weights != 1).reshape(len(ys), size, len(xs), size).any(axis=(1, 3))
-    return image[ry, rx].astype(np.float32), weights.astype(np.float32), means[0], means[1], partial
+    means = [s.reshape(ny, size, nx, size).mean(axis=(1, 3)) for s in shifts]
+    partial = (weights != 1).reshape(ny, size, nx, size).any(axis=(1, 3))
+    moved = image[ry, rx].astype(np.float32)
+    at = size * np.arange(ny), size * np.arange(nx)
+    stacks = [_tile_stack(_tiles_view(f, *at, size)) for f in (moved, weights)]
+    return stacks[0], stacks[1][partial.ravel()] if partial.any() else None, means[0], means[1], partial
 
 
 def predict_displacement(
@@ -451,8 +554,9 @@ def predict_displacement(
     is the normalised correlation at the predicted displacement (Raffel et al. 2018, section 5.5: a
     correct displacement leaves two nearly identical images).
     """
-    a = np.asarray(reference, dtype=np.float32)
-    b = np.asarray(gradient, dtype=np.float32)
+    # the pixels are taken as float32 as the tiles are cut (float64 images are not copied first)
+    a, b = (np.asarray(f) for f in (reference, gradient))
+    a, b = (f if f.dtype == np.float32 else np.asarray(f, dtype=np.float64) for f in (a, b))
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     h, w = a.shape
     side = min(h, w)
@@ -483,49 +587,54 @@ def predict_displacement(
         sparse = field is None and len(sizes) > 1 and _sparse_grid(h, w, size)
         if sparse:
             # the first pass only places the next one's search (a quarter of its tile): tiles at most twice
-            # their side apart (about a quarter of them), gathered into one block of side-by-side tiles
+            # their side apart (about a quarter of them)
             ys, xs = _sparse_tile_grid(h, size), _sparse_tile_grid(w, size)
-            a_first, bd = _gather_tiles(a, ys, xs, size), _gather_tiles(b, ys, xs, size)
-            vd = None if valid is None else _gather_tiles(valid, ys, xs, size)
-            key = (size, "sparse")
-            if key not in spectra:
-                at = size * np.arange(len(ys)), size * np.arange(len(xs))
-                spectra[key] = _reference_spectra(a_first, vd, *at, size)
         else:
             ys, xs = _tile_grid(h, size), _tile_grid(w, size)
-            key = size
-            if key not in spectra:
-                spectra[key] = _reference_spectra(a, valid, ys, xs, size)
+        ny, nx = len(ys), len(xs)
+        if (size, sparse) not in spectra:
+            spectra[size, sparse] = _reference_spectra(a, valid, ys, xs, size)
         cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
-        if sparse:
-            partial = _partial_tiles(vd, len(ys), len(xs), size)
-            base_u = base_v = prev_u = prev_v = 0.0
-        elif field is None:
-            block = np.s_[ys[0] : ys[0] + len(ys) * size, xs[0] : xs[0] + len(xs) * size]
-            bd, vd = b[block], None if valid is None else valid[block]
-            partial = _partial_tiles(vd, len(ys), len(xs), size)
+        if field is None:
+            tb = _tile_stack(_tiles_view(b, ys, xs, size))
+            vb = None if valid is None else _tiles_view(valid, ys, xs, size)
+            partial = _partial_tiles(vb)
+            wt = _tile_stack(vb, which=partial) if _any(partial) else None
             base_u = base_v = prev_u = prev_v = 0.0
         else:
             # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
-            # (a nearest-pixel window deformation: no interpolation, the residual is measured below)
-            bd, vd, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
+            # (a nearest-pixel window deformation: no interpolation, the residual is measured below),
+            # its tiles stacked
+            tb, wt, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
             prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
-        pl, norm, usable, energy = _correlate_tiles(spectra[key], bd, vd, partial, size)
         half = size // 2
         if field is None:
+            top = 0  # the whole plane is searched
+            pl, norm, usable, energy = _correlate_tiles(spectra[size, sparse], tb, partial, wt, (ny, nx), size)
             r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
         else:  # the coarser pass placed the window: look for the residual within a quarter
             lo, m = half - size // 4, 2 * (size // 4) + 1
-            r, c = np.divmod(np.argmax(pl[:, lo : lo + m, lo : lo + m].reshape(len(pl), -1), axis=1), m)
+            # the planes' rows read (from ``top``): those searched and their neighbours, and those of the
+            # significance sample below (the neighbours' median residual lies within the search, so its
+            # nearest row within rint(lo - 0.5) ... rint(lo + m - 0.5)) and their neighbours
+            top = max(min(lo, int(np.rint(lo - 0.5))) - 1, 0)
+            stop = min(max(lo + m - 1, int(np.rint(lo + m - 0.5))) + 2, size)
+            pl, norm, usable, energy = _correlate_tiles(
+                spectra[size, sparse], tb, partial, wt, (ny, nx), size, rows=(top, stop)
+            )
+            search = pl[:, lo - top : lo - top + m, lo : lo + m]
+            r, c = np.divmod(np.argmax(search.reshape(len(pl), -1), axis=1), m)
             r, c = r + lo, c + lo
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
         scaled = np.where(norm > 0, norm, 1.0).astype(np.float32)  # the planes normalised where read
-        up, left, centre, right, down = (pl[i, r + dr, c + dc] / scaled for dr, dc in _CROSS)
-        rv = (r + three_point_offset(up, centre, down) - half).reshape(usable.shape)
-        ru = (c + three_point_offset(left, centre, right) - half).reshape(usable.shape)
+        up, left, centre, right, down = (pl[i, r + dr - top, c + dc] / scaled for dr, dc in _CROSS)
+        # the fits along the columns and along the rows in one call
+        off = three_point_offset(np.stack([up, left]), np.stack([centre, centre]), np.stack([down, right]))
+        rv = (r + off[0] - half).reshape(usable.shape)
+        ru = (c + off[1] - half).reshape(usable.shape)
         ru, rv = np.where(usable, ru, np.nan), np.where(usable, rv, np.nan)
-        u, v = _replace_outliers(base_u + ru), _replace_outliers(base_v + rv)
+        u, v = _replace_outliers(np.stack([base_u + ru, base_v + rv]))
         field = (_fill_nan(u), _fill_nan(v), cy, cx)
         change = np.maximum(np.abs(field[0] - prev_u), np.abs(field[1] - prev_v))
         if np.all(change <= _RESOLVED):
@@ -533,8 +642,8 @@ def predict_displacement(
     u, v = field[0], field[1]
 
     # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
-    mu, mv = _fill_nan(_neighbour_median(ru)), _fill_nan(_neighbour_median(rv))
-    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled).reshape(u.shape)
+    mu, mv = (_fill_nan(f) for f in _neighbour_median(np.stack([ru, rv])))
+    coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled, top=top, height=size).reshape(u.shape)
     # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
     # variances, so tiles without dots (variance of the noise only) hardly count
     ea, eb = (np.where(usable, e, 0.0) for e in energy)

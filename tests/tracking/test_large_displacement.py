@@ -1,6 +1,8 @@
 """Large displacements, wrong gradient frames, masks and dark dots: the correlation predictor and the
 flags that keep a wrong match from being reported as a measurement."""
 
+import itertools
+
 import numpy as np
 import pytest
 from _synth import dot_pattern, smooth_displacement
@@ -9,8 +11,10 @@ from scipy.spatial import cKDTree
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
 from synthbos.tracking.predict import (
+    _cell,
     _deform_nearest,
     _tile_grid,
+    _uniform_tile_shifts,
     deform_nearest_numpy,
     local_normalized_correlation,
     predict_displacement,
@@ -238,6 +242,32 @@ def test_deform_nearest_kernel_matches_numpy_reference(device):
             assert_array_equal(x, y)
         if v is None:  # tiles at the edge take pixels from beyond it, inner ones not
             assert a[-1].any() and not a[-1].all()
+
+
+def test_deform_nearest_kernel_whole_tile_shifts(device):
+    """Where a gentle field rounds to one shift over a whole tile from inside the image, the tile is
+    copied as a whole (by the kernel or by NumPy): tiles moved as a whole, tiles moved pixel by pixel
+    (the field crossing a rounding boundary), tiles taking pixels from beyond the image and masked
+    pixels all agree with the NumPy reference."""
+    rng = np.random.default_rng(41)
+    image = rng.random((128, 112))
+    valid = (rng.random(image.shape) > 0.05).astype(np.float32)
+    ys, xs = _tile_grid(128, 16), _tile_grid(112, 16)
+    coarse_y, coarse_x = _tile_grid(128, 32), _tile_grid(112, 32)
+    # u from 2.2 to 2.9 down the image (crossing 2.5 in the middle), v near -7 (rows from beyond the top)
+    u = np.linspace(2.2, 2.9, 4)[:, None] + np.zeros((1, 3))
+    v = -7.1 + 0.05 * rng.random((4, 3))
+    field = (u, v, coarse_y + 15.5, coarse_x + 15.5)
+    cells = (_cell(np.arange(n), c)[0] for n, c in ((128, field[2]), (112, field[3])))
+    uniform = _uniform_tile_shifts(field, *cells, ys, xs, 16, image.shape)
+    assert 0 < uniform[:, 2].sum() < len(uniform)
+    for v_, on_host in itertools.product((None, valid), (False, True)):
+        a = [np.copy(x) for x in _deform_nearest(image, v_, field, ys, xs, 16, device, whole_on_host=on_host)]
+        b = deform_nearest_numpy(image, v_, field, ys, xs, 16)
+        for x, y in zip(a, b, strict=True):
+            assert_array_equal(x, y)
+        if v_ is None:  # the top row and right column of tiles take pixels from beyond the image, the others not
+            assert a[-1][0].all() and a[-1][:, -1].all() and not a[-1][1:, :-1].any()
 
 
 @pytest.mark.parametrize("kind", ["uniform", "smooth"])
