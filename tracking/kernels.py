@@ -417,48 +417,59 @@ def measure_small_window(
             ring[wp.static(_edge_network()[k][1])] = wp.where(lt, vb, va)
         bg = (ring[11] + ring[12]) / wp.float64(2.0)
     thr = bg + wp.max(frac * (vmax - bg), floor)
-    # segment_window: row-best of three, then steepest ascent, then the roots and areas
+    # segment_window: row-best of three, then steepest ascent, then the roots and areas. Both passes keep the
+    # winner's value beside its index, so that no pixel is read through an index and no branch depends on
+    # the pixel values. A pixel's uphill step is the brightest of its 3 x 3 neighbourhood, ties going to
+    # the higher index: the brightest of the three rows' brightest of three, where within a row and between
+    # the rows (whose indices increase with the row) a tie goes to the later one.
+    upv = vec_small_f()
     up = vec_small_i()
     for r in range(SMALL_W):
         for c in range(SMALL_W):
-            p = r * w + c
-            best = p
-            bv = win[p]
-            if c > 0:  # without branches on the pixel values
-                take = win[p - 1] > bv
-                best = wp.where(take, p - 1, best)
-                bv = wp.where(take, win[p - 1], bv)
-            if c < w - 1:
-                best = wp.where(win[p + 1] >= bv, p + 1, best)
-            up[p] = best
+            best = wp.static(7 * r + c)
+            bv = win[wp.static(7 * r + c)]
+            if wp.static(c > 0):
+                take = win[wp.static(7 * r + c - 1)] > bv
+                best = wp.where(take, wp.static(7 * r + c - 1), best)
+                bv = wp.where(take, win[wp.static(7 * r + c - 1)], bv)
+            if wp.static(c < 6):
+                take = win[wp.static(7 * r + c + 1)] >= bv
+                best = wp.where(take, wp.static(7 * r + c + 1), best)
+                bv = wp.where(take, win[wp.static(7 * r + c + 1)], bv)
+            up[wp.static(7 * r + c)] = best
+            upv[wp.static(7 * r + c)] = bv
     lab = vec_small_i()
     roots = vec_small_i()
     nblobs = int(0)
+    nabove = int(0)
     for r in range(SMALL_W):
         for c in range(SMALL_W):
-            p = r * w + c
-            best = int(-1)
-            bv = win[p]
-            if bv > thr:
-                best = p
-                for rr in range(wp.static(max(r - 1, 0)), wp.static(min(r + 1, 6) + 1)):
-                    q = up[rr * w + c]
-                    vq = win[q]
-                    if vq > bv or (vq == bv and q > best):
-                        best = q
-                        bv = vq
-                if best == p:
-                    roots[nblobs] = p
-                    nblobs += 1
-            lab[p] = best
+            best = up[wp.static(7 * max(r - 1, 0) + c)]
+            bv = upv[wp.static(7 * max(r - 1, 0) + c)]
+            for rr in range(wp.static(max(r - 1, 0) + 1), wp.static(min(r + 1, 6) + 1)):
+                take = upv[wp.static(7 * rr + c)] >= bv
+                best = wp.where(take, up[wp.static(7 * rr + c)], best)
+                bv = wp.where(take, upv[wp.static(7 * rr + c)], bv)
+            above = win[wp.static(7 * r + c)] > thr
+            lab[wp.static(7 * r + c)] = wp.where(above, best, -1)
+            nabove += wp.where(above, 1, 0)
+            if above and best == wp.static(7 * r + c):
+                roots[nblobs] = wp.static(7 * r + c)
+                nblobs += 1
     area = vec_small_i()
-    for p in range(w * w):
-        if lab[p] >= 0:
-            rt = lab[p]
-            while lab[rt] != rt:
-                rt = lab[rt]
-            lab[p] = rt
-            area[rt] = area[rt] + 1
+    if nblobs == 1:
+        # one blob (the common case): every pixel above the threshold is its own, no path to follow
+        for p in range(SMALL_W * SMALL_W):
+            lab[p] = wp.where(lab[p] >= 0, roots[0], -1)
+        area[roots[0]] = nabove
+    else:
+        for p in range(w * w):
+            if lab[p] >= 0:
+                rt = lab[p]
+                while lab[rt] != rt:
+                    rt = lab[rt]
+                lab[p] = rt
+                area[rt] = area[rt] + 1
     # choose_blob
     ma = wp.float64(-1.0e300)
     mi = wp.float64(-1.0e300)
@@ -500,25 +511,26 @@ def measure_small_window(
     rr = chosen // w
     rc = chosen % w
     cw = 2 * hc + 1
-    count = cw * cw
-    if full_maps == 0:
-        count = 5
+    count = 5
+    if full_maps != 0:
+        count = cw * cw
     for j in range(count):
-        a = j // cw
-        b = j % cw
+        # map row a, column b: the whole map, or the cross (peak, left, right, upper, lower; no division)
+        a = hc
+        b = hc
+        if full_maps != 0:
+            a = j // cw
+            b = j % cw
+        elif j == 1:
+            b = hc - 1
+        elif j == 2:
+            b = hc + 1
+        elif j == 3:
+            a = hc - 1
+        elif j == 4:
+            a = hc + 1
         qr = rr + a - hc
         qc = rc + b - hc
-        if full_maps == 0:
-            qr = rr
-            qc = rc
-            if j == 1:
-                qc = rc - 1
-            elif j == 2:
-                qc = rc + 1
-            elif j == 3:
-                qr = rr - 1
-            elif j == 4:
-                qr = rr + 1
         val = wp.float64(0.0)
         if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
             q = qr * w + qc
@@ -577,7 +589,6 @@ def measure_windows_kernel(
     enough where threads run one after another, as on the CPU).
     """
     i = order[wp.tid()]
-    s = i % win.shape[0]
     w = 2 * half + 1
     if w == SMALL_W:
         measure_small_window(
@@ -604,6 +615,7 @@ def measure_windows_kernel(
             cross,
         )
         return
+    s = i % win.shape[0]
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:

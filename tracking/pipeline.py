@@ -387,15 +387,18 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     keep_maps = settings.correction == "paper"
     if keep_maps:
         out["dotmap"] = np.zeros((n, c, c))
-    finite = np.isfinite(pred).all(axis=1)
-    safe = np.where(finite[:, None], pred, -1e9)
-    inside = finite & (safe[:, 0] > -0.5) & (safe[:, 0] < w_img - 0.5)
-    inside &= (safe[:, 1] > -0.5) & (safe[:, 1] < h_img - 0.5)
+    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
+    px, py = pred[:, 0], pred[:, 1]
+    inside = (px > -0.5) & (px < w_img - 0.5)
+    inside &= py > -0.5
+    inside &= py < h_img - 0.5
     out["flags"][~inside] |= DotStatus.OUTSIDE_IMAGE
-    safe = np.where(inside[:, None], safe, 0.0)
-    origin_all = np.rint(safe).astype(np.int64) - half
-    border = (origin_all < 0).any(axis=1) | (origin_all[:, 0] + 2 * half >= w_img)
-    border |= origin_all[:, 1] + 2 * half >= h_img
+    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
+    origin_all -= half
+    ox, oy = origin_all[:, 0], origin_all[:, 1]
+    border = (ox < 0) | (oy < 0)
+    border |= ox + 2 * half >= w_img
+    border |= oy + 2 * half >= h_img
     out["flags"][inside & border] |= DotStatus.NEAR_BORDER
     todo = inside.copy()
     subtracted = np.zeros(n, dtype=bool)
@@ -428,12 +431,13 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         has = m["chosen"] >= 0
         cpeak = m["peak"]
         if ref_peak is None:
-            ref_peak = float(np.median(cpeak[has])) if has.any() else 0.0
+            ref_peak = _median(cpeak[has]) if has.any() else 0.0
         ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
         ok &= cpeak > 0
         w = 2 * half + 1
-        root_c = origin[:, 0] + np.maximum(m["chosen"], 0) % w
-        root_r = origin[:, 1] + np.maximum(m["chosen"], 0) // w
+        root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
+        root_c += origin[:, 0]
+        root_r += origin[:, 1]
         # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
         absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
         cidx = np.flatnonzero(ok)
@@ -456,7 +460,8 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             else:
                 k0 = map_half * c + map_half
                 cross = m["dotmap"].reshape(len(sel), c * c)[win_idx][:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*cross.T)
+            # the five samples as contiguous rows (the three-point fit's array operations read them often)
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.ascontiguousarray(cross.T))
             xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]
@@ -479,10 +484,9 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
         if keep_maps:
             out["dotmap"][g] = m["dotmap"][win_idx]
-        flags = np.zeros(len(g), dtype=np.int32)
-        flags[m["nblobs"][win_idx] > 1] |= DotStatus.OVERLAPPED
-        flags[~fit_ok] |= DotStatus.FIT_FALLBACK
-        flags[m["nsat"][win_idx] >= 2] |= DotStatus.SATURATED
+        flags = np.where(m["nblobs"][win_idx] > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
+        flags |= np.where(fit_ok, np.int32(0), np.int32(DotStatus.FIT_FALLBACK))
+        flags |= np.where(m["nsat"][win_idx] >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
         out["flags"][g] = (out["flags"][g] & ~np.int32(DotStatus.AMBIGUOUS)) | flags
         todo[g] = False
         if todo.any() and it < max_iterations:
@@ -506,6 +510,18 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
                     )
                     subtracted[idx] = True
     return out
+
+
+def _median(a):
+    """``np.median`` of a 1-D float array (the mean of the middle two for even sizes), by one partial sort
+    of ``a`` in place; NaN input goes to NumPy."""
+    k = a.size // 2
+    a.partition(k)
+    if np.isnan(a[k:]).any():  # NaN sorts last, so one would be in the upper half
+        return float(np.median(a))
+    if a.size % 2:
+        return float(a[k])
+    return float((a[:k].max() + a[k]) / 2.0)
 
 
 class _Frame(NamedTuple):
