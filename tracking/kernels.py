@@ -441,7 +441,6 @@ def measure_small_window(
     lab = vec_small_i()
     roots = vec_small_i()
     nblobs = int(0)
-    nabove = int(0)
     for r in range(SMALL_W):
         for c in range(SMALL_W):
             best = up[wp.static(7 * max(r - 1, 0) + c)]
@@ -452,24 +451,17 @@ def measure_small_window(
                 bv = wp.where(take, upv[wp.static(7 * rr + c)], bv)
             above = win[wp.static(7 * r + c)] > thr
             lab[wp.static(7 * r + c)] = wp.where(above, best, -1)
-            nabove += wp.where(above, 1, 0)
             if above and best == wp.static(7 * r + c):
                 roots[nblobs] = wp.static(7 * r + c)
                 nblobs += 1
     area = vec_small_i()
-    if nblobs == 1:
-        # one blob (the common case): every pixel above the threshold is its own, no path to follow
-        for p in range(SMALL_W * SMALL_W):
-            lab[p] = wp.where(lab[p] >= 0, roots[0], -1)
-        area[roots[0]] = nabove
-    else:
-        for p in range(w * w):
-            if lab[p] >= 0:
-                rt = lab[p]
-                while lab[rt] != rt:
-                    rt = lab[rt]
-                lab[p] = rt
-                area[rt] = area[rt] + 1
+    for p in range(w * w):
+        if lab[p] >= 0:
+            rt = lab[p]
+            while lab[rt] != rt:
+                rt = lab[rt]
+            lab[p] = rt
+            area[rt] = area[rt] + 1
     # choose_blob
     ma = wp.float64(-1.0e300)
     mi = wp.float64(-1.0e300)
