@@ -412,11 +412,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         sel = np.flatnonzero(todo)
         if sel.size == 0:
             break
-        origin = origin_all[sel]
+        every = sel.size == n  # the first round, all inside (the usual case): no gather
+        origin = origin_all if every else origin_all[sel]
         m = measure(
             residual,
             origin,
-            pred[sel] - origin,
+            (pred if every else pred[sel]) - origin,
             half=half,
             map_half=map_half,
             radius=radius,
@@ -475,7 +476,7 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         eta_ok = np.isfinite(eta) & (eta > 0.3 * eta0) & (eta < 3.0 * eta0)
         eta = np.where(eta_ok, eta, eta0)
         i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak[win_idx])
-        g = sel[win_idx]
+        g = win_idx if every else sel[win_idx]
         out["x"][g] = root_c[win_idx] + (xw - map_half)
         out["y"][g] = root_r[win_idx] + (yw - map_half)
         out["eta"][g] = eta
