@@ -457,12 +457,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         # peak pixel and its four neighbours.
         if method == "gaussian3":
             if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
-                cross = m["cross"][win_idx]
+                cross = m["cross"]
             else:
                 k0 = map_half * c + map_half
-                cross = m["dotmap"].reshape(len(sel), c * c)[win_idx][:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+                cross = m["dotmap"].reshape(len(sel), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
             # the five samples as contiguous rows (the three-point fit's array operations read them often)
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.ascontiguousarray(cross.T))
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
             xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]
@@ -475,20 +475,21 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         fit_ok &= ~wild
         eta_ok = np.isfinite(eta) & (eta > 0.3 * eta0) & (eta < 3.0 * eta0)
         eta = np.where(eta_ok, eta, eta0)
-        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak[win_idx])
+        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
         g = win_idx if every else sel[win_idx]
-        out["x"][g] = root_c[win_idx] + (xw - map_half)
-        out["y"][g] = root_r[win_idx] + (yw - map_half)
+        rc, rr = root_c.take(win_idx), root_r.take(win_idx)  # take: faster than indexing
+        out["x"][g] = rc + (xw - map_half)
+        out["y"][g] = rr + (yw - map_half)
         out["eta"][g] = eta
         out["i0"][g] = i0
         out["iteration"][g] = it
-        out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
+        out["root"][g, 0], out["root"][g, 1] = rc, rr
         if keep_maps:
             out["dotmap"][g] = m["dotmap"][win_idx]
-        flags = np.where(m["nblobs"][win_idx] > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
+        flags = np.where(m["nblobs"].take(win_idx) > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
         flags |= np.where(fit_ok, np.int32(0), np.int32(DotStatus.FIT_FALLBACK))
-        flags |= np.where(m["nsat"][win_idx] >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
-        out["flags"][g] = (out["flags"][g] & ~np.int32(DotStatus.AMBIGUOUS)) | flags
+        flags |= np.where(m["nsat"].take(win_idx) >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
+        out["flags"][g] = (out["flags"].take(g) & ~np.int32(DotStatus.AMBIGUOUS)) | flags
         todo[g] = False
         if todo.any() and it < max_iterations:
             # Eq. 2, applied where it matters: found dots near a dot still missing leave the image.
