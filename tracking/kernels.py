@@ -371,7 +371,8 @@ def measure_small_window(
 ):
     """``measure_windows_kernel``'s steps for a 7 x 7 window held in local vectors: the same as
     ``load_window``, ``edge_median``, ``segment_window``, ``choose_blob``, ``count_saturated`` and
-    ``cut_dot_map`` / ``cut_cross``, with the same result."""
+    ``cut_dot_map`` / ``cut_cross``, with the same result for finite pixels (its minimum, maximum and edge
+    median are plain selects, which NaN pixels would upset)."""
     w = SMALL_W
     # load_window
     win = vec_small_f()
@@ -418,10 +419,10 @@ def measure_small_window(
         bg = (ring[11] + ring[12]) / wp.float64(2.0)
     thr = bg + wp.max(frac * (vmax - bg), floor)
     # segment_window: row-best of three, then steepest ascent, then the roots and areas. Both passes keep the
-    # winner's value beside its index, so that no pixel is read through an index and no branch depends on
-    # the pixel values. A pixel's uphill step is the brightest of its 3 x 3 neighbourhood, ties going to
-    # the higher index: the brightest of the three rows' brightest of three, where within a row and between
-    # the rows (whose indices increase with the row) a tie goes to the later one.
+    # winner's value beside its index, so that no pixel is read through an index and only the (rare) root
+    # test branches on the pixel values. A pixel's uphill step is the brightest of its 3 x 3 neighbourhood,
+    # ties going to the higher index: the brightest of the three rows' brightest of three, where within a
+    # row and between the rows (whose indices increase with the row) a tie goes to the later one.
     upv = vec_small_f()
     up = vec_small_i()
     for r in range(SMALL_W):
