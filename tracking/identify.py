@@ -58,16 +58,17 @@ def _lower_quartile(d):
     """``np.percentile(d, 25)`` (linear interpolation), by one partial sort of ``d`` in place.
 
     The quartile lies between the order statistics ``lo = floor(0.25 (n - 1))`` and ``lo + 1`` (the
-    smallest value after the partition point), interpolated as NumPy does; NaN input goes to NumPy.
+    smallest value after the partition point), interpolated as NumPy does; NaN input goes to NumPy (the
+    partition sorts NaN last, so one shows in ``a`` or in the minimum ``b`` of the rest).
     """
-    if np.isnan(d).any():
-        return np.percentile(d, 25)
     pos = 0.25 * (d.size - 1)  # exact: 0.25 is a power of two
     lo = int(pos)
     t = pos - lo
     d.partition(lo)
     a = d[lo]
     b = d[lo + 1 :].min() if lo + 1 < d.size else a
+    if np.isnan(a) or np.isnan(b):
+        return np.percentile(d, 25)
     return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
 
 

@@ -371,7 +371,8 @@ def measure_small_window(
 ):
     """``measure_windows_kernel``'s steps for a 7 x 7 window held in local vectors: the same as
     ``load_window``, ``edge_median``, ``segment_window``, ``choose_blob``, ``count_saturated`` and
-    ``cut_dot_map`` / ``cut_cross``, with the same result."""
+    ``cut_dot_map`` / ``cut_cross``, with the same result for finite pixels (its minimum, maximum and edge
+    median are plain selects, which NaN pixels would upset)."""
     w = SMALL_W
     # load_window
     win = vec_small_f()
@@ -393,8 +394,10 @@ def measure_small_window(
                 win[wp.static(7 * r + c)] = v
     for r in range(SMALL_W):
         for c in range(SMALL_W):
-            vmin = wp.min(vmin, win[wp.static(7 * r + c)])
-            vmax = wp.max(vmax, win[wp.static(7 * r + c)])
+            v = win[wp.static(7 * r + c)]
+            # the minimum and maximum as plain selects (one instruction each on the CPU; finite pixels)
+            vmin = wp.where(v < vmin, v, vmin)
+            vmax = wp.where(v > vmax, v, vmax)
     # edge_median
     bg = vmin
     if use_min == 0:
@@ -408,46 +411,50 @@ def measure_small_window(
         for k in range(wp.static(len(_edge_network()))):
             va = ring[wp.static(_edge_network()[k][0])]
             vb = ring[wp.static(_edge_network()[k][1])]
-            # wp.min and wp.max as selects (the same result, NaN ignored), so that no branch depends on the data
-            other = wp.where(vb == vb, vb, va)
-            ring[wp.static(_edge_network()[k][0])] = wp.where(va <= vb, va, other)
-            ring[wp.static(_edge_network()[k][1])] = wp.where(va >= vb, va, other)
+            # min and max as plain selects on one comparison: no branch depends on the data, and on the
+            # CPU each is one instruction (finite pixels; Warp's NaN-aware wp.min / wp.max take four)
+            lt = va < vb
+            ring[wp.static(_edge_network()[k][0])] = wp.where(lt, va, vb)
+            ring[wp.static(_edge_network()[k][1])] = wp.where(lt, vb, va)
         bg = (ring[11] + ring[12]) / wp.float64(2.0)
     thr = bg + wp.max(frac * (vmax - bg), floor)
-    # segment_window: row-best of three, then steepest ascent, then the roots and areas
+    # segment_window: row-best of three, then steepest ascent, then the roots and areas. Both passes keep the
+    # winner's value beside its index, so that no pixel is read through an index and only the (rare) root
+    # test branches on the pixel values. A pixel's uphill step is the brightest of its 3 x 3 neighbourhood,
+    # ties going to the higher index: the brightest of the three rows' brightest of three, where within a
+    # row and between the rows (whose indices increase with the row) a tie goes to the later one.
+    upv = vec_small_f()
     up = vec_small_i()
     for r in range(SMALL_W):
         for c in range(SMALL_W):
-            p = r * w + c
-            best = p
-            bv = win[p]
-            if c > 0:  # without branches on the pixel values
-                take = win[p - 1] > bv
-                best = wp.where(take, p - 1, best)
-                bv = wp.where(take, win[p - 1], bv)
-            if c < w - 1:
-                best = wp.where(win[p + 1] >= bv, p + 1, best)
-            up[p] = best
+            best = wp.static(7 * r + c)
+            bv = win[wp.static(7 * r + c)]
+            if wp.static(c > 0):
+                take = win[wp.static(7 * r + c - 1)] > bv
+                best = wp.where(take, wp.static(7 * r + c - 1), best)
+                bv = wp.where(take, win[wp.static(7 * r + c - 1)], bv)
+            if wp.static(c < 6):
+                take = win[wp.static(7 * r + c + 1)] >= bv
+                best = wp.where(take, wp.static(7 * r + c + 1), best)
+                bv = wp.where(take, win[wp.static(7 * r + c + 1)], bv)
+            up[wp.static(7 * r + c)] = best
+            upv[wp.static(7 * r + c)] = bv
     lab = vec_small_i()
     roots = vec_small_i()
     nblobs = int(0)
     for r in range(SMALL_W):
         for c in range(SMALL_W):
-            p = r * w + c
-            best = int(-1)
-            bv = win[p]
-            if bv > thr:
-                best = p
-                for rr in range(wp.static(max(r - 1, 0)), wp.static(min(r + 1, 6) + 1)):
-                    q = up[rr * w + c]
-                    vq = win[q]
-                    if vq > bv or (vq == bv and q > best):
-                        best = q
-                        bv = vq
-                if best == p:
-                    roots[nblobs] = p
-                    nblobs += 1
-            lab[p] = best
+            best = up[wp.static(7 * max(r - 1, 0) + c)]
+            bv = upv[wp.static(7 * max(r - 1, 0) + c)]
+            for rr in range(wp.static(max(r - 1, 0) + 1), wp.static(min(r + 1, 6) + 1)):
+                take = upv[wp.static(7 * rr + c)] >= bv
+                best = wp.where(take, up[wp.static(7 * rr + c)], best)
+                bv = wp.where(take, upv[wp.static(7 * rr + c)], bv)
+            above = win[wp.static(7 * r + c)] > thr
+            lab[wp.static(7 * r + c)] = wp.where(above, best, -1)
+            if above and best == wp.static(7 * r + c):
+                roots[nblobs] = wp.static(7 * r + c)
+                nblobs += 1
     area = vec_small_i()
     for p in range(w * w):
         if lab[p] >= 0:
@@ -497,25 +504,26 @@ def measure_small_window(
     rr = chosen // w
     rc = chosen % w
     cw = 2 * hc + 1
-    count = cw * cw
-    if full_maps == 0:
-        count = 5
+    count = 5
+    if full_maps != 0:
+        count = cw * cw
     for j in range(count):
-        a = j // cw
-        b = j % cw
+        # map row a, column b: the whole map, or the cross (peak, left, right, upper, lower; no division)
+        a = hc
+        b = hc
+        if full_maps != 0:
+            a = j // cw
+            b = j % cw
+        elif j == 1:
+            b = hc - 1
+        elif j == 2:
+            b = hc + 1
+        elif j == 3:
+            a = hc - 1
+        elif j == 4:
+            a = hc + 1
         qr = rr + a - hc
         qc = rc + b - hc
-        if full_maps == 0:
-            qr = rr
-            qc = rc
-            if j == 1:
-                qc = rc - 1
-            elif j == 2:
-                qc = rc + 1
-            elif j == 3:
-                qr = rr - 1
-            elif j == 4:
-                qr = rr + 1
         val = wp.float64(0.0)
         if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
             q = qr * w + qc
@@ -574,7 +582,6 @@ def measure_windows_kernel(
     enough where threads run one after another, as on the CPU).
     """
     i = order[wp.tid()]
-    s = i % win.shape[0]
     w = 2 * half + 1
     if w == SMALL_W:
         measure_small_window(
@@ -601,6 +608,7 @@ def measure_windows_kernel(
             cross,
         )
         return
+    s = i % win.shape[0]
     mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
     bg = mm[0]
     if use_min == 0:

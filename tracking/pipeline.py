@@ -387,15 +387,18 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     keep_maps = settings.correction == "paper"
     if keep_maps:
         out["dotmap"] = np.zeros((n, c, c))
-    finite = np.isfinite(pred).all(axis=1)
-    safe = np.where(finite[:, None], pred, -1e9)
-    inside = finite & (safe[:, 0] > -0.5) & (safe[:, 0] < w_img - 0.5)
-    inside &= (safe[:, 1] > -0.5) & (safe[:, 1] < h_img - 0.5)
+    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
+    px, py = pred[:, 0], pred[:, 1]
+    inside = (px > -0.5) & (px < w_img - 0.5)
+    inside &= py > -0.5
+    inside &= py < h_img - 0.5
     out["flags"][~inside] |= DotStatus.OUTSIDE_IMAGE
-    safe = np.where(inside[:, None], safe, 0.0)
-    origin_all = np.rint(safe).astype(np.int64) - half
-    border = (origin_all < 0).any(axis=1) | (origin_all[:, 0] + 2 * half >= w_img)
-    border |= origin_all[:, 1] + 2 * half >= h_img
+    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
+    origin_all -= half
+    ox, oy = origin_all[:, 0], origin_all[:, 1]
+    border = (ox < 0) | (oy < 0)
+    border |= ox + 2 * half >= w_img
+    border |= oy + 2 * half >= h_img
     out["flags"][inside & border] |= DotStatus.NEAR_BORDER
     todo = inside.copy()
     subtracted = np.zeros(n, dtype=bool)
@@ -409,11 +412,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         sel = np.flatnonzero(todo)
         if sel.size == 0:
             break
-        origin = origin_all[sel]
+        every = sel.size == n  # the first round, all inside (the usual case): no gather
+        origin = origin_all if every else origin_all[sel]
         m = measure(
             residual,
             origin,
-            pred[sel] - origin,
+            (pred if every else pred[sel]) - origin,
             half=half,
             map_half=map_half,
             radius=radius,
@@ -428,12 +432,13 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         has = m["chosen"] >= 0
         cpeak = m["peak"]
         if ref_peak is None:
-            ref_peak = float(np.median(cpeak[has])) if has.any() else 0.0
+            ref_peak = _median(cpeak[has]) if has.any() else 0.0
         ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
         ok &= cpeak > 0
         w = 2 * half + 1
-        root_c = origin[:, 0] + np.maximum(m["chosen"], 0) % w
-        root_r = origin[:, 1] + np.maximum(m["chosen"], 0) // w
+        root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
+        root_c += origin[:, 0]
+        root_r += origin[:, 1]
         # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
         absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
         cidx = np.flatnonzero(ok)
@@ -452,11 +457,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         # peak pixel and its four neighbours.
         if method == "gaussian3":
             if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
-                cross = m["cross"][win_idx]
+                cross = m["cross"]
             else:
                 k0 = map_half * c + map_half
-                cross = m["dotmap"].reshape(len(sel), c * c)[win_idx][:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*cross.T)
+                cross = m["dotmap"].reshape(len(sel), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+            # the five samples as contiguous rows (the three-point fit's array operations read them often)
+            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
             xw, yw = map_half + dx, map_half + dy
         else:
             dotmap = m["dotmap"][win_idx]
@@ -469,21 +475,21 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         fit_ok &= ~wild
         eta_ok = np.isfinite(eta) & (eta > 0.3 * eta0) & (eta < 3.0 * eta0)
         eta = np.where(eta_ok, eta, eta0)
-        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak[win_idx])
-        g = sel[win_idx]
-        out["x"][g] = root_c[win_idx] + (xw - map_half)
-        out["y"][g] = root_r[win_idx] + (yw - map_half)
+        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
+        g = win_idx if every else sel[win_idx]
+        rc, rr = root_c.take(win_idx), root_r.take(win_idx)  # take: faster than indexing
+        out["x"][g] = rc + (xw - map_half)
+        out["y"][g] = rr + (yw - map_half)
         out["eta"][g] = eta
         out["i0"][g] = i0
         out["iteration"][g] = it
-        out["root"][g, 0], out["root"][g, 1] = root_c[win_idx], root_r[win_idx]
+        out["root"][g, 0], out["root"][g, 1] = rc, rr
         if keep_maps:
             out["dotmap"][g] = m["dotmap"][win_idx]
-        flags = np.zeros(len(g), dtype=np.int32)
-        flags[m["nblobs"][win_idx] > 1] |= DotStatus.OVERLAPPED
-        flags[~fit_ok] |= DotStatus.FIT_FALLBACK
-        flags[m["nsat"][win_idx] >= 2] |= DotStatus.SATURATED
-        out["flags"][g] = (out["flags"][g] & ~np.int32(DotStatus.AMBIGUOUS)) | flags
+        flags = np.where(m["nblobs"].take(win_idx) > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
+        flags |= np.where(fit_ok, np.int32(0), np.int32(DotStatus.FIT_FALLBACK))
+        flags |= np.where(m["nsat"].take(win_idx) >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
+        out["flags"][g] = (out["flags"].take(g) & ~np.int32(DotStatus.AMBIGUOUS)) | flags
         todo[g] = False
         if todo.any() and it < max_iterations:
             # Eq. 2, applied where it matters: found dots near a dot still missing leave the image.
@@ -508,6 +514,18 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     return out
 
 
+def _median(a):
+    """``np.median`` of a 1-D float array (the mean of the middle two for even sizes), by one partial sort
+    of ``a`` in place; NaN input goes to NumPy."""
+    k = a.size // 2
+    a.partition(k)
+    if np.isnan(a[k:]).any():  # NaN sorts last, so one would be in the upper half
+        return float(np.median(a))
+    if a.size % 2:
+        return float(a[k])
+    return float((a[:k].max() + a[k]) / 2.0)
+
+
 class _Frame(NamedTuple):
     image: np.ndarray
     noise: float
@@ -517,7 +535,7 @@ class _Frame(NamedTuple):
 
 def _fill_level(image):
     """Value of the pixels outside the image in the windows: the median of every fourth row and column."""
-    return float(np.median(image[::4, ::4]))
+    return _median(image[::4, ::4].flatten())  # np.median's value; flatten copies
 
 
 def _model_start(found, sigma0):
