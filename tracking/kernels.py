@@ -16,7 +16,6 @@ wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 vec5d = wp.types.vector(length=5, dtype=wp.float64)
-vec7d = wp.types.vector(length=7, dtype=wp.float64)
 mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
 
 
@@ -728,56 +727,6 @@ def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
     return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
 
 
-@wp.func
-def profile_row7(prof: wp.array3d(dtype=wp.float64), i: int, row: int) -> vec7d:
-    """Row ``row`` of dot i's profiles on a 7-pixel stamp, held in registers."""
-    return vec7d(
-        prof[i, row, 0],
-        prof[i, row, 1],
-        prof[i, row, 2],
-        prof[i, row, 3],
-        prof[i, row, 4],
-        prof[i, row, 5],
-        prof[i, row, 6],
-    )
-
-
-@wp.func
-def render_stamp7(
-    models: wp.array(dtype=wp.int64),
-    base: int,
-    width: int,
-    layer: int,
-    a: wp.float64,
-    cs: wp.vec2d,
-    ds: wp.float64,
-    common: int,
-    prof: wp.array3d(dtype=wp.float64),
-    i: int,
-    scale: wp.float64,
-):
-    """``render_dots_kernel`` for a 7 x 7 stamp that lies inside the image: fixed loops over profiles held in
-    registers (the same sums, term for term)."""
-    px = profile_row7(prof, i, 0)
-    py = profile_row7(prof, i, 3)
-    if common == 0:
-        for r in range(7):
-            apy = a * py[r]
-            at = base + r * width
-            for c in range(7):
-                wp.atomic_add(models, at + c, to_fixed(apy * px[c], scale))
-    else:
-        sx = profile_row7(prof, i, 2)
-        sy = profile_row7(prof, i, 5)
-        for r in range(7):
-            apy = a * py[r]
-            at = base + r * width
-            for c in range(7):
-                wp.atomic_add(models, at + c, to_fixed(apy * px[c], scale))
-                shared = cs[0] * (py[r] * px[c] + ds * (sy[r] * px[c] + py[r] * sx[c]))
-                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
-
-
 @wp.kernel
 def render_dots_kernel(
     params: wp.array2d(dtype=wp.float64),
@@ -810,12 +759,7 @@ def render_dots_kernel(
     r1 = wp.min(n, height - oy)
     base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
     a = params[i, 2]
-    if n == 7 and c0 == 0 and r0 == 0 and c1 == n and r1 == n:  # the common case: a whole 7 x 7 stamp
-        cs = wp.vec2d(a, params[i, 3])
-        if common != 0:
-            cs = common_shape(params, partner, i)
-        render_stamp7(models, base, width, models.shape[0] // 2, a, cs, cs[1] - params[i, 3], common, prof, i, scale)
-    elif common == 0:
+    if common == 0:
         r = int(r0)
         while r < r1:
             apy = a * prof[i, 3, r]
@@ -1109,142 +1053,6 @@ def normal_matrix_separable(
 
 
 @wp.func
-def profile_row5(prof: wp.array3d(dtype=wp.float64), i: int, row: int, skip: int) -> vec5d:
-    """Entries ``skip ... skip + 4`` of row ``row`` of dot i's profiles, held in registers."""
-    return vec5d(
-        prof[i, row, skip],
-        prof[i, row, skip + 1],
-        prof[i, row, skip + 2],
-        prof[i, row, skip + 3],
-        prof[i, row, skip + 4],
-    )
-
-
-@wp.func
-def moments5(p: vec5d, d: vec5d, sg: vec5d):
-    """``profile_moments`` of one axis of a 5-pixel window from its terms in registers (same order of sums)."""
-    zero = wp.float64(0.0)
-    pp = zero
-    dd = zero
-    ss = zero
-    pd = zero
-    ps = zero
-    ds = zero
-    sp = zero
-    sd = zero
-    s_ = zero
-    for k in range(5):
-        pp += p[k] * p[k]
-        dd += d[k] * d[k]
-        ss += sg[k] * sg[k]
-        pd += p[k] * d[k]
-        ps += p[k] * sg[k]
-        ds += d[k] * sg[k]
-        sp += p[k]
-        sd += d[k]
-        s_ += sg[k]
-    return pp, dd, ss, pd, ps, ds, sp, sd, s_
-
-
-@wp.func
-def normal_matrix_separable5(
-    image: wp.array2d(dtype=wp.float64),
-    models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
-    f: int,
-    params: wp.array2d(dtype=wp.float64),
-    i: int,
-    skip: int,
-    common: int,
-    prof: wp.array3d(dtype=wp.float64),
-) -> NormalEquations:
-    """``normal_matrix_separable`` for a 5 x 5 window (``half = 2``): fixed loops over the profile terms held
-    in registers, the same sums term for term."""
-    ox = int(wp.rint(params[i, 0])) - 2
-    oy = int(wp.rint(params[i, 1])) - 2
-    a = params[i, 2]
-    b = params[i, 4]
-    zero = wp.float64(0.0)
-    xp_ = profile_row5(prof, i, 0, skip)
-    xd_ = profile_row5(prof, i, 1, skip)
-    xs_ = profile_row5(prof, i, 2, skip)
-    yp_ = profile_row5(prof, i, 3, skip)
-    yd_ = profile_row5(prof, i, 4, skip)
-    ys_ = profile_row5(prof, i, 5, skip)
-    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = moments5(xp_, xd_, xs_)
-    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = moments5(yp_, yd_, ys_)
-    g0 = zero
-    g1 = zero
-    g2 = zero
-    g3 = zero
-    g4 = zero
-    h0 = zero
-    h1 = zero
-    h4 = zero
-    width = image.shape[1]
-    layer = models.shape[0] // 2
-    at = (f * image.shape[0] + oy) * width + ox  # flat index of the window's first pixel in models
-    for rr in range(5):
-        row = oy + rr
-        r0 = zero
-        r1 = zero
-        r2 = zero
-        r3 = zero
-        t0 = zero
-        t1 = zero
-        t3 = zero
-        for cc in range(5):
-            res = image[row, ox + cc] - b - wp.float64(models[at + cc]) * inv_scale
-            r0 += xd_[cc] * res
-            r1 += xp_[cc] * res
-            r2 += xs_[cc] * res
-            r3 += res
-        if common != 0:
-            for cc in range(5):
-                res2 = image[row, ox + cc] - b - wp.float64(models[at + layer + cc]) * inv_scale
-                t0 += xd_[cc] * res2
-                t1 += xp_[cc] * res2
-                t3 += res2
-        py = yp_[rr]
-        dy = yd_[rr]
-        sy = ys_[rr]
-        g0 += py * r0
-        g1 += dy * r1
-        g2 += py * r1
-        g3 += sy * r1 + py * r2
-        g4 += r3
-        h0 += py * t0
-        h1 += dy * t1
-        h4 += t3
-        at += width
-    a2 = a * a
-    eps = wp.float64(1.0e-12)
-    s00 = a2 * ypp * xdd
-    s01 = a2 * ypd * xpd
-    s02 = a * ypp * xpd
-    s03 = a2 * (yps * xpd + ypp * xds)
-    s04 = a * yp * xd
-    s11 = a2 * ydd * xpp
-    s12 = a * ypd * xpp
-    s13 = a2 * (yds * xpp + ypd * xps)
-    s14 = a * yd * xp
-    s22 = ypp * xpp
-    s23 = a * (yps * xpp + ypp * xps)
-    s24 = yp * xp
-    s33 = a2 * (yss * xpp + wp.float64(2.0) * yps * xps + ypp * xss)
-    s34 = a * (ys * xp + yp * xs)
-    s44 = wp.float64(25.0)
-    ne = NormalEquations()
-    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
-    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
-    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
-    ne.g1 = wp.vec3d(a * g0, a * g1, g4)
-    ne.g2 = wp.vec2d(g2, a * g3)
-    ne.h1 = wp.vec3d(a * h0, a * h1, h4)
-    return ne
-
-
-@wp.func
 def limited(step: vec5d) -> vec5d:
     """The step scaled so that the position moves at most half a pixel per axis."""
     big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
@@ -1301,16 +1109,12 @@ def fit_dot_step_kernel(
     skip = render_half - half
     ne = NormalEquations()
     if f == 0:
-        if half == 2 and window_is_whole(image0, params, i, half, saturation[f]):
-            ne = normal_matrix_separable5(image0, models, inv_scale, f, params, i, skip, common, prof)
-        elif window_is_whole(image0, params, i, half, saturation[f]):
+        if window_is_whole(image0, params, i, half, saturation[f]):
             ne = normal_matrix_separable(image0, models, inv_scale, f, params, i, half, skip, common, prof)
         else:
             ne = normal_matrix(image0, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
     else:
-        if half == 2 and window_is_whole(image1, params, i, half, saturation[f]):
-            ne = normal_matrix_separable5(image1, models, inv_scale, f, params, i, skip, common, prof)
-        elif window_is_whole(image1, params, i, half, saturation[f]):
+        if window_is_whole(image1, params, i, half, saturation[f]):
             ne = normal_matrix_separable(image1, models, inv_scale, f, params, i, half, skip, common, prof)
         else:
             ne = normal_matrix(image1, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
