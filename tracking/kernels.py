@@ -705,12 +705,6 @@ def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: 
         k += 1
 
 
-@wp.kernel
-def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
-    """Profiles of every dot on its stamp (see ``dot_profiles``)."""
-    dot_profiles(params, wp.tid(), half, prof)
-
-
 @wp.func
 def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.vec2d:
     """(I0, sigma) of dot i shared with its partner in the other image: the mean of both (own if none)."""
@@ -734,6 +728,7 @@ def render_dots_kernel(
     partner: wp.array(dtype=wp.int32),
     half: int,
     common: int,
+    profiles: int,
     prof: wp.array3d(dtype=wp.float64),
     scale: wp.float64,
     height: int,
@@ -744,11 +739,14 @@ def render_dots_kernel(
 
     ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;
     if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
-    holds the dot's profiles on its stamp (``dot_profiles``).
+    holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit),
+    they are computed here first, from ``params``.
     The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
     dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
     i = wp.tid()
+    if profiles != 0:
+        dot_profiles(params, i, half, prof)
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
