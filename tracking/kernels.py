@@ -965,9 +965,6 @@ def normal_matrix_separable(
     a = params[i, 2]
     b = params[i, 4]
     zero = wp.float64(0.0)
-    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
-    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
-    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
     g0 = zero
     g1 = zero
     g2 = zero
@@ -1023,6 +1020,10 @@ def normal_matrix_separable(
         h4 += t3
         at += width
         rr += 1
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
+    # (after the pixel loop: fewer values live across it)
+    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
+    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
     a2 = a * a
     eps = wp.float64(1.0e-12)
     s00 = a2 * ypp * xdd
