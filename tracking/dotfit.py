@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .kernels import dot_profiles_kernel, fit_dot_step_kernel, render_dots_kernel
+from .kernels import fit_dot_step_kernel, render_dots_kernel
 from .workspace import scratch
 
 __all__ = [
@@ -258,7 +258,7 @@ def _image_list(images):
 
 def _checked(images, params, frame, partner):
     stack = _image_list(images)
-    p = np.array(params, dtype=np.float64).reshape(-1, 5)
+    p = np.asarray(params, dtype=np.float64).reshape(-1, 5)  # not modified: no copy
     if not np.isfinite(p).all():
         raise ValueError("fit_dots needs finite starting parameters")
     n = len(p)
@@ -406,29 +406,34 @@ def fit_dots(
     order = np.argsort((frame * (band.max() + 1) + band) * (col.max() + 1) + col)
     back = np.empty_like(order)
     back[order] = np.arange(n)
-    p = np.take(p, order, axis=0)  # (np.take gathers rows several times faster than fancy indexing)
     # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
     if len(stack) > 2:
         raise ValueError(f"fit_dots takes one image or a pair, got {len(stack)}")
     img0 = _on_device(stack[0], wp.float64, device)
     img1 = _on_device(stack[-1], wp.float64, device)
-    fr = _on_device(frame[order], wp.int32, device)
+    fr = _on_device(np.take(frame, order), wp.int32, device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
-    pa = _on_device(np.where(partner[order] >= 0, back[np.maximum(partner[order], 0)], -1), wp.int32, device)
+    po = np.take(partner, order)
+    pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
-    # Working arrays from the thread's workspace (results are copied out at the end).
+    # Working arrays from the thread's workspace (results are copied out at the end). The starting
+    # parameters are gathered in the new order straight into ``start`` (np.take gathers rows several
+    # times faster than fancy indexing); ``nxt`` needs no start: every step writes all of its rows.
     models = scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device)
     cur = scratch("fit_params", (n, 5), wp.float64, device)
     nxt = scratch("fit_params_next", (n, 5), wp.float64, device)
     start = scratch("fit_start", (n, 5), wp.float64, device)
-    for a in (cur, nxt, start):
-        a.assign(p)
+    if wp.get_device(device).is_cpu:
+        p = np.take(p, order, axis=0, out=start.numpy(), mode="clip")  # (valid indices; "raise" buffers `out`)
+    else:
+        p = np.take(p, order, axis=0)
+        start.assign(p)
+    cur.assign(start)
     ok = scratch("fit_ok", (n,), wp.int32, device)
     shared = scratch("fit_shared", (n, 2), wp.float64, device)
     prof = scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device)
-    wp.launch(dot_profiles_kernel, dim=n, inputs=[cur, int(render_half), prof], device=device)
-    peak = float(np.max(np.abs(p[:, 2]))) if n else 1.0
+    peak = float(np.max(np.abs(p[:, 2])))
     for it in range(iterations):
         last = it == iterations - 1
         if it:
@@ -438,7 +443,18 @@ def fit_dots(
         wp.launch(
             render_dots_kernel,
             dim=n,
-            inputs=[cur, fr, pa, int(render_half), int(last), prof, scale, *stack[0].shape, models.flatten()],
+            inputs=[
+                cur,
+                fr,
+                pa,
+                int(render_half),
+                int(last),
+                int(it == 0),
+                prof,
+                scale,
+                *stack[0].shape,
+                models.flatten(),
+            ],
             device=device,
         )
         wp.launch(

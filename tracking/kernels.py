@@ -713,12 +713,6 @@ def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: 
         k += 1
 
 
-@wp.kernel
-def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
-    """Profiles of every dot on its stamp (see ``dot_profiles``)."""
-    dot_profiles(params, wp.tid(), half, prof)
-
-
 @wp.func
 def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.vec2d:
     """(I0, sigma) of dot i shared with its partner in the other image: the mean of both (own if none)."""
@@ -742,6 +736,7 @@ def render_dots_kernel(
     partner: wp.array(dtype=wp.int32),
     half: int,
     common: int,
+    profiles: int,
     prof: wp.array3d(dtype=wp.float64),
     scale: wp.float64,
     height: int,
@@ -752,11 +747,14 @@ def render_dots_kernel(
 
     ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;
     if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
-    holds the dot's profiles on its stamp (``dot_profiles``).
+    holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit),
+    they are computed here first, from ``params``.
     The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
     dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
     i = wp.tid()
+    if profiles != 0:
+        dot_profiles(params, i, half, prof)
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
@@ -975,9 +973,6 @@ def normal_matrix_separable(
     a = params[i, 2]
     b = params[i, 4]
     zero = wp.float64(0.0)
-    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
-    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
-    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
     g0 = zero
     g1 = zero
     g2 = zero
@@ -1033,6 +1028,10 @@ def normal_matrix_separable(
         h4 += t3
         at += width
         rr += 1
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
+    # (after the pixel loop: fewer values live across it)
+    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
+    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
     a2 = a * a
     eps = wp.float64(1.0e-12)
     s00 = a2 * ypp * xdd
