@@ -10,14 +10,11 @@ reference (a k-d tree) that defines the result.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
 from .kernels import neighbour_fit_kernel
-from .windows import median_network
 from .workspace import scratch
 
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
@@ -97,14 +94,6 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False
     return (value, spread, nb) if return_neighbours else (value, spread)
 
 
-@functools.lru_cache(maxsize=8)
-def _network(k):
-    """``median_network(k)`` made once per k (read only)."""
-    net = median_network(k)
-    net.flags.writeable = False
-    return net
-
-
 def _cell_grid(xy, query, count):
     """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
     side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
@@ -175,13 +164,13 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             side,
             nx,
             ny,
-            scratch("neighbour_dist", (rows, k), wp.float64, device),
-            scratch("neighbour_idx", (rows, k), wp.int32, device),
-            scratch("neighbour_work", (rows, 4, k), wp.float64, device),
+            rows,
+            scratch("neighbour_near", (rows * k,), wp.vec2d, device),
+            scratch("neighbour_work", (rows * k,), wp.vec4d, device),
+            scratch("neighbour_resid", (rows * k,), wp.float64, device),
             value,
             spread,
             nb,
-            arr(_network(k), wp.int32),
         ],
         device=device,
     )
