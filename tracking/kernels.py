@@ -1313,13 +1313,15 @@ def neighbour_fit_kernel(
             break  # the block holds every point
         r += 1
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means;
-    # each neighbour's offset and vector gathered once, into work.
+    # each neighbour's offset and vector gathered once, into work (while loops: cheaper than a range with a
+    # step of either sign).
     kf = wp.float64(k)
     dmx = wp.float64(0.0)
     dmy = wp.float64(0.0)
     fmu = wp.float64(0.0)
     fmv = wp.float64(0.0)
-    for j in range(k):
+    j = int(0)
+    while j < k:
         p = int(near[base + j][1])
         neighbours[q, j] = p
         pxy = xy[p]
@@ -1330,6 +1332,7 @@ def neighbour_fit_kernel(
         dmy += w[1]
         fmu += w[2]
         fmv += w[3]
+        j += 1
     dmx = dmx / kf
     dmy = dmy / kf
     fmu = fmu / kf
@@ -1341,7 +1344,8 @@ def neighbour_fit_kernel(
     byu = wp.float64(0.0)
     bxv = wp.float64(0.0)
     byv = wp.float64(0.0)
-    for j in range(k):
+    j = int(0)
+    while j < k:
         w = work[base + j]
         ex = w[0] - dmx
         ey = w[1] - dmy
@@ -1354,6 +1358,7 @@ def neighbour_fit_kernel(
         byu += ey * gu
         bxv += ex * gv
         byv += ey * gv
+        j += 1
     ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
     sxx += ridge
     syy += ridge
@@ -1369,7 +1374,8 @@ def neighbour_fit_kernel(
     h = k / 2 + 1
     n = int(0)
     top = wp.float64(0.0)
-    for j in range(k):
+    j = int(0)
+    while j < k:
         w = work[base + j]
         ex = w[0] - dmx
         ey = w[1] - dmy
@@ -1379,6 +1385,7 @@ def neighbour_fit_kernel(
         if n < h or r2 < top:
             n = keep_smallest(r2, n, h, base, resid)
             top = resid[base + n - 1]
+        j += 1
     if k % 2 == 1:
         spread[q] = wp.sqrt(resid[base + h - 1])
     else:

@@ -97,9 +97,11 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False
 def _cell_grid(xy, query, count):
     """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
     side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
-    # (reduced along the rows of the transposes: one long loop each, not one short one per point)
-    lo = np.minimum(xy.T.min(axis=1), query.T.min(axis=1))
-    hi = np.maximum(xy.T.max(axis=1), query.T.max(axis=1))
+    # each coordinate reduced as one (strided) column: a reduction along an axis of an (n, 2) array or of
+    # its transpose runs a short loop per point and costs some hundred times more
+    boxes = (xy,) if query is xy else (xy, query)
+    lo = np.array([min(float(a[:, c].min()) for a in boxes) for c in range(2)])
+    hi = np.array([max(float(a[:, c].max()) for a in boxes) for c in range(2)])
     extent = np.maximum(hi - lo, 1e-9)
     side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
     side = max(side, float(extent.max()) / 4096.0, 1e-9)
@@ -123,15 +125,16 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
 
     Other parameters and the result are those of :func:`neighbour_fit_numpy`.
     """
+    same = query is xy  # the points themselves (the outlier test)
     xy = np.ascontiguousarray(xy, dtype=np.float64)
-    query = np.ascontiguousarray(query, dtype=np.float64)
+    query = xy if same else np.ascontiguousarray(query, dtype=np.float64)
     n = len(query)
     if n == 0:
         return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros((0, k), dtype=np.int64),) if return_neighbours else ())
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
-    if query is xy:  # the points themselves (the outlier test): already in the order of their cells
+    if same:  # already in the order of their cells
         query_order = order
     else:
         qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
