@@ -1206,22 +1206,6 @@ def scan_cells(
     return f
 
 
-@wp.func
-def keep_smallest(v: wp.float64, n: int, h: int, base: int, values: wp.array(dtype=wp.float64)) -> int:
-    """Insert ``v`` into the ascending list of the ``h`` smallest values ``values[base:base + h]`` (``n``
-    of them so far); return the new count. The caller has checked that ``v`` belongs there (``n < h`` or
-    it is below the last entry)."""
-    m = wp.min(n, h - 1)
-    while m > 0:
-        vm = values[base + m - 1]
-        if not (vm > v):
-            break
-        values[base + m] = vm
-        m -= 1
-    values[base + m] = v
-    return wp.min(n + 1, h)
-
-
 @wp.kernel
 def neighbour_fit_kernel(
     query_order: wp.array(dtype=wp.int32),
@@ -1244,6 +1228,7 @@ def neighbour_fit_kernel(
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
+    network: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out; ``k = neighbours.shape[1]``): the fit's value at q and the median distance
@@ -1258,9 +1243,9 @@ def neighbour_fit_kernel(
     the first block with ``k`` of them has the k nearest (a larger block is searched afresh; the whole
     grid at the latest). Thread t takes query ``query_order[t]`` (queries in the order of their cells:
     neighbouring threads read the same points). ``near`` (the k nearest: squared distance and index),
-    ``work`` (their offsets from q and vectors) and ``resid`` (the ``k // 2 + 1`` smallest squared
-    distances of the vectors from the fit, ascending) are scratch rows of length k: query q's start at
-    ``(q % rows) * k``.
+    ``work`` (their offsets from q and vectors) and ``resid`` (the squared distances of their vectors from
+    the fit) are scratch rows of length k: query q's start at ``(q % rows) * k``. ``network`` is
+    ``tracking.windows.median_network(k)``.
     """
     q = query_order[wp.tid()]
     k = neighbours.shape[1]
@@ -1369,11 +1354,7 @@ def neighbour_fit_kernel(
     gyv = (sxx * byv - sxy * bxv) / det
     value[q, 0] = fmu - dmx * gxu - dmy * gyu
     value[q, 1] = fmv - dmx * gxv - dmy * gyv
-    # squared distances of the neighbours' vectors from the fit, the k // 2 + 1 smallest kept in order:
-    # the median is the last one or the mean of the roots of the last two
-    h = k / 2 + 1
-    n = int(0)
-    top = wp.float64(0.0)
+    # squared distances of the neighbours' vectors from the fit, into resid
     j = int(0)
     while j < k:
         w = work[base + j]
@@ -1381,15 +1362,23 @@ def neighbour_fit_kernel(
         ey = w[1] - dmy
         gu = w[2] - fmu - ex * gxu - ey * gyu
         gv = w[3] - fmv - ex * gxv - ey * gyv
-        r2 = gu * gu + gv * gv
-        if n < h or r2 < top:
-            n = keep_smallest(r2, n, h, base, resid)
-            top = resid[base + n - 1]
+        resid[base + j] = gu * gu + gv * gv
         j += 1
+    # median of the distances: the middle squares put in place by the compare-exchange ``network``
+    # (``tracking.windows.median_network(k)``; the root is monotonic), without a branch
+    t = int(0)
+    while t < network.shape[0]:
+        a = base + network[t, 0]
+        b = base + network[t, 1]
+        va = resid[a]
+        vb = resid[b]
+        resid[a] = wp.min(va, vb)
+        resid[b] = wp.max(va, vb)
+        t += 1
     if k % 2 == 1:
-        spread[q] = wp.sqrt(resid[base + h - 1])
+        spread[q] = wp.sqrt(resid[base + k / 2])
     else:
-        spread[q] = wp.float64(0.5) * (wp.sqrt(resid[base + h - 2]) + wp.sqrt(resid[base + h - 1]))
+        spread[q] = wp.float64(0.5) * (wp.sqrt(resid[base + k / 2 - 1]) + wp.sqrt(resid[base + k / 2]))
 
 
 # --- the predictor's nearest-pixel window deformation ------------------------------------------------

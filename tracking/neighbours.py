@@ -10,11 +10,14 @@ reference (a k-d tree) that defines the result.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
 from .kernels import neighbour_fit_kernel
+from .windows import median_network
 from .workspace import scratch
 
 __all__ = ["neighbour_fit", "neighbour_fit_numpy"]
@@ -92,6 +95,14 @@ def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False
         resid2 += g * g
     spread = np.median(np.sqrt(resid2), axis=1)
     return (value, spread, nb) if return_neighbours else (value, spread)
+
+
+@functools.lru_cache(maxsize=8)
+def _network(k):
+    """``median_network(k)`` made once per k (read only)."""
+    net = median_network(k)
+    net.flags.writeable = False
+    return net
 
 
 def _cell_grid(xy, query, count):
@@ -176,6 +187,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             value,
             spread,
             nb,
+            arr(_network(k), wp.int32),
         ],
         device=device,
     )
