@@ -4,8 +4,9 @@ The reference of the tracker's outlier tests (a normalised median test on scatte
 Scarano 2005, with a local linear reference as in Duncan et al. 2010): for every query point, the least
 squares plane ``f = c + G d`` through the vectors of its ``k`` nearest points and the median distance of
 those vectors from it. :func:`neighbour_fit` is a Warp kernel (one thread per query, the points sorted
-into square cells, rings of cells searched outwards); :func:`neighbour_fit_numpy` is the array-program
-reference (a k-d tree) that defines the result.
+into square cells, growing blocks of cells around the query searched until one holds k points within its
+inner edge); :func:`neighbour_fit_numpy` is the array-program reference (a k-d tree) that defines the
+result.
 """
 
 from __future__ import annotations
