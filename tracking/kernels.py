@@ -1157,24 +1157,19 @@ def fit_dot_step_kernel(
 
 
 @wp.func
-def keep_nearest(
-    d: wp.float64, p: int, found: int, s: int, dist: wp.array2d(dtype=wp.float64), idx: wp.array2d(dtype=wp.int32)
-) -> int:
-    """Insert point ``p`` at squared distance ``d`` into row ``s`` of the sorted lists of the ``k`` nearest
-    (``k = dist.shape[1]``; ties broken by the lower index, so the set does not depend on the visiting
-    order); return the new count. The caller has checked that ``p`` belongs there (``found < k`` or it
-    comes before the last entry)."""
-    k = dist.shape[1]
+def keep_nearest(d: wp.float64, p: wp.float64, found: int, base: int, k: int, near: wp.array(dtype=wp.vec2d)) -> int:
+    """Insert point ``p`` at squared distance ``d`` into the ascending list of the ``k`` nearest
+    ``near[base:base + k]`` (``(squared distance, index)``, ties broken by the lower index, so the set does
+    not depend on the visiting order); return the new count. The caller has checked that ``p`` belongs
+    there (``found < k`` or it comes before the last entry)."""
     m = wp.min(found, k - 1)
     while m > 0:
-        dm = dist[s, m - 1]
-        if not (dm > d or (dm == d and idx[s, m - 1] > p)):
+        e = near[base + m - 1]
+        if not (e[0] > d or (e[0] == d and e[1] > p)):
             break
-        dist[s, m] = dm
-        idx[s, m] = idx[s, m - 1]
+        near[base + m] = e
         m -= 1
-    dist[s, m] = d
-    idx[s, m] = wp.int32(p)
+    near[base + m] = wp.vec2d(d, p)
     return wp.min(found + 1, k)
 
 
@@ -1187,30 +1182,34 @@ def scan_cells(
     own: int,
     cell_points: wp.array(dtype=wp.int32),
     cell_xy: wp.array(dtype=wp.vec2d),
+    limit: wp.float64,
     found: int,
-    s: int,
-    dist: wp.array2d(dtype=wp.float64),
-    idx: wp.array2d(dtype=wp.int32),
+    base: int,
+    k: int,
+    near: wp.array(dtype=wp.vec2d),
 ) -> int:
-    """Offer the points ``j0 <= j < j1`` of the cell order to the k nearest list (row ``s``); return the new
-    count."""
-    k = dist.shape[1]
+    """Offer the points ``j0 <= j < j1`` of the cell order that lie within squared distance ``limit`` of
+    ``(qx, qy)`` to the k nearest list (``keep_nearest``); return the new count. While the list is full,
+    a point must also come before its last entry (held in registers, reloaded after an insertion)."""
     f = found
-    for j in range(j0, j1):
+    worst = wp.vec2d(limit, wp.float64(0.0))
+    if f == k:
+        worst = near[base + k - 1]
+    j = int(j0)
+    while j < j1:  # (cheaper than a range with a step of either sign)
         c = cell_xy[j]
         dx = c[0] - qx
         dy = c[1] - qy
         d = dx * dx + dy * dy
-        if f < k:
+        if d <= worst[0]:
             p = int(cell_points[j])
             if p != own:
-                f = keep_nearest(d, p, f, s, dist, idx)
-        else:
-            worst = dist[s, k - 1]
-            if d <= worst:
-                p = int(cell_points[j])
-                if p != own and (d < worst or p < idx[s, k - 1]):
-                    f = keep_nearest(d, p, f, s, dist, idx)
+                pf = wp.float64(p)
+                if f < k or d < worst[0] or pf < worst[1]:
+                    f = keep_nearest(d, pf, f, base, k, near)
+                    if f == k:
+                        worst = near[base + k - 1]
+        j += 1
     return f
 
 
@@ -1229,62 +1228,44 @@ def neighbour_fit_kernel(
     cell: wp.float64,
     nx: int,
     ny: int,
-    dist: wp.array2d(dtype=wp.float64),
-    idx: wp.array2d(dtype=wp.int32),
-    work: wp.array3d(dtype=wp.float64),
+    rows: int,
+    near: wp.array(dtype=wp.vec2d),
+    work: wp.array(dtype=wp.vec4d),
+    resid: wp.array(dtype=wp.float64),
     value: wp.array2d(dtype=wp.float64),
     spread: wp.array(dtype=wp.float64),
     neighbours: wp.array2d(dtype=wp.int32),
     network: wp.array2d(dtype=wp.int32),
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
-    ``self_index[q]`` left out): the fit's value at q and the median distance of the neighbours' vectors
-    from the fit (see ``tracking.neighbours.neighbour_fit_numpy``); ``neighbours[q]`` gets the ``k``
-    points' indices, nearest first (ties: the lower index first).
+    ``self_index[q]`` left out; ``k = neighbours.shape[1]``): the fit's value at q and the median distance
+    of the neighbours' vectors from the fit (see ``tracking.neighbours.neighbour_fit_numpy``);
+    ``neighbours[q]`` gets the ``k`` points' indices, nearest first (ties: the lower index first).
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
     ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
     run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
-    ``(2 r + 1)^2`` cells around q's is searched, r = 1, 2, ..., each step visiting only the ring of cells
-    the previous block did not hold, until the k-th nearest is closer than the block's edge. Thread t
-    takes query ``query_order[t]`` (queries in the order of their cells: neighbouring threads read the
-    same points). ``dist``, ``idx`` (length k) and ``work`` (4 x k: the neighbours' offsets from q and
-    their vectors) are scratch rows: query q uses row ``q % rows``.
+    ``(2 r + 1)^2`` cells around q's, r = 1, 2, ..., holds every point within the distance from q to its
+    nearest edge that is not the edge of the grid; only the points within that distance are kept, and
+    the first block with ``k`` of them has the k nearest (a larger block is searched afresh; the whole
+    grid at the latest). Thread t takes query ``query_order[t]`` (queries in the order of their cells:
+    neighbouring threads read the same points). ``near`` (the k nearest: squared distance and index),
+    ``work`` (their offsets from q and vectors) and ``resid`` (the squared distances of their vectors from
+    the fit) are scratch rows of length k: query q's start at ``(q % rows) * k``. ``network`` is
+    ``tracking.windows.median_network(k)``.
     """
     q = query_order[wp.tid()]
-    s = q % dist.shape[0]
-    k = dist.shape[1]
+    k = neighbours.shape[1]
+    base = wp.max((q % rows) * k, 0)
     qxy = query[q]
     qx = qxy[0]
     qy = qxy[1]
     own = self_index[q]
     cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
     cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
-    # the 3 x 3 block first, one run of cells per row, q's row first (the nearest points early: fewer
-    # enter the list only to be pushed out again)
     found = int(0)
-    ix0 = wp.max(cx - 1, 0)
-    ix1 = wp.min(cx + 1, nx - 1)
-    for t in range(3):
-        iy = cy + t
-        if t == 2:
-            iy = cy - 1
-        if iy >= 0 and iy < ny:
-            found = scan_cells(
-                cell_start[iy * nx + ix0],
-                cell_start[iy * nx + ix1 + 1],
-                qx,
-                qy,
-                own,
-                cell_points,
-                cell_xy,
-                found,
-                s,
-                dist,
-                idx,
-            )
     r = int(1)
-    while True:
+    while found < k:
         # distance from q to the nearest edge of the block that is not the edge of the grid
         edge = wp.float64(1.0e300)
         if cx - r > 0:
@@ -1295,16 +1276,17 @@ def neighbour_fit_kernel(
             edge = wp.min(edge, qy - (y0 + wp.float64(cy - r) * cell))
         if cy + r < ny - 1:
             edge = wp.min(edge, y0 + wp.float64(cy + r + 1) * cell - qy)
-        if found == k and (edge >= wp.float64(1.0e300) or dist[s, k - 1] <= edge * edge):
-            break
-        if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
-            break  # the block holds every point
-        r += 1
-        # the ring of the block of r that the block of r - 1 did not hold
+        limit = edge * edge  # +inf where the block reaches the grid's edge on every side
         ix0 = wp.max(cx - r, 0)
         ix1 = wp.min(cx + r, nx - 1)
-        for iy in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
-            if iy == cy - r or iy == cy + r:
+        found = int(0)
+        for t in range(2 * r + 1):
+            # rows cy, cy + 1, cy - 1, cy + 2, ...: the nearest points early (fewer enter the list only
+            # to be pushed out again)
+            iy = cy + (t + 1) / 2
+            if t % 2 == 0:
+                iy = cy - t / 2
+            if iy >= 0 and iy < ny:
                 found = scan_cells(
                     cell_start[iy * nx + ix0],
                     cell_start[iy * nx + ix1 + 1],
@@ -1313,46 +1295,36 @@ def neighbour_fit_kernel(
                     own,
                     cell_points,
                     cell_xy,
+                    limit,
                     found,
-                    s,
-                    dist,
-                    idx,
+                    base,
+                    k,
+                    near,
                 )
-            else:
-                if cx - r >= 0:
-                    c0 = iy * nx + cx - r
-                    found = scan_cells(
-                        cell_start[c0], cell_start[c0 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
-                    )
-                if cx + r <= nx - 1:
-                    c1 = iy * nx + cx + r
-                    found = scan_cells(
-                        cell_start[c1], cell_start[c1 + 1], qx, qy, own, cell_points, cell_xy, found, s, dist, idx
-                    )
+        if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
+            break  # the block holds every point
+        r += 1
     # Least squares of f = c + G d over the neighbours (offsets d from q), both centred on their means;
-    # each neighbour's position and vector gathered once, into work.
+    # each neighbour's offset and vector gathered once, into work (while loops: cheaper than a range with a
+    # step of either sign).
     kf = wp.float64(k)
     dmx = wp.float64(0.0)
     dmy = wp.float64(0.0)
     fmu = wp.float64(0.0)
     fmv = wp.float64(0.0)
-    for j in range(k):
-        p = idx[s, j]
+    j = int(0)
+    while j < k:
+        p = int(near[base + j][1])
         neighbours[q, j] = p
         pxy = xy[p]
         puv = uv[p]
-        dx = pxy[0] - qx
-        dy = pxy[1] - qy
-        u = puv[0]
-        v = puv[1]
-        work[s, 0, j] = dx
-        work[s, 1, j] = dy
-        work[s, 2, j] = u
-        work[s, 3, j] = v
-        dmx += dx
-        dmy += dy
-        fmu += u
-        fmv += v
+        w = wp.vec4d(pxy[0] - qx, pxy[1] - qy, puv[0], puv[1])
+        work[base + j] = w
+        dmx += w[0]
+        dmy += w[1]
+        fmu += w[2]
+        fmv += w[3]
+        j += 1
     dmx = dmx / kf
     dmy = dmy / kf
     fmu = fmu / kf
@@ -1364,15 +1336,13 @@ def neighbour_fit_kernel(
     byu = wp.float64(0.0)
     bxv = wp.float64(0.0)
     byv = wp.float64(0.0)
-    for j in range(k):
-        ex = work[s, 0, j] - dmx
-        ey = work[s, 1, j] - dmy
-        gu = work[s, 2, j] - fmu
-        gv = work[s, 3, j] - fmv
-        work[s, 0, j] = ex
-        work[s, 1, j] = ey
-        work[s, 2, j] = gu
-        work[s, 3, j] = gv
+    j = int(0)
+    while j < k:
+        w = work[base + j]
+        ex = w[0] - dmx
+        ey = w[1] - dmy
+        gu = w[2] - fmu
+        gv = w[3] - fmv
         sxx += ex * ex
         syy += ey * ey
         sxy += ex * ey
@@ -1380,6 +1350,7 @@ def neighbour_fit_kernel(
         byu += ey * gu
         bxv += ex * gv
         byv += ey * gv
+        j += 1
     ridge = wp.float64(1.0e-6) * (kf + sxx + syy)
     sxx += ridge
     syy += ridge
@@ -1390,26 +1361,31 @@ def neighbour_fit_kernel(
     gyv = (sxx * byv - sxy * bxv) / det
     value[q, 0] = fmu - dmx * gxu - dmy * gyu
     value[q, 1] = fmv - dmx * gxv - dmy * gyv
-    # squared distances of the neighbours' vectors from the fit, into dist (the search is done)
-    for j in range(k):
-        ex = work[s, 0, j]
-        ey = work[s, 1, j]
-        gu = work[s, 2, j] - ex * gxu - ey * gyu
-        gv = work[s, 3, j] - ex * gxv - ey * gyv
-        dist[s, j] = gu * gu + gv * gv
+    # squared distances of the neighbours' vectors from the fit, into resid
+    j = int(0)
+    while j < k:
+        w = work[base + j]
+        ex = w[0] - dmx
+        ey = w[1] - dmy
+        gu = w[2] - fmu - ex * gxu - ey * gyu
+        gv = w[3] - fmv - ex * gxv - ey * gyv
+        resid[base + j] = gu * gu + gv * gv
+        j += 1
     # median of the distances: the middle squares put in place by the compare-exchange ``network``
-    # (``tracking.windows.median_network(k)``; the root is monotonic)
-    for t in range(network.shape[0]):
-        a = network[t, 0]
-        b = network[t, 1]
-        va = dist[s, a]
-        vb = dist[s, b]
-        dist[s, a] = wp.min(va, vb)
-        dist[s, b] = wp.max(va, vb)
+    # (``tracking.windows.median_network(k)``; the root is monotonic), without a branch
+    t = int(0)
+    while t < network.shape[0]:
+        a = base + network[t, 0]
+        b = base + network[t, 1]
+        va = resid[a]
+        vb = resid[b]
+        resid[a] = wp.min(va, vb)
+        resid[b] = wp.max(va, vb)
+        t += 1
     if k % 2 == 1:
-        spread[q] = wp.sqrt(dist[s, k / 2])
+        spread[q] = wp.sqrt(resid[base + k / 2])
     else:
-        spread[q] = wp.float64(0.5) * (wp.sqrt(dist[s, k / 2 - 1]) + wp.sqrt(dist[s, k / 2]))
+        spread[q] = wp.float64(0.5) * (wp.sqrt(resid[base + k / 2 - 1]) + wp.sqrt(resid[base + k / 2]))
 
 
 # --- the predictor's nearest-pixel window deformation ------------------------------------------------

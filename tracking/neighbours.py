@@ -4,8 +4,9 @@ The reference of the tracker's outlier tests (a normalised median test on scatte
 Scarano 2005, with a local linear reference as in Duncan et al. 2010): for every query point, the least
 squares plane ``f = c + G d`` through the vectors of its ``k`` nearest points and the median distance of
 those vectors from it. :func:`neighbour_fit` is a Warp kernel (one thread per query, the points sorted
-into square cells, rings of cells searched outwards); :func:`neighbour_fit_numpy` is the array-program
-reference (a k-d tree) that defines the result.
+into square cells, growing blocks of cells around the query searched until one holds k points within its
+inner edge); :func:`neighbour_fit_numpy` is the array-program reference (a k-d tree) that defines the
+result.
 """
 
 from __future__ import annotations
@@ -108,9 +109,11 @@ def _network(k):
 def _cell_grid(xy, query, count):
     """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
     side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
-    # (reduced along the rows of the transposes: one long loop each, not one short one per point)
-    lo = np.minimum(xy.T.min(axis=1), query.T.min(axis=1))
-    hi = np.maximum(xy.T.max(axis=1), query.T.max(axis=1))
+    # each coordinate reduced as one (strided) column: a reduction along an axis of an (n, 2) array or of
+    # its transpose runs a short loop per point and costs some hundred times more
+    boxes = (xy,) if query is xy else (xy, query)
+    lo = np.array([min(float(a[:, c].min()) for a in boxes) for c in range(2)])
+    hi = np.array([max(float(a[:, c].max()) for a in boxes) for c in range(2)])
     extent = np.maximum(hi - lo, 1e-9)
     side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
     side = max(side, float(extent.max()) / 4096.0, 1e-9)
@@ -118,7 +121,9 @@ def _cell_grid(xy, query, count):
     cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
     cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
     cell = cy * nx + cx
-    order = np.argsort(cell).astype(np.int32)  # the order within a cell does not matter (ties go to the lower index)
+    # the order within a cell does not matter (ties go to the lower index); 16-bit keys sort by radix
+    key = cell.astype(np.uint16) if nx * ny <= 65536 else cell
+    order = np.argsort(key, kind="stable").astype(np.int32)
     start = np.zeros(nx * ny + 1, dtype=np.int32)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
     return float(lo[0]), float(lo[1]), side, nx, ny, start, order
@@ -134,15 +139,16 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
 
     Other parameters and the result are those of :func:`neighbour_fit_numpy`.
     """
+    same = query is xy  # the points themselves (the outlier test)
     xy = np.ascontiguousarray(xy, dtype=np.float64)
-    query = np.ascontiguousarray(query, dtype=np.float64)
+    query = xy if same else np.ascontiguousarray(query, dtype=np.float64)
     n = len(query)
     if n == 0:
         return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros((0, k), dtype=np.int64),) if return_neighbours else ())
     if len(xy) <= k:
         raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
     x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
-    if query is xy:  # the points themselves (the outlier test): already in the order of their cells
+    if same:  # already in the order of their cells
         query_order = order
     else:
         qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
@@ -169,15 +175,16 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
             arr(own, wp.int32),
             arr(start, wp.int32),
             arr(order, wp.int32),
-            arr(xy[order], wp.vec2d),
+            arr(np.take(xy, order, axis=0), wp.vec2d),  # (take: a row gather ~15 times cheaper than xy[order])
             x0,
             y0,
             side,
             nx,
             ny,
-            scratch("neighbour_dist", (rows, k), wp.float64, device),
-            scratch("neighbour_idx", (rows, k), wp.int32, device),
-            scratch("neighbour_work", (rows, 4, k), wp.float64, device),
+            rows,
+            scratch("neighbour_near", (rows * k,), wp.vec2d, device),
+            scratch("neighbour_work", (rows * k,), wp.vec4d, device),
+            scratch("neighbour_resid", (rows * k,), wp.float64, device),
             value,
             spread,
             nb,

@@ -688,16 +688,21 @@ def _neighbour_outliers(xy, uv, settings, device):
     neighbours, epsilon, threshold = settings.outlier_neighbours, settings.outlier_epsilon, settings.outlier_threshold
     if n <= neighbours + 3 or not np.isfinite(threshold):
         return np.zeros(n, dtype=bool)
+
+    def far(fit, spread):  # |uv - fit| (the root of the sum of the two squares, as np.linalg.norm's) beyond the limit
+        d = uv - fit
+        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) > threshold * (spread + epsilon)
+
     own = np.arange(n)
     fit, spread, near = _neighbour_fit(xy, uv, xy, own, settings, device, return_neighbours=True)
-    bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
+    bad = far(fit, spread)
     clean = np.flatnonzero(~bad)
     if bad.any() and len(clean) > neighbours + 3:
         where = np.full(n, -1)
         where[clean] = np.arange(len(clean))
         redo = np.flatnonzero(bad[near].any(axis=1))
         fit[redo], spread[redo] = _neighbour_fit(xy[clean], uv[clean], xy[redo], where[redo], settings, device)
-        bad = np.linalg.norm(uv - fit, axis=1) > threshold * (spread + epsilon)
+        bad = far(fit, spread)
     return bad
 
 

@@ -252,6 +252,21 @@ def test_neighbour_fit_kernel_matches_numpy_reference(device):
     assert_allclose(spread, 0.0, atol=1e-6)
 
 
+def test_neighbour_fit_kernel_matches_numpy_on_clustered_points(device):
+    """Dense clusters in a sparse field: cells holding dozens of points, and queries whose k nearest lie
+    beyond the first block of cells (the search starts again on larger blocks); odd and even k."""
+    rng = np.random.default_rng(5)
+    centres = rng.uniform(0.0, 500.0, (6, 2))
+    xy = np.concatenate([c + 3.0 * rng.standard_normal((150, 2)) for c in centres] + [rng.uniform(0.0, 500.0, (60, 2))])
+    uv = np.stack([np.sin(xy[:, 0] / 80.0), 0.002 * xy[:, 1]], axis=1) + 0.05 * rng.standard_normal(xy.shape)
+    for k in (12, 5, 20):
+        a = neighbour_fit_numpy(xy, uv, xy, np.arange(len(xy)), k=k, return_neighbours=True)
+        b = neighbour_fit(xy, uv, xy, np.arange(len(xy)), k=k, return_neighbours=True, device=device)
+        assert_allclose(b[0], a[0], rtol=0, atol=1e-12)
+        assert_allclose(b[1], a[1], rtol=0, atol=1e-12)
+        assert (np.sort(b[2], axis=1) == np.sort(a[2], axis=1)).all()
+
+
 @pytest.mark.parametrize("n", [4, 7, 8, 12, 13, 24, 40, 56])
 def test_median_network_puts_the_middle_two_in_place(n):
     """The edge median's compare-exchange network (ties and all: few distinct values) against a sort."""
