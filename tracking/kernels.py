@@ -297,6 +297,21 @@ def cut_dot_map(
 
 
 @wp.func
+def cross_offset(j: int) -> wp.vec2i:
+    """(row, column) offset of sample ``j`` of the centre cross that the three-point fits read: the peak,
+    then its left, right, upper and lower neighbours."""
+    if j == 1:
+        return wp.vec2i(0, -1)
+    if j == 2:
+        return wp.vec2i(0, 1)
+    if j == 3:
+        return wp.vec2i(-1, 0)
+    if j == 4:
+        return wp.vec2i(1, 0)
+    return wp.vec2i(0, 0)
+
+
+@wp.func
 def cut_cross(
     win: wp.array2d(dtype=wp.float64),
     lab: wp.array2d(dtype=wp.int32),
@@ -312,16 +327,9 @@ def cut_cross(
     rr = chosen // w
     rc = chosen % w
     for j in range(5):
-        qr = rr
-        qc = rc
-        if j == 1:
-            qc = rc - 1
-        elif j == 2:
-            qc = rc + 1
-        elif j == 3:
-            qr = rr - 1
-        elif j == 4:
-            qr = rr + 1
+        off = cross_offset(j)
+        qr = rr + off[0]
+        qc = rc + off[1]
         val = wp.float64(0.0)
         if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
             l = lab[i, qr * w + qc]
@@ -514,14 +522,10 @@ def measure_small_window(
         if full_maps != 0:
             a = j // cw
             b = j % cw
-        elif j == 1:
-            b = hc - 1
-        elif j == 2:
-            b = hc + 1
-        elif j == 3:
-            a = hc - 1
-        elif j == 4:
-            a = hc + 1
+        else:
+            off = cross_offset(j)
+            a = hc + off[0]
+            b = hc + off[1]
         qr = rr + a - hc
         qc = rc + b - hc
         val = wp.float64(0.0)
@@ -1400,6 +1404,21 @@ def field_at_row(field: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, i
 
 
 @wp.func
+def cell_ends(
+    field_u: wp.array2d(dtype=wp.float64), field_v: wp.array2d(dtype=wp.float64), iy: int, ty: wp.float64, ix: int
+) -> wp.vec4d:
+    """(u, u, v, v) of the tile fields at centre columns ``ix`` and ``ix + 1`` (the last column at the
+    edge), each interpolated to a row in cell ``iy`` at fraction ``ty`` (:func:`field_at_row`)."""
+    ix1 = wp.min(ix + 1, field_u.shape[1] - 1)
+    return wp.vec4d(
+        field_at_row(field_u, iy, ty, ix),
+        field_at_row(field_u, iy, ty, ix1),
+        field_at_row(field_v, iy, ty, ix),
+        field_at_row(field_v, iy, ty, ix1),
+    )
+
+
+@wp.func
 def rounds_to(a: wp.float64, b: wp.float64, s: int) -> int:
     """1 where ``a`` and ``b`` both lie more than 1e-6 inside the rounding interval of the integer ``s``
     (so does then anything between them, give or take rounding errors far smaller), else 0."""
@@ -1452,17 +1471,13 @@ def deform_nearest_kernel(
     their pixels from inside the image is copied alike."""
     r, t = wp.tid()
     nx = tile_sums.shape[2]
-    last = field_u.shape[1] - 1
     row = y0 + r
     iy = row_cell[row]
     ty = row_frac[row]
     tile_row = r / size
     one = wp.float64(1.0)
     cell = int(-1)
-    u0 = wp.float64(0.0)
-    u1 = wp.float64(0.0)
-    v0 = wp.float64(0.0)
-    v1 = wp.float64(0.0)
+    ends = wp.vec4d()  # u and v at the row's two centre columns of the current cell (cell_ends)
     for k in range(t * tiles, wp.min(t * tiles + tiles, nx)):
         sum_u = int(0)
         sum_v = int(0)
@@ -1482,18 +1497,16 @@ def deform_nearest_kernel(
             if ix == col_cell[col0 + size - 1]:
                 if ix != cell:
                     cell = ix
-                    ix1 = wp.min(ix + 1, last)
-                    u0 = field_at_row(field_u, iy, ty, ix)
-                    u1 = field_at_row(field_u, iy, ty, ix1)
-                    v0 = field_at_row(field_v, iy, ty, ix)
-                    v1 = field_at_row(field_v, iy, ty, ix1)
+                    ends = cell_ends(field_u, field_v, iy, ty, ix)
                 ta = col_frac[col0]
                 tb = col_frac[col0 + size - 1]
-                ua = (one - ta) * u0 + ta * u1
-                va = (one - ta) * v0 + ta * v1
+                ua = (one - ta) * ends[0] + ta * ends[1]
+                va = (one - ta) * ends[2] + ta * ends[3]
                 su1 = int(wp.rint(ua))
                 sv1 = int(wp.rint(va))
-                same = rounds_to(ua, (one - tb) * u0 + tb * u1, su1) * rounds_to(va, (one - tb) * v0 + tb * v1, sv1)
+                ub = (one - tb) * ends[0] + tb * ends[1]
+                vb = (one - tb) * ends[2] + tb * ends[3]
+                same = rounds_to(ua, ub, su1) * rounds_to(va, vb, sv1)
                 rv = row + sv1
                 if same != 0 and rv >= 0 and rv < h and col0 + su1 >= 0 and col0 + su1 + size <= w:
                     one_shift = 2
@@ -1521,14 +1534,10 @@ def deform_nearest_kernel(
             ix = col_cell[col]
             if ix != cell:
                 cell = ix
-                ix1 = wp.min(ix + 1, last)
-                u0 = field_at_row(field_u, iy, ty, ix)
-                u1 = field_at_row(field_u, iy, ty, ix1)
-                v0 = field_at_row(field_v, iy, ty, ix)
-                v1 = field_at_row(field_v, iy, ty, ix1)
+                ends = cell_ends(field_u, field_v, iy, ty, ix)
             tx = col_frac[col]
-            su = int(wp.rint((one - tx) * u0 + tx * u1))
-            sv = int(wp.rint((one - tx) * v0 + tx * v1))
+            su = int(wp.rint((one - tx) * ends[0] + tx * ends[1]))
+            sv = int(wp.rint((one - tx) * ends[2] + tx * ends[3]))
             sum_u += su
             sum_v += sv
             ry = row + sv
