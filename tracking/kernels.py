@@ -670,6 +670,29 @@ def profile_start(first: int, c: wp.float64, inv: wp.float64):
 
 
 @wp.func
+def profile_pixel(
+    z0: wp.float64,
+    g0: wp.float64,
+    e0: wp.float64,
+    ratio: wp.float64,
+    direct: bool,
+    inv: wp.float64,
+    step: wp.float64,
+    scale: wp.float64,
+):
+    """One pixel of a 1-D profile (``profile_start``'s recurrence): from the pixel's first edge (``z0``,
+    ``g0``, ``erf``, the ratio of ``g`` to the next edge) its next edge's four values, then its
+    ``p``, ``dp/dc`` and ``dp/ds`` (``inv = 1 / s``, ``step = exp(-inv^2)``, ``scale = sqrt(pi / 2) s``)."""
+    z1 = z0 + inv
+    g1 = g0 * ratio
+    if direct:
+        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+    e1 = erf_from_gauss(z1 * wp.float64(0.7071067811865476), g1)
+    p = scale * (e1 - e0)
+    return z1, g1, e1, ratio * step, p, g0 - g1, z0 * g0 - z1 * g1 + p * inv
+
+
+@wp.func
 def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
     """Both axes' pixel profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel.
 
@@ -681,39 +704,20 @@ def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: 
     n = 2 * half + 1
     s = params[i, 3]
     inv = wp.float64(1.0) / s
-    k0 = wp.float64(0.7071067811865476)
     scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
     step = wp.exp(-inv * inv)
     zx, gx, ex, rx, dx = profile_start(int(wp.rint(params[i, 0])) - half, params[i, 0], inv)
     zy, gy, ey, ry, dy = profile_start(int(wp.rint(params[i, 1])) - half, params[i, 1], inv)
     k = int(0)
     while k < n:
-        z1 = zx + inv
-        g1 = gx * rx
-        rx = rx * step
-        if dx:
-            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
-        e1 = erf_from_gauss(z1 * k0, g1)
-        p = scale * (e1 - ex)
+        zx, gx, ex, rx, p, dpdc, dpds = profile_pixel(zx, gx, ex, rx, dx, inv, step, scale)
         prof[i, 0, k] = p
-        prof[i, 1, k] = gx - g1
-        prof[i, 2, k] = zx * gx - z1 * g1 + p * inv
-        zx = z1
-        gx = g1
-        ex = e1
-        z1 = zy + inv
-        g1 = gy * ry
-        ry = ry * step
-        if dy:
-            g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
-        e1 = erf_from_gauss(z1 * k0, g1)
-        p = scale * (e1 - ey)
+        prof[i, 1, k] = dpdc
+        prof[i, 2, k] = dpds
+        zy, gy, ey, ry, p, dpdc, dpds = profile_pixel(zy, gy, ey, ry, dy, inv, step, scale)
         prof[i, 3, k] = p
-        prof[i, 4, k] = gy - g1
-        prof[i, 5, k] = zy * gy - z1 * g1 + p * inv
-        zy = z1
-        gy = g1
-        ey = e1
+        prof[i, 4, k] = dpdc
+        prof[i, 5, k] = dpds
         k += 1
 
 
