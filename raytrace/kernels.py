@@ -653,31 +653,39 @@ def integrate_cone(
     seed: int,
     n_samples: int,
     launch_order: wp.array(dtype=wp.int32),
+    group: int,
     out: wp.array2d(dtype=wp.vec3),
 ):
     """Eq. 4's integral and the depth-averaged n - 1 summed over the rays the renderer traces for a dot.
 
-    Thread ``tid`` takes dot ``launch_order[tid % n_dots]`` and rays ``c * rays_per_thread ...`` of it,
-    c = tid // n_dots; each ray draws its emission point and aperture point exactly as ``render_rays``
-    does (same seed, same (dot, ray) stream), and is followed as the straight line of the undisturbed
-    medium. ``out[c, dot]`` = (sum of integral dn/dx dz, sum of integral dn/dy dz, sum of depth-mean
-    n - 1). The order only decides which thread does which sum (neighbouring dots in neighbouring
-    threads read nearby nodes), never a bit of a sum.
+    The rays of a dot are cut into chunks of ``rays_per_thread`` (chunk c: rays ``c * rays_per_thread
+    ...``), one thread per chunk, in groups of ``group`` consecutive chunks of one dot: thread ``tid`` is
+    in group ``g = tid // group``, which takes dot ``launch_order[g % n_dots]`` and chunks
+    ``(g // n_dots) * group ...`` (threads past the last chunk do nothing), as ``render_rays`` groups
+    rays. Each ray draws its emission point and aperture point exactly as ``render_rays`` does (same
+    seed, same (dot, ray) stream), and is followed as the straight line of the undisturbed medium.
+    ``out[c, dot]`` = (sum of integral dn/dx dz, sum of integral dn/dy dz, sum of depth-mean n - 1) over
+    the chunk's rays, in ray order. The order and the group only decide which thread does which sum (a
+    warp's threads follow rays of few dots, which read nearby nodes), never a bit of a sum.
     """
     tid = wp.tid()
     n_dots = dots.shape[0]
-    dot = launch_order[tid % n_dots]
-    c = tid / n_dots
-    acc = wp.vec3(0.0)
+    g = tid / group
+    block = g / n_dots
+    c = block * group + (tid - g * group)
     r0 = c * rays_per_thread
+    if r0 >= rays_per_dot:
+        return
+    dot = launch_order[g - block * n_dots]
+    acc = wp.vec3(0.0)
     r1 = wp.min(r0 + rays_per_thread, rays_per_dot)
     for ray in range(r0, r1):
         state = wp.rand_init(seed, ray * n_dots + dot)
         e2 = dots[dot] + sample_disk(state, dot_radius)
         a2 = sample_disk(state, cam.aperture_radius)
         origin = wp.vec3(e2[0], e2[1], 0.0)
-        g, nm1 = straight_ray_integrals(medium, origin, wp.vec3(a2[0], a2[1], cam.z_stop), n_samples)
-        acc = acc + wp.vec3(g[0], g[1], nm1)
+        g2, nm1 = straight_ray_integrals(medium, origin, wp.vec3(a2[0], a2[1], cam.z_stop), n_samples)
+        acc = acc + wp.vec3(g2[0], g2[1], nm1)
     out[c, dot] = acc
 
 

@@ -279,7 +279,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium
     return _eq4_px(plan, out.numpy()), out_nm1.numpy().astype(np.float64) / k
 
 
-def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per_step=1, medium=None):
+def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per_step=1, medium=None, group=8):
     """Eq. 4 and the depth-averaged density averaged over the rays the renderer traces for each dot.
 
     Every ray of a dot is drawn as ``kernels.render_rays`` draws it (the same seed, emission point on
@@ -287,6 +287,8 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     the reference image's ray. The mean over those rays of Eq. 4 is what the ray-traced displacement
     tends to when deflections are weak: the camera's finite aperture averages the flow over the cone.
     ``medium``: the plan's medium already on ``device`` (see :func:`truth_medium`), uploaded if None.
+    ``group``: consecutive threads take this many chunks of ``rays_per_thread`` rays of one dot (the
+    dots in the plan's launch order), so a warp's rays read nearby nodes; it never changes a bit.
 
     Returns
     -------
@@ -303,9 +305,10 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     chunks = -(-plan.rays_per_dot // rays_per_thread)
     out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
     order = wp.array(plan.launch_order, dtype=wp.int32, device=device)
-    wp.launch(kernels.integrate_cone, dim=chunks * n,
+    group = max(1, min(int(group), chunks))
+    wp.launch(kernels.integrate_cone, dim=-(-chunks // group) * group * n,
               inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
-                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), order],
+                      plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), order, group],
               outputs=[out], device=device)
     sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
     return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale

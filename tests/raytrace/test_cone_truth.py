@@ -57,7 +57,7 @@ def test_chief_ray_integrals_match_numpy(device):
     out = wp.zeros((1, plan.n_dots), dtype=wp.vec3, device=device)
     backwards = wp.array(np.arange(plan.n_dots, dtype=np.int32)[::-1].copy(), dtype=wp.int32, device=device)
     wp.launch(kernels.integrate_cone, dim=plan.n_dots,
-              inputs=[med, cam, dots, 0.0, 1, 1, 0, n_samples, backwards], outputs=[out], device=device)
+              inputs=[med, cam, dots, 0.0, 1, 1, 0, n_samples, backwards, 1], outputs=[out], device=device)
     assert_allclose(out.numpy()[0, :, :2], integral, atol=1e-5 * np.abs(integral).max())
     assert_allclose(out.numpy()[0, :, 2], nm1, rtol=1e-6)
 
@@ -127,3 +127,13 @@ def test_cone_truth_does_not_depend_on_the_launch_order(device):
     assert not np.array_equal(morton_plan.launch_order, np.arange(morton_plan.n_dots))
     for a, b in zip(plain, cone_truth(morton_plan, device=device), strict=True):
         np.testing.assert_array_equal(a, b)
+    # Groups of consecutive chunks of one dot (3 chunks of 100 rays: groups of 1, 2 with a spare thread, 3)
+    for group in (1, 2, 3):
+        for a, b in zip(plain, cone_truth(morton_plan, device=device, rays_per_thread=100, group=group),
+                        strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6 * np.abs(a).max())  # 3 sums of 100 rays, not 5 of 64
+    chunked = cone_truth(morton_plan, device=device, rays_per_thread=100, group=1)
+    for group in (2, 3, 8):
+        for a, b in zip(chunked, cone_truth(morton_plan, device=device, rays_per_thread=100, group=group),
+                        strict=True):
+            np.testing.assert_array_equal(a, b)
