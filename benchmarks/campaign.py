@@ -18,7 +18,7 @@ from synthbos.raytrace import checks, plan_render
 from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
-from .figures import CAMPAIGN_FIGURES, campaign_figure
+from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, campaign_figure
 from .items import render_item, score_item
 from .registry import get_method
 from .scheduling import default_workers, run_items, run_pipeline
@@ -26,7 +26,7 @@ from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import summarise
 
-__all__ = ["check_spec", "resolve_process_device", "run_campaign"]
+__all__ = ["campaign_order", "check_spec", "resolve_process_device", "run_campaign", "write_summary"]
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
@@ -54,7 +54,9 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     the files and the summary are the same.
 
     ``timings`` (a dict, optional) receives the wall seconds of the phases: ``"render and process"``,
-    ``"tables"`` and ``"figures"``.
+    ``"tables"`` and ``"figures"``; in the pipeline, where fig4 is drawn during the rendering and the
+    tables beside the other figures, ``"render and process"`` and ``"tables and figures, after the last
+    item"``.
 
     Returns
     -------
@@ -105,13 +107,14 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         for stale in sub.glob(".*.tmp"):
             stale.unlink(missing_ok=True)
     on_gpu = device is not None and str(device).startswith("cuda")
+    keys = campaign_order(spec)
     renders = [
         (spec.pair_config(s, p), str(pair_path(folder, s, p)), device)
-        for s, p in spec.pair_keys()
+        for s, p in keys
         if not pair_path(folder, s, p).exists()
     ]
     scores = []
-    for s, p in spec.pair_keys():
+    for s, p in keys:
         for noise in spec.noise_percent:
             seeds = (spec.noise_seed(s, p, noise, "reference"), spec.noise_seed(s, p, noise, "gradient"))
             for m in methods:
@@ -119,27 +122,56 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                 if not out.exists():
                     scores.append((str(pair_path(folder, s, p)), m.name, noise, seeds, str(out),
                                    spec.overrides_for(m), process_device))
+    figure_jobs = [(stem, spec, str(folder)) for stem in CAMPAIGN_FIGURES] if figures else []
+    if pipeline and scheduler is None:
+        # The device work here; scoring, the tables and the figures in worker processes. A figure that
+        # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
+        jobs = [(write_summary, (spec, str(folder)), None)]
+        jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
+        t_items = []
+        rows = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
+                            worker_device=worker_device, jobs=jobs, on_items_done=lambda: t_items.append(
+                                time.perf_counter()))[0]
+        timings["render and process"] = t_items[0] - t0
+        timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
+        return rows
     if scheduler is not None:  # Dask: each pair is rendered and scored by one task, on one worker
         from .distributed import run_pairs
 
         run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress,
                   process_device=process_device)
-    elif pipeline:  # the device work here, pair after pair; scoring in worker processes
-        run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
-                     worker_device=worker_device)
     else:
         workers = workers or default_workers()
         run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)
         run_items(scores, score_item, workers=workers, desc="process", progress=progress)
     t1 = time.perf_counter()
     timings["render and process"] = t1 - t0
-    rows = summarise(spec, folder)
-    write_tables(rows, folder)
+    rows = write_summary(spec, folder)
     t2 = time.perf_counter()
     timings["tables"] = t2 - t1
-    if figures:  # side by side in worker processes: matplotlib draws on one core
-        jobs = [(stem, spec, str(folder)) for stem in CAMPAIGN_FIGURES]
-        run_items(jobs, campaign_figure, workers=min(len(jobs), workers or default_workers()), desc="figures",
-                  progress=progress)
+    if figure_jobs:  # side by side in worker processes: matplotlib draws on one core
+        run_items(figure_jobs, campaign_figure, workers=min(len(figure_jobs), workers or default_workers()),
+                  desc="figures", progress=progress)
         timings["figures"] = time.perf_counter() - t2
+    return rows
+
+
+def campaign_order(spec: CampaignSpec) -> list:
+    """The campaign's pairs in the order they are rendered and processed: the first pair of every
+    snapshot, then the others (pair after pair within a snapshot), so that what is drawn from first
+    pairs (``figures.FIRST_PAIR_FIGURES``) can start early. Every item depends only on its own key."""
+    return sorted(spec.pair_keys(), key=lambda key: key[1] > 0)
+
+
+def _figure_pairs(stem: str, spec: CampaignSpec, folder):
+    """The pair files a campaign figure reads, when it reads nothing else (None: it reads scores too)."""
+    if stem not in FIRST_PAIR_FIGURES:
+        return None
+    return {str(pair_path(folder, s, 0)) for s in spec.snapshots}
+
+
+def write_summary(spec: CampaignSpec, folder) -> list[dict]:
+    """The campaign's results table: summarise its score files, write ``results.csv`` and ``.json``, return the rows."""
+    rows = summarise(spec, folder)
+    write_tables(rows, folder)
     return rows

@@ -27,6 +27,7 @@ from .tables import split_masks
 
 __all__ = [
     "CAMPAIGN_FIGURES",
+    "FIRST_PAIR_FIGURES",
     "FORMATS",
     "campaign_figure",
     "figure4",
@@ -313,6 +314,8 @@ def figure_density(spec, folder, path):
 
 #: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path)``).
 CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density}
+#: The campaign figures that read only the first pair file of each snapshot (a campaign draws them early).
+FIRST_PAIR_FIGURES = frozenset({"fig4"})
 
 
 def campaign_figure(stem: str, spec, folder) -> str:

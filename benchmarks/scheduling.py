@@ -125,7 +125,7 @@ def same_image_runs(scores) -> list[list]:
 
 
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
-                 worker_device=None) -> None:
+                 worker_device=None, jobs=(), renders_ahead: int = 2, on_items_done=None) -> list:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items whose method is
@@ -137,20 +137,27 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     given (score items end with their processing device). Consecutive items on the
     same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
     so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
-    ``track_pair`` and one triangulation). Meanwhile a thread renders the next pair (when its file is
-    missing), so the renderer's kernels run while this thread processes. At most ``4 * workers`` such
-    batches wait for a worker, so memory stays bounded when the host is the slower side. With
-    ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
+    ``track_pair`` and one triangulation). Meanwhile ``renders_ahead`` threads render the next pairs
+    (when their files are missing): while one waits for its kernels, the other plans its pair, reads
+    its images back or writes its file, so the device always has a render queued. At most
+    ``4 * workers`` batches wait for a worker, so memory stays bounded when the host is the slower side.
+    With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
+
+    ``jobs``: ``(fn, args, pairs)`` tuples of other host work (tables, figures), run by the worker
+    processes: as soon as every pair file in ``pairs`` is there when ``pairs`` is a set of pair paths, or
+    after the last item when it is None (``on_items_done()``, when given, is called just before).
+    Returns their results, in order.
     """
     from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
 
     from .items import finish_item, measure_item, process_items, render_item
 
     tasks = pair_tasks(renders, scores)
-    if not tasks:
-        return
-    bar = tqdm(total=len(renders) + len(scores), desc=desc, unit="item", disable=not progress)
+    bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
     pending: dict = {}  # future -> how many items it scores
+    waiting = list(range(len(jobs)))  # jobs not yet started
+    started: dict = {}  # job index -> its future (or its result, without a pool)
+    have: set = {str(args[1]) for args in renders}  # pair files still to be rendered: not there yet
 
     def collect(block: bool) -> None:
         if not pending:
@@ -160,21 +167,35 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             fut.result()  # a worker's error stops the campaign here
             bar.update(pending.pop(fut))
 
+    def start_jobs(final: bool) -> None:
+        for j in list(waiting):
+            fn, args, pairs = jobs[j]
+            if not (final or (pairs is not None and set(map(str, pairs)).isdisjoint(have))):
+                continue
+            waiting.remove(j)
+            started[j] = pool.submit(fn, *args) if pool is not None else fn(*args)
+            if pool is None:
+                bar.update(1)
+
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
         return None if args is None else renderer.submit(render_item, *args)
 
     pool = _pool(workers - 1) if workers > 1 else None
-    renderer = ThreadPoolExecutor(1, thread_name_prefix="synthbos-render")
+    ahead = max(1, int(renders_ahead))
+    renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
     rendering = []
     try:
-        with bar, shared_by_threads():  # the render thread launches too: no CUDA graph capture here
-            rendering.append(render(0))
-            for k, (_, items) in enumerate(tasks):
-                rendering.append(render(k + 1))  # the next pair renders while this one is processed
+        with bar, shared_by_threads():  # the render threads launch too: no CUDA graph capture here
+            rendering.extend(render(k) for k in range(ahead))
+            start_jobs(final=False)
+            for k, (render_args, items) in enumerate(tasks):
+                rendering.append(render(k + ahead))  # the next pairs render while this one is processed
                 if rendering[k] is not None:
                     rendering[k].result()
                     bar.update(1)
+                    have.discard(str(render_args[1]))
+                    start_jobs(final=False)
                 pair = read_pair(items[0][0]) if items else None
                 for run in same_image_runs(items):
                     here, there = split_by_residency(run, worker_device=worker_device)
@@ -190,8 +211,21 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                         collect(block=True)
             while pending:
                 collect(block=True)
+            if on_items_done is not None:
+                on_items_done()
+            start_jobs(final=True)
+            results = []
+            for j in range(len(jobs)):
+                if pool is None:
+                    results.append(started[j])
+                    continue
+                results.append(started[j].result())
+                bar.update(1)
+            return results
     except BaseException:
         for fut in [*pending, *(f for f in rendering if f is not None)]:
+            fut.cancel()
+        for fut in started.values() if pool is not None else ():
             fut.cancel()
         raise
     finally:

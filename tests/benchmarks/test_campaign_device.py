@@ -3,6 +3,7 @@
 import json
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -249,3 +250,26 @@ def test_bad_worker_device_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gpu:3" in err[0]
     assert not (tmp_path / "w").exists()
+
+
+def test_pipeline_draws_first_pair_figures_early_and_the_rest_after_the_last_item(plain, tmp_path, monkeypatch):
+    """fig4 reads only the snapshots' first pairs: the pipeline draws it as soon as they are rendered
+    (before the last pair's items are scored); the tables and the other figures come after the last item."""
+    from synthbos.benchmarks import figures
+
+    seen = {}
+
+    def recorder(stem):
+        def draw(spec, folder, path):
+            seen[stem] = len(list((Path(folder) / "scores").glob("*.npz")))
+        return draw
+
+    for stem in figures.CAMPAIGN_FIGURES:
+        monkeypatch.setitem(figures.CAMPAIGN_FIGURES, stem, recorder(stem))
+    timings = {}
+    rows = run_campaign(SMALL, tmp_path / "f", device="cpu", workers=1, progress=False, figures=True,
+                        pipeline=True, timings=timings)
+    assert rows == plain[1]
+    assert seen["fig4"] < 12 and seen["fig5"] == seen["fig_density"] == 12
+    assert (tmp_path / "f" / "results.csv").read_bytes() == (plain[0] / "results.csv").read_bytes()
+    assert set(timings) == {"render and process", "tables and figures, after the last item"}
