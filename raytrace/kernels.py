@@ -47,6 +47,7 @@ vec8h = wp.types.vector(length=8, dtype=wp.float16)
 class Medium:
     # (nz, ny, nx) nodes holding (dn/dx, dn/dy, dn/dz, n - 1)
     field: wp.array3d(dtype=wp.vec4)
+    planar: int  # 1 when every node plane along z holds the same values (a 2-D field through the depth)
     half: wp.vec3  # half extents of the box (local frame spans [-half, +half])
     inv_spacing: wp.vec3  # 1 / node spacing along x, y, z
     centre: wp.vec3  # box centre in the global frame
@@ -65,6 +66,7 @@ class MediumStraight:
 class MediumVec:
     # The same nodes as ``Medium``, read with one 128-bit load per node on CUDA (bitwise the same values).
     field: wp.array3d(dtype=wp.vec4)
+    planar: int
     half: wp.vec3
     inv_spacing: wp.vec3
     centre: wp.vec3
@@ -108,6 +110,7 @@ class MediumTexture:
 class MediumTexels:
     # The float32 nodes as a point-sampled texture: eight texel fetches and the arithmetic of ``Medium``.
     tex: wp.Texture3D
+    planar: int
     half: wp.vec3
     inv_spacing: wp.vec3
     centre: wp.vec3
@@ -173,17 +176,21 @@ def cell_of(f: wp.vec3, nx: int, ny: int, nz: int):
 
 
 @wp.func
+def bilinear(c00: wp.vec4, c10: wp.vec4, c01: wp.vec4, c11: wp.vec4, a: wp.vec3):
+    """Bilinear blend of a cell face's corners c(x)(y) with far-corner weights a[0], a[1]."""
+    c0 = c00 * (1.0 - a[0]) + c10 * a[0]
+    c1 = c01 * (1.0 - a[0]) + c11 * a[0]
+    return c0 * (1.0 - a[1]) + c1 * a[1]
+
+
+@wp.func
 def trilinear(
     c000: wp.vec4, c100: wp.vec4, c010: wp.vec4, c110: wp.vec4,
     c001: wp.vec4, c101: wp.vec4, c011: wp.vec4, c111: wp.vec4, a: wp.vec3,
 ):
     """Trilinear blend of a cell's corners c(x)(y)(z) with far-corner weights a."""
-    c00 = c000 * (1.0 - a[0]) + c100 * a[0]
-    c10 = c010 * (1.0 - a[0]) + c110 * a[0]
-    c01 = c001 * (1.0 - a[0]) + c101 * a[0]
-    c11 = c011 * (1.0 - a[0]) + c111 * a[0]
-    c0 = c00 * (1.0 - a[1]) + c10 * a[1]
-    c1 = c01 * (1.0 - a[1]) + c11 * a[1]
+    c0 = bilinear(c000, c100, c010, c110, a)
+    c1 = bilinear(c001, c101, c011, c111, a)
     return c0 * (1.0 - a[2]) + c1 * a[2]
 
 
@@ -255,6 +262,8 @@ def sample_medium(m: Medium, p: wp.vec3):
     if in_grid(f, nx, ny, nz) == 0:
         return wp.vec4(0.0)
     i, j, k, a = cell_of(f, nx, ny, nz)
+    if m.planar != 0:  # every plane holds these values: the blend along z is the identity
+        return bilinear(m.field[0, j, i], m.field[0, j, i + 1], m.field[0, j + 1, i], m.field[0, j + 1, i + 1], a)
     return trilinear(
         m.field[k, j, i], m.field[k, j, i + 1], m.field[k, j + 1, i], m.field[k, j + 1, i + 1],
         m.field[k + 1, j, i], m.field[k + 1, j, i + 1], m.field[k + 1, j + 1, i], m.field[k + 1, j + 1, i + 1], a,
@@ -277,6 +286,11 @@ def sample_medium(m: MediumVec, p: wp.vec3):  # noqa: F811 (an overload)
     if in_grid(f, nx, ny, nz) == 0:
         return wp.vec4(0.0)
     i, j, k, a = cell_of(f, nx, ny, nz)
+    if m.planar != 0:
+        return bilinear(
+            load_node(m.field, 0, j, i), load_node(m.field, 0, j, i + 1),
+            load_node(m.field, 0, j + 1, i), load_node(m.field, 0, j + 1, i + 1), a,
+        )
     return trilinear(
         load_node(m.field, k, j, i), load_node(m.field, k, j, i + 1),
         load_node(m.field, k, j + 1, i), load_node(m.field, k, j + 1, i + 1),
@@ -346,6 +360,8 @@ def sample_medium(m: MediumTexels, p: wp.vec3):  # noqa: F811 (an overload)
     if in_grid(f, nx, ny, nz) == 0:
         return wp.vec4(0.0)
     i, j, k, a = cell_of(f, nx, ny, nz)
+    if m.planar != 0:
+        return bilinear(texel(m, i, j, 0), texel(m, i + 1, j, 0), texel(m, i, j + 1, 0), texel(m, i + 1, j + 1, 0), a)
     return trilinear(
         texel(m, i, j, k), texel(m, i + 1, j, k), texel(m, i, j + 1, k), texel(m, i + 1, j + 1, k),
         texel(m, i, j, k + 1), texel(m, i + 1, j, k + 1),

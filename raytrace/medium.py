@@ -18,7 +18,8 @@ from . import kernels, sources
 from .checks import check_density
 
 __all__ = [
-    "EXACT_FIELDS", "FIELDS", "MAX_INDEX", "MediumData", "half_scale", "medium_from_config", "medium_from_density",
+    "EXACT_FIELDS", "FIELDS", "MAX_INDEX", "MediumData", "half_scale", "is_planar", "medium_from_config",
+    "medium_from_density",
     "straight_to_warp", "to_warp",
 ]
 
@@ -96,6 +97,15 @@ def half_scale(field) -> np.ndarray:
     return np.exp2(exponent)
 
 
+def is_planar(field) -> bool:
+    """True when every node plane along z of ``field`` (nz, ny, nx, 4) holds the same values: a 2-D field
+    carried through the depth (the embedded slices). Trilinear sampling is then bilinear sampling of one
+    plane (the blend along z of equal values), which the exact fields do with half the loads; the
+    samples differ at most by the rounding of that blend."""
+    field = np.asarray(field)
+    return bool(all(np.array_equal(field[k], field[0]) for k in range(1, field.shape[0])))
+
+
 def straight_to_warp(medium: MediumData) -> kernels.MediumStraight:
     """The box's placement only, for the reference image's straight rays (nothing to upload)."""
     m = kernels.MediumStraight()
@@ -147,6 +157,8 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
             normalized_coords=False, device=device,
         )
         m.unscale = wp.vec4(*unscale)
+    if field in EXACT_FIELDS:
+        m.planar = int(is_planar(medium.field))
     m.half = wp.vec3(*(0.5 * s for s in medium.size))
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
     m.centre = wp.vec3(*medium.centre)
