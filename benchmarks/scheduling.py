@@ -21,6 +21,7 @@ resource tracker, whose pipe the workers held, exits too).
 from __future__ import annotations
 
 import ctypes
+import importlib
 import os
 import signal
 import sys
@@ -41,18 +42,23 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def die_with_parent(parent_pid: int) -> None:
-    """Worker initialiser: be killed (SIGKILL) when the parent process exits; exit now if it already has."""
+def die_with_parent(parent_pid: int, preload=()) -> None:
+    """Worker initialiser: be killed (SIGKILL) when the parent process exits; exit now if it already has.
+
+    Then import the modules ``preload`` names, so the work that needs them later does not wait for them.
+    """
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os._exit(1)
+    for name in preload:
+        importlib.import_module(name)
 
 
-def _pool(workers: int):
+def _pool(workers: int, preload=()):
     return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                               initializer=die_with_parent, initargs=(os.getpid(),))
+                               initializer=die_with_parent, initargs=(os.getpid(), tuple(preload)))
 
 
 def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
@@ -181,7 +187,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         args = tasks[k][0] if k < len(tasks) else None
         return None if args is None else renderer.submit(render_item, *args)
 
-    pool = _pool(workers - 1) if workers > 1 else None
+    # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.
+    preload = sorted({"synthbos.benchmarks.items", *(fn.__module__ for fn, _, _ in jobs)})
+    pool = _pool(workers - 1, preload) if workers > 1 else None
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
     rendering = []
