@@ -37,8 +37,8 @@ Keys
   order in which threads take the dots); rays_per_group (consecutive threads take this many rays of
   one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
   or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
-  Defaults: field "float32_vec", dot_order "morton", rays_per_group 8, block_dim 256 (the fastest exact
-  choice on an H200: see the README's renderer section).
+  Defaults: field "float32_vec", dot_order "morton", rays_per_group 8, block_dim 256, max_registers 64
+  (the fastest exact choice on an H200: see the README's renderer section; the CPU ignores max_registers).
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -82,7 +82,7 @@ _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
         "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32_vec", "dot_order": "morton",
-        "rays_per_group": 8, "block_dim": 256, "max_registers": 0,
+        "rays_per_group": 8, "block_dim": 256, "max_registers": 64,
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).

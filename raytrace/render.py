@@ -201,6 +201,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     hits = wp.zeros(n, dtype=wp.int32, device=device)
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
+    # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
+    kernel = kernels.MAX_REGISTERS[plan.max_registers if wp.get_device(device).is_cuda else 0]
     rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
     group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
     if rays_per_launch > group:
@@ -209,7 +211,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
         count = min(rays_per_launch, plan.rays_per_dot - start)
         threads = -(-count // group) * group * n
         wp.launch(
-            kernels.MAX_REGISTERS[plan.max_registers], dim=threads,
+            kernel, dim=threads,
             inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.step,
                     plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group],
             outputs=[image, sum_x, sum_y, hits, lost, tir], device=device, block_dim=plan.block_dim,
