@@ -30,14 +30,19 @@ from .registry import GRID, get_method
 from .storage import save_scores
 
 __all__ = ["finish_item", "finish_items", "measure_item", "measure_pair", "noisy_pair", "nominal_positions",
-           "read_pair_cached", "render_item", "score_item", "score_pair", "score_result"]
+           "read_pair_cached", "render_item", "render_only", "score_item", "score_pair", "score_result"]
 
 
 def render_item(config: dict, out: str, device) -> str:
     """Render one pair from ``config`` into the pair file ``out``."""
-    init_warp()  # items may run in fresh worker processes: start Warp there quietly too
-    write_pair(out, render_pair(config, device=device))
+    write_pair(out, render_only(config, device))
     return out
+
+
+def render_only(config: dict, device):
+    """Render one pair from ``config`` and return it (``raytrace.Pair``), writing nothing."""
+    init_warp()  # items may run in fresh worker processes: start Warp there quietly too
+    return render_pair(config, device=device)
 
 
 def nominal_positions(pair) -> np.ndarray:

@@ -144,8 +144,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
     so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
     ``track_pair`` and one triangulation). Meanwhile ``renders_ahead`` threads render the next pairs
-    (when their files are missing): while one waits for its kernels, the other plans its pair, reads
-    its images back or writes its file, so the device always has a render queued. At most
+    (when their files are missing): while one waits for its kernels, the other plans its pair or reads
+    its images back, so the device always has a render queued. This process measures a rendered pair
+    from memory while a writer thread writes its file; the workers get its items once it is written. At most
     ``4 * workers`` batches wait for a worker, so memory stays bounded when the host is the slower side.
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
 
@@ -154,9 +155,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     after the last item when it is None (``on_items_done()``, when given, is called just before).
     Returns their results, in order.
     """
-    from synthbos.raytrace import read_pair  # here: scheduling stays free of the algorithm packages otherwise
+    from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
-    from .items import finish_item, measure_item, process_items, render_item
+    from .items import finish_item, measure_item, process_items, render_only
 
     tasks = pair_tasks(renders, scores)
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
@@ -185,13 +186,14 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
 
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
-        return None if args is None else renderer.submit(render_item, *args)
+        return None if args is None else renderer.submit(render_only, args[0], args[2])
 
     # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.
     preload = sorted({"synthbos.benchmarks.items", *(fn.__module__ for fn, _, _ in jobs)})
     pool = _pool(workers - 1, preload) if workers > 1 else None
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
+    writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
     rendering = []
     try:
         with bar, shared_by_threads():  # the render threads launch too: no CUDA graph capture here
@@ -199,12 +201,23 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             start_jobs(final=False)
             for k, (render_args, items) in enumerate(tasks):
                 rendering.append(render(k + ahead))  # the next pairs render while this one is processed
-                if rendering[k] is not None:
-                    rendering[k].result()
+                written = None
+                if rendering[k] is not None:  # this process measures from the rendered pair in memory
+                    pair = rendering[k].result()
+                    written = writer.submit(write_pair, render_args[1], pair)
                     bar.update(1)
-                    have.discard(str(render_args[1]))
-                    start_jobs(final=False)
-                pair = read_pair(items[0][0]) if items else None
+                else:
+                    pair = read_pair(items[0][0]) if items else None
+
+                def file_written(written=written, path=None if render_args is None else str(render_args[1])):
+                    """Wait for the pair file (the workers and the jobs read it); start the jobs it completes."""
+                    if written is not None and path in have:
+                        written.result()
+                        have.discard(path)
+                        start_jobs(final=False)
+
+                if pool is None:
+                    file_written()
                 for run in same_image_runs(items):
                     here, there = split_by_residency(run, worker_device=worker_device)
                     if pool is None:
@@ -213,10 +226,12 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             bar.update(1)
                         continue
                     batch = [measure_item(pair, *args) for args in here]
+                    file_written()
                     pending[pool.submit(process_items, batch, there)] = len(run)
                     collect(block=False)
                     while len(pending) >= 4 * workers:
                         collect(block=True)
+                file_written()
             while pending:
                 collect(block=True)
             if on_items_done is not None:
@@ -237,6 +252,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             fut.cancel()
         raise
     finally:
-        renderer.shutdown(wait=True)  # a render in flight finishes writing its (atomic) file
+        renderer.shutdown(wait=True)
+        writer.shutdown(wait=True)  # a pair file being written is finished (atomic files)
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
