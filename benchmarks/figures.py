@@ -13,7 +13,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import BoundaryNorm
-from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
+from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter, NullLocator
 from matplotlib.tri import LinearTriInterpolator, Triangulation
 from synthbos.raytrace import load_config, read_pair
 from synthbos.raytrace.sources import density_from_config
@@ -38,6 +39,7 @@ __all__ = [
 ]
 
 FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
+_DPI = 300
 
 #: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
 #: 300 dpi panel, however many errors a campaign scored.
@@ -59,14 +61,95 @@ def save_figure(fig, path) -> list[Path]:
     """
     path = Path(path)
     stem = path.with_suffix("") if path.suffix.lower() in {f".{f}" for f in FORMATS} else path
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            _minor_ticks_as_lines(axis)
+    _lay_out(fig, dpi=_DPI)
     written = []
     for fmt in FORMATS:
         out = stem.with_name(f"{stem.name}.{fmt}")
         with atomic_output(out) as tmp:
-            fig.savefig(tmp, dpi=300, format=fmt)  # the figures' constrained layout already fits them
+            fig.savefig(tmp, dpi=_DPI, format=fmt)
         written.append(out)
     plt.close(fig)
     return written
+
+
+def _minor_ticks_as_lines(axis) -> bool:
+    """Draw the unlabelled minor ticks of ``axis`` (their marks and grid lines) as one line each, with the
+    properties of the axis's own minor tick, instead of one `~matplotlib.axis.Tick` per tick; return whether
+    it did.
+
+    A log axis has up to eight minor ticks a decade, each a Tick of five artists that every layout pass and
+    every draw positions, measures and draws again; drawn as two lines of the same marks at the same places
+    they look the same for a fraction of the time. Call it when the axis's limits are final. Axes whose
+    minor ticks carry labels, shared axes (one locator for several) and colour bars keep their ticks.
+    """
+    ax = axis.axes
+    siblings = (ax.get_shared_x_axes() if axis.axis_name == "x" else ax.get_shared_y_axes()).get_siblings(ax)
+    if (
+        len(siblings) > 1
+        or getattr(ax, "_colorbar", None) is not None
+        or isinstance(axis.get_minor_locator(), NullLocator)
+    ):
+        return False
+    locs = np.asarray(axis.get_minorticklocs(), dtype=np.float64)
+    if len(locs) == 0:
+        return False
+    lo, hi = sorted(axis.get_view_interval())
+    a, b = axis.get_transform().transform([lo, hi])  # kept as Axis._update_ticks keeps them: inside, give or take
+    tol = (b - a) * 1e-10
+    t = axis.get_transform().transform(locs)
+    locs = locs[(t >= a - tol) & (t <= b + tol)]
+    if any(axis.get_minor_formatter().format_ticks(locs)):
+        return False
+    tick = axis.get_minor_ticks(1)[0]  # its marks and grid line hold the axis's minor tick parameters
+    tick.update_position(locs[0] if len(locs) else lo)
+    for src, one in ((tick.tick1line, False), (tick.tick2line, False), (tick.gridline, True)):
+        if not src.get_visible() or len(locs) == 0:
+            continue
+        across = src.get_xdata() if axis.axis_name == "y" else src.get_ydata()  # e.g. 0 (a mark), 0 to 1 (grid)
+        if one:  # one segment per tick, separated by NaN
+            pos = np.repeat(locs, 3)
+            pos[2::3] = np.nan
+            oth = np.tile(np.append(np.asarray(across, dtype=np.float64), np.nan), len(locs))
+        else:
+            pos, oth = locs, np.full(len(locs), float(np.asarray(across)[0]))
+        line = Line2D(*((oth, pos) if axis.axis_name == "y" else (pos, oth)))
+        line.update_from(src)
+        line.set(
+            antialiased=src.get_antialiased(),
+            snap=src.get_snap(),
+            zorder=axis.get_zorder(),
+            label="_minor ticks",
+            in_layout=False,
+        )
+        ax.add_artist(line)
+        line.set_clip_box(src.get_clip_box())  # add_artist clips to the axes; the marks lie outside them
+        line.set_clip_path(src.get_clip_path())
+    axis.set_minor_locator(NullLocator())
+    return True
+
+
+def _lay_out(fig, *, dpi):
+    """Run ``fig``'s layout engine (the figures' constrained layout) once, measuring text at ``dpi``, and
+    switch it off, so that every format is drawn with that one layout.
+
+    ``savefig`` would otherwise lay the figure out again for each format, each time after a complete draw
+    that renders nothing: with dozens of axes that is most of the time a figure takes. The layout is what
+    the PNG's ``savefig`` computes (the Agg renderer at the PNG's dpi); the PDF, laid out with its own
+    text metrics before, now shares it (its panels lie within a point of where the PDF's own layout put them).
+    """
+    engine = fig.get_layout_engine()
+    if engine is None or not fig.axes:
+        return
+    saved = fig.dpi
+    fig.dpi = dpi
+    try:
+        engine.execute(fig)
+    finally:
+        fig.dpi = saved
+    fig.set_layout_engine(None)  # not "none": savefig still draws once before each file with a placeholder
 
 
 def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
