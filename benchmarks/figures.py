@@ -40,6 +40,9 @@ __all__ = [
 
 FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
 _DPI = 300
+#: savefig's keywords per format: zlib level 3 for the PNG writes the same pixels in 0.6 of the time
+#: of the default level (6) into a file about 1/6 larger.
+_SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}}
 
 #: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
 #: 300 dpi panel, however many errors a campaign scored.
@@ -69,7 +72,7 @@ def save_figure(fig, path) -> list[Path]:
     for fmt in FORMATS:
         out = stem.with_name(f"{stem.name}.{fmt}")
         with atomic_output(out) as tmp:
-            fig.savefig(tmp, dpi=_DPI, format=fmt)
+            fig.savefig(tmp, dpi=_DPI, format=fmt, **_SAVE_OPTIONS.get(fmt, {}))
         written.append(out)
     plt.close(fig)
     return written
@@ -373,9 +376,9 @@ def figure_density(spec, folder, path):
             for a in ax[:3]:
                 a.set_xlabel("x (mm)")
                 a.set_ylabel("y (mm)")
+        scores = [load_scores(spec, folder, method, noise) for noise in noises]  # once for both truths
         for c, truth in enumerate(DENSITY_TRUTHS, start=3):
-            for k, noise in enumerate(noises):
-                sc = load_scores(spec, folder, method, noise)
+            for k, (noise, sc) in enumerate(zip(noises, scores, strict=True)):
                 e = sc[f"density_{truth}_rel"]
                 xs, ys = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
                 ax[c].step(np.maximum(xs, 1e-6), ys, where="post", color=style.get("color"), ls=style.get("ls"),
