@@ -5,6 +5,7 @@ and the experiment-design plots of a sweep."""
 from __future__ import annotations
 
 import tomllib
+from contextlib import contextmanager
 from pathlib import Path
 
 import matplotlib
@@ -67,13 +68,14 @@ def save_figure(fig, path) -> list[Path]:
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             _minor_ticks_as_lines(axis)
-    _lay_out(fig, dpi=_DPI)
     written = []
-    for fmt in FORMATS:
-        out = stem.with_name(f"{stem.name}.{fmt}")
-        with atomic_output(out) as tmp:
-            fig.savefig(tmp, dpi=_DPI, format=fmt, **_SAVE_OPTIONS.get(fmt, {}))
-        written.append(out)
+    with _ticks_cached(fig):
+        _lay_out(fig, dpi=_DPI)
+        for fmt in FORMATS:
+            out = stem.with_name(f"{stem.name}.{fmt}")
+            with atomic_output(out) as tmp:
+                fig.savefig(tmp, dpi=_DPI, format=fmt, **_SAVE_OPTIONS.get(fmt, {}))
+            written.append(out)
     plt.close(fig)
     return written
 
@@ -132,6 +134,43 @@ def _minor_ticks_as_lines(axis) -> bool:
         line.set_clip_path(src.get_clip_path())
     axis.set_minor_locator(NullLocator())
     return True
+
+
+@contextmanager
+def _ticks_cached(fig):
+    """Within the block, each axis of ``fig`` works out its ticks once per layout state, not at every call.
+
+    Matplotlib's ``Axis._update_ticks`` (run the locator and formatter, place every tick) runs three to five
+    times per axis in each layout pass and each draw (for its bounding box, its label's position, the
+    title's position, the draw), always to the same result while the view limits, the dpi and the axes'
+    place stay put; here it runs again only when one of those moved. For the saving of a finished figure.
+    """
+    patched = []
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            update = getattr(axis, "_update_ticks", None)
+            if update is None:  # a matplotlib without it: nothing to cache
+                continue
+            axis._update_ticks = _cached_ticks(fig, axis, update)
+            patched.append(axis)
+    try:
+        yield
+    finally:
+        for axis in patched:
+            del axis._update_ticks  # the class's method again
+
+
+def _cached_ticks(fig, axis, update):
+    cache = {}
+
+    def ticks():
+        key = (tuple(axis.get_view_interval()), fig.dpi, tuple(axis.axes.bbox.bounds))
+        if key not in cache:
+            cache.clear()
+            cache[key] = update()
+        return cache[key]
+
+    return ticks
 
 
 def _lay_out(fig, *, dpi):
