@@ -143,7 +143,9 @@ def _ticks_cached(fig):
     Matplotlib's ``Axis._update_ticks`` (run the locator and formatter, place every tick) runs three to five
     times per axis in each layout pass and each draw (for its bounding box, its label's position, the
     title's position, the draw), always to the same result while the view limits, the dpi and the axes'
-    place stay put; here it runs again only when one of those moved. For the saving of a finished figure.
+    place stay put; here it runs again only when one of those moved. Likewise the tick labels' boxes
+    (``Axis._get_ticklabel_bboxes``: a text extent per label), measured twice per axis in each pass, once
+    for the label's position and once for the axis's box. For the saving of a finished figure.
     """
     patched = []
     for ax in fig.axes:
@@ -153,11 +155,15 @@ def _ticks_cached(fig):
                 continue
             axis._update_ticks = _cached_ticks(fig, axis, update)
             patched.append(axis)
+            boxes = getattr(axis, "_get_ticklabel_bboxes", None)
+            if boxes is not None:
+                axis._get_ticklabel_bboxes = _cached_boxes(fig, axis, boxes)
     try:
         yield
     finally:
         for axis in patched:
             del axis._update_ticks  # the class's method again
+            axis.__dict__.pop("_get_ticklabel_bboxes", None)
 
 
 def _cached_ticks(fig, axis, update):
@@ -171,6 +177,20 @@ def _cached_ticks(fig, axis, update):
         return cache[key]
 
     return ticks
+
+
+def _cached_boxes(fig, axis, boxes):
+    cache = {}
+
+    def ticklabel_boxes(ticks, renderer):
+        key = (id(ticks), len(ticks), id(renderer), fig.dpi, tuple(axis.axes.bbox.bounds))
+        if key not in cache:
+            cache.clear()
+            cache[key] = (ticks, boxes(ticks, renderer))  # ticks kept so that their id stays theirs
+        tlb1, tlb2 = cache[key][1]
+        return list(tlb1), list(tlb2)
+
+    return ticklabel_boxes
 
 
 def _lay_out(fig, *, dpi):
