@@ -228,17 +228,18 @@ def _colorbar(fig, mappable, ax, **kwargs):
     return cb
 
 
-def _level_map(ax, xy, values, shape, levels, *, cell=2.0):
+def _level_map(ax, tri, values, shape, levels, *, cell=2.0):
     """Values at scattered dots as filled bands between ``levels`` over an image of ``shape`` (px).
 
-    The dots' values are interpolated linearly (Delaunay) onto a grid of ``cell`` px and shown as an
-    image in the colour of each level band (what ``tricontourf`` draws, as one small image instead
-    of thousands of polygons: quick to draw, and a small PDF); blank outside the dots' hull.
+    The dots' values are interpolated linearly over ``tri``, the dots' Delaunay `Triangulation`, onto a
+    grid of ``cell`` px and shown as an image in the colour of each level band (what ``tricontourf``
+    draws, as one small image instead of thousands of polygons: quick to draw, and a small PDF); blank
+    outside the dots' hull. Maps of the same dots share ``tri`` and so its triangle finder, built once.
     """
     h, w = shape
     gx = np.arange(0.0, w + cell / 2, cell)
     gy = np.arange(0.0, h + cell / 2, cell)
-    grid = LinearTriInterpolator(Triangulation(xy[:, 0], xy[:, 1]), values)(*np.meshgrid(gx, gy))
+    grid = LinearTriInterpolator(tri, values)(*np.meshgrid(gx, gy))
     cmap = plt.get_cmap("cividis")
     im = ax.imshow(grid, extent=(gx[0] - cell / 2, gx[-1] + cell / 2, gy[-1] + cell / 2, gy[0] - cell / 2),
                    cmap=cmap, norm=BoundaryNorm(levels, cmap.N), interpolation="nearest")
@@ -281,6 +282,7 @@ def figure4(spec, folder, path):
         ok = pair.valid
         counts.append((int(ok.sum()), pair.n_dots))
         xy = pair.reference_px[ok]
+        tri = None  # the dots' triangulation, one for the row's maps
         cone = pair.theory_cone_px if pair.theory_cone_px is not None else np.full_like(pair.theory_px, np.nan)
         for k, vals in ((2, np.hypot(*pair.theory_px[ok].T)), (3, np.hypot(*cone[ok].T)),
                         (4, np.hypot(*pair.displacement_px[ok].T))):
@@ -288,7 +290,8 @@ def figure4(spec, folder, path):
                 ax[k].text(0.5, 0.5, "not in this pair file", ha="center", va="center", transform=ax[k].transAxes)
                 continue
             levels = _nice_levels(vals.max())
-            im = _level_map(ax[k], xy, vals, pair.reference.shape, levels)
+            tri = Triangulation(xy[:, 0], xy[:, 1]) if tri is None else tri
+            im = _level_map(ax[k], tri, vals, pair.reference.shape, levels)
             _colorbar(fig, im, ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
             ax[k].set_xlabel("x (px)")
             ax[k].set_ylabel("y (px)")
