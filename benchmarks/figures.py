@@ -268,8 +268,13 @@ def _level_map(ax, tri, values, shape, levels, *, cell=2.0):
     gy = np.arange(0.0, h + cell / 2, cell)
     grid = LinearTriInterpolator(tri, values)(*np.meshgrid(gx, gy))
     cmap = plt.get_cmap("cividis")
-    im = ax.imshow(grid, extent=(gx[0] - cell / 2, gx[-1] + cell / 2, gy[-1] + cell / 2, gy[0] - cell / 2),
-                   cmap=cmap, norm=BoundaryNorm(levels, cmap.N), interpolation="nearest")
+    im = ax.imshow(
+        grid,
+        extent=(gx[0] - cell / 2, gx[-1] + cell / 2, gy[-1] + cell / 2, gy[0] - cell / 2),
+        cmap=cmap,
+        norm=BoundaryNorm(levels, cmap.N),
+        interpolation="nearest",
+    )
     ax.set_xlim(0, w)
     ax.set_ylim(h, 0)
     return im
@@ -286,10 +291,14 @@ def figure4(spec, folder, path):
     """
     folder = Path(folder)
     snaps = list(spec.snapshots)
-    fig, axes = plt.subplots(len(snaps), 5, figsize=(17.5, 2.9 * len(snaps) + 0.9), squeeze=False,
-                             layout="constrained")
-    titles = ("density ρ", "density gradient |∇ρ|", "|ΔX|, Eq. 4 (chief ray)", "|ΔX|, Eq. 4 over the ray cone",
-              "|ΔX|, ray-traced")
+    fig, axes = plt.subplots(len(snaps), 5, figsize=(17.5, 2.9 * len(snaps) + 0.9), squeeze=False, layout="constrained")
+    titles = (
+        "density ρ",
+        "density gradient |∇ρ|",
+        "|ΔX|, Eq. 4 (chief ray)",
+        "|ΔX|, Eq. 4 over the ray cone",
+        "|ΔX|, ray-traced",
+    )
     for c, title in enumerate(titles):
         axes[0, c].set_title(title, fontsize=11)
     counts = []
@@ -312,8 +321,11 @@ def figure4(spec, folder, path):
         xy = pair.reference_px[ok]
         tri = None  # the dots' triangulation, one for the row's maps
         cone = pair.theory_cone_px if pair.theory_cone_px is not None else np.full_like(pair.theory_px, np.nan)
-        for k, vals in ((2, np.hypot(*pair.theory_px[ok].T)), (3, np.hypot(*cone[ok].T)),
-                        (4, np.hypot(*pair.displacement_px[ok].T))):
+        for k, vals in (
+            (2, np.hypot(*pair.theory_px[ok].T)),
+            (3, np.hypot(*cone[ok].T)),
+            (4, np.hypot(*pair.displacement_px[ok].T)),
+        ):
             if not np.isfinite(vals).all():  # a pair file from before the cone truth
                 ax[k].text(0.5, 0.5, "not in this pair file", ha="center", va="center", transform=ax[k].transAxes)
                 continue
@@ -329,10 +341,12 @@ def figure4(spec, folder, path):
         ax[0].set_ylabel(f"snapshot {s}\ny (mm)")
     used = sum(c[0] for c in counts)
     total = sum(c[1] for c in counts)
-    fig.suptitle(f"Campaign '{spec.name}', first pair of each snapshot: density at the volume's mid-plane and "
-                 f"dot displacement magnitude\n({used:,} of {total:,} dots valid, "
-                 f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
-                 fontsize=10)
+    fig.suptitle(
+        f"Campaign '{spec.name}', first pair of each snapshot: density at the volume's mid-plane and "
+        f"dot displacement magnitude\n({used:,} of {total:,} dots valid, "
+        f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
+        fontsize=10,
+    )
     save_figure(fig, path)
 
 
@@ -380,8 +394,9 @@ def figure5(spec, folder, path):
     """
     noises = list(spec.noise_percent)
     cols = [("displacement", "below"), ("displacement", "above"), ("gradient", "below"), ("gradient", "above")]
-    fig, axes = plt.subplots(len(noises), 4, figsize=(15, 2.7 * len(noises) + 1.0), squeeze=False, sharey=True,
-                             layout="constrained")
+    fig, axes = plt.subplots(
+        len(noises), 4, figsize=(15, 2.7 * len(noises) + 1.0), squeeze=False, sharey=True, layout="constrained"
+    )
     thresholds = None
     for r, noise in enumerate(noises):
         curves = {c: [] for c in range(len(cols))}
@@ -412,8 +427,16 @@ def figure5(spec, folder, path):
             ax.set_ylim(0, 1.02)
             ax.grid(True, which="major", alpha=0.3)
             for k, (method, n) in enumerate(reversed(counts)):  # listed top to bottom as in the legend
-                ax.text(0.97, 0.05 + 0.1 * k, f"n = {n:,}", transform=ax.transAxes, ha="right", va="bottom",
-                        fontsize=8, color=method_style(method).get("color", "k"))
+                ax.text(
+                    0.97,
+                    0.05 + 0.1 * k,
+                    f"n = {n:,}",
+                    transform=ax.transAxes,
+                    ha="right",
+                    va="bottom",
+                    fontsize=8,
+                    color=method_style(method).get("color", "k"),
+                )
             unit = "px" if quantity == "displacement" else "px/px"
             ax.set_xlabel(f"{quantity} error ({unit})")
             if r == 0:
@@ -425,9 +448,12 @@ def figure5(spec, folder, path):
     handles.append(plt.Line2D([], [], color="k", ls=":", lw=1.2))
     labels.append("Cramér-Rao bound (displacement)")
     fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), frameon=False)
-    fig.suptitle(f"Error CDFs, campaign '{spec.name}' ({len(spec.pair_keys())} pairs). Threshold: half the standard "
-                 f"deviation of Eq. 4's |ΔX| in each pair, {_threshold_text(thresholds)}; "
-                 "n: points scored per method", fontsize=10)
+    fig.suptitle(
+        f"Error CDFs, campaign '{spec.name}' ({len(spec.pair_keys())} pairs). Threshold: half the standard "
+        f"deviation of Eq. 4's |ΔX| in each pair, {_threshold_text(thresholds)}; "
+        "n: points scored per method",
+        fontsize=10,
+    )
     save_figure(fig, path)
 
 
@@ -444,8 +470,9 @@ def figure_density(spec, folder, path):
     folder = Path(folder)
     methods, noises = list(spec.methods), list(spec.noise_percent)
     s0, n0 = spec.snapshots[0], min(noises)
-    fig, axes = plt.subplots(len(methods), 5, figsize=(19, 3.3 * len(methods) + 0.6), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(
+        len(methods), 5, figsize=(19, 3.3 * len(methods) + 0.6), squeeze=False, layout="constrained"
+    )
     widths = np.linspace(2.2, 0.8, len(noises))
     for r, method in enumerate(methods):
         ax = axes[r]
@@ -473,9 +500,16 @@ def figure_density(spec, folder, path):
             for k, (noise, sc) in enumerate(zip(noises, scores, strict=True)):
                 e = sc[f"density_{truth}_rel"]
                 xs, ys = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
-                ax[c].step(np.maximum(xs, 1e-6), ys, where="post", color=style.get("color"), ls=style.get("ls"),
-                           lw=widths[k], alpha=1.0 - 0.6 * k / max(len(noises) - 1, 1),
-                           label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})")
+                ax[c].step(
+                    np.maximum(xs, 1e-6),
+                    ys,
+                    where="post",
+                    color=style.get("color"),
+                    ls=style.get("ls"),
+                    lw=widths[k],
+                    alpha=1.0 - 0.6 * k / max(len(noises) - 1, 1),
+                    label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})",
+                )
             ax[c].set_xscale("log")
             ax[c].set_xlim(1e-5, 1)
             ax[c].grid(True, which="both", alpha=0.3)
@@ -484,8 +518,11 @@ def figure_density(spec, folder, path):
             what = "cone of rays" if truth == "cone" else "chief ray"
             ax[c].set_title(f"{method}: error vs the {what} truth", fontsize=9)
             ax[c].legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"Campaign '{spec.name}': depth-averaged density from each method's displacements "
-                 "(least squares), against the cone and chief-ray truths", fontsize=11)
+    fig.suptitle(
+        f"Campaign '{spec.name}': depth-averaged density from each method's displacements "
+        "(least squares), against the cone and chief-ray truths",
+        fontsize=11,
+    )
     save_figure(fig, path)
 
 
@@ -514,33 +551,52 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
     """
     label1, label2 = param_label or param, param2_label or param2
     order = list(METHODS)
-    methods = sorted({r["method"] for r in rows},
-                     key=lambda m: (m not in order, order.index(m) if m in order else 0, m))
+    methods = sorted(
+        {r["method"] for r in rows}, key=lambda m: (m not in order, order.index(m) if m in order else 0, m)
+    )
     by_noise = "noise" not in (param, param2)
     noises = sorted({r["noise_percent"] for r in rows}) if by_noise else [None]
     second = sorted({r.get("param2_value") for r in rows}, key=lambda v: (v is None, v))
     has_density = any(r["quantity"] == "density_cone_rel" for r in rows)
     ncols = len(percentiles) + 1 + has_density
     yc = len(percentiles)  # the yield column
-    fig, axes = plt.subplots(len(noises), ncols, figsize=(4.4 * ncols, 3.0 * len(noises) + 1.2), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(
+        len(noises), ncols, figsize=(4.4 * ncols, 3.0 * len(noises) + 1.2), squeeze=False, layout="constrained"
+    )
     dashes = ["-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1))]
     for r, noise in enumerate(noises):
         for method in methods:
             style = method_style(method)
             for k, val2 in enumerate(second):
-                sel = [x for x in rows if x["method"] == method and (noise is None or x["noise_percent"] == noise)
-                       and x.get("param2_value") == val2 and x["split"] == "all" and x["quantity"] == "displacement"]
+                sel = [
+                    x
+                    for x in rows
+                    if x["method"] == method
+                    and (noise is None or x["noise_percent"] == noise)
+                    and x.get("param2_value") == val2
+                    and x["split"] == "all"
+                    and x["quantity"] == "displacement"
+                ]
                 sel.sort(key=lambda x: x["param_value"])
                 xs = [x["param_value"] for x in sel]
-                kw = {"color": style.get("color"), "marker": METHODS[method].marker if method in METHODS else "o",
-                      "ls": dashes[k % len(dashes)] if val2 is not None else style.get("ls", "-"), "ms": 5}
+                kw = {
+                    "color": style.get("color"),
+                    "marker": METHODS[method].marker if method in METHODS else "o",
+                    "ls": dashes[k % len(dashes)] if val2 is not None else style.get("ls", "-"),
+                    "ms": 5,
+                }
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
                 axes[r, yc].plot(xs, [x["yield"] for x in sel], **kw)
                 if has_density:
-                    dens = [x for x in rows if x["method"] == method and x["quantity"] == "density_cone_rel"
-                            and (noise is None or x["noise_percent"] == noise) and x.get("param2_value") == val2]
+                    dens = [
+                        x
+                        for x in rows
+                        if x["method"] == method
+                        and x["quantity"] == "density_cone_rel"
+                        and (noise is None or x["noise_percent"] == noise)
+                        and x.get("param2_value") == val2
+                    ]
                     dens.sort(key=lambda x: x["param_value"])
                     axes[r, -1].plot([x["param_value"] for x in dens], [x.get("rms", np.nan) for x in dens], **kw)
         for c in range(len(percentiles)):
@@ -568,13 +624,21 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
         handles = [plt.Line2D([], [], marker=marker[m], **method_style(m)) for m in methods]
     else:  # the line style tells the second parameter's value: a legend of its own, at the right
         handles = [plt.Line2D([], [], color=method_style(m).get("color"), marker=marker[m]) for m in methods]
-        fig.legend([plt.Line2D([], [], color="k", ls=dashes[k % len(dashes)]) for k in range(len(second))],
-                   [f"{v:g}" for v in second], title=label2.replace(" (", "\n("), loc="outside right center",
-                   frameon=False)
-    fig.legend(handles, [method_style(m)["label"] for m in methods], loc="outside lower center",
-               ncol=len(methods), frameon=False)
+        fig.legend(
+            [plt.Line2D([], [], color="k", ls=dashes[k % len(dashes)]) for k in range(len(second))],
+            [f"{v:g}" for v in second],
+            title=label2.replace(" (", "\n("),
+            loc="outside right center",
+            frameon=False,
+        )
+    fig.legend(
+        handles,
+        [method_style(m)["label"] for m in methods],
+        loc="outside lower center",
+        ncol=len(methods),
+        frameon=False,
+    )
     what = label1 if param2 is None else f"{label1} and {label2}"
     extra = "; density error after integration" if has_density else ""
     fig.suptitle(f"Sweep of {what}: displacement error over all scored points, and yield{extra}", fontsize=11)
     save_figure(fig, path)
-

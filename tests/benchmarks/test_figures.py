@@ -13,8 +13,13 @@ from synthbos.benchmarks.registry import METHODS
 from synthbos.benchmarks.spec import REGRESS
 from synthbos.benchmarks.sweep import parameter_label
 
-TINY = replace(REGRESS, name="tiny-fig", snapshots=(2,), noise_percent=(0.0, 3.0),
-               config={"camera": {"pixels": [96, 96]}, "target": {"dots_per_32px": 12.0}, "rays": {"per_dot": 10}})
+TINY = replace(
+    REGRESS,
+    name="tiny-fig",
+    snapshots=(2,),
+    noise_percent=(0.0, 3.0),
+    config={"camera": {"pixels": [96, 96]}, "target": {"dots_per_32px": 12.0}, "rays": {"per_dot": 10}},
+)
 
 
 def _assert_png_and_pdf(stem):
