@@ -13,8 +13,13 @@ from synthbos.benchmarks.registry import METHODS
 from synthbos.benchmarks.spec import REGRESS
 from synthbos.benchmarks.sweep import parameter_label
 
-TINY = replace(REGRESS, name="tiny-fig", snapshots=(2,), noise_percent=(0.0, 3.0),
-               config={"camera": {"pixels": [96, 96]}, "target": {"dots_per_32px": 12.0}, "rays": {"per_dot": 10}})
+TINY = replace(
+    REGRESS,
+    name="tiny-fig",
+    snapshots=(2,),
+    noise_percent=(0.0, 3.0),
+    config={"camera": {"pixels": [96, 96]}, "target": {"dots_per_32px": 12.0}, "rays": {"per_dot": 10}},
+)
 
 
 def _assert_png_and_pdf(stem):
@@ -65,3 +70,35 @@ def test_sweep_parameters_are_named_in_words_with_units():
     assert parameter_label("target.dots_per_32px") == "dot density (dots per 32 × 32 px)"
     assert parameter_label("volume.density_scale_kg_m3") == "volume density scale (kg/m³)"
     assert parameter_label("noise").endswith("(% of the dot peak)")
+
+
+def _busy_figure():
+    """Constrained layout, log axes with unlabelled minor ticks and a minor grid, shared axes, a colour
+    bar, a legend outside: what save_figure's shortcuts (one layout, minor ticks as lines, cached ticks)
+    must draw as matplotlib's own savefig does."""
+    rng = np.random.default_rng(3)
+    fig, axes = plt.subplots(2, 3, figsize=(10, 5), layout="constrained", sharey="row")
+    for k, ax in enumerate(axes.flat):
+        e = np.sort(rng.lognormal(-6, 1.5, 500))
+        ax.step(e, np.linspace(0, 1, len(e)), where="post", label=f"curve {k}")
+        ax.set_xscale("log")
+        ax.set_xlim(10.0 ** (-5 + k % 3), 10.0 ** (-2 + k % 2))
+        ax.grid(True, which="both" if k % 2 else "major", alpha=0.3)
+        ax.set_xlabel("error (px)")
+    figures._log_axis(axes[0, 0].xaxis, 1e-5, 1e-3)  # a narrow axis: labelled 1, 2, 5 ... ticks
+    axes[0, 0].set_xlim(1e-5, 1e-3)
+    im = axes[1, 2].inset_axes((0.1, 0.5, 0.4, 0.4)).imshow(rng.random((8, 8)))
+    figures._colorbar(fig, im, axes[1, 2], label="ρ (kg/m³)")
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center")
+    fig.suptitle("busy")
+    return fig
+
+
+def test_save_figure_draws_what_savefig_draws(tmp_path):
+    fig = _busy_figure()
+    fig.savefig(tmp_path / "plain.png", dpi=300)
+    plt.close(fig)
+    figures.save_figure(_busy_figure(), tmp_path / "fast")
+    _assert_png_and_pdf(tmp_path / "fast")
+    with Image.open(tmp_path / "plain.png") as a, Image.open(tmp_path / "fast.png") as b:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
