@@ -23,7 +23,11 @@ Keys
   density_scale_kg_m3 (applied to normalised slices only); grid = [nx, ny, nz] nodes; plus the
   source's own keys.
 [rays]
-  per_dot; seed; step_mm = "grid" (the smallest node spacing) or a length; chunk (rays per launch);
+  per_dot; seed; step_mm = "grid" (the smallest node spacing) or a length; stepping = "cells" | "fixed"
+  (how RK4 steps through the volume, see ``raytrace.kernels.trace_volume``: "cells", the default, ends
+  each step at the next node plane the ray crosses, at the back face, or after a quarter of the
+  volume's depth, or after step_mm when that is a length; "fixed" takes equal steps of step_mm; the
+  ground truths' straight-ray integrals sample the depth every step_mm either way); chunk (rays per launch);
   aim_iterations = "auto" | n: re-aim each ray n times so that, refracted by the flow, it still
   crosses the aperture stop at its sampled point ("auto": 1 for the thick lens, whose aberrations
   make the landing point depend on where a ray crosses the stop; 0 for the ideal thin lens, which
@@ -82,7 +86,7 @@ _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
         "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32_vec", "dot_order": "morton",
-        "rays_per_group": 8, "block_dim": 256, "max_registers": 64,
+        "rays_per_group": 8, "block_dim": 256, "max_registers": 64, "stepping": "cells",
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
@@ -188,6 +192,7 @@ def _validate(cfg):
     if rays["step_mm"] != "grid":
         rays["step_mm"] = _num("rays.step_mm", rays["step_mm"])
     rays["field"] = _choice("rays.field", rays["field"], FIELDS)
+    rays["stepping"] = _choice("rays.stepping", rays["stepping"], ("fixed", "cells"))
     rays["dot_order"] = _choice("rays.dot_order", rays["dot_order"], ("pattern", "morton"))
     rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
     rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])

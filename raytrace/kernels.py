@@ -402,26 +402,68 @@ def n_steps(m: Any, t: wp.vec3, step: float):
 
 
 @wp.func
-def trace_volume(m: Any, active: int, x_global: wp.vec3, t: wp.vec3, step: float):
+def face_distance(f: float, rate: float):
+    """Path length to the next node plane ahead along one axis.
+
+    ``f`` is the fractional node coordinate, ``rate`` its change per unit path length. A plane within
+    1e-4 node ahead counts as crossed (the step goes on to the next one), so a step never has length ~0.
+    """
+    if rate > 0.0:
+        return (wp.floor(f + 1.0e-4) + 1.0 - f) / rate
+    if rate < 0.0:
+        return (wp.ceil(f - 1.0e-4) - 1.0 - f) / rate
+    return 1.0e30
+
+
+@wp.func
+def trace_volume(m: Any, active: int, x_global: wp.vec3, t: wp.vec3, step: float, cells: int):
     """Carry a ray from anywhere in front of the box to its back face.
 
-    Straight to the front face plane, then RK4 across the whole depth of the box in equal steps that
-    end exactly on the back face plane for a straight ray (rays never stop early at a face; outside
-    the box's sides the gradient is zero and the ray runs straight). Returns global position, tangent.
+    Straight to the front face plane, then RK4 across the whole depth of the box (rays never stop
+    early at a face; outside the box's sides the gradient is zero and the ray runs straight). Returns
+    global position, tangent.
+
+    ``cells = 0``: equal steps of at most ``step`` that end exactly on the back face plane for a
+    straight ray. ``cells = 1``: each step ends at the next node plane the ray crosses (along x, y or
+    z), at the back face plane, or after ``step``, whichever comes first. Inside one cell the
+    interpolated field is a smooth polynomial, which RK4 integrates to high order with long steps; a
+    step across a node plane, where the field's derivatives jump, would cost RK4 its order. Fewer
+    steps also mean less float32 rounding: on the paper's flow, against a float64 trace with steps of an
+    eighth of the grid, equal grid steps leave up to 1.4e-4 px (as the exit angle's image) and 4e-4 px
+    of exit position, cell steps of at most a quarter of the depth 1.5e-5 and 2e-5 px. The undisturbed
+    medium's straight rays (``active = 0``) take the same steps, so a uniform medium gives the
+    reference image's bits.
     """
     z_front = m.centre[2] - m.half[2]
     s0 = (z_front - x_global[2]) / t[2]
     x = x_global + s0 * t - m.centre
-    n = n_steps(m, t, step)
-    h = 2.0 * m.half[2] / t[2] / float(n)
     tt = t
-    for _ in range(n):
+    if cells == 0:
+        n = n_steps(m, t, step)
+        h = 2.0 * m.half[2] / t[2] / float(n)
+        for _ in range(n):
+            x, tt = rk4_step(m, active, x, tt, h)
+        return x + m.centre, tt
+    depth = 2.0 * m.half[2]
+    # A ray crosses each node plane once at most; the bound only guards against a runaway loop.
+    limit = int(depth / step) + 2 * int(depth * (m.inv_spacing[0] + m.inv_spacing[1] + m.inv_spacing[2])) + 16
+    k = int(0)
+    while k < limit:
+        remaining = (m.half[2] - x[2]) / tt[2]
+        if remaining <= 1.0e-5 * depth:
+            break
+        f = node_coords(m.half, m.inv_spacing, x)
+        h = wp.min(face_distance(f[0], tt[0] * m.inv_spacing[0]), face_distance(f[1], tt[1] * m.inv_spacing[1]))
+        h = wp.min(wp.min(h, face_distance(f[2], tt[2] * m.inv_spacing[2])), wp.min(remaining, step))
         x, tt = rk4_step(m, active, x, tt, h)
+        k += 1
     return x + m.centre, tt
 
 
 @wp.func
-def aimed_ray(m: Any, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.vec3, step: float, iterations: int):
+def aimed_ray(
+    m: Any, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.vec3, step: float, cells: int, iterations: int
+):
     """Trace a ray from ``origin`` through the volume so that it crosses the stop plane at ``stop_point``.
 
     The first ray is aimed straight at the stop point; each iteration then re-aims it by the amount the
@@ -430,13 +472,13 @@ def aimed_ray(m: Any, active: int, cam: Camera, origin: wp.vec3, stop_point: wp.
     """
     aim = stop_point
     t = wp.normalize(aim - origin)
-    p, tt = trace_volume(m, active, origin, t, step)
+    p, tt = trace_volume(m, active, origin, t, step, cells)
     for _ in range(iterations):
         s = (cam.z_stop - p[2]) / tt[2]
         miss = p + s * tt - stop_point
         aim = aim - wp.vec3(miss[0], miss[1], 0.0)
         t = wp.normalize(aim - origin)
-        p, tt = trace_volume(m, active, origin, t, step)
+        p, tt = trace_volume(m, active, origin, t, step, cells)
     return p, tt
 
 
@@ -557,6 +599,7 @@ def render_rays(
     launch_order: wp.array(dtype=wp.int32),
     dot_radius: float,
     step: float,
+    cells: int,
     aim_iterations: int,
     seed: int,
     ray_start: int,
@@ -592,7 +635,7 @@ def render_rays(
     e2 = dots[dot] + sample_disk(state, dot_radius)
     a2 = sample_disk(state, cam.aperture_radius)
     origin = wp.vec3(e2[0], e2[1], 0.0)
-    p, t = aimed_ray(medium, active, cam, origin, wp.vec3(a2[0], a2[1], cam.z_stop), step, aim_iterations)
+    p, t = aimed_ray(medium, active, cam, origin, wp.vec3(a2[0], a2[1], cam.z_stop), step, cells, aim_iterations)
     xs = wp.vec2(0.0)
     status = RAY_OK
     if cam.lens == LENS_THIN:
@@ -712,12 +755,13 @@ def trace_to_exit(
     origins: wp.array(dtype=wp.vec3),
     tangents: wp.array(dtype=wp.vec3),
     step: float,
+    cells: int,
     out_x: wp.array(dtype=wp.vec3),
     out_t: wp.array(dtype=wp.vec3),
 ):
-    """Trace given rays through the volume only (used by tests and diagnostics)."""
+    """Trace given rays through the volume only (used by tests and diagnostics); see ``trace_volume``."""
     i = wp.tid()
-    p, t = trace_volume(medium, active, origins[i], tangents[i], step)
+    p, t = trace_volume(medium, active, origins[i], tangents[i], step, cells)
     out_x[i] = p
     out_t[i] = t
 

@@ -70,6 +70,9 @@ class RenderPlan:
         step = rays["step_mm"]
         self.step = min(self.medium.spacing) if step == "grid" else step * 1e-3
         self.field = rays["field"]
+        self.cells = rays["stepping"] == "cells"
+        # The longest RK4 step: step_mm, or with "cells" stepping and step_mm = "grid" a quarter of the depth.
+        self.ray_step = self.medium.size[2] / 4.0 if self.cells and step == "grid" else self.step
         self.rays_per_group = rays["rays_per_group"]
         self.block_dim = rays["block_dim"]
         self.max_registers = rays["max_registers"]
@@ -87,7 +90,9 @@ class RenderPlan:
 
     @property
     def steps_per_ray(self) -> int:
-        """RK4 steps of an axial ray across the volume (off-axis rays take the same or one more)."""
+        """RK4 steps of an axial ray across the volume at ``step`` (off-axis rays take the same or one more):
+        the "fixed" stepping's count, and an upper bound for "cells" stepping through a field that varies
+        on the grid's scale (used for the resource limits and the ground truths' sampling)."""
         return max(1, math.ceil(self.medium.size[2] / self.step - 1e-4))
 
     def _check_field_of_view(self):
@@ -212,8 +217,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
         threads = -(-count // group) * group * n
         wp.launch(
             kernel, dim=threads,
-            inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.step,
-                    plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group],
+            inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.ray_step,
+                    int(plan.cells), plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group],
             outputs=[image, sum_x, sum_y, hits, lost, tir], device=device, block_dim=plan.block_dim,
         )
         if progress is not None:

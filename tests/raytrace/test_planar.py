@@ -31,7 +31,7 @@ def _trace(medium, device, n=256):
     xo, to = wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros(n, dtype=wp.vec3, device=device)
     wp.launch(kernels.trace_to_exit, dim=n, device=device, outputs=[xo, to],
               inputs=[medium, 1, wp.array(o.astype(np.float32), dtype=wp.vec3, device=device),
-                      wp.array(t.astype(np.float32), dtype=wp.vec3, device=device), 1e-4])
+                      wp.array(t.astype(np.float32), dtype=wp.vec3, device=device), 1e-4, 0])
     return xo.numpy(), to.numpy() - t.astype(np.float32)
 
 

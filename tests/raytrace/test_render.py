@@ -35,7 +35,7 @@ def test_constant_transverse_gradient_deflection_and_displacement(device):
     t0 /= np.linalg.norm(t0, axis=1, keepdims=True)
     t = wp.array(t0.astype(np.float32), dtype=wp.vec3, device=device)
     xo, to = wp.zeros(2, dtype=wp.vec3, device=device), wp.zeros(2, dtype=wp.vec3, device=device)
-    wp.launch(kernels.trace_to_exit, dim=2, inputs=[m, 1, o, t, plan.step], outputs=[xo, to], device=device)
+    wp.launch(kernels.trace_to_exit, dim=2, inputs=[m, 1, o, t, plan.step, 0], outputs=[xo, to], device=device)
     angle = np.arctan(to.numpy()[:, 0] / to.numpy()[:, 2]) - np.arctan(t0[:, 0] / t0[:, 2])
     assert_allclose(angle, eps, rtol=0.01)
 
@@ -84,7 +84,7 @@ def test_rk4_kernel_matches_float64_twin_and_shows_its_order(device):
     errs = []
     for h in _STEPS:
         xo, to = wp.zeros(2, dtype=wp.vec3, device=device), wp.zeros(2, dtype=wp.vec3, device=device)
-        wp.launch(kernels.trace_to_exit, dim=2, inputs=[m, 1, o, t, h], outputs=[xo, to], device=device)
+        wp.launch(kernels.trace_to_exit, dim=2, inputs=[m, 1, o, t, h, 0], outputs=[xo, to], device=device)
         twin_x, twin_t = reference.trace_volume(med, _RAYS_O, _RAYS_T, h)
         # float32 rounding over a 2 cm box: a few 1e-10 m
         assert_allclose(xo.numpy(), twin_x, atol=3e-9)
