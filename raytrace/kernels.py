@@ -447,7 +447,7 @@ def trace_volume(m: Any, active: int, x_global: wp.vec3, t: wp.vec3, step: float
     depth = 2.0 * m.half[2]
     # A ray crosses each node plane once at most; the bound only guards against a runaway loop.
     limit = int(depth / step) + 2 * int(depth * (m.inv_spacing[0] + m.inv_spacing[1] + m.inv_spacing[2])) + 16
-    k = int(0)
+    k = int(0)  # noqa: UP018, RUF046 (a dynamic Warp variable, changed in the loop)
     while k < limit:
         remaining = (m.half[2] - x[2]) / tt[2]
         if remaining <= 1.0e-5 * depth:
