@@ -12,10 +12,17 @@ from synthbos.raytrace.sources import DensityField, node_coordinates
 
 
 def test_uniform_medium_gives_identical_images_and_zero_displacement(device):
+    """The same bits on the CPU; on CUDA the compiler contracts the straight rays' position sums into
+    fused multiply-adds differently in the reference image's kernel (no medium) and the gradient
+    image's, which moves spots by ~1e-7 px."""
     pair = render_pair(_config(volume={"source": "uniform", "density_kg_m3": 1.5, "grid": [8, 8, 4]}), device=device)
     assert pair.valid.all()
-    np.testing.assert_array_equal(pair.reference, pair.gradient)
-    np.testing.assert_array_equal(pair.displacement_px, 0.0)
+    if device == "cpu":
+        np.testing.assert_array_equal(pair.reference, pair.gradient)
+        np.testing.assert_array_equal(pair.displacement_px, 0.0)
+    else:
+        np.testing.assert_allclose(pair.gradient, pair.reference, rtol=0, atol=1e-6 * pair.reference.max())
+        np.testing.assert_allclose(pair.displacement_px, 0.0, rtol=0, atol=1e-5)
     np.testing.assert_array_equal(pair.theory_px, 0.0)
     assert pair.reference.sum() > 0
 
