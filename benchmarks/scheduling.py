@@ -146,7 +146,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     ``track_pair`` and one triangulation). Meanwhile ``renders_ahead`` threads render the next pairs
     (when their files are missing): while one waits for its kernels, the other plans its pair or reads
     its images back, so the device always has a render queued. This process measures a rendered pair
-    from memory while a writer process writes its file; the workers get its items once it is written. At most
+    from memory while a writer thread writes its file; the workers get its items once it is written. At most
     ``4 * workers`` batches wait for a worker, so memory stays bounded when the host is the slower side.
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
 
@@ -193,8 +193,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     pool = _pool(workers - 1, preload) if workers > 1 else None
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
-    # Pair files are written by two processes of their own (HDF5 and gzip would hold this process's GIL).
-    writer = _pool(2, ["synthbos.raytrace"]) if pool is not None else ThreadPoolExecutor(1)
+    writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
     rendering = []
     try:
         with bar, shared_by_threads():  # the render threads launch too: no CUDA graph capture here
