@@ -66,3 +66,14 @@ def test_exact_fields_give_the_same_bits_on_a_planar_medium():
         np.testing.assert_array_equal(other.gradient, first.gradient)
         np.testing.assert_array_equal(other.displacement_px, first.displacement_px)
         np.testing.assert_array_equal(other.theory_cone_px, first.theory_cone_px)
+
+
+def test_plans_of_one_volume_share_its_density_read_only():
+    """A campaign renders many pairs of each snapshot: the density of a volume table is read once (the
+    last two tables are kept), shared read-only, and gives the same medium."""
+    a = plan_render(small_config(volume={"source": "slice", "snapshot": 1}))
+    b = plan_render(small_config(volume={"source": "slice", "snapshot": 1}, target={"seed": 5}))
+    assert b.medium.density is a.medium.density and not a.medium.density.rho.flags.writeable
+    assert b.medium.field.tobytes() == a.medium.field.tobytes()
+    c = plan_render(small_config(volume={"source": "slice", "snapshot": 3}))
+    assert c.medium.density is not a.medium.density
