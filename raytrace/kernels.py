@@ -441,12 +441,11 @@ def trace_volume(m: Any, active: int, x_global: wp.vec3, t: wp.vec3, step: float
     interpolated field is a smooth polynomial, which RK4 integrates to high order with long steps; a
     step across a node plane, where the field's derivatives jump, would cost RK4 its order (and at the
     box's sides, where the field itself stops, its convergence: equal steps err by O(step) there). A
-    step beside the box is a straight line. Fewer
-    steps also mean less float32 rounding: on the paper's flow, against a float64 trace with steps of an
-    eighth of the grid, equal grid steps leave up to 1.4e-4 px (as the exit angle's image) and 4e-4 px
-    of exit position, cell steps of at most a quarter of the depth 1.5e-5 and 2e-5 px. The undisturbed
-    medium's straight rays (``active = 0``) take the same steps, so a uniform medium gives the
-    reference image's bits.
+    step beside the box is a straight line. Fewer steps also mean less float32 rounding: on the
+    paper's flow, against a float64 trace with steps of an eighth of the grid, equal grid steps leave
+    up to 1.4e-4 px (as the exit angle's image) and 4e-4 px of exit position, cell steps of at most a
+    quarter of the depth 1.5e-5 and 2e-5 px. The undisturbed medium's straight rays (``active = 0``)
+    take the same steps, so a uniform medium gives the reference image's bits.
     """
     z_front = m.centre[2] - m.half[2]
     s0 = (z_front - x_global[2]) / t[2]
@@ -608,6 +607,16 @@ def sample_disk(state: wp.uint32, radius: float):
     return wp.vec2(r * wp.cos(phi), r * wp.sin(phi))
 
 
+@wp.func
+def group_member(tid: int, group: int, n_dots: int):
+    """Thread ``tid``'s place when groups of ``group`` consecutive threads each work on one dot, the groups
+    taking the dots in launch order, over and over: the dot's position in the launch order and the thread's
+    index among all the threads of that dot (its ray, or its chunk of rays)."""
+    g = tid / group
+    block = g / n_dots
+    return g - block * n_dots, block * group + (tid - g * group)
+
+
 @wp.kernel
 def render_rays(
     medium: Any,
@@ -642,14 +651,11 @@ def render_rays(
     nothing else: a ray's random numbers depend only on (seed, dot, ray), and the images and sums are
     accumulated in fixed point, so every order gives the same bits.
     """
-    tid = wp.tid()
     n_dots = dots.shape[0]
-    g = tid / group
-    block = g / n_dots
-    local = block * group + (tid - g * group)
+    slot, local = group_member(wp.tid(), group, n_dots)
     if local >= ray_count:
         return
-    dot = launch_order[g - block * n_dots]
+    dot = launch_order[slot]
     ray = ray_start + local
     state = wp.rand_init(seed, ray * n_dots + dot)
     e2 = dots[dot] + sample_disk(state, dot_radius)
@@ -747,15 +753,12 @@ def integrate_cone(
     the chunk's rays, in ray order. The order and the group only decide which thread does which sum (a
     warp's threads follow rays of few dots, which read nearby nodes), never a bit of a sum.
     """
-    tid = wp.tid()
     n_dots = dots.shape[0]
-    g = tid / group
-    block = g / n_dots
-    c = block * group + (tid - g * group)
+    slot, c = group_member(wp.tid(), group, n_dots)
     r0 = c * rays_per_thread
     if r0 >= rays_per_dot:
         return
-    dot = launch_order[g - block * n_dots]
+    dot = launch_order[slot]
     acc = wp.vec3(0.0)
     r1 = wp.min(r0 + rays_per_thread, rays_per_dot)
     for ray in range(r0, r1):
