@@ -184,6 +184,14 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             if pool is None:
                 bar.update(1)
 
+    def file_written(written, path) -> None:
+        """Wait for the pair file ``path`` being ``written`` (the workers and the jobs read it), once; start
+        the jobs it completes."""
+        if written is not None and path in have:
+            written.result()
+            have.discard(path)
+            start_jobs(final=False)
+
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
         return None if args is None else renderer.submit(render_only, args[0], args[2])
@@ -208,16 +216,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     bar.update(1)
                 else:
                     pair = read_pair(items[0][0]) if items else None
-
-                def file_written(written=written, path=None if render_args is None else str(render_args[1])):
-                    """Wait for the pair file (the workers and the jobs read it); start the jobs it completes."""
-                    if written is not None and path in have:
-                        written.result()
-                        have.discard(path)
-                        start_jobs(final=False)
-
+                path = None if render_args is None else str(render_args[1])
                 if pool is None:
-                    file_written()
+                    file_written(written, path)
                 for run in same_image_runs(items):
                     here, there = split_by_residency(run, worker_device=worker_device)
                     if pool is None:
@@ -226,12 +227,12 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             bar.update(1)
                         continue
                     batch = [measure_item(pair, *args) for args in here]
-                    file_written()
+                    file_written(written, path)
                     pending[pool.submit(process_items, batch, there)] = len(run)
                     collect(block=False)
                     while len(pending) >= 4 * workers:
                         collect(block=True)
-                file_written()
+                file_written(written, path)
             while pending:
                 collect(block=True)
             if on_items_done is not None:
