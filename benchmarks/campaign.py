@@ -18,7 +18,7 @@ from synthbos.raytrace import checks, plan_render
 from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
-from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, campaign_figure
+from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .items import render_item, score_item
 from .registry import get_method
 from .scheduling import default_workers, run_items, run_pipeline
@@ -122,7 +122,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                 if not out.exists():
                     scores.append((str(pair_path(folder, s, p)), m.name, noise, seeds, str(out),
                                    spec.overrides_for(m), process_device))
-    figure_jobs = [(stem, spec, str(folder)) for stem in CAMPAIGN_FIGURES] if figures else []
+    figure_jobs = _figure_jobs(spec, folder) if figures else []
     if pipeline and scheduler is None:
         # The device work here; scoring, the tables and the figures in worker processes. A figure that
         # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
@@ -161,6 +161,16 @@ def campaign_order(spec: CampaignSpec) -> list:
     snapshot, then the others (pair after pair within a snapshot), so that what is drawn from first
     pairs (``figures.FIRST_PAIR_FIGURES``) can start early. Every item depends only on its own key."""
     return sorted(spec.pair_keys(), key=lambda key: key[1] > 0)
+
+
+def _figure_jobs(spec: CampaignSpec, folder) -> list[tuple]:
+    """``campaign_figure`` arguments: one job per figure drawn early (``FIRST_PAIR_FIGURES``), one per
+    figure and format for those drawn from the scores at the end (side by side, they finish sooner)."""
+    jobs = []
+    for stem in CAMPAIGN_FIGURES:
+        formats = [None] if stem in FIRST_PAIR_FIGURES else [(fmt,) for fmt in FORMATS]
+        jobs += [(stem, spec, str(folder), fmts) for fmts in formats]
+    return jobs
 
 
 def _figure_pairs(stem: str, spec: CampaignSpec, folder):

@@ -86,8 +86,9 @@ def method_style(name: str) -> dict:
     return {"color": m.color, "ls": m.linestyle, "label": m.label}
 
 
-def save_figure(fig, path) -> list[Path]:
-    """Save ``fig`` as ``path`` with each suffix of ``FORMATS`` (atomically); return the paths written.
+def save_figure(fig, path, *, formats=None) -> list[Path]:
+    """Save ``fig`` as ``path`` with each suffix of ``formats`` (``FORMATS`` by default), atomically; return
+    the paths written.
 
     ``path`` may carry a suffix (``fig4.png``) or not (``fig4``); either way every format is written.
     """
@@ -99,7 +100,7 @@ def save_figure(fig, path) -> list[Path]:
     written = []
     with _ticks_cached(fig):
         _lay_out(fig, dpi=_DPI)
-        for fmt in FORMATS:
+        for fmt in FORMATS if formats is None else formats:
             out = stem.with_name(f"{stem.name}.{fmt}")
             with atomic_output(out) as tmp:
                 fig.savefig(tmp, dpi=_DPI, format=fmt, **_SAVE_OPTIONS.get(fmt, {}))
@@ -282,7 +283,7 @@ def _level_map(ax, tri, values, shape, levels, *, cell=2.0):
 
 
 @_collector_paused
-def figure4(spec, folder, path):
+def figure4(spec, folder, path, *, formats=None):
     """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4 along the chief ray),
     cone-averaged theoretical (Eq. 4 averaged over the rays traced for each dot) and ray-traced
     displacement magnitude (filled contours), from the first pair of the snapshot.
@@ -348,7 +349,7 @@ def figure4(spec, folder, path):
         f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
         fontsize=10,
     )
-    save_figure(fig, path)
+    save_figure(fig, path, formats=formats)
 
 
 def _threshold_text(thresholds: np.ndarray) -> str:
@@ -384,7 +385,7 @@ def _log_axis(axis, lo, hi):
 
 
 @_collector_paused
-def figure5(spec, folder, path):
+def figure5(spec, folder, path, *, formats=None):
     """Error CDFs on a log error axis: one row per noise level; columns: displacement error below and
     above the threshold, displacement-gradient error below and above; all methods; the Cramér-Rao bound
     of the displacement as a dashed line.
@@ -455,11 +456,11 @@ def figure5(spec, folder, path):
         "n: points scored per method",
         fontsize=10,
     )
-    save_figure(fig, path)
+    save_figure(fig, path, formats=formats)
 
 
 @_collector_paused
-def figure_density(spec, folder, path):
+def figure_density(spec, folder, path, *, formats=None):
     """True and reconstructed depth-averaged density per method, with the error CDFs.
 
     One row per method. Maps from the first pair of the first snapshot at the lowest noise level: the
@@ -524,22 +525,24 @@ def figure_density(spec, folder, path):
         "(least squares), against the cone and chief-ray truths",
         fontsize=11,
     )
-    save_figure(fig, path)
+    save_figure(fig, path, formats=formats)
 
 
-#: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path)``).
+#: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path, *, formats=None)``).
 CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density}
 #: The campaign figures that read only the first pair file of each snapshot (a campaign draws them early).
 FIRST_PAIR_FIGURES = frozenset({"fig4"})
 
 
-def campaign_figure(stem: str, spec, folder) -> str:
-    """Draw the campaign figure ``stem`` (a key of ``CAMPAIGN_FIGURES``) into ``folder``; return its stem path.
+def campaign_figure(stem: str, spec, folder, formats=None) -> str:
+    """Draw the campaign figure ``stem`` (a key of ``CAMPAIGN_FIGURES``) into ``folder`` as each of
+    ``formats`` (``FORMATS`` by default); return its stem path.
 
-    One figure per call, so that a campaign can draw its figures side by side in worker processes.
+    One figure per call, so that a campaign can draw its figures side by side in worker processes, and
+    one figure's formats too (each call draws the figure, and lays it out alike, for its own files).
     """
     path = Path(folder) / stem
-    CAMPAIGN_FIGURES[stem](spec, folder, path)
+    CAMPAIGN_FIGURES[stem](spec, folder, path, formats=formats)
     return str(path)
 
 

@@ -29,8 +29,9 @@ from .integrate import score_density
 from .registry import GRID, get_method
 from .storage import save_scores
 
-__all__ = ["finish_item", "finish_items", "measure_item", "measure_pair", "noisy_pair", "nominal_positions",
-           "read_pair_cached", "render_item", "render_only", "score_item", "score_pair", "score_result"]
+__all__ = ["finish_item", "finish_items", "item_images", "measure_item", "measure_pair", "noisy_pair",
+           "nominal_positions", "read_pair_cached", "render_item", "render_only", "score_item", "score_pair",
+           "score_result"]
 
 
 def render_item(config: dict, out: str, device) -> str:
@@ -60,13 +61,14 @@ def noisy_pair(pair, *, noise_percent: float, seeds=(0, 1), peak=None):
 
 
 def measure_pair(pair, method: str, *, noise_percent: float, seeds=(0, 1), peak=None, settings=None,
-                 device=None):
+                 device=None, images=None):
     """The device part of an item: add the noise and run one method on its processing ``device``.
 
+    ``images``: the pair's noisy images when already made (``noisy_pair`` with the same arguments).
     Returns the registry's ``MethodResult``; :func:`score_result` scores it on the host.
     """
     m = get_method(method)
-    ref, grad = noisy_pair(pair, noise_percent=noise_percent, seeds=seeds, peak=peak)
+    ref, grad = noisy_pair(pair, noise_percent=noise_percent, seeds=seeds, peak=peak) if images is None else images
     prior = nominal_positions(pair) if m.uses_prior else None
     settings = m.settings() if settings is None else settings
     return m.run(ref, grad, prior_xy=prior, settings=settings, device=device)
@@ -140,12 +142,20 @@ def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overr
 
 
 def measure_item(pair, pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict,
-                 device=None):
-    """The device half of :func:`score_item` on an already read ``pair``: the arguments of :func:`finish_item`."""
+                 device=None, *, images=None):
+    """The device half of :func:`score_item` on an already read ``pair``: the arguments of :func:`finish_item`.
+
+    ``images``: the item's noisy images when already made (:func:`item_images`).
+    """
     m = get_method(method)
     res = measure_pair(pair, method, noise_percent=noise, seeds=seeds, settings=m.settings(overrides),
-                       device=device)
+                       device=device, images=images)
     return pair_path, method, res, out, device
+
+
+def item_images(pair, args):
+    """The noisy images a score item (:func:`measure_item` arguments without the pair) is measured on."""
+    return noisy_pair(pair, noise_percent=args[2], seeds=args[3])
 
 
 def read_pair_cached(path: str):

@@ -76,6 +76,9 @@ class Method:
         host work between its kernels. A campaign that processes on a GPU runs such methods in the
         process that drives the GPU and the others, whose host code would hold that process up, in
         its worker processes (on the same device): ``scheduling.run_pipeline``.
+    kernels : tuple of str
+        The modules of the Warp kernels its run launches: a campaign's worker processes that will run
+        it load them as they start.
     """
 
     name: str
@@ -91,6 +94,7 @@ class Method:
     make_settings: Callable | None = None
     in_default_campaign: bool = True
     device_resident: bool = False
+    kernels: tuple[str, ...] = ()
 
     def settings(self, overrides: dict | None = None):
         """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
@@ -196,29 +200,32 @@ def _tracker(columns: tuple[str, str], name: str):
     return run
 
 
+_TRACKING_KERNELS = ("synthbos.tracking.kernels",)
+
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00.
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
-               settings_key="correlation", device_resident=True),
+               settings_key="correlation", device_resident=True,
+               kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels")),
         Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
                label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,
-               settings_key="tracking"),
+               settings_key="tracking", kernels=_TRACKING_KERNELS),
         Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
                label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
-               uses_prior=True, settings_key="tracking"),
+               uses_prior=True, settings_key="tracking", kernels=_TRACKING_KERNELS),
         # The exact procedure of Rajendran, Bane & Vlachos (2019): three-point Gaussian centroids and the
         # correlation of the segmented dot maps, kept so the paper's comparison can be run as published.
         Method("tracking-paper", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking-paper"),
                label="tracking, paper's procedure", color="#E69F00", linestyle=":", marker="v",
                uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
-               in_default_campaign=False),
+               kernels=_TRACKING_KERNELS, in_default_campaign=False),
         Method("tracking-cc-paper", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc-paper"),
                label="tracking + cc, paper's procedure", color="#CC79A7", linestyle=(0, (3, 1, 1, 1, 1, 1)),
                marker="D", uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
-               in_default_campaign=False),
+               kernels=_TRACKING_KERNELS, in_default_campaign=False),
     )
 }
 

@@ -25,6 +25,8 @@ import importlib
 import os
 import signal
 import sys
+import threading
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from multiprocessing import get_context
 
@@ -32,7 +34,8 @@ from tqdm.auto import tqdm
 
 from synthbos.device import shared_by_threads
 
-__all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline", "same_image_runs"]
+__all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline", "same_image_runs",
+           "worker_kernels"]
 
 _PR_SET_PDEATHSIG = 1
 
@@ -42,10 +45,12 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def die_with_parent(parent_pid: int, preload=()) -> None:
+def die_with_parent(parent_pid: int, preload=(), kernels=()) -> None:
     """Worker initialiser: be killed (SIGKILL) when the parent process exits; exit now if it already has.
 
-    Then import the modules ``preload`` names, so the work that needs them later does not wait for them.
+    Then import the modules ``preload`` names, and load the Warp kernels of the ``(module, device)``
+    pairs of ``kernels`` (Warp hashes a module's code before it finds its binary, a second or so per
+    process for the tracking kernels), so the work that needs them later does not wait for them.
     """
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
@@ -54,11 +59,29 @@ def die_with_parent(parent_pid: int, preload=()) -> None:
         os._exit(1)
     for name in preload:
         importlib.import_module(name)
+    if kernels:
+        import warp as wp
+
+        from synthbos.device import init_warp
+
+        init_warp()
+        for name, device in kernels:
+            wp.load_module(importlib.import_module(name), device=device)
 
 
-def _pool(workers: int, preload=()):
-    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                               initializer=die_with_parent, initargs=(os.getpid(), tuple(preload)))
+def _pool(workers: int, preload=(), kernels=()):
+    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=die_with_parent,
+                               initargs=(os.getpid(), tuple(preload), tuple(kernels)))
+
+
+def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
+    """The ``(kernel module, device)`` pairs that the worker processes of :func:`run_pipeline` launch: those
+    of the methods that are not device resident (``Method.kernels``), on their processing devices."""
+    from .registry import get_method
+
+    there = split_by_residency(scores, worker_device=worker_device)[1]
+    return sorted({(name, str(args[-1])) for args in there for name in get_method(args[1]).kernels
+                   if args[-1] is not None})
 
 
 def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
@@ -157,7 +180,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     """
     from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
-    from .items import finish_item, measure_item, process_items, render_only
+    from .items import finish_item, item_images, measure_item, process_items, render_only
 
     tasks = pair_tasks(renders, scores)
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
@@ -192,16 +215,48 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             have.discard(path)
             start_jobs(final=False)
 
+    def make_images(k: int, pair) -> None:
+        """Start drawing the noisy images of pair ``k``'s runs that this process measures (NumPy's draws
+        release the GIL: they overlap the device work). Once per pair: called by the render thread as
+        the pair is done, and by this thread before it measures the pair."""
+        with images_lock:
+            if k in images:
+                return
+            images[k] = {r: noiser.submit(item_images, pair, run[0])
+                         for r, run in enumerate(same_image_runs(tasks[k][1]))
+                         if split_by_residency(run, worker_device=worker_device)[0]}
+
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
-        return None if args is None else renderer.submit(render_only, args[0], args[2])
+        if args is None:
+            return None
+        fut = renderer.submit(render_only, args[0], args[2])
+        if pool is not None:  # the pair's noisy images are drawn as soon as it is rendered
+            fut.add_done_callback(lambda f: f.cancelled() or f.exception() is not None or make_images(k, f.result()))
+        return fut
+
+    def submit_ready(block: bool) -> None:
+        """Hand the measured runs to the workers, in order, once their pair file is written (``block``:
+        wait for the writes)."""
+        while deferred and (block or deferred[0][0] is None or deferred[0][0].done()):
+            written, path, batch, there, n = deferred.popleft()
+            file_written(written, path)
+            if n:
+                pending[pool.submit(process_items, batch, there)] = n
+            collect(block=False)
+            while len(pending) >= 4 * workers:
+                collect(block=True)
 
     # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.
     preload = sorted({"synthbos.benchmarks.items", *(fn.__module__ for fn, _, _ in jobs)})
-    pool = _pool(workers - 1, preload) if workers > 1 else None
+    pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device)) if workers > 1 else None
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
     writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
+    noiser = ThreadPoolExecutor(4, thread_name_prefix="synthbos-noise")
+    images: dict = {}  # pair index -> {run index: future of its noisy images}
+    images_lock = threading.Lock()
+    deferred: deque = deque()  # (pair file being written, its path, measured batch, worker items, count)
     rendering = []
     try:
         with bar, shared_by_threads():  # the render threads launch too: no CUDA graph capture here
@@ -219,20 +274,26 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                 path = None if render_args is None else str(render_args[1])
                 if pool is None:
                     file_written(written, path)
-                for run in same_image_runs(items):
+                if pool is not None and pair is not None:
+                    make_images(k, pair)
+                prepared = images.get(k, {})
+                for r, run in enumerate(same_image_runs(items)):
                     here, there = split_by_residency(run, worker_device=worker_device)
                     if pool is None:
                         for args in [*here, *there]:
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    batch = [measure_item(pair, *args) for args in here]
-                    file_written(written, path)
-                    pending[pool.submit(process_items, batch, there)] = len(run)
-                    collect(block=False)
-                    while len(pending) >= 4 * workers:
-                        collect(block=True)
-                file_written(written, path)
+                    noisy = prepared[r].result() if r in prepared else None
+                    batch = [measure_item(pair, *args, images=noisy) for args in here]
+                    # the workers read the pair file: they get the run once it is written
+                    deferred.append((written, path, batch, there, len(run)))
+                    submit_ready(block=False)
+                if pool is not None and not items:
+                    deferred.append((written, path, None, None, 0))
+                images[k] = {}  # drawn and measured: let them go
+                submit_ready(block=False)
+            submit_ready(block=True)
             while pending:
                 collect(block=True)
             if on_items_done is not None:
@@ -254,6 +315,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         raise
     finally:
         renderer.shutdown(wait=True)
+        noiser.shutdown(wait=True)
         writer.shutdown(wait=True)  # a pair file being written is finished (atomic files)
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)

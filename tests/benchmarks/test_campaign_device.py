@@ -254,14 +254,17 @@ def test_bad_worker_device_is_one_line(tmp_path, capsys):
 
 def test_pipeline_draws_first_pair_figures_early_and_the_rest_after_the_last_item(plain, tmp_path, monkeypatch):
     """fig4 reads only the snapshots' first pairs: the pipeline draws it as soon as they are rendered
-    (before the last pair's items are scored); the tables and the other figures come after the last item."""
+    (before the last pair's items are scored); the tables and the other figures come after the last item,
+    each of their formats drawn by a job of its own."""
     from synthbos.benchmarks import figures
 
     seen = {}
+    drawn = {}  # stem -> the formats of each call
 
     def recorder(stem):
-        def draw(spec, folder, path):
+        def draw(spec, folder, path, *, formats=None):
             seen[stem] = len(list((Path(folder) / "scores").glob("*.npz")))
+            drawn.setdefault(stem, []).append(formats)
         return draw
 
     for stem in figures.CAMPAIGN_FIGURES:
@@ -271,5 +274,6 @@ def test_pipeline_draws_first_pair_figures_early_and_the_rest_after_the_last_ite
                         pipeline=True, timings=timings)
     assert rows == plain[1]
     assert seen["fig4"] < 12 and seen["fig5"] == seen["fig_density"] == 12
+    assert drawn == {"fig4": [None], "fig5": [("png",), ("pdf",)], "fig_density": [("png",), ("pdf",)]}
     assert (tmp_path / "f" / "results.csv").read_bytes() == (plain[0] / "results.csv").read_bytes()
     assert set(timings) == {"render and process", "tables and figures, after the last item"}
