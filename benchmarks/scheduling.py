@@ -38,6 +38,9 @@ __all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run
            "worker_kernels"]
 
 _PR_SET_PDEATHSIG = 1
+#: How much lower the scheduling priority of ``run_pipeline``'s workers is (``os.nice``): the process that
+#: drives the device, whose threads keep its queue filled, goes first when the cores are busy.
+WORKER_NICE = 10
 
 
 def default_workers() -> int:
@@ -45,18 +48,21 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def die_with_parent(parent_pid: int, preload=(), kernels=()) -> None:
+def die_with_parent(parent_pid: int, preload=(), kernels=(), nice: int = 0) -> None:
     """Worker initialiser: be killed (SIGKILL) when the parent process exits; exit now if it already has.
 
-    Then import the modules ``preload`` names, and load the Warp kernels of the ``(module, device)``
-    pairs of ``kernels`` (Warp hashes a module's code before it finds its binary, a second or so per
-    process for the tracking kernels), so the work that needs them later does not wait for them.
+    Then lower this process's scheduling priority by ``nice`` (``os.nice``), import the modules
+    ``preload`` names, and load the Warp kernels of the ``(module, device)`` pairs of ``kernels`` (Warp
+    hashes a module's code before it finds its binary, a second or so per process for the tracking
+    kernels), so the work that needs them later does not wait for them.
     """
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os._exit(1)
+    if nice and hasattr(os, "nice"):
+        os.nice(int(nice))
     for name in preload:
         importlib.import_module(name)
     if kernels:
@@ -69,9 +75,9 @@ def die_with_parent(parent_pid: int, preload=(), kernels=()) -> None:
             wp.load_module(importlib.import_module(name), device=device)
 
 
-def _pool(workers: int, preload=(), kernels=()):
+def _pool(workers: int, preload=(), kernels=(), nice: int = 0):
     return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=die_with_parent,
-                               initargs=(os.getpid(), tuple(preload), tuple(kernels)))
+                               initargs=(os.getpid(), tuple(preload), tuple(kernels), nice))
 
 
 def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
@@ -249,7 +255,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
 
     # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.
     preload = sorted({"synthbos.benchmarks.items", *(fn.__module__ for fn, _, _ in jobs)})
-    pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device)) if workers > 1 else None
+    pool = None
+    if workers > 1:
+        pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device), nice=WORKER_NICE)
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
     writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
