@@ -13,9 +13,10 @@ next pair meanwhile. Both give
 byte-identical files: every item computes the same thing from the same seeds, only where differs.
 
 Worker processes die with the campaign: each asks Linux to send it SIGKILL when its parent exits
-(``prctl(PR_SET_PDEATHSIG)``), and checks that its parent is still the one that started it, so a
-campaign killed with SIGKILL leaves no worker behind to write more files (and the multiprocessing
-resource tracker, whose pipe the workers held, exits too).
+(``prctl(PR_SET_PDEATHSIG)``; the parent is the campaign process, or the multiprocessing fork server,
+which exits when the campaign process does), and checks that its parent is still the one that started
+it and the campaign process still alive, so a campaign killed with SIGKILL leaves no worker behind to
+write more files (and the multiprocessing resource tracker, whose pipe the workers held, exits too).
 """
 
 from __future__ import annotations
@@ -23,12 +24,14 @@ from __future__ import annotations
 import ctypes
 import importlib
 import os
+import select
 import signal
 import sys
 import threading
+import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
-from multiprocessing import get_context
+from multiprocessing import get_all_start_methods, get_context
 
 from tqdm.auto import tqdm
 
@@ -41,6 +44,8 @@ _PR_SET_PDEATHSIG = 1
 #: How much lower the scheduling priority of ``run_pipeline``'s workers is (``os.nice``): the process that
 #: drives the device, whose threads keep its queue filled, goes first when the cores are busy.
 WORKER_NICE = 10
+#: Measured batches (each a few hundred kB) that may wait for ``run_pipeline``'s workers, per worker.
+PENDING_PER_WORKER = 16
 
 
 def default_workers() -> int:
@@ -49,18 +54,24 @@ def default_workers() -> int:
 
 
 def die_with_parent(parent_pid: int, preload=(), kernels=(), nice: int = 0) -> None:
-    """Worker initialiser: be killed (SIGKILL) when the parent process exits; exit now if it already has.
+    """Worker initialiser: be killed (SIGKILL) when the process that started it exits; exit now if the
+    campaign process ``parent_pid`` already has.
 
-    Then lower this process's scheduling priority by ``nice`` (``os.nice``), import the modules
-    ``preload`` names, and load the Warp kernels of the ``(module, device)`` pairs of ``kernels`` (Warp
-    hashes a module's code before it finds its binary, a second or so per process for the tracking
-    kernels), so the work that needs them later does not wait for them.
+    A worker is started by the campaign process itself or by the multiprocessing fork server, which
+    exits with the campaign process. Then lower this process's scheduling priority by ``nice``
+    (``os.nice``), import the modules ``preload`` names, and load the Warp kernels of the
+    ``(module, device)`` pairs of ``kernels`` (Warp hashes a module's code before it finds its binary, a
+    second or so per process for the tracking kernels), so the work that needs them later does not wait
+    for them.
     """
+    started_by = os.getppid()
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+    if os.getppid() != started_by or not _alive(parent_pid):  # died before prctl took effect
         os._exit(1)
+    if started_by != parent_pid:  # started by the fork server, which outlives the campaign process while
+        _exit_with(parent_pid)  # workers hold its pipe: exit with the campaign process instead
     if nice and hasattr(os, "nice"):
         os.nice(int(nice))
     for name in preload:
@@ -75,8 +86,48 @@ def die_with_parent(parent_pid: int, preload=(), kernels=(), nice: int = 0) -> N
             wp.load_module(importlib.import_module(name), device=device)
 
 
+def _exit_with(pid: int) -> None:
+    """End this process (``os._exit``) as soon as process ``pid`` ends: a daemon thread waits for it, on a
+    Linux pidfd where there is one, else by polling."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        os._exit(1)
+    except (AttributeError, OSError):
+        fd = None
+
+    def watch():
+        if fd is not None:
+            select.select([fd], [], [])  # readable once the process has ended
+        else:
+            while _alive(pid):
+                time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="synthbos-exit-with-campaign", daemon=True).start()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _pool(workers: int, preload=(), kernels=(), nice: int = 0):
-    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=die_with_parent,
+    """A pool of ``workers`` processes. Where it can, the fork server starts them: it imports the
+    ``preload`` modules once and forks each worker from itself, so the workers begin with them imported
+    (never with CUDA initialised: the fork server imports only); elsewhere each worker is a fresh
+    interpreter that imports them itself."""
+    if "forkserver" in get_all_start_methods():
+        context = get_context("forkserver")
+        context.set_forkserver_preload(sorted({"synthbos.benchmarks.items", *preload}))  # before its start
+    else:
+        context = get_context("spawn")
+    return ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=die_with_parent,
                                initargs=(os.getpid(), tuple(preload), tuple(kernels), nice))
 
 
@@ -176,7 +227,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     (when their files are missing): while one waits for its kernels, the other plans its pair or reads
     its images back, so the device always has a render queued. This process measures a rendered pair
     from memory while a writer thread writes its file; the workers get its items once it is written. At most
-    ``4 * workers`` batches wait for a worker, so memory stays bounded when the host is the slower side.
+    ``PENDING_PER_WORKER * workers`` batches wait for a worker, so memory stays bounded when the host is the
+    slower side (while the workers start, the device goes on).
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
 
     ``jobs``: ``(fn, args, pairs)`` tuples of other host work (tables, figures), run by the worker
@@ -250,7 +302,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             if n:
                 pending[pool.submit(process_items, batch, there)] = n
             collect(block=False)
-            while len(pending) >= 4 * workers:
+            while len(pending) >= PENDING_PER_WORKER * workers:
                 collect(block=True)
 
     # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.

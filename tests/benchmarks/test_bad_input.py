@@ -191,15 +191,21 @@ def test_row02_limit_can_be_raised(tmp_path):
 
 
 def _children(pid):
-    kids = []
+    """Every descendant of ``pid`` (the workers are children of the multiprocessing fork server)."""
+    parent = {}
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             try:
                 fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
             except OSError:
                 continue
-            if int(fields[1]) == pid:
-                kids.append(int(entry.name))
+            parent[int(entry.name)] = int(fields[1])
+    kids, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        found = [k for k, pp in parent.items() if pp == p]
+        kids += found
+        todo += found
     return kids
 
 
@@ -213,7 +219,7 @@ def test_row03_sigkill_paper_leaves_no_worker(tmp_path):
     try:
         deadline = time.monotonic() + 90
         kids = []
-        while time.monotonic() < deadline and len(kids) < 3:  # the resource tracker and two workers
+        while time.monotonic() < deadline and len(kids) < 3:  # the resource tracker, fork server and workers
             time.sleep(0.2)
             kids = _children(proc.pid)
             assert proc.poll() is None
