@@ -131,6 +131,21 @@ def _pool(workers: int, preload=(), kernels=(), nice: int = 0):
                                initargs=(os.getpid(), tuple(preload), tuple(kernels), nice))
 
 
+def _nothing() -> None:
+    """A task that starts a worker process and does nothing."""
+
+
+def _start_workers(pool, n: int, ready) -> None:
+    """Start the ``n`` processes of ``pool`` (each submit starts one while none is idle), then set ``ready``."""
+    try:
+        for _ in range(n):
+            pool.submit(_nothing)
+    except RuntimeError:  # the pool was shut down meanwhile (the campaign failed)
+        pass
+    finally:
+        ready.set()
+
+
 def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
     """The ``(kernel module, device)`` pairs that the worker processes of :func:`run_pipeline` launch: those
     of the methods that are not device resident (``Method.kernels``), on their processing devices."""
@@ -256,6 +271,10 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             bar.update(pending.pop(fut))
 
     def start_jobs(final: bool) -> None:
+        if pool is not None and not pool_ready.is_set():
+            if not final:
+                return  # tried again once the workers are started
+            pool_ready.wait()
         for j in list(waiting):
             fn, args, pairs = jobs[j]
             if not (final or (pairs is not None and set(map(str, pairs)).isdisjoint(have))):
@@ -294,8 +313,14 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         return fut
 
     def submit_ready(block: bool) -> None:
-        """Hand the measured runs to the workers, in order, once their pair file is written (``block``:
-        wait for the writes)."""
+        """Hand the measured runs to the workers, in order, once their pair file is written and the
+        workers are started (``block``: wait for both)."""
+        if not pool_ready.is_set():
+            if not block:
+                return
+            pool_ready.wait()
+        if waiting:
+            start_jobs(final=False)  # jobs whose pair files were written while the workers started
         while deferred and (block or deferred[0][0] is None or deferred[0][0].done()):
             written, path, batch, there, n = deferred.popleft()
             file_written(written, path)
@@ -318,6 +343,12 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     images_lock = threading.Lock()
     deferred: deque = deque()  # (pair file being written, its path, measured batch, worker items, count)
     rendering = []
+    pool_ready = threading.Event()
+    if pool is None:
+        pool_ready.set()
+    else:  # a thread starts the workers (the fork server imports first), so this one can go on
+        threading.Thread(target=_start_workers, args=(pool, workers - 1, pool_ready), daemon=True,
+                         name="synthbos-start-workers").start()
     try:
         with bar, shared_by_threads():  # the render threads launch too: no CUDA graph capture here
             rendering.extend(render(k) for k in range(ahead))
