@@ -3,20 +3,23 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft as sfft
 
 __all__ = ["estimate_dot_diameter"]
 
 
-def estimate_dot_diameter(image, *, workers=1):
+def _lag_sum(img, dy: int, dx: int) -> float:
+    """``sum(img[y, x] * img[y + dy, x + dx])`` over the pixels where both lie in the image."""
+    h, w = img.shape
+    return float(np.vdot(img[: h - dy, : w - dx], img[dy:, dx:]))
+
+
+def estimate_dot_diameter(image):
     """Estimate the e^-2 dot diameter from the width of the image's auto-correlation peak.
 
     Parameters
     ----------
     image : (H, W) array
         A dot-pattern image.
-    workers : int, keyword-only
-        Threads for ``scipy.fft``.
 
     Returns
     -------
@@ -33,11 +36,10 @@ def estimate_dot_diameter(image, *, workers=1):
     """
     img = np.asarray(image, dtype=np.float64)
     img = img - img.mean()
-    h, w = img.shape
-    f = sfft.rfft2(img, s=(2 * h, 2 * w), workers=workers)
-    ac = sfft.irfft2(np.abs(f) ** 2, s=(2 * h, 2 * w), workers=workers)
-    r1 = 0.5 * (ac[0, 1] + ac[1, 0])
-    r2 = 0.5 * (ac[0, 2] + ac[2, 0])
+    # The (non-circular) auto-correlation at the four lags used, summed directly: what the zero-padded
+    # FFT auto-correlation gives there, at a few per cent of its cost.
+    r1 = 0.5 * (_lag_sum(img, 0, 1) + _lag_sum(img, 1, 0))
+    r2 = 0.5 * (_lag_sum(img, 0, 2) + _lag_sum(img, 2, 0))
     if not (r1 > 0 and r2 > 0 and r1 > r2):
         return float("nan")
     s2 = 3.0 / (2.0 * np.log(r1 / r2))

@@ -293,3 +293,18 @@ def test_estimate_noise_quartile_is_numpys_percentile():
     v = rng.standard_normal(50)
     v[7] = np.nan
     assert np.isnan(_lower_quartile(v.copy()))
+
+
+def test_dot_diameter_sums_the_autocorrelation_of_the_zero_padded_image():
+    """The four lags summed directly are the zero-padded FFT auto-correlation's (section 2.2 of the
+    paper), on a non-square image with a gradient in its background."""
+    rng = np.random.default_rng(6)
+    xy = dot_pattern(rng, (120, 200), per_32x32=10, min_distance=3.0)
+    img = draw_dots((120, 200), xy, 3.0) + 0.05 * rng.standard_normal((120, 200)) + np.linspace(0, 0.3, 200)
+    z = img - img.mean()
+    f = np.fft.rfft2(z, s=(240, 400))
+    ac = np.fft.irfft2(np.abs(f) ** 2, s=(240, 400))
+    r1, r2 = 0.5 * (ac[0, 1] + ac[1, 0]), 0.5 * (ac[0, 2] + ac[2, 0])
+    expect = 4.0 * np.sqrt(3.0 / (2.0 * np.log(r1 / r2))) / np.sqrt(2.0)
+    assert_allclose(estimate_dot_diameter(img), expect, rtol=1e-12)
+    assert np.isnan(estimate_dot_diameter(np.ones((16, 16))))
