@@ -245,6 +245,24 @@ def test_worker_device_moves_only_the_methods_with_host_work():
     assert here == run[:1] and there == [(*a[:-1], "cpu") for a in run[1:]]
 
 
+@pytest.mark.parametrize(("given", "used"), [(None, "cpu"), ("cpu", "cpu"), ("cuda:0", "cuda:0")])
+def test_pipeline_workers_process_on_the_cpu_unless_told(tmp_path, monkeypatch, given, used):
+    """A GPU campaign's workers run tracking on their CPU cores by default (PIPELINE_WORKER_DEVICE)."""
+    from synthbos.benchmarks import campaign
+
+    seen = []
+
+    def pipeline(renders, scores, *, worker_device, jobs, **kwargs):
+        seen.append(worker_device)
+        raise KeyboardInterrupt  # nothing to run: the test stops here
+
+    monkeypatch.setattr(campaign, "run_pipeline", pipeline)
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(SMALL, tmp_path / "c", device="cpu", workers=2, progress=False, pipeline=True,
+                     worker_device=given)
+    assert seen == [used] and campaign.PIPELINE_WORKER_DEVICE == "cpu"
+
+
 def test_bad_worker_device_is_one_line(tmp_path, capsys):
     assert main(["paper", "--quick", "--device", "cpu", "--worker-device", "gpu:3", "--out", str(tmp_path / "w")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
