@@ -8,9 +8,13 @@ __all__ = ["estimate_dot_diameter"]
 
 
 def _lag_sum(img, dy: int, dx: int) -> float:
-    """``sum(img[y, x] * img[y + dy, x + dx])`` over the pixels where both lie in the image."""
+    """``sum(img[y, x] * img[y + dy, x + dx])`` over the pixels where both lie in the image.
+
+    ``einsum`` sums in this thread: a BLAS dot product of this size starts the BLAS's threads, which a
+    campaign's dozen worker processes, each on its own core, must not do.
+    """
     h, w = img.shape
-    return float(np.vdot(img[: h - dy, : w - dx], img[dy:, dx:]))
+    return float(np.einsum("ij,ij->", img[: h - dy, : w - dx], img[dy:, dx:]))
 
 
 def estimate_dot_diameter(image):
