@@ -30,8 +30,8 @@ __all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_spec", "resolve_pr
            "write_summary"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
-#: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 15.9-16.3 s in the campaign with
-#: them on the CPU and 17.7 s with them on the GPU, whose 14 processes it shares by time slices (2026-11-22).
+#: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
+#: 16.8-17.5 s with them on the GPU, which the 14 processes share by time slices (2026-11-22 03:15-03:17).
 PIPELINE_WORKER_DEVICE = "cpu"
 
 
