@@ -8,7 +8,7 @@
 #   bash benchmarks/gpu_checks.sh scaling    campaign throughput on 1, 2, 4 GPUs through Dask (bench_scaling)
 #   bash benchmarks/gpu_checks.sh stages     per-stage times of a pair on cuda:0 and the CPU (bench_stages), and
 #                                            `synthbos paper --full` processing on the GPU (ALSO_CPU=1: and on the CPU)
-# The device image lacks some pure-Python dependencies (dask, pynrrd, imageio, hypothesis): carry them as
+# The device image lacks some pure-Python dependencies (dask, pynrrd, imageio, hypothesis, threadpoolctl): carry them as
 # wheels in .whl/ and install them into /tmp/site first (see the README's GPU section).
 # Logs, tables and figures are packed into ${OUT:-gpu-out}/gpu-<part>.tar.gz.
 set -uo pipefail
