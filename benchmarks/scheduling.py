@@ -123,12 +123,13 @@ def _alive(pid: int) -> bool:
 
 def _pool(workers: int, preload=(), kernels=(), nice: int = 0):
     """A pool of ``workers`` processes. Where it can, the fork server starts them: it imports the
-    ``preload`` modules once and forks each worker from itself, so the workers begin with them imported
-    (never with CUDA initialised: the fork server imports only); elsewhere each worker is a fresh
-    interpreter that imports them itself."""
+    ``preload`` modules (and the items' module) once and forks each worker from itself, so the workers
+    begin with them imported (never with CUDA initialised: the fork server imports only); elsewhere
+    each worker is a fresh interpreter that imports them itself."""
+    preload = sorted({"synthbos.benchmarks.items", *preload})
     if "forkserver" in get_all_start_methods():
         context = get_context("forkserver")
-        context.set_forkserver_preload(sorted({"synthbos.benchmarks.items", *preload}))  # before its start
+        context.set_forkserver_preload(preload)  # before its start
     else:
         context = get_context("spawn")
     return ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=die_with_parent,
@@ -334,8 +335,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             while len(pending) >= PENDING_PER_WORKER * workers:
                 collect(block=True)
 
-    # The workers import the items' and the jobs' modules (matplotlib for figures) as they start.
-    preload = sorted({"synthbos.benchmarks.items", *(fn.__module__ for fn, _, _ in jobs)})
+    # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
+    preload = sorted({fn.__module__ for fn, _, _ in jobs})
     pool = None
     if workers > 1:
         pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device), nice=WORKER_NICE)
