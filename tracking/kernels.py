@@ -549,6 +549,75 @@ def measure_small_window(
             dotmap[i, a, b] = val
 
 
+@wp.func
+def measure_window(
+    image: wp.array2d(dtype=wp.float64),
+    fill: wp.float64,
+    ox: int,
+    oy: int,
+    lx: wp.float64,
+    ly: wp.float64,
+    half: int,
+    hc: int,
+    radius: wp.float64,
+    frac: wp.float64,
+    floor: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+    use_min: int,
+    sat: wp.float64,
+    win: wp.array2d(dtype=wp.float64),
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    i: int,
+    full_maps: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    dotmap: wp.array3d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """Segment the window of dot ``i`` (origin ``ox, oy``, prediction ``lx, ly`` in it), choose its blob
+    with Eq. 1 and cut out its dot map; without ``full_maps`` only the map's centre cross, into ``cross``
+    (``cut_cross``). Results in row ``i`` of ``out_int``, ``out_float``, ``dotmap`` or ``cross``.
+
+    ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
+    enough where threads run one after another, as on the CPU).
+    """
+    w = 2 * half + 1
+    if w == SMALL_W:
+        measure_small_window(
+            image, fill, ox, oy, lx, ly, hc, radius, frac, floor, wa, wi, wd, use_min, sat, i, full_maps,
+            out_int, out_float, dotmap, cross,
+        )  # fmt: skip
+        return
+    s = i % win.shape[0]
+    mm = load_window(image, fill, ox, oy, w, s, win)
+    bg = mm[0]
+    if use_min == 0:
+        bg = edge_median(win, s, w, ring, network)
+    thr = bg + wp.max(frac * (mm[1] - bg), floor)
+    nblobs = segment_window(win, s, w, thr, lab, area, roots)
+    chosen = choose_blob(win, area, roots, nblobs, s, w, bg, lx, ly, radius, wa, wi, wd)
+    out_int[i, 0] = chosen
+    out_int[i, 1] = nblobs
+    out_int[i, 2] = 0
+    out_float[i, 0] = bg
+    out_float[i, 1] = wp.float64(0.0)
+    out_float[i, 2] = wp.float64(0.0)
+    if chosen >= 0:
+        out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
+        out_float[i, 1] = win[s, chosen] - bg
+        out_float[i, 2] = peak_distance(chosen, w, lx, ly)
+    if full_maps != 0:
+        cut_dot_map(win, lab, s, w, chosen, bg, hc, i, 1, dotmap)
+    else:
+        cut_cross(win, lab, s, w, chosen, bg, i, cross)
+
+
 @wp.kernel
 def measure_windows_kernel(
     image: wp.array2d(dtype=wp.float64),
@@ -578,62 +647,14 @@ def measure_windows_kernel(
     dotmap: wp.array3d(dtype=wp.float64),
     cross: wp.array2d(dtype=wp.float64),
 ):
-    """Segment the window of dot ``i = order[tid]``, choose its blob with Eq. 1 and cut out its dot map
-    (``order``: the windows in the order of their pixels in memory, so that neighbouring threads read
-    neighbouring pixels); without ``full_maps`` only the map's centre cross, into ``cross`` (``cut_cross``).
-
-    ``win``, ``ring``, ``lab``, ``area`` and ``roots`` are scratch rows: thread i uses row ``i % rows`` (one row is
-    enough where threads run one after another, as on the CPU).
-    """
+    """``measure_window`` of dot ``i = order[tid]`` (``order``: the windows in the order of their pixels in
+    memory, so that neighbouring threads read neighbouring pixels)."""
     i = order[wp.tid()]
-    w = 2 * half + 1
-    if w == SMALL_W:
-        measure_small_window(
-            image,
-            fill,
-            origin[i, 0],
-            origin[i, 1],
-            local[i, 0],
-            local[i, 1],
-            hc,
-            radius,
-            frac,
-            floor,
-            wa,
-            wi,
-            wd,
-            use_min,
-            sat,
-            i,
-            full_maps,
-            out_int,
-            out_float,
-            dotmap,
-            cross,
-        )
-        return
-    s = i % win.shape[0]
-    mm = load_window(image, fill, origin[i, 0], origin[i, 1], w, s, win)
-    bg = mm[0]
-    if use_min == 0:
-        bg = edge_median(win, s, w, ring, network)
-    thr = bg + wp.max(frac * (mm[1] - bg), floor)
-    nblobs = segment_window(win, s, w, thr, lab, area, roots)
-    chosen = choose_blob(win, area, roots, nblobs, s, w, bg, local[i, 0], local[i, 1], radius, wa, wi, wd)
-    out_int[i, 0] = chosen
-    out_int[i, 1] = nblobs
-    out_int[i, 2] = 0
-    out_float[i, 0] = bg
-    out_float[i, 1] = wp.float64(0.0)
-    out_float[i, 2] = wp.float64(0.0)
-    if chosen >= 0:
-        out_int[i, 2] = count_saturated(win, lab, s, w, chosen, sat)
-        out_float[i, 1] = win[s, chosen] - bg
-        out_float[i, 2] = peak_distance(chosen, w, local[i, 0], local[i, 1])
-    if full_maps != 0:
-        cut_dot_map(win, lab, s, w, chosen, bg, hc, i, 1, dotmap)
-    else:
-        cut_cross(win, lab, s, w, chosen, bg, i, cross)
+    measure_window(
+        image, fill, origin[i, 0], origin[i, 1], local[i, 0], local[i, 1], half, hc, radius, frac, floor,
+        wa, wi, wd, use_min, sat, win, ring, network, lab, area, roots, i, full_maps, out_int, out_float,
+        dotmap, cross,
+    )  # fmt: skip
 
 
 # --- the pixel-integrated dot model and its joint fit ---------------------------------------------
@@ -1085,6 +1106,74 @@ def all_finite(q: vec5d) -> bool:
     return xy and wp.abs(q[2]) <= big and wp.abs(q[3]) <= big and wp.abs(q[4]) <= big
 
 
+@wp.func
+def fit_dot_step(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    f: int,
+    i: int,
+    has_partner: int,
+    sat: wp.float64,
+    half: int,
+    render_half: int,
+    common: int,
+    max_move: wp.float64,
+    smin: wp.float64,
+    smax: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """One Gauss-Newton step of dot i (in model frame ``f``) against its image less the other dots (see
+    ``fit_dots_numpy``).
+
+    ``models``: the fixed-point model images ``[2, frames, height, width]``, flat.
+
+    ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
+    at the new parameters ``out``, except in the last step (``common``), after which none are needed.
+    If ``common``, ``shared_xy`` gets the position of the step for position and background against
+    the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
+    is not drawn).
+    """
+    p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
+    skip = render_half - half
+    ne = NormalEquations()
+    if window_is_whole(image, params, i, half, sat):
+        ne = normal_matrix_separable(image, models, inv_scale, f, params, i, half, skip, common, prof)
+    else:
+        ne = normal_matrix(image, models, inv_scale, f, params, i, half, skip, sat, prof)
+    # Block elimination: the shape step from the Schur complement, then position and background.
+    pinv = wp.inverse(ne.p)
+    pq = pinv * ne.q
+    schur = ne.r - wp.transpose(ne.q) * pq
+    d2 = wp.inverse(schur) * (ne.g2 - wp.transpose(pq) * ne.g1)
+    d1 = pinv * (ne.g1 - ne.q * d2)
+    step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
+    q = p + limited(step)
+    good = all_finite(q)
+    good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
+    good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
+    if not good:
+        q = p
+    hs = pinv * ne.h1
+    qs = limited(vec5d(hs[0], hs[1], wp.float64(0.0), wp.float64(0.0), hs[2]))
+    nan = wp.float64(wp.nan)
+    shared_xy[i, 0] = nan
+    shared_xy[i, 1] = nan
+    if common != 0 and has_partner != 0:
+        shared_xy[i, 0] = p[0] + qs[0]
+        shared_xy[i, 1] = p[1] + qs[1]
+    for k in range(5):
+        out[i, k] = q[k]
+    ok[i] = int(good)
+    if common == 0:  # not the last step: the next one needs the profiles at the new parameters
+        dot_profiles(out, i, render_half, prof)
+
+
 @wp.kernel
 def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
@@ -1107,58 +1196,21 @@ def fit_dot_step_kernel(
     ok: wp.array(dtype=wp.int32),
     shared_xy: wp.array2d(dtype=wp.float64),
 ):
-    """One Gauss-Newton step of dot i against its image less the other dots (see ``fit_dots_numpy``).
-
-    ``image0``, ``image1``: the images of frames 0 and 1 (the same array twice for a single image);
-    ``models``: the fixed-point model images ``[2, frames, height, width]``, flat.
-
-    ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
-    at the new parameters ``out``, except in the last step (``common``), after which none are needed.
-    If ``common``, ``shared_xy`` gets the position of the step for position and background against
-    the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
-    is not drawn).
-    """
+    """``fit_dot_step`` of dot i; ``image0``, ``image1``: the images of frames 0 and 1 (the same array
+    twice for a single image)."""
     i = wp.tid()
-    p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
     f = frame[i]
-    skip = render_half - half
-    ne = NormalEquations()
+    has_partner = int(partner[i] >= 0)
     if f == 0:
-        if window_is_whole(image0, params, i, half, saturation[f]):
-            ne = normal_matrix_separable(image0, models, inv_scale, f, params, i, half, skip, common, prof)
-        else:
-            ne = normal_matrix(image0, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
+        fit_dot_step(
+            image0, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, smin, smax, prof, out, ok, shared_xy,
+        )  # fmt: skip
     else:
-        if window_is_whole(image1, params, i, half, saturation[f]):
-            ne = normal_matrix_separable(image1, models, inv_scale, f, params, i, half, skip, common, prof)
-        else:
-            ne = normal_matrix(image1, models, inv_scale, f, params, i, half, skip, saturation[f], prof)
-    # Block elimination: the shape step from the Schur complement, then position and background.
-    pinv = wp.inverse(ne.p)
-    pq = pinv * ne.q
-    schur = ne.r - wp.transpose(ne.q) * pq
-    d2 = wp.inverse(schur) * (ne.g2 - wp.transpose(pq) * ne.g1)
-    d1 = pinv * (ne.g1 - ne.q * d2)
-    step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
-    q = p + limited(step)
-    good = all_finite(q)
-    good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
-    good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
-    if not good:
-        q = p
-    hs = pinv * ne.h1
-    qs = limited(vec5d(hs[0], hs[1], wp.float64(0.0), wp.float64(0.0), hs[2]))
-    nan = wp.float64(wp.nan)
-    shared_xy[i, 0] = nan
-    shared_xy[i, 1] = nan
-    if common != 0 and partner[i] >= 0:
-        shared_xy[i, 0] = p[0] + qs[0]
-        shared_xy[i, 1] = p[1] + qs[1]
-    for k in range(5):
-        out[i, k] = q[k]
-    ok[i] = int(good)
-    if common == 0:  # not the last step: the next one needs the profiles at the new parameters
-        dot_profiles(out, i, render_half, prof)
+        fit_dot_step(
+            image1, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, smin, smax, prof, out, ok, shared_xy,
+        )  # fmt: skip
 
 
 # --- the local linear fit of scattered vectors from each point's nearest neighbours -----------------

@@ -1,0 +1,85 @@
+"""Batched tracking (tracking.batch.track_pairs) against track_pair, pair by pair and dot by dot."""
+
+import numpy as np
+import pytest
+from _synth import dot_pattern, smooth_displacement
+from numpy.testing import assert_allclose, assert_array_equal
+from synthbos.raytrace.dots import draw_dots
+from synthbos.tracking import TrackingSettings, track_pair
+from synthbos.tracking.batch import track_pairs
+
+from synthbos import SynthbosError
+
+SHAPE = (96, 128)
+
+
+def _batch(seed=2):
+    """Four pairs of one dense pattern: clean, noisy, saturated, a strong field; priors with NaN rows,
+    rows outside the image and rows far from their dots."""
+    rng = np.random.default_rng(seed)
+    xy = dot_pattern(rng, SHAPE, per_32x32=35, min_distance=2.0)
+    refs, grads = [], []
+    for k, (amp, shift) in enumerate(((1.0, 0.0), (2.5, 3.0), (0.3, 0.0), (1.8, 0.0))):
+        disp = smooth_displacement(xy, SHAPE, amp) + shift
+        r = draw_dots(SHAPE, xy, 3.0) + 0.02 * k * rng.standard_normal(SHAPE)
+        g = draw_dots(SHAPE, xy + disp, 3.0) + 0.02 * k * rng.standard_normal(SHAPE)
+        if k == 2:
+            r, g = np.minimum(r, 0.8), np.minimum(g, 0.8)
+        refs.append(r)
+        grads.append(g)
+    prior = np.repeat((xy + 0.4 * rng.standard_normal(xy.shape))[None], 4, axis=0)
+    prior[1, :5] = np.nan
+    prior[2, :3] = -5.0
+    prior[3, 10:15] += 0.9
+    return np.array(refs), np.array(grads), prior
+
+
+def _assert_same(batch_table, single_table):
+    for name in single_table.dtype.names:
+        a, b = batch_table[name], single_table[name]
+        if a.dtype.kind == "f":
+            assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+            assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=0, atol=1e-9, err_msg=name)
+        else:
+            assert_array_equal(a, b, err_msg=name)
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [TrackingSettings(), TrackingSettings(predictor="none"), TrackingSettings(diameter=3.0, max_iterations=2)],
+    ids=["default", "no-predictor", "fixed-diameter"],
+)
+def test_track_pairs_equals_track_pair(device, settings):
+    refs, grads, prior = _batch()
+    tables = track_pairs(refs, grads, prior_xy=prior, settings=settings, device=device)
+    assert tables.shape == prior.shape[:2]
+    for b in range(len(refs)):
+        single = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
+        _assert_same(tables[b], single)
+    # the batch holds the cases it is meant to: claims lost, later rounds, outliers, misses
+    status = tables["status"]
+    assert np.count_nonzero(status & 512) > 10
+    assert np.count_nonzero(tables["iteration"] > 1) > 10
+    assert np.count_nonzero(status & 4) > 1000
+
+
+def test_track_pairs_one_prior_for_all(device):
+    refs, grads, prior = _batch(seed=5)
+    tables = track_pairs(refs[:2], grads[:2], prior_xy=prior[0], device=device)
+    _assert_same(tables[1], track_pair(refs[1], grads[1], prior_xy=prior[0], device=device))
+
+
+def test_track_pairs_bad_input():
+    refs, grads, prior = _batch()
+    with pytest.raises(SynthbosError, match="differ in shape"):
+        track_pairs(refs, grads[:, :, :-1], prior_xy=prior, device="cpu")
+    with pytest.raises(SynthbosError, match=r"\(pairs, height, width\)"):
+        track_pairs(refs[0], grads[0], prior_xy=prior[0], device="cpu")
+    bad = grads.copy()
+    bad[2, 5, 5] = np.nan
+    with pytest.raises(SynthbosError, match="pair 2"):
+        track_pairs(refs, bad, prior_xy=prior, device="cpu")
+    with pytest.raises(SynthbosError, match="Nx2"):
+        track_pairs(refs, grads, prior_xy=prior[:2], device="cpu")
+    with pytest.raises(SynthbosError, match="default estimators"):
+        track_pairs(refs, grads, prior_xy=prior, settings=TrackingSettings.paper(), device="cpu")

@@ -1,0 +1,560 @@
+"""Dot tracking of many image pairs at once, every step on one Warp device.
+
+:func:`track_pairs` is :func:`tracking.track_pair` with a prior for a stack of B pairs of one shape: the
+images go up once, every kernel launch covers the dots of all pairs, and the table comes back once. It
+computes what ``track_pair`` computes for each pair alone (the same identification rounds, blob claims,
+predictor, wide second search, joint model fit, predictor check, edge cut and outlier test, each pair
+with its own noise, saturation, background, dot diameter and median peak), with its default estimators
+(``centroid="model"``, ``correction="model"``) and without a mask; the results agree with
+``track_pair``'s to floating-point rounding (the tests compare them dot by dot).
+
+Where a step depends on data (a pair's identification ending early, its predictor's pyramid ending at
+a coarser pass, the wide search of the dots the first one missed), the batch runs the step for every
+pair and leaves the pairs it no longer concerns untouched, so the number of launches does not depend on
+B. The host waits for the device a few times per batch (the image checks, the predictor's pass schedule,
+the count of missed dots, the fit's fixed-point scale), never per pair.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from synthbos import SynthbosError
+from synthbos.device import init_warp
+
+from . import batch_kernels as bk
+from .dotfit import _fixed_point_scale, fit_window_half
+from .kernels import render_dots_kernel
+from .pipeline import TRACK_DTYPE, TrackingSettings
+from .windows import median_network
+
+__all__ = ["batch_support", "track_pairs"]
+
+#: The float64 columns of ``batch_kernels.write_table``'s table, in order, then its int32 columns.
+_FLOAT_COLUMNS = (
+    "x", "y", "u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient", "diameter", "peak", "u_pred", "v_pred",
+    "pred_correlation",
+)  # fmt: skip
+_INT_COLUMNS = ("status", "iteration", "iteration_gradient")
+
+#: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
+_Z_STEP = 1000.0
+
+
+def batch_support(settings: TrackingSettings) -> str | None:
+    """Why :func:`track_pairs` cannot run these settings (then use ``track_pair``), or None when it can."""
+    if settings.centroid != "model" or settings.correction != "model":
+        return "the batch runs the default estimators only (centroid and correction 'model')"
+    if settings.backend != "warp":
+        return "the batch runs Warp kernels only (backend 'warp')"
+    return None
+
+
+def _upload(a, name, device):
+    """A (B, H, W) float64 Warp array on ``device`` from a Warp array or anything NumPy takes."""
+    if isinstance(a, wp.array):
+        if a.ndim != 3:
+            raise SynthbosError(f"{name} images must be a (pairs, height, width) stack, got shape {a.shape}")
+        if a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)):
+            return a
+        a = a.numpy()
+    a = np.asarray(a)
+    if a.ndim != 3:
+        raise SynthbosError(f"{name} images must be a (pairs, height, width) stack, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        raise SynthbosError(f"{name} images must hold real numbers, got dtype {a.dtype}")
+    return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
+
+
+class _Pairs:
+    """Per-pair geometry of one group of pairs (pairs of one group share every integer size)."""
+
+    def __init__(self, d, settings):
+        self.d = d
+        self.eta0 = d / 4.0
+        self.half_r = int(np.ceil(d / 2.0 + settings.window_margin))
+        self.half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
+        self.map_half = int(np.ceil(d / 2.0 + 0.5))
+        self.fit_half, self.render_half = fit_window_half(self.eta0)
+
+    def key(self):
+        return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
+
+
+class _Batch:
+    """Device arrays of one group of B pairs with N prior dots each."""
+
+    def __init__(self, refs, grads, prior, stats, geometry, settings, device):
+        self.device = device
+        self.settings = settings
+        self.refs, self.grads = refs, grads
+        self.B, self.H, self.W = refs.shape
+        self.N = prior.shape[0] // self.B
+        self.M = prior.shape[0]
+        self.prior = prior
+        self.stats = stats
+        d = np.array([g.d for g in geometry])
+        self.diameter = self.arr(d, wp.float64)
+        self.eta0 = self.arr(d / 4.0, wp.float64)
+        g0 = geometry[0]
+        self.geometry = g0
+        self.all_ids = self.arr(np.arange(self.M, dtype=np.int32), wp.int32)
+        w_max = 2 * g0.half_g + 1
+        self.hp, self.wpad = self.H + 4 * w_max, self.W + 4 * w_max
+        cells = self.B * self.hp * self.wpad
+        self.claim_dist = wp.full(cells, np.inf, dtype=wp.float64, device=device)
+        self.claim_id = wp.full(cells, np.iinfo(np.int32).max, dtype=wp.int32, device=device)
+        self.residual = wp.empty_like(refs)
+        self.grid = wp.HashGrid(128, 128, 64, device=device)
+
+    def arr(self, a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+    def zeros(self, shape, dtype):
+        return wp.zeros(shape, dtype=dtype, device=self.device)
+
+    def full(self, shape, value, dtype):
+        return wp.full(shape, value, dtype=dtype, device=self.device)
+
+    def launch(self, kernel, dim, inputs):
+        if dim:
+            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    # --- identification ---------------------------------------------------------------------------
+
+    def identify(self, image, which, pred, ids, n_ids, *, wide):
+        """``tracking.pipeline._identify`` for the dots ``ids`` (``n_ids`` of them) of every pair, on the
+        reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
+        s, g, M = self.settings, self.geometry, self.M
+        half = g.half_g if wide else g.half_r
+        radius = (s.max_displacement + 1.0 if s.search_radius is None else s.search_radius) if wide else s.prior_radius
+        w = 2 * half + 1
+        st = self.stats
+        out = {
+            "x": self.full(M, np.nan, wp.float64),
+            "y": self.full(M, np.nan, wp.float64),
+            "eta": self.full(M, np.nan, wp.float64),
+            "i0": self.full(M, np.nan, wp.float64),
+            "iteration": self.zeros(M, wp.int32),
+            "flags": self.zeros(M, wp.int32),
+            "root": self.zeros((M, 2), wp.int32),
+        }
+        if n_ids == 0:
+            return out
+        origin = self.zeros((M, 2), wp.int32)
+        todo = self.zeros(M, wp.int32)
+        subtracted = self.zeros(M, wp.int32)
+        self.launch(bk.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
+        wp.copy(self.residual, image)
+        active = self.full(self.B, 1, wp.int32)
+        won = self.zeros(self.B, wp.int32)
+        rows = 1 if wp.get_device(self.device).is_cpu else n_ids
+        ww = w * w if w != 7 else 1  # the 7 x 7 window is measured in registers
+        scratch = [
+            wp.empty((rows, ww), dtype=wp.float64, device=self.device),
+            wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
+            self.arr(median_network(4 * (w - 1)), wp.int32),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((1, 1, 1), dtype=wp.float64, device=self.device),
+        ]
+        out_int = wp.empty((n_ids, 3), dtype=wp.int32, device=self.device)
+        out_float = wp.empty((n_ids, 3), dtype=wp.float64, device=self.device)
+        cross = wp.empty((n_ids, 5), dtype=wp.float64, device=self.device)
+        key = wp.empty(n_ids, dtype=wp.int32, device=self.device)
+        noise, fill, sat = st["noise"][which], st["fill"][which], st["sat"][which]
+        floor = st["floor"][which]
+        ref_peak = None
+        reach = self.arr(half * np.sqrt(2.0) + 4.5 * self.eta0.numpy() + 1.0, wp.float64)
+        wa, wi, wd = (float(v) for v in s.weights)
+        points = wp.empty(M, dtype=wp.vec3, device=self.device)
+        for it in range(1, s.max_iterations + 1):
+            self.launch(
+                bk.measure_batch,
+                n_ids,
+                [
+                    self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
+                    float(radius), float(s.threshold_fraction), wa, wi, wd, int(s.background == "minimum"),
+                    *scratch, out_int, out_float, cross,
+                ],
+            )  # fmt: skip
+            if ref_peak is None:
+                values = self.zeros(M, wp.float64)
+                valid = self.zeros(M, wp.int32)
+                self.launch(bk.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
+                ref_peak = self.segment_median(values, valid, self.N, self.B)
+            self.launch(
+                bk.accept_blobs,
+                n_ids,
+                [
+                    ids, self.N, out_int, out_float, origin, noise, ref_peak, float(s.detection_snr),
+                    float(s.min_relative_peak), w, self.hp, self.wpad, key, self.claim_dist,
+                ],
+            )  # fmt: skip
+            self.launch(bk.claim_nearest, n_ids, [ids, out_float, key, self.claim_dist, self.claim_id])
+            self.launch(
+                bk.take_blobs,
+                n_ids,
+                [
+                    ids, self.N, it, out_int, out_float, cross, origin, key, self.claim_id, self.eta0, w,
+                    out["x"], out["y"], out["eta"], out["i0"], out["iteration"], out["root"], out["flags"], todo, won,
+                ],
+            )  # fmt: skip
+            self.launch(bk.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
+            self.launch(bk.next_round, self.B, [won, active])
+            if it < s.max_iterations:
+                self.launch(bk.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
+                self.grid.build(points, float(np.max(reach.numpy())) + 1.0)
+                self.launch(
+                    bk.subtract_near_waiting,
+                    n_ids,
+                    [
+                        self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
+                        out["i0"], self.eta0, reach, subtracted, self.residual,
+                    ],
+                )  # fmt: skip
+        return out
+
+    def segment_median(self, values, valid, length, segments):
+        """NumPy's median of each run of ``length`` values where ``valid`` (NaN for none), on the device."""
+        n = segments * length
+        keys = wp.empty(2 * n, dtype=wp.float32, device=self.device)
+        order = wp.empty(2 * n, dtype=wp.int32, device=self.device)
+        count = self.zeros(segments, wp.int32)
+        self.launch(bk.segment_keys, n, [values, valid, length, keys, order, count])
+        starts = self.arr(np.arange(segments, dtype=np.int32) * length, wp.int32)
+        ends = self.arr((np.arange(segments, dtype=np.int32) + 1) * length, wp.int32)
+        wp.utils.segmented_sort_pairs(keys, order, n, starts, ends)
+        median = wp.empty(segments, dtype=wp.float64, device=self.device)
+        self.launch(bk.segment_median, segments, [keys, order, values, count, length, median])
+        return median
+
+    # --- the model fit ----------------------------------------------------------------------------
+
+    def fit(self, r, g):
+        """``tracking.pipeline._fit_models`` for every pair: params, ok and shared_xy of the 2M rows
+        (reference dots, then gradient dots)."""
+        s, geo, M, N, B = self.settings, self.geometry, self.M, self.N, self.B
+        values = wp.empty(2 * M, dtype=wp.float64, device=self.device)
+        valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
+        self.launch(bk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
+        med = self.segment_median(values, valid, 2 * N, B).numpy()
+        eta0 = self.eta0.numpy()
+        sigma0 = np.where(
+            np.isfinite(med), np.sqrt(np.maximum(np.nan_to_num(med) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)), eta0
+        )
+        sigma0 = self.arr(sigma0, wp.float64)
+        rows = 2 * M
+        start = wp.empty((rows, 5), dtype=wp.float64, device=self.device)
+        live = wp.empty(rows, dtype=wp.int32, device=self.device)
+        frame = wp.empty(rows, dtype=wp.int32, device=self.device)
+        partner = wp.empty(rows, dtype=wp.int32, device=self.device)
+        for row0, found, fb in ((0, r, 0), (M, g, 1)):
+            self.launch(
+                bk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame]
+            )
+        self.launch(bk.pair_partners, M, [live, M, partner])
+        half, render_half = geo.fit_half, geo.render_half
+        models = wp.empty(2 * 2 * B * self.H * self.W, dtype=wp.int64, device=self.device)
+        layer = 2 * B * self.H * self.W
+        cur = wp.clone(start)
+        nxt = wp.empty_like(start)
+        ok = self.zeros(rows, wp.int32)
+        shared = self.full((rows, 2), np.nan, wp.float64)
+        prof = wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=self.device)
+        peak = self.zeros(1, wp.float64)
+        sat = self.stats["sat_frames"]
+        for it in range(s.fit_iterations):
+            last = it == s.fit_iterations - 1
+            peak.zero_()
+            self.launch(bk.largest_peak, rows, [cur, live, peak])
+            scale = _fixed_point_scale(float(peak.numpy()[0]))
+            if last:
+                models.zero_()
+            else:
+                models[:layer].zero_()
+            self.launch(
+                render_dots_kernel,
+                rows,
+                [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, self.H, self.W, models],
+            )
+            self.launch(
+                bk.fit_step_batch,
+                rows,
+                [
+                    self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
+                    half, render_half, int(last), 1.0, prof, nxt, ok, shared,
+                ],
+            )  # fmt: skip
+            cur, nxt = nxt, cur
+        return cur, ok, shared, live
+
+
+def _frame_statistics(images, settings):
+    """Per frame, from the host functions (noise, fill, saturation, the checks)."""
+    from .identify import estimate_noise
+    from .pipeline import _check_image, _fill_level, _saturation_level
+
+    out = {"noise": [], "fill": [], "sat": [], "diameter": []}
+    from .diameter import estimate_dot_diameter
+
+    for k, img in enumerate(images):
+        a, top = _check_image(f"pair {k}'s", img)
+        out["noise"].append(estimate_noise(a))
+        out["fill"].append(_fill_level(a))
+        out["sat"].append(min(_saturation_level(a, settings.saturation_level, top), 1e300))
+        out["diameter"].append(estimate_dot_diameter(a))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings | None = None, device=None):
+    """Track every prior dot from the reference to the gradient image of each of B pairs.
+
+    Parameters
+    ----------
+    references, gradients : (B, H, W) arrays or Warp arrays
+        The image pairs (any real dtype; Warp float64 arrays on ``device`` are used without a copy).
+    prior_xy : (N, 2) or (B, N, 2) array
+        Predicted reference-image positions of the pattern's dots (x = column, y = row), one set for all
+        pairs or one per pair.
+    settings : TrackingSettings, optional
+        Defaults to ``TrackingSettings()``; :func:`batch_support` says which the batch runs.
+    device : str or None, optional
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
+    Returns
+    -------
+    (B, N) numpy structured array of dtype ``TRACK_DTYPE``
+        Row ``[b, i]`` is ``track_pair(references[b], gradients[b], prior_xy=prior[b], settings=settings)``'s
+        row i.
+
+    Raises
+    ------
+    synthbos.SynthbosError
+        Stacks of different shapes or not 3-D, images all zero or with non-finite pixels (the pair is
+        named), a prior of the wrong shape or entirely outside the image, settings the batch does not run.
+    """
+    settings = TrackingSettings() if settings is None else settings
+    why = batch_support(settings)
+    if why is not None:
+        raise SynthbosError(f"track_pairs cannot run these settings: {why}")
+    init_warp()
+    device = str(wp.get_device(device))
+    refs = _upload(references, "reference", device)
+    grads = _upload(gradients, "gradient", device)
+    if refs.shape != grads.shape:
+        raise SynthbosError(f"reference and gradient stacks differ in shape: {refs.shape} and {grads.shape}")
+    B, H, W = refs.shape
+    if B == 0:
+        return np.zeros((0, 0), dtype=TRACK_DTYPE)
+    if min(H, W) < 8:
+        raise SynthbosError(f"images are too small ({H}x{W}), need at least 8x8")
+    prior = np.asarray(prior_xy, dtype=np.float64)
+    if prior.ndim == 2:
+        prior = np.broadcast_to(prior, (B, *prior.shape))
+    if prior.ndim != 3 or prior.shape[0] != B or prior.shape[2] != 2:
+        raise SynthbosError(f"prior positions must be an Nx2 or {B}xNx2 array, got shape {prior.shape}")
+    N = prior.shape[1]
+    fin = np.isfinite(prior).all(axis=2)
+    p = np.where(fin[..., None], prior, -1e9)
+    inside = fin & (p[..., 0] > -0.5) & (p[..., 0] < W - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < H - 0.5)
+    if not inside.any(axis=1).all():
+        b = int(np.flatnonzero(~inside.any(axis=1))[0])
+        raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
+
+    ref_np, grad_np = refs.numpy(), grads.numpy()
+    st_r, st_g = _frame_statistics(ref_np, settings), _frame_statistics(grad_np, settings)
+    d = np.full(B, float(settings.diameter)) if settings.diameter is not None else st_r["diameter"]
+    bad = ~(np.isfinite(d) & (d > 0))
+    if bad.any():
+        raise SynthbosError(
+            f"cannot estimate the dot diameter from pair {int(np.flatnonzero(bad)[0])}'s reference image; "
+            "give it in settings"
+        )
+    geometry = [_Pairs(float(di), settings) for di in d]
+    groups: dict = {}
+    for b, g in enumerate(geometry):
+        groups.setdefault(g.key(), []).append(b)
+    out = np.zeros((B, N), dtype=TRACK_DTYPE)
+    for members in groups.values():
+        sel = np.array(members)
+        out[sel] = _track_group(
+            _pairs_of(refs, sel),
+            _pairs_of(grads, sel),
+            prior[sel],
+            {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_r.items()},
+            {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_g.items()},
+            [geometry[b] for b in sel],
+            settings,
+            device,
+        )
+    return out
+
+
+def _pairs_of(stack, sel):
+    """The pairs ``sel`` of a (B, H, W) Warp stack (the stack itself when it holds no others)."""
+    if len(sel) == stack.shape[0]:
+        return stack
+    return wp.array(stack.numpy()[sel], dtype=wp.float64, device=stack.device)
+
+
+def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
+    B, H, W = refs.shape
+    N = prior.shape[1]
+    M = B * N
+    s = settings
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    stats = {
+        "noise": [arr(st["noise"], wp.float64) for st in (st_r, st_g)],
+        "fill": [arr(st["fill"], wp.float64) for st in (st_r, st_g)],
+        "sat": [arr(st["sat"], wp.float64) for st in (st_r, st_g)],
+        "floor": [arr(s.noise_threshold * st["noise"], wp.float64) for st in (st_r, st_g)],
+        "sat_frames": arr(np.stack([st_r["sat"], st_g["sat"]], axis=1).ravel(), wp.float64),
+    }
+    batch = _Batch(refs, grads, arr(prior.reshape(M, 2), wp.vec2d), stats, geometry, s, device)
+    r = batch.identify(refs, 0, batch.prior, batch.all_ids, M, wide=False)
+    use_pred = s.predictor == "correlation"
+    base = wp.empty(M, dtype=wp.vec2d, device=device)
+    batch.launch(bk.reference_or_prior, M, [r["x"], r["y"], batch.prior, base])
+    if use_pred:
+        uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
+        pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
+        batch.launch(
+            bk.predicted_position, M, [base, uv_pred, r["x"], pred_g, wp.zeros(1, dtype=wp.int32, device=device)]
+        )
+        g = batch.identify(grads, 1, pred_g, batch.all_ids, M, wide=False)
+        count = wp.zeros(1, dtype=wp.int32, device=device)
+        miss = wp.empty(M, dtype=wp.int32, device=device)
+        has_miss = wp.zeros(B, dtype=wp.int32, device=device)
+        batch.launch(bk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
+        n_miss = int(count.numpy()[0])
+        if n_miss:
+            g2 = batch.identify(grads, 1, pred_g, miss, n_miss, wide=True)
+            batch.launch(
+                bk.merge_wide,
+                n_miss,
+                [miss, *(g2[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags")),
+                 *(g[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags"))],
+            )  # fmt: skip
+            key = wp.empty(M, dtype=wp.int32, device=device)
+            w = 2 * batch.geometry.half_g + 1
+            batch.launch(
+                bk.claim_shared_blobs,
+                M,
+                [N, has_miss, g["x"], g["y"], g["root"], pred_g, w, batch.hp, batch.wpad, key, batch.claim_dist],
+            )
+            batch.launch(bk.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, batch.claim_dist, batch.claim_id])
+            batch.launch(
+                bk.drop_shared_losers,
+                M,
+                [key, batch.claim_id, g["x"], g["y"], g["eta"], g["i0"], g["iteration"], g["flags"]],
+            )
+            batch.launch(bk.release_claims, M, [key, batch.claim_dist, batch.claim_id])
+    else:
+        g = batch.identify(grads, 1, base, batch.all_ids, M, wide=True)
+        uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
+        quality = wp.empty(M, dtype=wp.float64, device=device)
+
+    params, ok, shared, live = batch.fit(r, g)
+    for row0, found in ((0, r), (M, g)):
+        batch.launch(
+            bk.take_model,
+            M,
+            [params, ok, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
+        )
+    status = wp.empty(M, dtype=wp.int32, device=device)
+    xy = wp.empty(M, dtype=wp.vec2d, device=device)
+    uv = wp.empty(M, dtype=wp.vec2d, device=device)
+    good = wp.empty(M, dtype=wp.int32, device=device)
+    query = wp.empty(M, dtype=wp.int32, device=device)
+    batch.launch(
+        bk.first_status,
+        M,
+        [
+            r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
+            float(s.predictor_tolerance), float(s.predictor_min_correlation), status, xy, uv, good, query,
+        ],
+    )  # fmt: skip
+    confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
+    matched = wp.empty(M, dtype=wp.int32, device=device)
+    batch.launch(
+        bk.second_status,
+        M,
+        [confirmed, query, N, H, W, batch.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
+    )
+    outlier = _outliers(xy, uv, matched, B, N, s, device)
+    table = wp.empty((M, len(_FLOAT_COLUMNS)), dtype=wp.float64, device=device)
+    ints = wp.empty((M, len(_INT_COLUMNS)), dtype=wp.int32, device=device)
+    batch.launch(
+        bk.write_table,
+        M,
+        [
+            r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
+            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table, ints,
+        ],
+    )  # fmt: skip
+    tf, ti = table.numpy(), ints.numpy()
+    out = np.empty(M, dtype=TRACK_DTYPE)
+    for k, name in enumerate(_FLOAT_COLUMNS):
+        out[name] = tf[:, k]
+    for k, name in enumerate(_INT_COLUMNS):
+        out[name] = ti[:, k]
+    return out.reshape(B, N)
+
+
+def _predict(refs, grads, base, B, N, settings, device):
+    """The correlation predictor of every pair (host reference, pair by pair, for now)."""
+    from .predict import predict_displacement
+
+    r, g, xy = refs.numpy(), grads.numpy(), base.numpy().reshape(B, N, 2)
+    uv = np.empty((B, N, 2))
+    q = np.empty((B, N))
+    for b in range(B):
+        uv[b], q[b] = predict_displacement(r[b], g[b], xy[b], window_sizes=settings.predictor_windows, device=device)
+    return (
+        wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
+        wp.array(q.ravel(), dtype=wp.float64, device=device),
+    )
+
+
+def _per_pair_out(xy, uv, B, N):
+    x = xy.numpy().reshape(B, N, 2)
+    u = uv.numpy().reshape(B, N, 2)
+    return x, u
+
+
+def _confirmed(xy, uv, good, query, B, N, settings, device):
+    """``_confirmed_by_neighbours`` of every pair (host reference, pair by pair, for now)."""
+    from .pipeline import _confirmed_by_neighbours
+
+    x, u = _per_pair_out(xy, uv, B, N)
+    gd, qr = good.numpy().reshape(B, N).astype(bool), query.numpy().reshape(B, N).astype(bool)
+    res = np.zeros((B, N), dtype=np.int32)
+    for b in range(B):
+        out = {
+            "x": x[b, :, 0],
+            "y": x[b, :, 1],
+            "x_gradient": x[b, :, 0] + u[b, :, 0],
+            "y_gradient": x[b, :, 1] + u[b, :, 1],
+        }
+        res[b] = _confirmed_by_neighbours(out, gd[b], qr[b], settings, device)
+    return wp.array(res.ravel(), dtype=wp.int32, device=device)
+
+
+def _outliers(xy, uv, matched, B, N, settings, device):
+    """``_neighbour_outliers`` of every pair's matched dots (host reference, pair by pair, for now)."""
+    from .pipeline import _neighbour_outliers
+
+    x, u = _per_pair_out(xy, uv, B, N)
+    m = matched.numpy().reshape(B, N).astype(bool)
+    res = np.zeros((B, N), dtype=np.int32)
+    for b in range(B):
+        mi = np.flatnonzero(m[b])
+        bad = _neighbour_outliers(x[b, mi], u[b, mi], settings, device)
+        res[b, mi[bad]] = 1
+    return wp.array(res.ravel(), dtype=wp.int32, device=device)

@@ -1,0 +1,948 @@
+# ruff: noqa: UP018, RUF046
+# (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
+"""Warp kernels of batched dot tracking (:mod:`tracking.batch`): many image pairs in each launch.
+
+Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.batch`. Dots are held flat:
+dot ``i`` of a call belongs to frame ``i // per_frame`` (pair ``b``'s ``per_frame`` prior dots, in the
+prior's order). The per-window measurement and the model-fit step are those of the single-pair tracker
+(:mod:`tracking.kernels`: ``measure_window``, ``fit_dot_step``); here they read one frame of an image
+stack. Status bits are those of ``tracking.pipeline.DotStatus``.
+"""
+
+import warp as wp
+from synthbos.correlation.pass_kernels import three_point_offset
+
+from .kernels import fit_dot_step, measure_window
+
+wp.config.quiet = True
+wp.set_module_options({"enable_backward": False})
+
+FOUND_REFERENCE = wp.constant(1)
+FOUND_GRADIENT = wp.constant(2)
+MATCHED = wp.constant(4)
+CC_VALID = wp.constant(8)
+CC_FLAGGED = wp.constant(16)
+OUTSIDE_IMAGE = wp.constant(32)
+NEAR_BORDER = wp.constant(64)
+SATURATED = wp.constant(128)
+OVERLAPPED = wp.constant(256)
+AMBIGUOUS = wp.constant(512)
+FIT_FALLBACK = wp.constant(1024)
+PREDICTOR_MISMATCH = wp.constant(4096)
+PREDICTOR_WEAK = wp.constant(8192)
+EDGE_CUT = wp.constant(16384)
+OUTLIER = wp.constant(32768)
+
+#: Largest int32: an unclaimed blob.
+NO_CLAIM = wp.constant(2147483647)
+
+
+# --- identification -------------------------------------------------------------------------------
+
+
+@wp.kernel
+def start_identification(
+    pred: wp.array(dtype=wp.vec2d),
+    ids: wp.array(dtype=wp.int32),
+    height: int,
+    width: int,
+    half: int,
+    origin: wp.array2d(dtype=wp.int32),
+    todo: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """Window origin, OUTSIDE_IMAGE and NEAR_BORDER of dot ``ids[t]``; it is to do where inside."""
+    i = ids[wp.tid()]
+    p = pred[i]
+    nan_or_out = not (p[0] > wp.float64(-0.5) and p[0] < wp.float64(width) - wp.float64(0.5))
+    nan_or_out = nan_or_out or not (p[1] > wp.float64(-0.5) and p[1] < wp.float64(height) - wp.float64(0.5))
+    if nan_or_out:
+        flags[i] = OUTSIDE_IMAGE
+        origin[i, 0] = -half
+        origin[i, 1] = -half
+        return
+    ox = int(wp.rint(p[0])) - half
+    oy = int(wp.rint(p[1])) - half
+    origin[i, 0] = ox
+    origin[i, 1] = oy
+    todo[i] = 1
+    if ox < 0 or oy < 0 or ox + 2 * half >= width or oy + 2 * half >= height:
+        flags[i] = NEAR_BORDER
+
+
+@wp.kernel
+def measure_batch(
+    images: wp.array3d(dtype=wp.float64),
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    fill: wp.array(dtype=wp.float64),
+    floor: wp.array(dtype=wp.float64),
+    sat: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    origin: wp.array2d(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    half: int,
+    hc: int,
+    radius: wp.float64,
+    frac: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+    use_min: int,
+    win: wp.array2d(dtype=wp.float64),
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    dotmap: wp.array3d(dtype=wp.float64),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """``measure_window`` of dot ``ids[t]`` on its frame, results in row t; chosen -1 where not measured
+    (found already, outside, or its frame done)."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    out_int[t, 0] = -1
+    if todo[i] == 0 or active[f] == 0:
+        return
+    ox = origin[i, 0]
+    oy = origin[i, 1]
+    p = pred[i]
+    measure_window(
+        images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
+        floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, 0, out_int, out_float,
+        dotmap, cross,
+    )  # fmt: skip
+
+
+@wp.func
+def claim_key(f: int, root_r: int, root_c: int, w: int, hp: int, wp_: int) -> int:
+    """Flat index of a blob's peak pixel in the padded claim buffer (windows reach ``2 w`` past the edge)."""
+    return (f * hp + root_r + 2 * w) * wp_ + root_c + 2 * w
+
+
+@wp.kernel
+def accept_blobs(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    origin: wp.array2d(dtype=wp.int32),
+    noise: wp.array(dtype=wp.float64),
+    ref_peak: wp.array(dtype=wp.float64),
+    snr: wp.float64,
+    min_relative: wp.float64,
+    w: int,
+    hp: int,
+    wp_: int,
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+):
+    """A measured blob is a dot if its peak clears the noise and the frame's median peak; its key (-1 for
+    none) and the smallest distance of a dot claiming its peak pixel."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    key[t] = -1
+    chosen = out_int[t, 0]
+    if chosen < 0:
+        return
+    cpeak = out_float[t, 1]
+    rp = ref_peak[f]
+    if not wp.isfinite(rp):
+        rp = wp.float64(0.0)  # no blob in the first round
+    if not (cpeak > snr * noise[f] and cpeak > min_relative * rp and cpeak > wp.float64(0.0)):
+        return
+    rr = chosen // w + origin[i, 1]
+    rc = chosen % w + origin[i, 0]
+    k = claim_key(f, rr, rc, w, hp, wp_)
+    key[t] = k
+    wp.atomic_min(claim_dist, k, out_float[t, 2])
+
+
+@wp.kernel
+def claim_nearest(
+    ids: wp.array(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+    claim_id: wp.array(dtype=wp.int32),
+):
+    """Among the dots nearest a claimed blob, the one of the lowest index keeps it."""
+    t = wp.tid()
+    k = key[t]
+    if k >= 0 and out_float[t, 2] == claim_dist[k]:
+        wp.atomic_min(claim_id, k, ids[t])
+
+
+@wp.kernel
+def take_blobs(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    it: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+    origin: wp.array2d(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    claim_id: wp.array(dtype=wp.int32),
+    eta0: wp.array(dtype=wp.float64),
+    w: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    root: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+    todo: wp.array(dtype=wp.int32),
+    won: wp.array(dtype=wp.int32),
+):
+    """The three-point Gaussian of each dot that keeps its blob (``tracking.pipeline._identify``); a dot
+    that lost its blob to a nearer one is AMBIGUOUS and waits for the residual image."""
+    t = wp.tid()
+    k = key[t]
+    if k < 0:
+        return
+    i = ids[t]
+    if claim_id[k] != i:
+        flags[i] = flags[i] | AMBIGUOUS
+        return
+    f = i // per_frame
+    won[f] = 1
+    cen = cross[t, 0]
+    left = cross[t, 1]
+    right = cross[t, 2]
+    up = cross[t, 3]
+    down = cross[t, 4]
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    dx = three_point_offset(left, cen, right, 0)
+    dy = three_point_offset(up, cen, down, 0)
+    fit_ok = cen > zero and left > zero and right > zero and up > zero and down > zero
+    e = zero
+    peak = cen
+    if fit_ok:
+        lc = wp.log(cen)
+        cx = wp.log(left) - wp.float64(2.0) * lc + wp.log(right)
+        cy = wp.log(up) - wp.float64(2.0) * lc + wp.log(down)
+        fit_ok = cx < zero and cy < zero
+        if fit_ok:
+            e2 = wp.float64(0.5) * (-one / cx - one / cy)
+            e = wp.sqrt(e2)
+            peak = cen * wp.exp((dx * dx + dy * dy) / (wp.float64(2.0) * e2))
+    # a three-point offset is within half a pixel: never wild; a failed fit keeps it (as the host)
+    e0 = eta0[i // per_frame]
+    if not (e > wp.float64(0.3) * e0 and e < wp.float64(3.0) * e0):
+        e = e0
+    if not (peak > zero and wp.isfinite(peak)):
+        peak = out_float[t, 1]
+    chosen = out_int[t, 0]
+    rr = chosen // w + origin[i, 1]
+    rc = chosen % w + origin[i, 0]
+    x[i] = wp.float64(rc) + dx
+    y[i] = wp.float64(rr) + dy
+    eta[i] = e
+    i0[i] = peak
+    iteration[i] = it
+    root[i, 0] = rc
+    root[i, 1] = rr
+    bits = int(0)
+    if out_int[t, 1] > 1:
+        bits = bits | OVERLAPPED
+    if not fit_ok:
+        bits = bits | FIT_FALLBACK
+    if out_int[t, 2] >= 2:
+        bits = bits | SATURATED
+    flags[i] = (flags[i] & ~AMBIGUOUS) | bits
+    todo[i] = 0
+
+
+@wp.kernel
+def release_claims(
+    key: wp.array(dtype=wp.int32), claim_dist: wp.array(dtype=wp.float64), claim_id: wp.array(dtype=wp.int32)
+):
+    """Reset the claim buffers where this round wrote (for the next round and call)."""
+    k = key[wp.tid()]
+    if k >= 0:
+        claim_dist[k] = wp.float64(wp.inf)
+        claim_id[k] = NO_CLAIM
+
+
+@wp.kernel
+def next_round(won: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32)):
+    """A frame in which a round found no dot stops (``_identify``'s ``break``)."""
+    f = wp.tid()
+    active[f] = active[f] * won[f]
+    won[f] = 0
+
+
+@wp.func
+def grid_point(p: wp.vec2d, f: int, z_step: float) -> wp.vec3:
+    return wp.vec3(wp.float32(p[0]), wp.float32(p[1]), float(f) * z_step)
+
+
+@wp.kernel
+def waiting_points(
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    per_frame: int,
+    z_step: float,
+    points: wp.array(dtype=wp.vec3),
+):
+    """Hash-grid points of the dots still to find (others far away, spread over the grid's cells)."""
+    i = wp.tid()
+    if todo[i] != 0:
+        points[i] = grid_point(pred[i], i // per_frame, z_step)
+    else:
+        points[i] = wp.vec3(-1.0e6 - 61.0 * float(i % 4093), -1.0e6 - 67.0 * float((i // 4093) % 4093), -1.0e6)
+
+
+@wp.kernel
+def subtract_near_waiting(
+    grid: wp.uint64,
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    z_step: float,
+    active: wp.array(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    reach: wp.array(dtype=wp.float64),
+    subtracted: wp.array(dtype=wp.int32),
+    residual: wp.array3d(dtype=wp.float64),
+):
+    """Eq. 2 where it matters: a found dot within ``reach`` of a dot still to find leaves the residual
+    image (its sampled Gaussian, width clipped to [0.5, 1.5] eta0, stamp half-width ceil(4.5 eta0))."""
+    i = ids[wp.tid()]
+    f = i // per_frame
+    if active[f] == 0 or subtracted[i] != 0 or not wp.isfinite(x[i]):
+        return
+    r = reach[f]
+    xi = x[i]
+    yi = y[i]
+    q = wp.hash_grid_query(grid, grid_point(wp.vec2d(xi, yi), f, z_step), float(r) + 1.0)
+    near = bool(False)
+    for j in q:
+        if j // per_frame == f and todo[j] != 0:
+            dx = pred[j][0] - xi
+            dy = pred[j][1] - yi
+            if wp.sqrt(dx * dx + dy * dy) <= r:
+                near = True
+    if not near:
+        return
+    subtracted[i] = 1
+    e0 = eta0[f]
+    e = wp.clamp(eta[i], wp.float64(0.5) * e0, wp.float64(1.5) * e0)
+    rad = int(wp.ceil(wp.float64(4.5) * e0))
+    cx = int(wp.rint(xi))
+    cy = int(wp.rint(yi))
+    inv = wp.float64(1.0) / (wp.float64(2.0) * e * e)
+    a = i0[i]
+    height = residual.shape[1]
+    width = residual.shape[2]
+    for rr in range(cy - rad, cy + rad + 1):
+        if rr >= 0 and rr < height:
+            ty = wp.float64(rr) - yi
+            gy = wp.exp(-(ty * ty) * inv)
+            for cc in range(cx - rad, cx + rad + 1):
+                if cc >= 0 and cc < width:
+                    tx = wp.float64(cc) - xi
+                    wp.atomic_sub(residual, f, rr, cc, a * gy * wp.exp(-(tx * tx) * inv))
+
+
+@wp.kernel
+def merge_wide(
+    ids: wp.array(dtype=wp.int32),
+    x2: wp.array(dtype=wp.float64),
+    y2: wp.array(dtype=wp.float64),
+    eta2: wp.array(dtype=wp.float64),
+    i02: wp.array(dtype=wp.float64),
+    iteration2: wp.array(dtype=wp.int32),
+    root2: wp.array2d(dtype=wp.int32),
+    flags2: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    root: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """The wide window's result replaces the narrow one's for the dots it looked for (flags add up)."""
+    i = ids[wp.tid()]
+    x[i] = x2[i]
+    y[i] = y2[i]
+    eta[i] = eta2[i]
+    i0[i] = i02[i]
+    iteration[i] = iteration2[i]
+    root[i, 0] = root2[i, 0]
+    root[i, 1] = root2[i, 1]
+    flags[i] = flags[i] | flags2[i]
+
+
+@wp.func
+def distance_to(x: wp.float64, y: wp.float64, p: wp.vec2d) -> wp.float64:
+    dx = x - p[0]
+    dy = y - p[1]
+    return wp.sqrt(dx * dx + dy * dy)
+
+
+@wp.kernel
+def claim_shared_blobs(
+    per_frame: int,
+    pair_has_miss: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    root: wp.array2d(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    w: int,
+    hp: int,
+    wp_: int,
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+):
+    """``_drop_shared_blobs``, first half: the distance of the dot nearest its prediction on each blob."""
+    i = wp.tid()
+    f = i // per_frame
+    key[i] = -1
+    if pair_has_miss[f] == 0 or not wp.isfinite(x[i]):
+        return
+    k = claim_key(f, root[i, 1], root[i, 0], w, hp, wp_)
+    key[i] = k
+    wp.atomic_min(claim_dist, k, distance_to(x[i], y[i], pred[i]))
+
+
+@wp.kernel
+def claim_shared_nearest(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    pred: wp.array(dtype=wp.vec2d),
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+    claim_id: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    k = key[i]
+    if k >= 0 and distance_to(x[i], y[i], pred[i]) == claim_dist[k]:
+        wp.atomic_min(claim_id, k, i)
+
+
+@wp.kernel
+def drop_shared_losers(
+    key: wp.array(dtype=wp.int32),
+    claim_id: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """``_drop_shared_blobs``, second half: the others on a blob are not found (AMBIGUOUS)."""
+    i = wp.tid()
+    k = key[i]
+    if k >= 0 and claim_id[k] != i:
+        nan = wp.float64(wp.nan)
+        x[i] = nan
+        y[i] = nan
+        eta[i] = nan
+        i0[i] = nan
+        iteration[i] = 0
+        flags[i] = flags[i] | AMBIGUOUS
+
+
+# --- predictor hand-over ----------------------------------------------------------------------------
+
+
+@wp.kernel
+def reference_or_prior(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    prior: wp.array(dtype=wp.vec2d),
+    base: wp.array(dtype=wp.vec2d),
+):
+    """Where the reference dot was found its position, else the prior."""
+    i = wp.tid()
+    if wp.isfinite(x[i]):
+        base[i] = wp.vec2d(x[i], y[i])
+    else:
+        base[i] = prior[i]
+
+
+@wp.kernel
+def predicted_position(
+    base: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    x: wp.array(dtype=wp.float64),
+    pred: wp.array(dtype=wp.vec2d),
+    miss_count: wp.array(dtype=wp.int32),
+):
+    """``base + nan_to_num(uv)`` (the gradient-image prediction)."""
+    i = wp.tid()
+    u = uv[i]
+    du = u[0]
+    dv = u[1]
+    if not wp.isfinite(du):
+        du = wp.float64(0.0)
+    if not wp.isfinite(dv):
+        dv = wp.float64(0.0)
+    pred[i] = wp.vec2d(base[i][0] + du, base[i][1] + dv)
+
+
+@wp.kernel
+def list_misses(
+    x_g: wp.array(dtype=wp.float64),
+    x_r: wp.array(dtype=wp.float64),
+    per_frame: int,
+    count: wp.array(dtype=wp.int32),
+    ids: wp.array(dtype=wp.int32),
+    pair_has_miss: wp.array(dtype=wp.int32),
+):
+    """Dots found in the reference image but not by the narrow window in the gradient image (any order:
+    each is measured on its own)."""
+    i = wp.tid()
+    if wp.isfinite(x_r[i]) and not wp.isfinite(x_g[i]):
+        slot = wp.atomic_add(count, 0, 1)
+        ids[slot] = i
+        pair_has_miss[i // per_frame] = 1
+
+
+# --- the model fit ----------------------------------------------------------------------------------
+
+
+@wp.kernel
+def model_starts(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    per_frame: int,
+    sigma0: wp.array(dtype=wp.float64),
+    frame_base: int,
+    frame_step: int,
+    row0: int,
+    params: wp.array2d(dtype=wp.float64),
+    live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+):
+    """Starting parameters ``(x, y, I0 (1 + 1 / (12 s0^2)), s0, 0)`` of every found dot (``_model_start``);
+    rows of dots not found get a harmless dot of no intensity (drawn as zero, never used)."""
+    i = wp.tid()
+    b = i // per_frame
+    s0 = sigma0[b]
+    j = row0 + i
+    frame[j] = frame_base + frame_step * b
+    if wp.isfinite(x[i]):
+        params[j, 0] = x[i]
+        params[j, 1] = y[i]
+        params[j, 2] = i0[i] * (wp.float64(1.0) + wp.float64(1.0) / (wp.float64(12.0) * s0 * s0))
+        params[j, 3] = s0
+        params[j, 4] = wp.float64(0.0)
+        live[j] = 1
+    else:
+        params[j, 0] = wp.float64(0.0)
+        params[j, 1] = wp.float64(0.0)
+        params[j, 2] = wp.float64(0.0)
+        params[j, 3] = s0
+        params[j, 4] = wp.float64(0.0)
+        live[j] = 0
+
+
+@wp.kernel
+def pair_partners(live: wp.array(dtype=wp.int32), n: int, partner: wp.array(dtype=wp.int32)):
+    """Row ``i`` (reference) and ``n + i`` (gradient) are one dot's pair where both were found."""
+    i = wp.tid()
+    if live[i] != 0 and live[n + i] != 0:
+        partner[i] = n + i
+        partner[n + i] = i
+    else:
+        partner[i] = -1
+        partner[n + i] = -1
+
+
+@wp.kernel
+def largest_peak(
+    params: wp.array2d(dtype=wp.float64), live: wp.array(dtype=wp.int32), peak: wp.array(dtype=wp.float64)
+):
+    i = wp.tid()
+    if live[i] != 0:
+        wp.atomic_max(peak, 0, wp.abs(params[i, 2]))
+
+
+@wp.kernel
+def fit_step_batch(
+    references: wp.array3d(dtype=wp.float64),
+    gradients: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    half: int,
+    render_half: int,
+    common: int,
+    max_move: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """``fit_dot_step`` of row i; model frame ``2 b`` is pair b's reference image, ``2 b + 1`` its gradient
+    image; the width's range is [0.25, 4] eta0 of the pair."""
+    i = wp.tid()
+    if live[i] == 0:
+        for k in range(5):
+            out[i, k] = params[i, k]
+        return
+    f = frame[i]
+    b = f // 2
+    e0 = eta0[b]
+    has_partner = int(partner[i] >= 0)
+    lo = wp.float64(0.25) * e0
+    hi = wp.float64(4.0) * e0
+    if f % 2 == 0:
+        fit_dot_step(
+            references[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, lo, hi, prof, out, ok, shared_xy,
+        )  # fmt: skip
+    else:
+        fit_dot_step(
+            gradients[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, lo, hi, prof, out, ok, shared_xy,
+        )  # fmt: skip
+
+
+# --- the table ------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def take_model(
+    params: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    row0: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    flags: wp.array(dtype=wp.int32),
+):
+    """``_take_model``: the fit's position, width and peak (a refused last step flagged FIT_FALLBACK)."""
+    i = wp.tid()
+    j = row0 + i
+    if live[j] == 0 or not wp.isfinite(params[j, 0]):
+        return
+    x[i] = params[j, 0]
+    y[i] = params[j, 1]
+    eta[i] = params[j, 3]
+    i0[i] = params[j, 2]
+    if ok[j] == 0:
+        flags[i] = flags[i] | FIT_FALLBACK
+
+
+@wp.func
+def overshoot(x: wp.float64, y: wp.float64, radius: wp.float64, height: int, width: int) -> wp.vec2d:
+    """How far (px) a disk of ``radius`` at (x, y) reaches past the image, along x and y (``_overshoot``)."""
+    half = wp.float64(0.5)
+    zero = wp.float64(0.0)
+    ox = wp.max(wp.max(-half - (x - radius), (x + radius) - (wp.float64(width) - half)), zero)
+    oy = wp.max(wp.max(-half - (y - radius), (y + radius) - (wp.float64(height) - half)), zero)
+    return wp.vec2d(ox, oy)
+
+
+@wp.kernel
+def first_status(
+    x_r: wp.array(dtype=wp.float64),
+    y_r: wp.array(dtype=wp.float64),
+    flags_r: wp.array(dtype=wp.int32),
+    x_g: wp.array(dtype=wp.float64),
+    y_g: wp.array(dtype=wp.float64),
+    flags_g: wp.array(dtype=wp.int32),
+    uv_pred: wp.array(dtype=wp.vec2d),
+    quality: wp.array(dtype=wp.float64),
+    use_pred: int,
+    tolerance: wp.float64,
+    min_correlation: wp.float64,
+    status: wp.array(dtype=wp.int32),
+    xy: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    good: wp.array(dtype=wp.int32),
+    query: wp.array(dtype=wp.int32),
+):
+    """Status bits up to the predictor's check: found, the predictor's mismatch and weakness; the dots that
+    vouch for their neighbours (``good``) and those whose mismatch the neighbours may overrule
+    (``query``)."""
+    i = wp.tid()
+    s = flags_r[i] | (flags_g[i] & ~OUTSIDE_IMAGE)
+    found_r = wp.isfinite(x_r[i])
+    found_g = wp.isfinite(x_g[i])
+    if found_r:
+        s = s | FOUND_REFERENCE
+    if found_g:
+        s = s | FOUND_GRADIENT
+    xy[i] = wp.vec2d(x_r[i], y_r[i])
+    uv[i] = wp.vec2d(x_g[i] - x_r[i], y_g[i] - y_r[i])
+    matched = found_r and found_g
+    off = False
+    weak = False
+    if use_pred != 0:
+        du = x_g[i] - x_r[i] - uv_pred[i][0]
+        dv = y_g[i] - y_r[i] - uv_pred[i][1]
+        off = found_r and found_g and not (wp.sqrt(du * du + dv * dv) <= tolerance)
+        weak = found_r and not (quality[i] >= min_correlation)
+    good[i] = int(matched and not off and not weak)
+    query[i] = int(off and not weak)
+    if off:
+        s = s | PREDICTOR_MISMATCH  # cleared below where the neighbours confirm it
+    if weak:
+        s = s | PREDICTOR_WEAK
+    status[i] = s
+
+
+@wp.kernel
+def second_status(
+    confirmed: wp.array(dtype=wp.int32),
+    query: wp.array(dtype=wp.int32),
+    per_frame: int,
+    height: int,
+    width: int,
+    diameter: wp.array(dtype=wp.float64),
+    x_r: wp.array(dtype=wp.float64),
+    y_r: wp.array(dtype=wp.float64),
+    x_g: wp.array(dtype=wp.float64),
+    y_g: wp.array(dtype=wp.float64),
+    status: wp.array(dtype=wp.int32),
+    matched: wp.array(dtype=wp.int32),
+):
+    """A mismatch the neighbours confirm is kept; then EDGE_CUT (``_EDGE_CUT_PX``); the matched dots left
+    go to the outlier test."""
+    i = wp.tid()
+    s = status[i]
+    if query[i] != 0 and confirmed[i] != 0:
+        s = s & ~PREDICTOR_MISMATCH
+    m = (s & FOUND_REFERENCE) != 0 and (s & FOUND_GRADIENT) != 0
+    m = m and (s & (PREDICTOR_MISMATCH | PREDICTOR_WEAK)) == 0
+    if m:
+        r = wp.float64(0.5) * diameter[i // per_frame]
+        a = overshoot(x_r[i], y_r[i], r, height, width)
+        c = overshoot(x_g[i], y_g[i], r, height, width)
+        if wp.abs(a[0] - c[0]) > wp.float64(0.5) or wp.abs(a[1] - c[1]) > wp.float64(0.5):
+            s = s | EDGE_CUT
+            m = False
+    status[i] = s
+    matched[i] = int(m)
+
+
+@wp.kernel
+def write_table(
+    x_r: wp.array(dtype=wp.float64),
+    y_r: wp.array(dtype=wp.float64),
+    eta_r: wp.array(dtype=wp.float64),
+    i0_r: wp.array(dtype=wp.float64),
+    it_r: wp.array(dtype=wp.int32),
+    x_g: wp.array(dtype=wp.float64),
+    y_g: wp.array(dtype=wp.float64),
+    it_g: wp.array(dtype=wp.int32),
+    matched: wp.array(dtype=wp.int32),
+    outlier: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    n: int,
+    uv_pred: wp.array(dtype=wp.vec2d),
+    quality: wp.array(dtype=wp.float64),
+    use_pred: int,
+    cc_threshold: wp.float64,
+    status: wp.array(dtype=wp.int32),
+    table: wp.array2d(dtype=wp.float64),
+    ints: wp.array2d(dtype=wp.int32),
+):
+    """The table's columns: x, y, u, v, u_cc, v_cc, x_gradient, y_gradient, diameter, peak, u_pred, v_pred,
+    pred_correlation (float64) and status, iteration, iteration_gradient (int32)."""
+    i = wp.tid()
+    nan = wp.float64(wp.nan)
+    s = status[i]
+    m = matched[i] != 0
+    if m and outlier[i] != 0:
+        s = s | OUTLIER
+        m = False
+    found_g = (s & FOUND_GRADIENT) != 0
+    u = nan
+    v = nan
+    ucc = nan
+    vcc = nan
+    if m:
+        s = s | MATCHED
+        u = x_g[i] - x_r[i]
+        v = y_g[i] - y_r[i]
+        # the model correction: both positions refitted with the pair's common peak and width
+        ucc = shared_xy[n + i, 0] - shared_xy[i, 0]
+        vcc = shared_xy[n + i, 1] - shared_xy[i, 1]
+        if wp.isfinite(ucc) and wp.isfinite(vcc):
+            s = s | CC_VALID
+        else:
+            ucc = u
+            vcc = v
+        du = ucc - u
+        dv = vcc - v
+        if wp.sqrt(du * du + dv * dv) > cc_threshold:
+            s = s | CC_FLAGGED
+    table[i, 0] = x_r[i]
+    table[i, 1] = y_r[i]
+    table[i, 2] = u
+    table[i, 3] = v
+    table[i, 4] = ucc
+    table[i, 5] = vcc
+    table[i, 6] = nan
+    table[i, 7] = nan
+    if found_g:
+        table[i, 6] = x_g[i]
+        table[i, 7] = y_g[i]
+    table[i, 8] = wp.float64(4.0) * eta_r[i]
+    table[i, 9] = i0_r[i]
+    table[i, 10] = nan
+    table[i, 11] = nan
+    table[i, 12] = nan
+    if use_pred != 0:
+        table[i, 10] = uv_pred[i][0]
+        table[i, 11] = uv_pred[i][1]
+        table[i, 12] = quality[i]
+    ints[i, 0] = s
+    ints[i, 1] = it_r[i]
+    ints[i, 2] = 0
+    if found_g:
+        ints[i, 2] = it_g[i]
+
+
+# --- medians of segments ----------------------------------------------------------------------------
+
+
+@wp.kernel
+def segment_keys(
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+    length: int,
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """Sort keys (the values rounded to float32, +inf where not taking part) and the count per segment."""
+    i = wp.tid()
+    order[i] = i
+    if valid[i] != 0:
+        keys[i] = wp.float32(values[i])
+        wp.atomic_add(count, i // length, 1)
+    else:
+        keys[i] = wp.float32(wp.inf)
+
+
+@wp.func
+def order_statistic(
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
+    base: int,
+    count: int,
+    k: int,
+) -> wp.float64:
+    """The k-th smallest (from 0) float64 value of a segment sorted by its float32 keys: rounding to float32
+    keeps the order but for values that round alike, so the k-th lies among those sharing its key."""
+    key = keys[base + k]
+    g0 = k
+    while g0 > 0 and keys[base + g0 - 1] == key:
+        g0 -= 1
+    g1 = k + 1
+    while g1 < count and keys[base + g1] == key:
+        g1 += 1
+    lo = values[order[base + g0]]
+    hi = lo
+    for p in range(g0 + 1, g1):
+        v = values[order[base + p]]
+        lo = wp.min(lo, v)
+        hi = wp.max(hi, v)
+    if lo == hi:
+        return lo
+    want = k - g0
+    for p in range(g0, g1):
+        v = values[order[base + p]]
+        rank = int(0)
+        for q in range(g0, g1):
+            u = values[order[base + q]]
+            if u < v or (u == v and q < p):
+                rank += 1
+        if rank == want:
+            return v
+    return lo
+
+
+@wp.kernel
+def segment_median(
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
+    count: wp.array(dtype=wp.int32),
+    length: int,
+    median: wp.array(dtype=wp.float64),
+):
+    """NumPy's median of each segment's values taking part (the mean of the middle two for an even count;
+    NaN for none)."""
+    s = wp.tid()
+    c = count[s]
+    if c == 0:
+        median[s] = wp.float64(wp.nan)
+        return
+    base = s * length
+    k = c // 2
+    upper = order_statistic(keys, order, values, base, c, k)
+    if c % 2 == 1:
+        median[s] = upper
+    else:
+        median[s] = (order_statistic(keys, order, values, base, c, k - 1) + upper) / wp.float64(2.0)
+
+
+@wp.kernel
+def interleave_pairs(
+    first: wp.array(dtype=wp.float64),
+    second: wp.array(dtype=wp.float64),
+    x_first: wp.array(dtype=wp.float64),
+    x_second: wp.array(dtype=wp.float64),
+    per_frame: int,
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+):
+    """Pair b's segment of ``2 per_frame`` values: its dots' ``first`` then ``second`` (taking part where
+    the matching ``x`` is finite)."""
+    i = wp.tid()
+    b = i // per_frame
+    j = i % per_frame
+    at = b * 2 * per_frame + j
+    values[at] = first[i]
+    valid[at] = int(wp.isfinite(x_first[i]))
+    values[at + per_frame] = second[i]
+    valid[at + per_frame] = int(wp.isfinite(x_second[i]))
+
+
+@wp.kernel
+def measured_peaks(
+    ids: wp.array(dtype=wp.int32),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+):
+    """The peaks of the blobs chosen in a call's first round, at their dots' places."""
+    t = wp.tid()
+    i = ids[t]
+    if out_int[t, 0] >= 0:
+        values[i] = out_float[t, 1]
+        valid[i] = 1
