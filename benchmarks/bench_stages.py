@@ -94,13 +94,17 @@ def _best(fn, repeats: int, device: str, *, before=None):
 
 
 def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int = 3, noise_percent: float = 3.0,
-                methods=None, folder=None, base_config=None) -> dict:
+                methods=None, folder=None, base_config=None, batch: int = 0) -> dict:
     """Time every stage of one pair on ``device``; return ``{"stages": {name: seconds}, ...}``.
 
     ``base_config`` (tables over the default, e.g. a smaller camera for a test) is None for the paper's set-up.
 
     The render is timed at ``rays_per_dot``; when that differs from ``scale_to`` its time is also given
     scaled: fixed part (the render at 2 rays per dot) + (measured - fixed) x (scale_to - 2) / (rays - 2).
+
+    ``batch`` > 0 also times ``tracking.batch.track_pairs`` on ``batch`` noisy copies of the pair (each its
+    own noise seed), host images in and host tables out, as the stage ``tracking, batched``: the time per
+    pair (the batch's time / ``batch``); ``tracking_batch`` in the result gives the batch's time and dots/s.
     """
     init_warp()
     device = check_device(device)
@@ -147,6 +151,10 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
     for name in methods:
         stages[f"score {name}"], _ = _best(lambda name=name: score_result(pair, name, results[name]), repeats, "cpu",
                                            before=forget_all)
+    batch_info = None
+    if batch > 0:
+        batch_info = _time_batch(pair, prior, device, batch=batch, repeats=repeats, noise_percent=noise_percent)
+        stages["tracking, batched"] = batch_info["seconds"] / batch
     per_noise = stages["noise"] + stages["methods in turn"] + sum(stages[f"score {n}"] for n in methods)
     stages["pair total"] = stages["render"] + stages["pair file"] + NOISE_LEVELS * per_noise
     measured.update({k: v for k, v in stages.items() if k not in ("render", "pair total")})
@@ -163,7 +171,30 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
         "stages": stages,
         "measured": measured,
         "measured_counts": {n: (results[n].counts or {}) for n in methods},
+        "tracking_batch": batch_info,
     }
+
+
+def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
+    """Best time of ``track_pairs`` on ``batch`` noisy copies of ``pair`` (host stacks in, host tables out),
+    its dots per second, and the largest difference from ``track_pair`` on the first copy."""
+    from synthbos.tracking import track_pair
+    from synthbos.tracking.batch import track_pairs
+
+    noisy = [noisy_pair(pair, noise_percent=noise_percent, seeds=(100 + 2 * k, 101 + 2 * k)) for k in range(batch)]
+    refs = np.stack([np.asarray(r, dtype=np.float64) for r, _ in noisy])
+    grads = np.stack([np.asarray(g, dtype=np.float64) for _, g in noisy])
+    seconds, tables = _best(lambda: track_pairs(refs, grads, prior_xy=prior, device=device), repeats, device)
+    single = track_pair(refs[0], grads[0], prior_xy=prior, device=device)
+    diff = 0.0
+    for name in ("u", "v", "u_cc", "v_cc"):
+        a, b = tables[0][name], single[name]
+        both = np.isfinite(a) & np.isfinite(b)
+        diff = max(diff, float(np.abs(a[both] - b[both]).max(initial=0.0)))
+    same_valid = bool(np.array_equal(tables[0]["status"], single["status"]))
+    dots = int(np.prod(tables.shape))
+    return {"pairs": batch, "dots": dots, "seconds": seconds, "dots_per_second": dots / seconds,
+            "max_difference_px": diff, "status_equal": same_valid}
 
 
 def paper_full_wall_time(device: str, *, process_device=None, workers=None, folder=None) -> dict:
@@ -222,6 +253,10 @@ def main(argv=None):
                         help="with --paper-full, also time it with --process-device cpu (render on the GPU, process "
                              "in CPU worker processes: the scheduling before the GPU pipeline)")
     parser.add_argument("--workers", type=int, default=None, help="--workers of the paper --full runs")
+    parser.add_argument("--batch", type=int, default=0,
+                        help="also time tracking.batch.track_pairs on this many noisy copies of the pair on CUDA "
+                             "devices (dots/s)")
+    parser.add_argument("--cpu-batch", type=int, default=4, help="pairs of the batched tracking on the CPU")
     parser.add_argument("--json", help="write the table (and the paper --full time) here as JSON")
     args = parser.parse_args(argv)
     init_warp()
@@ -232,13 +267,20 @@ def main(argv=None):
     for dev in args.devices:
         print(describe_device(check_device(dev)), flush=True)
         rays = args.cpu_rays if dev == "cpu" else args.rays
+        batch = (args.cpu_batch if dev == "cpu" else args.batch) if args.batch else 0
         runs.append(time_stages(dev, rays_per_dot=rays, scale_to=args.rays, repeats=args.repeats,
-                                noise_percent=args.noise, methods=methods))
+                                noise_percent=args.noise, methods=methods, batch=batch))
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     print(f"\nper-stage times of one pair, paper configuration ({runs[0]['dots']} dots, "
           f"{runs[0]['image'][1]} x {runs[0]['image'][0]} px, noise {args.noise:g} %), best of {args.repeats}, "
           f"{date}, {platform.node()} ({os.cpu_count()} CPU cores)")
     print(format_table(runs))
+    for r in runs:
+        tb = r.get("tracking_batch")
+        if tb:
+            print(f"tracking, batched on {r['device']}: {tb['pairs']} pairs ({tb['dots']} dots) in "
+                  f"{tb['seconds']:.4f} s = {tb['dots_per_second']:.3g} dots/s; largest difference from "
+                  f"track_pair on the first pair {tb['max_difference_px']:.2e} px, status equal: {tb['status_equal']}")
     paper = None
     if args.paper_full:
         cuda = [d for d in args.devices if d.startswith("cuda")]

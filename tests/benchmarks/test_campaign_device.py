@@ -195,6 +195,19 @@ def test_bench_stages_times_every_stage_on_the_cpu(capsys):
     assert "cpu/cpu" in table and "render scaled to 10000 rays/dot" in table
 
 
+def test_bench_stages_times_batched_tracking():
+    from synthbos.benchmarks.bench_stages import time_stages
+
+    run = time_stages("cpu", rays_per_dot=6, scale_to=6, repeats=1, base_config=SMALL_CONFIG, methods=["tracking"],
+                      batch=3)
+    tb = run["tracking_batch"]
+    assert tb["pairs"] == 3 and tb["dots"] == 3 * run["dots"]
+    assert tb["dots_per_second"] == pytest.approx(tb["dots"] / tb["seconds"])
+    assert run["stages"]["tracking, batched"] == pytest.approx(tb["seconds"] / 3)
+    # the batch's first pair is track_pair's result
+    assert tb["status_equal"] and tb["max_difference_px"] < 1e-9
+
+
 def test_an_error_in_the_pipeline_stops_it_and_a_rerun_finishes(plain, tmp_path, monkeypatch):
     import synthbos.benchmarks.items as items
 
