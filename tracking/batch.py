@@ -25,7 +25,9 @@ from synthbos.device import init_warp
 
 from . import batch_kernels as bk
 from .dotfit import _fixed_point_scale, fit_window_half
+from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
+from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
 from .pipeline import TRACK_DTYPE, TrackingSettings
 from .windows import median_network
 
@@ -292,21 +294,17 @@ class _Batch:
         return cur, ok, shared, live
 
 
-def _frame_statistics(images, settings):
-    """Per frame, from the host functions (noise, fill, saturation, the checks)."""
-    from .identify import estimate_noise
-    from .pipeline import _check_image, _fill_level, _saturation_level
-
-    out = {"noise": [], "fill": [], "sat": [], "diameter": []}
-    from .diameter import estimate_dot_diameter
-
-    for k, img in enumerate(images):
-        a, top = _check_image(f"pair {k}'s", img)
-        out["noise"].append(estimate_noise(a))
-        out["fill"].append(_fill_level(a))
-        out["sat"].append(min(_saturation_level(a, settings.saturation_level, top), 1e300))
-        out["diameter"].append(estimate_dot_diameter(a))
-    return {k: np.array(v) for k, v in out.items()}
+def _frame_statistics(images, name, settings, device):
+    """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
+    kernel takes it) and dot diameter, computed on the device; the image checks of ``track_pair``."""
+    st = {k: v.numpy() for k, v in frame_statistics(images, device=device).items()}
+    for b, why in enumerate(st["bad"]):
+        if why == 1:
+            raise SynthbosError(f"pair {b}'s {name} image contains non-finite pixels (NaN or inf)")
+        if why == 2:
+            raise SynthbosError(f"pair {b}'s {name} image is all zero")
+    sat = st["saturation"] if settings.saturation_level is None else np.full(len(st["bad"]), settings.saturation_level)
+    return {"noise": st["noise"], "fill": st["fill"], "sat": np.minimum(sat, 1e300), "diameter": st["diameter"]}
 
 
 def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings | None = None, device=None):
@@ -364,8 +362,8 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
         b = int(np.flatnonzero(~inside.any(axis=1))[0])
         raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
 
-    ref_np, grad_np = refs.numpy(), grads.numpy()
-    st_r, st_g = _frame_statistics(ref_np, settings), _frame_statistics(grad_np, settings)
+    st_r = _frame_statistics(refs, "reference", settings, device)
+    st_g = _frame_statistics(grads, "gradient", settings, device)
     d = np.full(B, float(settings.diameter)) if settings.diameter is not None else st_r["diameter"]
     bad = ~(np.isfinite(d) & (d > 0))
     if bad.any():
@@ -522,39 +520,31 @@ def _predict(refs, grads, base, B, N, settings, device):
     )
 
 
-def _per_pair_out(xy, uv, B, N):
-    x = xy.numpy().reshape(B, N, 2)
-    u = uv.numpy().reshape(B, N, 2)
-    return x, u
-
-
 def _confirmed(xy, uv, good, query, B, N, settings, device):
-    """``_confirmed_by_neighbours`` of every pair (host reference, pair by pair, for now)."""
-    from .pipeline import _confirmed_by_neighbours
-
-    x, u = _per_pair_out(xy, uv, B, N)
-    gd, qr = good.numpy().reshape(B, N).astype(bool), query.numpy().reshape(B, N).astype(bool)
-    res = np.zeros((B, N), dtype=np.int32)
-    for b in range(B):
-        out = {
-            "x": x[b, :, 0],
-            "y": x[b, :, 1],
-            "x_gradient": x[b, :, 0] + u[b, :, 0],
-            "y_gradient": x[b, :, 1] + u[b, :, 1],
-        }
-        res[b] = _confirmed_by_neighbours(out, gd[b], qr[b], settings, device)
-    return wp.array(res.ravel(), dtype=wp.int32, device=device)
+    """``_confirmed_by_neighbours`` of every pair (:mod:`tracking.neighbours_batch`)."""
+    ok = confirmed_by_neighbours_batch(
+        xy.reshape((B, N)),
+        uv.reshape((B, N)),
+        good.reshape((B, N)),
+        query.reshape((B, N)),
+        k=settings.outlier_neighbours,
+        threshold=settings.outlier_threshold,
+        epsilon=settings.outlier_epsilon,
+        tolerance=settings.predictor_tolerance,
+        device=device,
+    )
+    return ok.reshape((B * N,))
 
 
 def _outliers(xy, uv, matched, B, N, settings, device):
-    """``_neighbour_outliers`` of every pair's matched dots (host reference, pair by pair, for now)."""
-    from .pipeline import _neighbour_outliers
-
-    x, u = _per_pair_out(xy, uv, B, N)
-    m = matched.numpy().reshape(B, N).astype(bool)
-    res = np.zeros((B, N), dtype=np.int32)
-    for b in range(B):
-        mi = np.flatnonzero(m[b])
-        bad = _neighbour_outliers(x[b, mi], u[b, mi], settings, device)
-        res[b, mi[bad]] = 1
-    return wp.array(res.ravel(), dtype=wp.int32, device=device)
+    """``_neighbour_outliers`` of every pair's matched dots (:mod:`tracking.neighbours_batch`)."""
+    bad = neighbour_outliers_batch(
+        xy.reshape((B, N)),
+        uv.reshape((B, N)),
+        matched.reshape((B, N)),
+        k=settings.outlier_neighbours,
+        threshold=settings.outlier_threshold,
+        epsilon=settings.outlier_epsilon,
+        device=device,
+    )
+    return bad.reshape((B * N,))

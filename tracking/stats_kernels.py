@@ -1,0 +1,257 @@
+# ruff: noqa: UP018, RUF046
+# (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
+"""Warp kernels of the per-frame image statistics of a stack of frames.
+
+Kernels only; the host code that allocates, launches and sorts lives next to it in
+:mod:`tracking.frame_stats`, whose ``frame_statistics_numpy`` (the host functions of the tracker, frame by
+frame) defines what they compute. Frames are ``images[f]`` of an ``(F, H, W)`` array, cut into bands of
+``band`` rows; one thread walks one column of one band down its rows (neighbouring threads read
+neighbouring pixels), and one thread per frame reduces the partial results of its bands' columns.
+
+The order statistics (the median of every fourth row and column, the lower quartile of the horizontal
+differences) come from one sorted buffer: each frame owns ``n_frame`` slots, first its ``n_noise``
+differences, then its ``n_fill`` sub-sampled pixels, so that after sorting by value and then (stably) by
+segment, the ``k``-th smallest value of a segment sits at a known index. NaN never enters the buffer (it
+is written as +inf and the segment flagged), so the sort's placement of NaN does not matter.
+
+Floating-point contraction is off in this module: the quartile's interpolation and the median's mean
+must round as NumPy's separate multiply and add do.
+"""
+
+import warp as wp
+
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+
+# Bits of the per-column and per-frame flags.
+NONFINITE = wp.constant(1)  # a pixel is NaN or +-inf
+ANY_NAN = wp.constant(2)  # a pixel is NaN
+FILL_NAN = wp.constant(4)  # a pixel of every fourth row and column is NaN
+NOISE_NAN = wp.constant(8)  # a horizontal difference of the rows used by the noise estimate is NaN
+
+
+@wp.kernel
+def column_pass(
+    images: wp.array3d(dtype=wp.float64),
+    band: int,
+    row_step: int,
+    n_noise: int,
+    n_frame: int,
+    keys: wp.array(dtype=wp.float64),
+    segment: wp.array(dtype=wp.int32),
+    col_min: wp.array3d(dtype=wp.float64),
+    col_max: wp.array3d(dtype=wp.float64),
+    col_count: wp.array3d(dtype=wp.int32),
+    col_sum: wp.array3d(dtype=wp.float64),
+    col_flags: wp.array3d(dtype=wp.int32),
+):
+    """Column ``j`` of band ``b`` of frame ``f``: its extremes, how many pixels equal its maximum, its sum
+    and flags; and the sort keys it owns (the differences ``|I[i, j+1] - I[i, j]|`` of every
+    ``row_step``-th row, segment ``2 f``, and the pixels of every fourth row when ``j % 4 == 0``, segment
+    ``2 f + 1``)."""
+    f, b, j = wp.tid()
+    h = images.shape[1]
+    w = images.shape[2]
+    base = f * n_frame
+    fill_cols = (w + 3) // 4
+    vmin = wp.float64(wp.inf)
+    vmax = wp.float64(-wp.inf)
+    count = int(0)
+    total = wp.float64(0.0)
+    flags = int(0)
+    i0 = b * band
+    noise_row = ((i0 + row_step - 1) // row_step) * row_step  # the next row the noise estimate uses
+    for i in range(i0, wp.min(h, i0 + band)):
+        v = images[f, i, j]
+        if not wp.isfinite(v):
+            flags = flags | NONFINITE
+            if wp.isnan(v):
+                flags = flags | ANY_NAN
+        # every comparison with NaN is false: NaN changes neither extreme (the flag reports it)
+        if v < vmin:
+            vmin = v
+        if v > vmax:
+            vmax = v
+            count = 1
+        elif v == vmax:
+            count += 1
+        total += v
+        if i == noise_row:
+            noise_row += row_step
+            if j < w - 1:
+                d = wp.abs(images[f, i, j + 1] - v)
+                if wp.isnan(d):
+                    flags = flags | NOISE_NAN
+                    d = wp.float64(wp.inf)
+                k = base + (i // row_step) * (w - 1) + j
+                keys[k] = d
+                segment[k] = 2 * f
+        if (i & 3) == 0 and (j & 3) == 0:
+            s = v
+            if wp.isnan(s):
+                flags = flags | FILL_NAN
+                s = wp.float64(wp.inf)
+            k = base + n_noise + (i >> 2) * fill_cols + (j >> 2)
+            keys[k] = s
+            segment[k] = 2 * f + 1
+    col_min[f, b, j] = vmin
+    col_max[f, b, j] = vmax
+    col_count[f, b, j] = count
+    col_sum[f, b, j] = total
+    col_flags[f, b, j] = flags
+
+
+@wp.kernel
+def frame_moments(
+    col_min: wp.array3d(dtype=wp.float64),
+    col_max: wp.array3d(dtype=wp.float64),
+    col_count: wp.array3d(dtype=wp.int32),
+    col_sum: wp.array3d(dtype=wp.float64),
+    col_flags: wp.array3d(dtype=wp.int32),
+    n_pixels: wp.float64,
+    lo: wp.array(dtype=wp.float64),
+    hi: wp.array(dtype=wp.float64),
+    bad: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    mean: wp.array(dtype=wp.float64),
+    frame_flags: wp.array(dtype=wp.int32),
+):
+    """Frame ``f`` from its bands' columns: min and max (NaN if a pixel is NaN, as NumPy's), the check of the
+    tracker's ``_check_image`` (1 non-finite, 2 all zero, else 0), the saturation level (the maximum if
+    five or more pixels equal it, else +inf) and the mean (exactly ``lo`` for a constant frame)."""
+    f = wp.tid()
+    n_bands = col_min.shape[1]
+    w = col_min.shape[2]
+    vmin = wp.float64(wp.inf)
+    vmax = wp.float64(-wp.inf)
+    total = wp.float64(0.0)
+    flags = int(0)
+    for b in range(n_bands):
+        for j in range(w):
+            vmin = wp.min(vmin, col_min[f, b, j])
+            vmax = wp.max(vmax, col_max[f, b, j])
+            total += col_sum[f, b, j]
+            flags = flags | col_flags[f, b, j]
+    count = int(0)
+    for b in range(n_bands):
+        for j in range(w):
+            if col_max[f, b, j] == vmax:
+                count += col_count[f, b, j]
+    sat = wp.float64(wp.inf)
+    if (flags & ANY_NAN) != 0:
+        vmin = wp.float64(wp.nan)
+        vmax = wp.float64(wp.nan)
+    elif count >= 5:
+        sat = vmax
+    state = int(0)
+    if (flags & NONFINITE) != 0:
+        state = 1
+    elif vmin == wp.float64(0.0) and vmax == wp.float64(0.0):
+        state = 2
+    m = total / n_pixels
+    if vmin == vmax:
+        m = vmin
+    lo[f] = vmin
+    hi[f] = vmax
+    bad[f] = state
+    saturation[f] = sat
+    mean[f] = m
+    frame_flags[f] = flags
+
+
+@wp.kernel
+def column_lags(
+    images: wp.array3d(dtype=wp.float64),
+    band: int,
+    mean: wp.array(dtype=wp.float64),
+    lags: wp.array3d(dtype=wp.vec4d),
+):
+    """Column ``j`` of band ``b`` of frame ``f``: its share of the four lag sums of the mean-subtracted frame:
+    ``sum I'[i, j] I'[i, j+1]``, ``I'[i, j] I'[i+1, j]``, ``I'[i, j] I'[i, j+2]``, ``I'[i, j] I'[i+2, j]``
+    over the pixels where both lie in the frame (``I' = I - mean``)."""
+    f, b, j = wp.tid()
+    h = images.shape[1]
+    w = images.shape[2]
+    m = mean[f]
+    s01 = wp.float64(0.0)
+    s10 = wp.float64(0.0)
+    s02 = wp.float64(0.0)
+    s20 = wp.float64(0.0)
+    for i in range(b * band, wp.min(h, (b + 1) * band)):
+        a = images[f, i, j] - m
+        if j + 1 < w:
+            s01 += a * (images[f, i, j + 1] - m)
+        if j + 2 < w:
+            s02 += a * (images[f, i, j + 2] - m)
+        if i + 1 < h:
+            s10 += a * (images[f, i + 1, j] - m)
+        if i + 2 < h:
+            s20 += a * (images[f, i + 2, j] - m)
+    lags[f, b, j] = wp.vec4d(s01, s10, s02, s20)
+
+
+@wp.kernel
+def frame_results(
+    sorted_keys: wp.array(dtype=wp.float64),
+    frame_flags: wp.array(dtype=wp.int32),
+    lags: wp.array3d(dtype=wp.vec4d),
+    n_frame: int,
+    n_noise: int,
+    n_fill: int,
+    q_index: int,
+    q_frac: wp.float64,
+    noise_scale: wp.float64,
+    fill: wp.array(dtype=wp.float64),
+    noise: wp.array(dtype=wp.float64),
+    diameter: wp.array(dtype=wp.float64),
+):
+    """Frame ``f``'s order statistics from the sorted buffer, and its dot diameter from the lag sums.
+
+    ``noise``: the lower quartile of the differences (``q_index = int(0.25 (n_noise - 1))``, ``q_frac``
+    the remainder), interpolated as ``tracking.identify._lower_quartile`` does, over ``noise_scale``.
+    ``fill``: the median of the sub-sampled pixels (mean of the middle two for an even count). Either is
+    NaN where its values hold a NaN, as NumPy's percentile and median are. ``diameter``: the formula of
+    ``tracking.diameter.estimate_dot_diameter``; NaN for a non-finite frame or one without a peak.
+    """
+    f = wp.tid()
+    flags = frame_flags[f]
+    base = f * n_frame
+
+    q = wp.float64(0.0)
+    if (flags & NOISE_NAN) != 0:
+        q = wp.float64(wp.nan)
+    elif n_noise > 0:
+        a = sorted_keys[base + q_index]
+        b = a
+        if q_index + 1 < n_noise:
+            b = sorted_keys[base + q_index + 1]
+        if q_frac >= wp.float64(0.5):
+            q = b - (b - a) * (wp.float64(1.0) - q_frac)
+        else:
+            q = a + (b - a) * q_frac
+        q = q / noise_scale
+    noise[f] = q
+
+    med = wp.float64(0.0)
+    k = n_fill // 2
+    start = base + n_noise
+    if (flags & FILL_NAN) != 0:
+        med = wp.float64(wp.nan)
+    elif n_fill % 2 == 1:
+        med = sorted_keys[start + k]
+    else:
+        med = (sorted_keys[start + k - 1] + sorted_keys[start + k]) / wp.float64(2.0)
+    fill[f] = med
+
+    s = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for b in range(lags.shape[1]):
+        for j in range(lags.shape[2]):
+            s = s + lags[f, b, j]
+    r1 = wp.float64(0.5) * (s[0] + s[1])
+    r2 = wp.float64(0.5) * (s[2] + s[3])
+    d = wp.float64(wp.nan)
+    if (flags & NONFINITE) == 0 and r1 > wp.float64(0.0) and r2 > wp.float64(0.0) and r1 > r2:
+        s2 = wp.float64(3.0) / (wp.float64(2.0) * wp.log(r1 / r2))
+        d = wp.float64(4.0) * wp.sqrt(s2) / wp.sqrt(wp.float64(2.0))
+    diameter[f] = d
