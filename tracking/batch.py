@@ -33,13 +33,6 @@ from .windows import median_network
 
 __all__ = ["batch_support", "track_pairs"]
 
-#: The float64 columns of ``batch_kernels.write_table``'s table, in order, then its int32 columns.
-_FLOAT_COLUMNS = (
-    "x", "y", "u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient", "diameter", "peak", "u_pred", "v_pred",
-    "pred_correlation",
-)  # fmt: skip
-_INT_COLUMNS = ("status", "iteration", "iteration_gradient")
-
 #: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
 _Z_STEP = 1000.0
 
@@ -375,6 +368,8 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     groups: dict = {}
     for b, g in enumerate(geometry):
         groups.setdefault(g.key(), []).append(b)
+    if len(groups) == 1:  # (the usual case: one diameter for all)
+        return _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device)
     out = np.zeros((B, N), dtype=TRACK_DTYPE)
     for members in groups.values():
         sel = np.array(members)
@@ -486,23 +481,16 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         [confirmed, query, N, H, W, batch.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
     )
     outlier = _outliers(xy, uv, matched, B, N, s, device)
-    table = wp.empty((M, len(_FLOAT_COLUMNS)), dtype=wp.float64, device=device)
-    ints = wp.empty((M, len(_INT_COLUMNS)), dtype=wp.int32, device=device)
+    table = wp.empty(M, dtype=bk.TrackRow, device=device)
     batch.launch(
         bk.write_table,
         M,
         [
             r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
-            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table, ints,
+            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table,
         ],
     )  # fmt: skip
-    tf, ti = table.numpy(), ints.numpy()
-    out = np.empty(M, dtype=TRACK_DTYPE)
-    for k, name in enumerate(_FLOAT_COLUMNS):
-        out[name] = tf[:, k]
-    for k, name in enumerate(_INT_COLUMNS):
-        out[name] = ti[:, k]
-    return out.reshape(B, N)
+    return table.numpy().view(TRACK_DTYPE).reshape(B, N)
 
 
 def _predict(refs, grads, base, B, N, settings, device):

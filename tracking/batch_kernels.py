@@ -627,6 +627,29 @@ def fit_step_batch(
 # --- the table ------------------------------------------------------------------------------------
 
 
+@wp.struct
+class TrackRow:
+    """One row of ``tracking.pipeline.TRACK_DTYPE``, field for field (the same bytes: an array of rows
+    comes back as the table itself)."""
+
+    x: wp.float64
+    y: wp.float64
+    u: wp.float64
+    v: wp.float64
+    u_cc: wp.float64
+    v_cc: wp.float64
+    x_gradient: wp.float64
+    y_gradient: wp.float64
+    diameter: wp.float64
+    peak: wp.float64
+    status: wp.int32
+    iteration: wp.int16
+    iteration_gradient: wp.int16
+    u_pred: wp.float64
+    v_pred: wp.float64
+    pred_correlation: wp.float64
+
+
 @wp.kernel
 def take_model(
     params: wp.array2d(dtype=wp.float64),
@@ -764,11 +787,10 @@ def write_table(
     use_pred: int,
     cc_threshold: wp.float64,
     status: wp.array(dtype=wp.int32),
-    table: wp.array2d(dtype=wp.float64),
-    ints: wp.array2d(dtype=wp.int32),
+    table: wp.array(dtype=TrackRow),
 ):
-    """The table's columns: x, y, u, v, u_cc, v_cc, x_gradient, y_gradient, diameter, peak, u_pred, v_pred,
-    pred_correlation (float64) and status, iteration, iteration_gradient (int32)."""
+    """The table's row i: the outlier test's verdict, MATCHED, the displacements and the model
+    correction (``track_pair``'s last steps)."""
     i = wp.tid()
     nan = wp.float64(wp.nan)
     s = status[i]
@@ -777,10 +799,11 @@ def write_table(
         s = s | OUTLIER
         m = False
     found_g = (s & FOUND_GRADIENT) != 0
-    u = nan
-    v = nan
-    ucc = nan
-    vcc = nan
+    row = TrackRow()
+    row.u = nan
+    row.v = nan
+    row.u_cc = nan
+    row.v_cc = nan
     if m:
         s = s | MATCHED
         u = x_g[i] - x_r[i]
@@ -797,31 +820,31 @@ def write_table(
         dv = vcc - v
         if wp.sqrt(du * du + dv * dv) > cc_threshold:
             s = s | CC_FLAGGED
-    table[i, 0] = x_r[i]
-    table[i, 1] = y_r[i]
-    table[i, 2] = u
-    table[i, 3] = v
-    table[i, 4] = ucc
-    table[i, 5] = vcc
-    table[i, 6] = nan
-    table[i, 7] = nan
+        row.u = u
+        row.v = v
+        row.u_cc = ucc
+        row.v_cc = vcc
+    row.x = x_r[i]
+    row.y = y_r[i]
+    row.x_gradient = nan
+    row.y_gradient = nan
+    row.iteration_gradient = wp.int16(0)
     if found_g:
-        table[i, 6] = x_g[i]
-        table[i, 7] = y_g[i]
-    table[i, 8] = wp.float64(4.0) * eta_r[i]
-    table[i, 9] = i0_r[i]
-    table[i, 10] = nan
-    table[i, 11] = nan
-    table[i, 12] = nan
+        row.x_gradient = x_g[i]
+        row.y_gradient = y_g[i]
+        row.iteration_gradient = wp.int16(it_g[i])
+    row.diameter = wp.float64(4.0) * eta_r[i]
+    row.peak = i0_r[i]
+    row.status = s
+    row.iteration = wp.int16(it_r[i])
+    row.u_pred = nan
+    row.v_pred = nan
+    row.pred_correlation = nan
     if use_pred != 0:
-        table[i, 10] = uv_pred[i][0]
-        table[i, 11] = uv_pred[i][1]
-        table[i, 12] = quality[i]
-    ints[i, 0] = s
-    ints[i, 1] = it_r[i]
-    ints[i, 2] = 0
-    if found_g:
-        ints[i, 2] = it_g[i]
+        row.u_pred = uv_pred[i][0]
+        row.v_pred = uv_pred[i][1]
+        row.pred_correlation = quality[i]
+    table[i] = row
 
 
 # --- medians of segments ----------------------------------------------------------------------------

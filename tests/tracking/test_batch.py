@@ -83,3 +83,16 @@ def test_track_pairs_bad_input():
         track_pairs(refs, grads, prior_xy=prior[:2], device="cpu")
     with pytest.raises(SynthbosError, match="default estimators"):
         track_pairs(refs, grads, prior_xy=prior, settings=TrackingSettings.paper(), device="cpu")
+
+
+def test_track_pairs_pairs_of_different_dot_sizes(device):
+    """Pairs whose windows differ (3 and 5 px dots) are tracked in groups, each as track_pair does."""
+    rng = np.random.default_rng(7)
+    xy = dot_pattern(rng, SHAPE, per_32x32=12, min_distance=4.0)
+    disp = smooth_displacement(xy, SHAPE, 1.0)
+    refs = np.array([draw_dots(SHAPE, xy, d) + 0.01 * rng.standard_normal(SHAPE) for d in (3.0, 5.0, 3.0)])
+    grads = np.array([draw_dots(SHAPE, xy + disp, d) + 0.01 * rng.standard_normal(SHAPE) for d in (3.0, 5.0, 3.0)])
+    tables = track_pairs(refs, grads, prior_xy=xy, device=device)
+    for b in range(3):
+        _assert_same(tables[b], track_pair(refs[b], grads[b], prior_xy=xy, device=device))
+    assert np.median(tables["diameter"][1]) > 1.4 * np.median(tables["diameter"][0])
