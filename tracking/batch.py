@@ -29,6 +29,8 @@ from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
 from .pipeline import TRACK_DTYPE, TrackingSettings
+from .predict import pooling_block, predictor_passes
+from .predict_batch import predict_displacement_batch
 from .windows import median_network
 
 __all__ = ["batch_support", "track_pairs"]
@@ -417,9 +419,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     if use_pred:
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
-        batch.launch(
-            bk.predicted_position, M, [base, uv_pred, r["x"], pred_g, wp.zeros(1, dtype=wp.int32, device=device)]
-        )
+        batch.launch(bk.predicted_position, M, [base, uv_pred, pred_g])
         g = batch.identify(grads, 1, pred_g, batch.all_ids, M, wide=False)
         count = wp.zeros(1, dtype=wp.int32, device=device)
         miss = wp.empty(M, dtype=wp.int32, device=device)
@@ -494,14 +494,33 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
 
 
 def _predict(refs, grads, base, B, N, settings, device):
-    """The correlation predictor of every pair (host reference, pair by pair, for now)."""
-    from .predict import predict_displacement
+    """The correlation predictor of every pair (:mod:`tracking.predict_batch`), at ``base``.
 
-    r, g, xy = refs.numpy(), grads.numpy(), base.numpy().reshape(B, N, 2)
+    Pairs whose pass schedule differs (it depends on the number of dots inside the image) are run in
+    groups; usually all pairs share one.
+    """
+    H, W = refs.shape[1:]
+    count = wp.zeros(B, dtype=wp.int32, device=device)
+    wp.launch(bk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
+    plans = {}
+    for b, n_in in enumerate(count.numpy()):
+        sizes, density = predictor_passes((H, W), int(n_in), settings.predictor_windows)
+        key = (tuple(sizes), tuple(pooling_block(density, z) for z in sizes))
+        plans.setdefault(key, (sizes, density, []))[2].append(b)
+    xy = base.reshape((B, N))
+    if len(plans) == 1:
+        (sizes, density, _), = plans.values()
+        uv, q = predict_displacement_batch(refs, grads, xy, sizes=sizes, density=density, device=device)
+        return uv.reshape((B * N,)), q.reshape((B * N,))
     uv = np.empty((B, N, 2))
     q = np.empty((B, N))
-    for b in range(B):
-        uv[b], q[b] = predict_displacement(r[b], g[b], xy[b], window_sizes=settings.predictor_windows, device=device)
+    host_xy = xy.numpy()
+    for sizes, density, members in plans.values():
+        sel = np.array(members)
+        u, v = predict_displacement_batch(
+            _pairs_of(refs, sel), _pairs_of(grads, sel), host_xy[sel], sizes=sizes, density=density, device=device
+        )
+        uv[sel], q[sel] = u.numpy(), v.numpy()
     return (
         wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
         wp.array(q.ravel(), dtype=wp.float64, device=device),

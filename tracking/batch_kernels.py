@@ -479,12 +479,25 @@ def reference_or_prior(
 
 
 @wp.kernel
+def count_inside(
+    base: wp.array(dtype=wp.vec2d), per_frame: int, height: int, width: int, count: wp.array(dtype=wp.int32)
+):
+    """Dots per pair inside the image (``tracking.predict.dots_inside``), which set the predictor's passes."""
+    i = wp.tid()
+    p = base[i]
+    h = wp.float64(height)
+    w = wp.float64(width)
+    half = wp.float64(0.5)
+    in_x = wp.abs(p[0] - (w - wp.float64(1.0)) * half) <= w * half
+    if in_x and wp.abs(p[1] - (h - wp.float64(1.0)) * half) <= h * half:  # (NaN: never)
+        wp.atomic_add(count, i // per_frame, 1)
+
+
+@wp.kernel
 def predicted_position(
     base: wp.array(dtype=wp.vec2d),
     uv: wp.array(dtype=wp.vec2d),
-    x: wp.array(dtype=wp.float64),
     pred: wp.array(dtype=wp.vec2d),
-    miss_count: wp.array(dtype=wp.int32),
 ):
     """``base + nan_to_num(uv)`` (the gradient-image prediction)."""
     i = wp.tid()

@@ -29,7 +29,14 @@ from synthbos.correlation.peak import three_point_offset
 from .kernels import deform_nearest_kernel
 from .workspace import scratch
 
-__all__ = ["PREDICTOR_WINDOWS", "local_normalized_correlation", "predict_displacement"]
+__all__ = [
+    "PREDICTOR_WINDOWS",
+    "dots_inside",
+    "local_normalized_correlation",
+    "pooling_block",
+    "predict_displacement",
+    "predictor_passes",
+]
 
 #: Tile sizes (px) of the predictor's passes: 64 px tiles find shifts up to about 16 px (a quarter of the
 #: tile) and more; the 32 and 16 px passes (the last one twice) follow fields that vary over a few tens of
@@ -45,6 +52,65 @@ _CROSS = ((-1, 0), (0, -1), (0, 0), (0, 1), (1, 0))
 
 #: A tile takes part only where at least this fraction of its reference pixels is not masked.
 _MIN_VALID_FRACTION = 0.25
+
+
+def dots_inside(xy, shape):
+    """Number of the (N, 2) positions ``xy`` (x = column, y = row; non-finite rows not counted) that lie
+    inside an image of ``shape`` (within half a pixel beyond the outer pixel centres)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    h, w = shape
+    fin = np.isfinite(xy).all(axis=1)
+    return int(
+        np.count_nonzero(
+            fin
+            & (np.abs(np.where(fin, xy[:, 0], -9) - (w - 1) / 2) <= w / 2)
+            & (np.abs(np.where(fin, xy[:, 1], -9) - (h - 1) / 2) <= h / 2)
+        )
+    )
+
+
+def predictor_passes(shape, n_inside, window_sizes=PREDICTOR_WINDOWS, min_dots_per_window=5.0):
+    """The tile sizes of the predictor's passes, and the dot density, for an image of ``shape``.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Image shape (H, W).
+    n_inside : int
+        Number of dots inside the image (:func:`dots_inside`).
+    window_sizes, min_dots_per_window
+        As for :func:`predict_displacement`.
+
+    Returns
+    -------
+    sizes : list of int
+        Tile size (px) of each pass, coarse first (empty: no pass, the image is smaller than 8 px):
+        ``window_sizes`` reduced to the image, and those whose tiles would hold fewer than
+        ``min_dots_per_window`` dots on average replaced by one pass with the smallest tile (a multiple
+        of 8 px, not necessarily a power of two) that holds that many.
+    density : float
+        Dots per px^2 (at least one dot counted), which also sets the pooling block
+        (:func:`pooling_block`).
+    """
+    h, w = shape
+    side = min(h, w)
+    density = max(n_inside, 1) / (h * w)
+    smallest = 8 * int(np.ceil(np.sqrt(min_dots_per_window / density) / 8.0))
+    kept = [int(s) for s in window_sizes if s >= smallest]
+    if len(kept) < len(window_sizes):
+        kept.append(min(smallest, max(window_sizes)))
+    sizes = []
+    for s in kept:
+        s = int(min(s, side))
+        if s >= 8 and (not sizes or s <= sizes[-1]):
+            sizes.append(s)
+    return sizes, density
+
+
+def pooling_block(density, size, min_dots_per_box=20.0):
+    """Side k (odd, in tiles) of the block of ``size`` px tiles over which the significance is pooled:
+    the smallest that holds ``min_dots_per_box`` dots at ``density`` dots per px^2."""
+    return max(1 + 2 * int(np.ceil((np.sqrt(min_dots_per_box / density) / size - 1.0) / 2.0)), 1)
 
 
 def local_normalized_correlation(a, b, *, size, weights=None):
@@ -559,24 +625,9 @@ def predict_displacement(
     a, b = (f if f.dtype == np.float32 else np.asarray(f, dtype=np.float64) for f in (a, b))
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     h, w = a.shape
-    side = min(h, w)
     n = len(xy)
     fin = np.isfinite(xy).all(axis=1)
-    n_in = np.count_nonzero(
-        fin
-        & (np.abs(np.where(fin, xy[:, 0], -9) - (w - 1) / 2) <= w / 2)
-        & (np.abs(np.where(fin, xy[:, 1], -9) - (h - 1) / 2) <= h / 2)
-    )
-    density = max(n_in, 1) / (h * w)
-    smallest = 8 * int(np.ceil(np.sqrt(min_dots_per_window / density) / 8.0))
-    kept = [int(s) for s in window_sizes if s >= smallest]
-    if len(kept) < len(window_sizes):
-        kept.append(min(smallest, max(window_sizes)))
-    sizes = []
-    for s in kept:
-        s = int(min(s, side))
-        if s >= 8 and (not sizes or s <= sizes[-1]):
-            sizes.append(s)
+    sizes, density = predictor_passes(a.shape, dots_inside(xy, a.shape), window_sizes, min_dots_per_window)
     if not sizes or n == 0:
         return np.zeros((n, 2)), np.zeros(n)
     valid = None if mask is None else (~np.asarray(mask, dtype=bool)).astype(np.float32)
@@ -648,7 +699,7 @@ def predict_displacement(
     # variances, so tiles without dots (variance of the noise only) hardly count
     ea, eb = (np.where(usable, e, 0.0) for e in energy)
     cov = np.where(usable, coef, 0.0) * np.sqrt(ea * eb)
-    k = max(1 + 2 * int(np.ceil((np.sqrt(min_dots_per_box / density) / size - 1.0) / 2.0)), 1)
+    k = pooling_block(density, size, min_dots_per_box)
     pooled = usable
     if k > 1:
         cov, ea, eb, share = (

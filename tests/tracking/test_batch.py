@@ -35,11 +35,14 @@ def _batch(seed=2):
 
 
 def _assert_same(batch_table, single_table):
+    """Every field equal but for rounding: the predictor's float32 correlations (Warp's tile FFT in the
+    batch, SciPy's in track_pair) to 1e-5, the positions and displacements fitted from them to 1e-7 px."""
     for name in single_table.dtype.names:
         a, b = batch_table[name], single_table[name]
         if a.dtype.kind == "f":
             assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
-            assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=0, atol=1e-9, err_msg=name)
+            atol = 1e-5 if name in ("u_pred", "v_pred", "pred_correlation") else 1e-7
+            assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=1e-12, atol=atol, err_msg=name)
         else:
             assert_array_equal(a, b, err_msg=name)
 

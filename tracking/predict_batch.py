@@ -1,0 +1,224 @@
+"""The correlation predictor of :mod:`tracking.predict` for a batch of image pairs, on one Warp device.
+
+:func:`predict_displacement_batch` runs :func:`tracking.predict.predict_displacement` (without a mask)
+for B pairs at once: every pass is a fixed sequence of launches of :mod:`tracking.predict_kernels`
+over all pairs, the images, fields and results stay on the device, and nothing waits for the host
+(the host only loops over the passes). The pyramid still ends pair by pair: a pair whose field a pass
+changed little is left alone by the later passes (the kernels read which pairs run from the per-pair,
+per-pass ``changed`` flags), and its displacement and significance are computed from the planes of the
+pass at which it stopped, as the host does for it alone.
+
+The host function is the reference: the correlations differ by float32 rounding (Warp's tile FFT here,
+SciPy's pocketfft there), which can at times flip a whole-pixel rounding of the deformation or a tie of
+the peak search; otherwise the steps are the same arithmetic.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import predict_kernels as pk
+from .predict import _sparse_grid, _sparse_tile_grid, _tile_grid, pooling_block
+
+__all__ = ["predict_displacement_batch", "uses_tile_fft"]
+
+_correlate_kernels: dict = {}  # (size, fft) -> kernel
+_constants: dict = {}  # (size, first pass, device) -> (spectral factors, search region)
+
+
+def uses_tile_fft(size):
+    """Whether passes of ``size`` px tiles correlate by Warp's tile FFT (a power of two), else by the
+    direct circular correlation (sizes such as 24 px, from sparse patterns)."""
+    return size >= 4 and size & (size - 1) == 0
+
+
+def _correlate_kernel(size):
+    fft = uses_tile_fft(size)
+    key = (size, fft)
+    if key not in _correlate_kernels:
+        _correlate_kernels[key] = pk.make_correlate_tiles(size, fft)
+    return _correlate_kernels[key]
+
+
+def _search_block(size, first):
+    """The peak search of a pass: the whole plane in the first pass, else the samples within a quarter
+    tile of zero displacement (``predict_displacement``'s ``lo`` and ``m``)."""
+    if first:
+        return 0, size
+    return size // 2 - size // 4, 2 * (size // 4) + 1
+
+
+def _pass_constants(size, first, device):
+    """The spectral factors ``(-1)^(r + c) / size^2`` (the inverse FFT's scale and the shift of zero
+    displacement to the plane's centre) and the search region (sample index where searched, else -1)
+    of a pass, on ``device`` (uploaded once per process)."""
+    key = (size, bool(first), str(device))
+    if key not in _constants:
+        r, c = np.indices((size, size))
+        spectral = (np.where((r + c) % 2 == 0, 1.0, -1.0) / (size * size)).astype(np.float32)
+        lo, m = _search_block(size, first)
+        region = np.full((size, size), -1, dtype=np.int32)
+        region[lo : lo + m, lo : lo + m] = (r * size + c)[lo : lo + m, lo : lo + m]
+        _constants[key] = (
+            wp.array(spectral, dtype=wp.float32, device=device),
+            wp.array(region, dtype=wp.int32, device=device),
+        )
+    return _constants[key]
+
+
+def _grid(shape, size, sparse):
+    """The :class:`predict_kernels.TileGrid` of a pass (``predict_displacement``'s tile grids)."""
+    h, w = shape
+    ys = _sparse_tile_grid(h, size) if sparse else _tile_grid(h, size)
+    xs = _sparse_tile_grid(w, size) if sparse else _tile_grid(w, size)
+    g = pk.TileGrid()
+    g.top, g.left = int(ys[0]), int(xs[0])
+    g.row_step = int(ys[1] - ys[0]) if len(ys) > 1 else size
+    g.col_step = int(xs[1] - xs[0]) if len(xs) > 1 else size
+    g.size, g.ny, g.nx = int(size), len(ys), len(xs)
+    return g
+
+
+def _on_device(a, dtype, ndim, device, name):
+    """``a`` as a Warp array of ``dtype`` on ``device`` (NumPy arrays are uploaded)."""
+    if isinstance(a, wp.array):
+        if a.dtype != dtype or a.ndim != ndim:
+            raise ValueError(f"{name}: expected a {ndim}-d Warp array of {dtype.__name__}")
+        if a.device != device:
+            raise ValueError(f"{name} lies on {a.device}, not on {device}")
+        return a
+    if dtype == wp.vec2d:
+        arr = np.asarray(a, dtype=np.float64)
+        if arr.ndim != 3 or arr.shape[-1] != 2:
+            raise ValueError(f"{name}: expected (B, N, 2) positions")
+        return wp.array(np.ascontiguousarray(arr), dtype=wp.vec2d, device=device)
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-d array")
+    return wp.array(np.ascontiguousarray(arr), dtype=dtype, device=device)
+
+
+def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per_box=20.0, density, device=None):
+    """Predict each dot's displacement in each of B image pairs, and say how far to trust it.
+
+    :func:`tracking.predict.predict_displacement` (``mask=None``) for every pair, all pairs in each
+    launch.
+
+    Parameters
+    ----------
+    references, gradients : (B, H, W) float64 Warp arrays (or NumPy arrays, uploaded)
+        The image pairs.
+    xy : (B, N) ``wp.vec2d`` Warp array (or (B, N, 2) NumPy array)
+        Reference-image positions (x = column, y = row) at which to predict; non-finite rows give NaN.
+    sizes : sequence of int, keyword-only
+        Tile size of each pass, as :func:`tracking.predict.predictor_passes` gives it for the pairs'
+        shape and number of dots inside the image (shared by all pairs of the batch).
+    min_dots_per_box : float, keyword-only
+        As for ``predict_displacement``.
+    density : float, keyword-only
+        Dots per px^2, as ``predictor_passes`` gives it: sets the block over which the significance is
+        pooled (:func:`tracking.predict.pooling_block`).
+    device : str, optional
+        Warp device (Warp's default when None).
+
+    Returns
+    -------
+    uv : (B, N) ``wp.vec2d`` Warp array
+        Predicted displacement (u, v) in pixels, as ``predict_displacement``.
+    quality : (B, N) float64 Warp array
+        Its significance, as ``predict_displacement``.
+
+    Notes
+    -----
+    Every pass is launched for the whole batch (13 launches, 15 for a tile size that is not a power of
+    two); a pair that stopped at an earlier pass is skipped by every kernel. Tile sizes that are powers
+    of two are correlated by Warp's tile FFT, others by the direct circular correlation
+    (:func:`uses_tile_fft`). Nothing is copied back to the host.
+    """
+    device = wp.get_device(device)
+    refs = _on_device(references, wp.float64, 3, device, "references")
+    grads = _on_device(gradients, wp.float64, 3, device, "gradients")
+    pts = _on_device(xy, wp.vec2d, 2, device, "xy")
+    if refs.shape != grads.shape:
+        raise ValueError(f"references {refs.shape} and gradients {grads.shape} differ in shape")
+    nb, h, w = refs.shape
+    if pts.shape[0] != nb:
+        raise ValueError(f"xy holds {pts.shape[0]} pairs, the images {nb}")
+    n_dots = pts.shape[1]
+    sizes = [int(s) for s in sizes]
+    if not sizes or n_dots == 0 or nb == 0:
+        return (
+            wp.zeros((nb, n_dots), dtype=wp.vec2d, device=device),
+            wp.zeros((nb, n_dots), dtype=wp.float64, device=device),
+        )
+    grids = [_grid((h, w), s, p == 0 and len(sizes) > 1 and _sparse_grid(h, w, s)) for p, s in enumerate(sizes)]
+    constants = [_pass_constants(s, p == 0, device) for p, s in enumerate(sizes)]
+    kernels = [_correlate_kernel(s) for s in sizes]
+
+    def launch(kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+
+    changed = wp.zeros((nb, len(sizes)), dtype=wp.int32, device=device)
+    uv = wp.empty((nb, n_dots), dtype=wp.vec2d, device=device)
+    quality = wp.empty((nb, n_dots), dtype=wp.float64, device=device)
+    none = wp.empty((1, 1, 1), dtype=wp.float64, device=device)  # the first pass's coarser field: not read
+    coarse = None  # (grid, u, v) of the previous pass
+    for p, (size, g) in enumerate(zip(sizes, grids, strict=True)):
+        last = int(p == len(sizes) - 1)
+        fft = uses_tile_fft(size)
+        spectral, region = constants[p]
+        count_tiles = nb * g.ny * g.nx
+        rows, cols = g.ny * size, g.nx * size
+        run = size if device.is_cpu else 1  # pixels per thread of the deformation: fewer, longer threads on the CPU
+        per_tile = (nb, g.ny, g.nx)
+
+        def tiles(dtype=wp.float64, shape=per_tile):
+            return wp.empty(shape, dtype=dtype, device=device)
+
+        # the gradient image moved back by the coarser field, tile by tile
+        moved, weight, shift = (tiles(t, (nb, rows, cols)) for t in (wp.float32, wp.float32, wp.vec2f))
+        cg, cu, cv = coarse if coarse is not None else (g, none, none)
+        launch(pk.deform_tiles, (nb, rows, -(-cols // run)), [grads, changed, p, g, int(coarse is not None), cg, cu,
+                                                             cv, run, moved, weight, shift])  # fmt: skip
+
+        # correlation planes and their peaks
+        planes = tiles(wp.float32, (count_tiles * size, size))
+        centred = tiles(wp.float32, (2, count_tiles * size, size) if not fft else (2, 1, 1))
+        peak, norm, count, energy, base = (tiles(t) for t in (wp.int32, wp.float64, wp.float32, wp.vec2d, wp.vec2d))
+        wp.launch_tiled(
+            kernels[p],
+            dim=[count_tiles],
+            inputs=[refs, moved, weight, shift, changed, p, g, spectral, region, planes, centred, peak, norm, count,
+                    energy, base],
+            block_dim=max(size // 2, 1),
+            device=device,
+        )  # fmt: skip
+        if not fft:
+            launch(pk.correlate_direct, (count_tiles, size, size), [centred, changed, p, g, planes])
+            lo, m = _search_block(size, p == 0)
+            launch(pk.search_peaks, per_tile, [planes, changed, p, g, lo, m, peak])
+
+        # the field: peak fits, the normalised median test, holes filled from the nearest tile
+        res_u, res_v, raw_u, raw_v, rep_u, rep_v, field_u, field_v = (tiles() for _ in range(8))
+        scaled, usable, feature, stack = (tiles(t) for t in (wp.float32, wp.int32, wp.int32, wp.int32))
+        launch(pk.fit_tiles, per_tile, [planes, peak, norm, count, base, changed, p, g, res_u, res_v, raw_u, raw_v,
+                                        scaled, usable])  # fmt: skip
+        launch(pk.replace_outliers, per_tile, [raw_u, raw_v, changed, p, rep_u, rep_v])
+        launch(pk.nearest_in_columns, (nb, g.nx), [rep_u, changed, p, last, 0, feature])
+        launch(pk.nearest_in_rows, (nb, g.ny), [rep_u, rep_v, feature, stack, changed, p, last, 0, field_u, field_v])
+        launch(pk.field_change, per_tile, [field_u, field_v, g, int(coarse is not None), cg, cu, cv, p, changed])
+
+        # pairs that stop here: the significance from this pass's planes, the values at the dots
+        med_u, med_v, fill_u, fill_v, coefficient = (tiles() for _ in range(5))
+        terms = tiles(wp.vec4d)
+        launch(pk.neighbour_medians, per_tile, [res_u, res_v, changed, p, last, med_u, med_v])
+        launch(pk.nearest_in_columns, (nb, g.nx), [med_u, changed, p, last, 1, feature])
+        launch(pk.nearest_in_rows, (nb, g.ny), [med_u, med_v, feature, stack, changed, p, last, 1, fill_u, fill_v])
+        launch(pk.tile_coefficients, per_tile, [planes, fill_u, fill_v, scaled, usable, energy, changed, p, last, g,
+                                                terms])  # fmt: skip
+        k = pooling_block(density, size, min_dots_per_box)
+        launch(pk.pool_coefficients, per_tile, [terms, k, changed, p, last, coefficient])
+        launch(pk.values_at_dots, (nb, n_dots), [pts, field_u, field_v, coefficient, g, changed, p, last, uv, quality])
+        coarse = (g, field_u, field_v)
+    return uv, quality
