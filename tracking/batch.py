@@ -35,6 +35,9 @@ from .windows import median_network
 
 __all__ = ["batch_support", "track_pairs"]
 
+#: Copy the table back through page-locked host memory (CUDA devices).
+PINNED_TABLE = True
+
 #: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
 _Z_STEP = 1000.0
 
@@ -93,7 +96,8 @@ class _Batch:
         self.stats = stats
         d = np.array([g.d for g in geometry])
         self.diameter = self.arr(d, wp.float64)
-        self.eta0 = self.arr(d / 4.0, wp.float64)
+        self.eta0_host = d / 4.0
+        self.eta0 = self.arr(self.eta0_host, wp.float64)
         g0 = geometry[0]
         self.geometry = g0
         self.all_ids = self.arr(np.arange(self.M, dtype=np.int32), wp.int32)
@@ -164,7 +168,8 @@ class _Batch:
         noise, fill, sat = st["noise"][which], st["fill"][which], st["sat"][which]
         floor = st["floor"][which]
         ref_peak = None
-        reach = self.arr(half * np.sqrt(2.0) + 4.5 * self.eta0.numpy() + 1.0, wp.float64)
+        reach_px = half * np.sqrt(2.0) + 4.5 * self.eta0_host + 1.0
+        reach = self.arr(reach_px, wp.float64)
         wa, wi, wd = (float(v) for v in s.weights)
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
         for it in range(1, s.max_iterations + 1):
@@ -203,7 +208,7 @@ class _Batch:
             self.launch(bk.next_round, self.B, [won, active])
             if it < s.max_iterations:
                 self.launch(bk.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
-                self.grid.build(points, float(np.max(reach.numpy())) + 1.0)
+                self.grid.build(points, float(np.max(reach_px)) + 1.0)
                 self.launch(
                     bk.subtract_near_waiting,
                     n_ids,
@@ -238,7 +243,7 @@ class _Batch:
         valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
         self.launch(bk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
         med = self.segment_median(values, valid, 2 * N, B).numpy()
-        eta0 = self.eta0.numpy()
+        eta0 = self.eta0_host
         sigma0 = np.where(
             np.isfinite(med), np.sqrt(np.maximum(np.nan_to_num(med) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)), eta0
         )
@@ -345,16 +350,14 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     if min(H, W) < 8:
         raise SynthbosError(f"images are too small ({H}x{W}), need at least 8x8")
     prior = np.asarray(prior_xy, dtype=np.float64)
-    if prior.ndim == 2:
-        prior = np.broadcast_to(prior, (B, *prior.shape))
-    if prior.ndim != 3 or prior.shape[0] != B or prior.shape[2] != 2:
+    shared = prior.ndim == 2  # one prior for all pairs: checked and uploaded once, repeated on the device
+    if not (prior.ndim in (2, 3) and prior.shape[-1] == 2 and (shared or prior.shape[0] == B)):
         raise SynthbosError(f"prior positions must be an Nx2 or {B}xNx2 array, got shape {prior.shape}")
-    N = prior.shape[1]
-    fin = np.isfinite(prior).all(axis=2)
+    fin = np.isfinite(prior).all(axis=-1)
     p = np.where(fin[..., None], prior, -1e9)
     inside = fin & (p[..., 0] > -0.5) & (p[..., 0] < W - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < H - 0.5)
-    if not inside.any(axis=1).all():
-        b = int(np.flatnonzero(~inside.any(axis=1))[0])
+    if not inside.any(axis=-1).all():
+        b = 0 if shared else int(np.flatnonzero(~inside.any(axis=1))[0])
         raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
 
     st_r = _frame_statistics(refs, "reference", settings, device)
@@ -372,13 +375,13 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
         groups.setdefault(g.key(), []).append(b)
     if len(groups) == 1:  # (the usual case: one diameter for all)
         return _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device)
-    out = np.zeros((B, N), dtype=TRACK_DTYPE)
+    out = np.zeros((B, prior.shape[-2]), dtype=TRACK_DTYPE)
     for members in groups.values():
         sel = np.array(members)
         out[sel] = _track_group(
             _pairs_of(refs, sel),
             _pairs_of(grads, sel),
-            prior[sel],
+            prior if prior.ndim == 2 else prior[sel],
             {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_r.items()},
             {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_g.items()},
             [geometry[b] for b in sel],
@@ -397,7 +400,7 @@ def _pairs_of(stack, sel):
 
 def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     B, H, W = refs.shape
-    N = prior.shape[1]
+    N = prior.shape[-2]
     M = B * N
     s = settings
 
@@ -411,7 +414,13 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         "floor": [arr(s.noise_threshold * st["noise"], wp.float64) for st in (st_r, st_g)],
         "sat_frames": arr(np.stack([st_r["sat"], st_g["sat"]], axis=1).ravel(), wp.float64),
     }
-    batch = _Batch(refs, grads, arr(prior.reshape(M, 2), wp.vec2d), stats, geometry, s, device)
+    if prior.ndim == 2:  # one set for all pairs, repeated on the device
+        one = arr(prior, wp.vec2d)
+        on_device = wp.empty(M, dtype=wp.vec2d, device=device)
+        wp.launch(bk.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
+    else:
+        on_device = arr(prior.reshape(M, 2), wp.vec2d)
+    batch = _Batch(refs, grads, on_device, stats, geometry, s, device)
     r = batch.identify(refs, 0, batch.prior, batch.all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
@@ -490,6 +499,12 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
             shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table,
         ],
     )  # fmt: skip
+    if PINNED_TABLE and wp.get_device(device).is_cuda:
+        # one copy into page-locked host memory (several times faster than into pageable memory)
+        host = wp.empty(M, dtype=bk.TrackRow, device="cpu", pinned=True)
+        wp.copy(host, table)
+        wp.synchronize_device(device)
+        table = host
     return table.numpy().view(TRACK_DTYPE).reshape(B, N)
 
 

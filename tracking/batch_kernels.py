@@ -37,6 +37,13 @@ OUTLIER = wp.constant(32768)
 NO_CLAIM = wp.constant(2147483647)
 
 
+@wp.kernel
+def repeat_rows(one: wp.array(dtype=wp.vec2d), per_frame: int, out: wp.array(dtype=wp.vec2d)):
+    """One set of positions for every pair: ``out[i] = one[i % per_frame]``."""
+    i = wp.tid()
+    out[i] = one[i % per_frame]
+
+
 # --- identification -------------------------------------------------------------------------------
 
 

@@ -23,6 +23,9 @@ from .predict import _sparse_grid, _sparse_tile_grid, _tile_grid, pooling_block
 
 __all__ = ["predict_displacement_batch", "uses_tile_fft"]
 
+#: Threads per block of the tile-correlation kernel, by tile size (default: half the tile size).
+TILE_THREADS: dict = {}
+
 _correlate_kernels: dict = {}  # (size, fft) -> kernel
 _constants: dict = {}  # (size, first pass, device) -> (spectral factors, search region)
 
@@ -191,7 +194,7 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
             dim=[count_tiles],
             inputs=[refs, moved, weight, shift, changed, p, g, spectral, region, planes, centred, peak, norm, count,
                     energy, base],
-            block_dim=max(size // 2, 1),
+            block_dim=TILE_THREADS.get(size, max(size // 2, 1)),
             device=device,
         )  # fmt: skip
         if not fft:
