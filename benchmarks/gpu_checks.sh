@@ -51,7 +51,7 @@ if [ "$part" = tests ]; then
     > "$work/bench_correlation.log" 2>&1
   grep -A12 "^pair" "$work/bench_correlation.log"
 elif [ "$part" = stages ]; then
-  python3 -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --rays 10000 --cpu-rays 100 --paper-full \
+  python3 -m synthbos.benchmarks.bench_stages --devices cpu cuda:0 --rays 10000 --cpu-rays 100 --batch 400 --cpu-batch 4 --paper-full \
     ${ALSO_CPU:+--also-cpu-processing} --workers 14 --json "$work/bench_stages.json" > "$work/bench_stages.log" 2>&1
   cat "$work/bench_stages.log"
   cp "$work/bench_stages.json" "$work/bench_stages.log" "$out/" 2>/dev/null
