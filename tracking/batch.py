@@ -28,7 +28,7 @@ from .dotfit import _fixed_point_scale, fit_window_half
 from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
-from .pipeline import TRACK_DTYPE, TrackingSettings
+from .pipeline import TRACK_DTYPE, TrackingSettings, prior_inside, residual_reach, start_width, window_sizes
 from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
 from .windows import median_network
@@ -72,10 +72,7 @@ class _Pairs:
 
     def __init__(self, d, settings):
         self.d = d
-        self.eta0 = d / 4.0
-        self.half_r = int(np.ceil(d / 2.0 + settings.window_margin))
-        self.half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
-        self.map_half = int(np.ceil(d / 2.0 + 0.5))
+        self.eta0, self.half_r, self.half_g, self.map_half = window_sizes(d, settings)
         self.fit_half, self.render_half = fit_window_half(self.eta0)
 
     def key(self):
@@ -168,7 +165,7 @@ class _Batch:
         noise, fill, sat = st["noise"][which], st["fill"][which], st["sat"][which]
         floor = st["floor"][which]
         ref_peak = None
-        reach_px = half * np.sqrt(2.0) + 4.5 * self.eta0_host + 1.0
+        reach_px = residual_reach(half, self.eta0_host)
         reach = self.arr(reach_px, wp.float64)
         wa, wi, wd = (float(v) for v in s.weights)
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
@@ -243,11 +240,7 @@ class _Batch:
         valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
         self.launch(bk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
         med = self.segment_median(values, valid, 2 * N, B).numpy()
-        eta0 = self.eta0_host
-        sigma0 = np.where(
-            np.isfinite(med), np.sqrt(np.maximum(np.nan_to_num(med) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)), eta0
-        )
-        sigma0 = self.arr(sigma0, wp.float64)
+        sigma0 = self.arr(start_width(med, self.eta0_host), wp.float64)
         rows = 2 * M
         start = wp.empty((rows, 5), dtype=wp.float64, device=self.device)
         live = wp.empty(rows, dtype=wp.int32, device=self.device)
@@ -353,9 +346,7 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     shared = prior.ndim == 2  # one prior for all pairs: checked and uploaded once, repeated on the device
     if not (prior.ndim in (2, 3) and prior.shape[-1] == 2 and (shared or prior.shape[0] == B)):
         raise SynthbosError(f"prior positions must be an Nx2 or {B}xNx2 array, got shape {prior.shape}")
-    fin = np.isfinite(prior).all(axis=-1)
-    p = np.where(fin[..., None], prior, -1e9)
-    inside = fin & (p[..., 0] > -0.5) & (p[..., 0] < W - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < H - 0.5)
+    inside = prior_inside(prior, (H, W))
     if not inside.any(axis=-1).all():
         b = 0 if shared else int(np.flatnonzero(~inside.any(axis=1))[0])
         raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
@@ -524,7 +515,7 @@ def _predict(refs, grads, base, B, N, settings, device):
         plans.setdefault(key, (sizes, density, []))[2].append(b)
     xy = base.reshape((B, N))
     if len(plans) == 1:
-        (sizes, density, _), = plans.values()
+        ((sizes, density, _),) = plans.values()
         uv, q = predict_displacement_batch(refs, grads, xy, sizes=sizes, density=density, device=device)
         return uv.reshape((B * N,)), q.reshape((B * N,))
     uv = np.empty((B, N, 2))
@@ -532,10 +523,10 @@ def _predict(refs, grads, base, B, N, settings, device):
     host_xy = xy.numpy()
     for sizes, density, members in plans.values():
         sel = np.array(members)
-        u, v = predict_displacement_batch(
+        uv_sel, q_sel = predict_displacement_batch(
             _pairs_of(refs, sel), _pairs_of(grads, sel), host_xy[sel], sizes=sizes, density=density, device=device
         )
-        uv[sel], q[sel] = u.numpy(), v.numpy()
+        uv[sel], q[sel] = uv_sel.numpy(), q_sel.numpy()
     return (
         wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
         wp.array(q.ravel(), dtype=wp.float64, device=device),

@@ -13,25 +13,27 @@ import warp as wp
 from synthbos.correlation.pass_kernels import three_point_offset
 
 from .kernels import fit_dot_step, measure_window
+from .pipeline import DotStatus
 
 wp.config.quiet = True
 wp.set_module_options({"enable_backward": False})
 
-FOUND_REFERENCE = wp.constant(1)
-FOUND_GRADIENT = wp.constant(2)
-MATCHED = wp.constant(4)
-CC_VALID = wp.constant(8)
-CC_FLAGGED = wp.constant(16)
-OUTSIDE_IMAGE = wp.constant(32)
-NEAR_BORDER = wp.constant(64)
-SATURATED = wp.constant(128)
-OVERLAPPED = wp.constant(256)
-AMBIGUOUS = wp.constant(512)
-FIT_FALLBACK = wp.constant(1024)
-PREDICTOR_MISMATCH = wp.constant(4096)
-PREDICTOR_WEAK = wp.constant(8192)
-EDGE_CUT = wp.constant(16384)
-OUTLIER = wp.constant(32768)
+# the status bits, from their one home
+FOUND_REFERENCE = wp.constant(int(DotStatus.FOUND_REFERENCE))
+FOUND_GRADIENT = wp.constant(int(DotStatus.FOUND_GRADIENT))
+MATCHED = wp.constant(int(DotStatus.MATCHED))
+CC_VALID = wp.constant(int(DotStatus.CC_VALID))
+CC_FLAGGED = wp.constant(int(DotStatus.CC_FLAGGED))
+OUTSIDE_IMAGE = wp.constant(int(DotStatus.OUTSIDE_IMAGE))
+NEAR_BORDER = wp.constant(int(DotStatus.NEAR_BORDER))
+SATURATED = wp.constant(int(DotStatus.SATURATED))
+OVERLAPPED = wp.constant(int(DotStatus.OVERLAPPED))
+AMBIGUOUS = wp.constant(int(DotStatus.AMBIGUOUS))
+FIT_FALLBACK = wp.constant(int(DotStatus.FIT_FALLBACK))
+PREDICTOR_MISMATCH = wp.constant(int(DotStatus.PREDICTOR_MISMATCH))
+PREDICTOR_WEAK = wp.constant(int(DotStatus.PREDICTOR_WEAK))
+EDGE_CUT = wp.constant(int(DotStatus.EDGE_CUT))
+OUTLIER = wp.constant(int(DotStatus.OUTLIER))
 
 #: Largest int32: an unclaimed blob.
 NO_CLAIM = wp.constant(2147483647)

@@ -496,8 +496,7 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
             if found.size:
                 fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
-                reach = half * np.sqrt(2.0) + 4.5 * eta0 + 1.0
-                near = cKDTree(fxy).query_ball_point(pred[todo], reach)
+                near = cKDTree(fxy).query_ball_point(pred[todo], residual_reach(half, eta0))
                 near = np.unique(
                     np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)])
                 )
@@ -548,11 +547,47 @@ def _model_start(found, sigma0):
 
 
 def _start_sigma(founds, eta0):
-    """Common starting width: the median three-point width less the pixel's own (variance 1/12)."""
+    """Common starting width of the model fit, from the widths of the dots found (:func:`start_width`)."""
     eta = np.concatenate([f["eta"][np.isfinite(f["x"])] for f in founds])
-    if eta.size == 0:
-        return eta0
-    return float(np.sqrt(max(np.median(eta) ** 2 - 1.0 / 12.0, 0.25 * eta0**2)))
+    return float(start_width(np.median(eta) if eta.size else np.nan, eta0))
+
+
+def start_width(median_eta, eta0):
+    """The model fit's common starting width: the median three-point width ``median_eta`` less the pixel's
+    own (variance 1/12), at least ``eta0 / 2``; ``eta0`` where the median is NaN (no dot found).
+    Scalars or arrays (one pair each)."""
+    med = np.asarray(median_eta, dtype=np.float64)
+    eta0 = np.asarray(eta0, dtype=np.float64)
+    width = np.sqrt(np.maximum(np.nan_to_num(med) ** 2 - 1.0 / 12.0, 0.25 * eta0**2))
+    return np.where(np.isfinite(med), width, eta0)
+
+
+def window_sizes(d, settings):
+    """``(eta0, half_r, half_g, map_half)`` for dots of e^-2 diameter ``d``: the nominal Gaussian width
+    ``d / 4``, the half-widths of the identification windows in the reference image and (widened by
+    ``max_displacement``) of the wide search, and the dot map's half-width."""
+    return (
+        d / 4.0,
+        int(np.ceil(d / 2.0 + settings.window_margin)),
+        int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement)),
+        int(np.ceil(d / 2.0 + 0.5)),
+    )
+
+
+def residual_reach(half, eta0):
+    """Distance (px) from a dot still missing within which a found dot leaves the residual image (Eq. 2):
+    the window's half-diagonal, the subtracted stamp (4.5 eta0) and a pixel."""
+    return half * np.sqrt(2.0) + 4.5 * eta0 + 1.0
+
+
+def prior_inside(prior, shape):
+    """True where a prior position (``(..., 2)``, x = column) is finite and within half a pixel beyond the
+    outer pixel centres of an image of ``shape``."""
+    h, w = shape
+    prior = np.asarray(prior, dtype=np.float64)
+    fin = np.isfinite(prior).all(axis=-1)
+    p = np.where(fin[..., None], prior, -1e9)
+    return fin & (p[..., 0] > -0.5) & (p[..., 0] < w - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < h - 0.5)
 
 
 def _fit_models(images, founds, partner, eta0, saturation, settings, device):
@@ -844,10 +879,7 @@ def track_pair(
             raise SynthbosError(f"prior positions must be an Nx2 array, got shape {prior.shape}")
         if mapping is not None:
             prior = np.asarray(mapping(prior), dtype=np.float64).reshape(-1, 2)
-        fin = np.isfinite(prior).all(axis=1)
-        p = np.where(fin[:, None], prior, -1e9)
-        inside = fin & (p[:, 0] > -0.5) & (p[:, 0] < w_img - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < h_img - 0.5)
-        if not inside.any():
+        if not prior_inside(prior, (h_img, w_img)).any():
             raise SynthbosError(f"no prior dot lies inside the {h_img}x{w_img} image")
 
     d = settings.diameter
@@ -855,10 +887,7 @@ def track_pair(
         d = estimate_dot_diameter(ref)
         if not (np.isfinite(d) and d > 0):
             raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
-    eta0 = d / 4.0
-    half_r = int(np.ceil(d / 2.0 + settings.window_margin))
-    half_g = int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement))
-    map_half = int(np.ceil(d / 2.0 + 0.5))
+    eta0, half_r, half_g, map_half = window_sizes(d, settings)
     noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
 
     frame_r = _Frame(ref, noise_r, _saturation_level(ref, settings.saturation_level, top_r), _fill_level(ref))
