@@ -18,6 +18,7 @@ from synthbos import SynthbosError
 from .diameter import estimate_dot_diameter
 from .identify import estimate_noise
 from .stats_kernels import column_lags, column_pass, frame_moments, frame_results
+from .workspace import on_device
 
 __all__ = ["FRAME_STATISTICS", "frame_statistics", "frame_statistics_numpy"]
 
@@ -68,20 +69,8 @@ def frame_statistics(images, *, device=None):
 
     Launches: four kernels and two radix sorts, whatever ``F``.
     """
-    if isinstance(images, wp.array):
-        if images.dtype != wp.float64 or images.ndim != 3:
-            kind = f"{images.ndim}-D {wp.types.type_repr(images.dtype)}"
-            raise SynthbosError(f"frame_statistics needs a 3-D float64 Warp array, got a {kind} one")
-        if device is not None and wp.get_device(device) != images.device:
-            raise SynthbosError(f"images lie on {images.device}, not on {wp.get_device(device)}")
-        device = images.device
-        img = images
-    else:
-        a = np.asarray(images)
-        if a.ndim != 3:
-            raise SynthbosError(f"frame_statistics needs an (F, H, W) stack, got shape {a.shape}")
-        device = wp.get_device(device)
-        img = wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
+    img = on_device(images, wp.float64, 3, device, "frame_statistics' images")
+    device = img.device
     n_frames, h, w = img.shape
     if min(h, w) < 8:
         raise SynthbosError(f"frames are too small ({h}x{w}), need at least 8x8")

@@ -22,7 +22,7 @@ import warp as wp
 from . import neighbour_batch_kernels as kern
 from .neighbours import _POINTS_PER_CELL
 from .windows import median_network
-from .workspace import scratch
+from .workspace import on_device, scratch
 
 __all__ = ["confirmed_by_neighbours_batch", "neighbour_fit_batch", "neighbour_outliers_batch"]
 
@@ -46,34 +46,6 @@ def _cell_stride(n):
 def _network(k, device):
     """``median_network(k)`` on ``device`` (by name), copied there once."""
     return wp.array(median_network(k), dtype=wp.int32, device=device)
-
-
-def _vectors(a, name, device):
-    """``a`` as a (B, N) ``wp.vec2d`` array on ``device`` (a NumPy (B, N, 2) array is copied there)."""
-    if isinstance(a, wp.array):
-        if a.dtype != wp.vec2d or a.ndim != 2 or not a.is_contiguous:
-            raise ValueError(f"{name} must be a contiguous (B, N) wp.vec2d array")
-        if a.device != device:
-            raise ValueError(f"{name} is on {a.device}, not on {device}")
-        return a
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    if a.ndim != 3 or a.shape[2] != 2:
-        raise ValueError(f"{name} must have shape (B, N, 2), got {a.shape}")
-    return wp.array(a, dtype=wp.vec2d, device=device)
-
-
-def _mask(a, name, device):
-    """``a`` as a (B, N) int32 (0/1) array on ``device``."""
-    if isinstance(a, wp.array):
-        if a.dtype != wp.int32 or a.ndim != 2:
-            raise ValueError(f"{name} must be a (B, N) wp.int32 array")
-        if a.device != device:
-            raise ValueError(f"{name} is on {a.device}, not on {device}")
-        return a
-    a = np.asarray(a)
-    if a.ndim != 2:
-        raise ValueError(f"{name} must have shape (B, N), got {a.shape}")
-    return wp.array(np.ascontiguousarray(a != 0, dtype=np.int32), dtype=wp.int32, device=device)
 
 
 def _device_of(device, *arrays):
@@ -239,8 +211,9 @@ def neighbour_fit_batch(xy, uv, points, queries, *, k, exclude_self=False, devic
         The median distance of the neighbours' vectors from the fit, likewise.
     """
     device = _device_of(device, xy, uv, points, queries)
-    xy, uv = _vectors(xy, "xy", device), _vectors(uv, "uv", device)
-    points, queries = _mask(points, "points", device), _mask(queries, "queries", device)
+    xy, uv = on_device(xy, wp.vec2d, 2, device, "xy"), on_device(uv, wp.vec2d, 2, device, "uv")
+    points = on_device(points, wp.int32, 2, device, "points")
+    queries = on_device(queries, wp.int32, 2, device, "queries")
     _check_shapes((xy, uv, points, queries))
     nb, n = points.shape
     value = wp.full((nb, n), wp.vec2d(np.nan, np.nan), dtype=wp.vec2d, device=device)
@@ -291,7 +264,8 @@ def neighbour_outliers_batch(xy, uv, valid, *, k, threshold, epsilon, device=Non
     Scarano 2005, eq. 2, on scattered data with a local linear reference, Duncan et al. 2010).
     """
     device = _device_of(device, xy, uv, valid)
-    xy, uv, valid = _vectors(xy, "xy", device), _vectors(uv, "uv", device), _mask(valid, "valid", device)
+    xy, uv = on_device(xy, wp.vec2d, 2, device, "xy"), on_device(uv, wp.vec2d, 2, device, "uv")
+    valid = on_device(valid, wp.int32, 2, device, "valid")
     _check_shapes((xy, uv, valid))
     nb, n = valid.shape
     bad = wp.zeros((nb, n), dtype=wp.int32, device=device)
@@ -352,8 +326,8 @@ def confirmed_by_neighbours_batch(xy, uv, good, query, *, k, threshold, epsilon,
         ``|G| <= k + 3``, and where ``threshold`` is not finite.
     """
     device = _device_of(device, xy, uv, good, query)
-    xy, uv = _vectors(xy, "xy", device), _vectors(uv, "uv", device)
-    good, query = _mask(good, "good", device), _mask(query, "query", device)
+    xy, uv = on_device(xy, wp.vec2d, 2, device, "xy"), on_device(uv, wp.vec2d, 2, device, "uv")
+    good, query = on_device(good, wp.int32, 2, device, "good"), on_device(query, wp.int32, 2, device, "query")
     _check_shapes((xy, uv, good, query))
     nb, n = good.shape
     if nb * n == 0 or not math.isfinite(threshold):

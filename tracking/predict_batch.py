@@ -20,6 +20,7 @@ import warp as wp
 
 from . import predict_kernels as pk
 from .predict import _sparse_grid, _sparse_tile_grid, _tile_grid, pooling_block
+from .workspace import on_device
 
 __all__ = ["predict_displacement_batch", "uses_tile_fft"]
 
@@ -83,25 +84,6 @@ def _grid(shape, size, sparse):
     return g
 
 
-def _on_device(a, dtype, ndim, device, name):
-    """``a`` as a Warp array of ``dtype`` on ``device`` (NumPy arrays are uploaded)."""
-    if isinstance(a, wp.array):
-        if a.dtype != dtype or a.ndim != ndim:
-            raise ValueError(f"{name}: expected a {ndim}-d Warp array of {dtype.__name__}")
-        if a.device != device:
-            raise ValueError(f"{name} lies on {a.device}, not on {device}")
-        return a
-    if dtype == wp.vec2d:
-        arr = np.asarray(a, dtype=np.float64)
-        if arr.ndim != 3 or arr.shape[-1] != 2:
-            raise ValueError(f"{name}: expected (B, N, 2) positions")
-        return wp.array(np.ascontiguousarray(arr), dtype=wp.vec2d, device=device)
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-d array")
-    return wp.array(np.ascontiguousarray(arr), dtype=dtype, device=device)
-
-
 def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per_box=20.0, density, device=None):
     """Predict each dot's displacement in each of B image pairs, and say how far to trust it.
 
@@ -140,9 +122,9 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
     (:func:`uses_tile_fft`). Nothing is copied back to the host.
     """
     device = wp.get_device(device)
-    refs = _on_device(references, wp.float64, 3, device, "references")
-    grads = _on_device(gradients, wp.float64, 3, device, "gradients")
-    pts = _on_device(xy, wp.vec2d, 2, device, "xy")
+    refs = on_device(references, wp.float64, 3, device, "references")
+    grads = on_device(gradients, wp.float64, 3, device, "gradients")
+    pts = on_device(xy, wp.vec2d, 2, device, "xy")
     if refs.shape != grads.shape:
         raise ValueError(f"references {refs.shape} and gradients {grads.shape} differ in shape")
     nb, h, w = refs.shape

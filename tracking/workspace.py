@@ -15,7 +15,9 @@ import threading
 import numpy as np
 import warp as wp
 
-__all__ = ["scratch"]
+from synthbos import SynthbosError
+
+__all__ = ["on_device", "scratch"]
 
 _local = threading.local()
 
@@ -44,3 +46,35 @@ def scratch(name, shape, dtype, device):
     if have is None or have[0] != key or have[1].shape[0] < need:
         store[name] = have = (key, wp.empty(max(need, 1), dtype=dtype, device=device))
     return have[1][:need].reshape(tuple(int(s) for s in shape))
+
+
+def on_device(a, dtype, ndim, device, name):
+    """``a`` as a contiguous ``ndim``-D Warp array of ``dtype`` on ``device``: a Warp array as it is (it
+    must have that type and lie there), anything NumPy takes uploaded (``wp.vec2d`` from ``(..., 2)``
+    floats, ``wp.int32`` as 0/1 masks, other types from float64).
+
+    ``device`` None: a Warp array's own device, else Warp's default. Raises ``SynthbosError`` naming
+    ``name``.
+    """
+    if isinstance(a, wp.array):
+        if a.dtype != dtype or a.ndim != ndim or not a.is_contiguous:
+            raise SynthbosError(
+                f"{name} must be a contiguous {ndim}-D Warp array of {wp.types.type_repr(dtype)}, got a "
+                f"{a.ndim}-D {wp.types.type_repr(a.dtype)} one"
+            )
+        if device is not None and wp.get_device(device) != a.device:
+            raise SynthbosError(f"{name} lies on {a.device}, not on {wp.get_device(device)}")
+        return a
+    if dtype == wp.vec2d:
+        arr = np.asarray(a, dtype=np.float64)
+        ok = arr.ndim == ndim + 1 and arr.shape[-1] == 2
+    elif dtype == wp.int32:
+        arr = (np.asarray(a) != 0).astype(np.int32)
+        ok = arr.ndim == ndim
+    else:
+        arr = np.asarray(a, dtype=np.float64)
+        ok = arr.ndim == ndim
+    if not ok:
+        pairs = " (x, y)" if dtype == wp.vec2d else ""
+        raise SynthbosError(f"{name} must be a {ndim}-D array{pairs}, got shape {np.shape(a)}")
+    return wp.array(np.ascontiguousarray(arr), dtype=dtype, device=wp.get_device(device))
