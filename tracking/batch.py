@@ -17,6 +17,9 @@ the count of missed dots, the fit's fixed-point scale), never per pair.
 
 from __future__ import annotations
 
+import mmap
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -32,11 +35,10 @@ from .pipeline import TRACK_DTYPE, TrackingSettings, prior_inside, residual_reac
 from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
 from .windows import median_network
+from .workspace import hold_freed_memory
 
 __all__ = ["batch_support", "track_pairs"]
 
-#: Copy the table back through page-locked host memory (CUDA devices).
-PINNED_TABLE = True
 
 #: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
 _Z_STEP = 1000.0
@@ -333,6 +335,7 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
         raise SynthbosError(f"track_pairs cannot run these settings: {why}")
     init_warp()
     device = str(wp.get_device(device))
+    hold_freed_memory(device)
     refs = _upload(references, "reference", device)
     grads = _upload(gradients, "gradient", device)
     if refs.shape != grads.shape:
@@ -389,11 +392,37 @@ def _pairs_of(stack, sel):
     return wp.array(stack.numpy()[sel], dtype=wp.float64, device=stack.device)
 
 
+class _HostTable:
+    """The (M,) ``TRACK_DTYPE`` array that the device's table is copied into, its pages touched by a host
+    thread as soon as it is made, while the device works: first-touch page faults on the ~230 MB of a
+    400-pair batch cost tens of milliseconds, and the host only waits for the device meanwhile. (A
+    page-locked buffer copies faster but takes longer to allocate and to free than the copy saves.)"""
+
+    def __init__(self, rows):
+        self.out = np.empty(rows, dtype=TRACK_DTYPE)
+        self.toucher = threading.Thread(target=_touch_pages, args=(self.out.view(np.uint8),), daemon=True)
+        self.toucher.start()
+
+    def fetch(self, table):
+        """Copy the device's (M,) ``TrackRow`` table into :attr:`out` and return it."""
+        self.toucher.join()
+        if len(self.out):
+            view = wp.array(ptr=self.out.ctypes.data, dtype=bk.TrackRow, shape=(len(self.out),), device="cpu")
+            wp.copy(view, table)
+            wp.synchronize_device(table.device)
+        return self.out
+
+
+def _touch_pages(flat):
+    flat[:: mmap.PAGESIZE] = 0
+
+
 def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     B, H, W = refs.shape
     N = prior.shape[-2]
     M = B * N
     s = settings
+    host_table = _HostTable(M) if wp.get_device(device).is_cuda else None
 
     def arr(a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
@@ -490,12 +519,8 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
             shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table,
         ],
     )  # fmt: skip
-    if PINNED_TABLE and wp.get_device(device).is_cuda:
-        # one copy into page-locked host memory (several times faster than into pageable memory)
-        host = wp.empty(M, dtype=bk.TrackRow, device="cpu", pinned=True)
-        wp.copy(host, table)
-        wp.synchronize_device(device)
-        table = host
+    if host_table is not None:
+        return host_table.fetch(table).reshape(B, N)
     return table.numpy().view(TRACK_DTYPE).reshape(B, N)
 
 

@@ -8,9 +8,9 @@ changed little is left alone by the later passes (the kernels read which pairs r
 per-pass ``changed`` flags), and its displacement and significance are computed from the planes of the
 pass at which it stopped, as the host does for it alone.
 
-The host function is the reference: the correlations differ by float32 rounding (Warp's tile FFT here,
-SciPy's pocketfft there), which can at times flip a whole-pixel rounding of the deformation or a tie of
-the peak search; otherwise the steps are the same arithmetic.
+The host function is the reference: the correlations differ by float32 rounding (Warp's tile FFTs or
+direct DFTs here, SciPy's pocketfft there), which can at times flip a whole-pixel rounding of the
+deformation or a tie of the peak search; otherwise the steps are the same arithmetic.
 """
 
 from __future__ import annotations
@@ -22,27 +22,61 @@ from . import predict_kernels as pk
 from .predict import _sparse_grid, _sparse_tile_grid, _tile_grid, pooling_block
 from .workspace import on_device
 
-__all__ = ["predict_displacement_batch", "uses_tile_fft"]
+__all__ = ["correlate_tiles", "predict_displacement_batch", "uses_tile_fft"]
 
-#: Threads per block of the tile-correlation kernel, by tile size (default: half the tile size).
-TILE_THREADS: dict = {}
+#: Rows (or columns) of a tile that one block of the tile-FFT kernels transforms (at most the tile size).
+FFT_ROWS = 16
 
-_correlate_kernels: dict = {}  # (size, fft) -> kernel
-_constants: dict = {}  # (size, first pass, device) -> (spectral factors, search region)
+#: The smallest tile size correlated by Warp's tile FFT (powers of two only); smaller tiles, and sizes
+#: that are not powers of two, by direct DFTs, one thread per sample (a tile FFT's block would be a few
+#: threads there).
+FFT_FROM = 32
+
+_kernels: dict = {}  # (what, size) -> kernel(s)
+_twiddles: dict = {}
+_spectral: dict = {}  # (size, device) -> spectral factors
 
 
 def uses_tile_fft(size):
-    """Whether passes of ``size`` px tiles correlate by Warp's tile FFT (a power of two), else by the
-    direct circular correlation (sizes such as 24 px, from sparse patterns)."""
-    return size >= 4 and size & (size - 1) == 0
+    """Whether passes of ``size`` px tiles correlate by Warp's tile FFT (a power of two from
+    ``FFT_FROM``), else by direct DFTs (any size, such as 24 px from sparse patterns)."""
+    return size >= FFT_FROM and size & (size - 1) == 0
 
 
-def _correlate_kernel(size):
-    fft = uses_tile_fft(size)
-    key = (size, fft)
-    if key not in _correlate_kernels:
-        _correlate_kernels[key] = pk.make_correlate_tiles(size, fft)
-    return _correlate_kernels[key]
+def _kernel(what, size):
+    """The pass's ``"centre"`` kernel, or its three ``"fft"`` kernels, built once per size."""
+    key = (what, size)
+    if key not in _kernels:
+        if what == "centre":
+            _kernels[key] = pk.make_centre_tiles(size)
+        else:
+            _kernels[key] = pk.make_tile_fft_steps(size, _fft_rows(size))
+    return _kernels[key]
+
+
+def _twiddle(size, device):
+    """exp(-2 pi i m / size), m = 0 ... size - 1, as float32 pairs on ``device`` (uploaded once)."""
+    key = (size, str(device))
+    if key not in _twiddles:
+        m = np.arange(size)
+        w = np.exp(-2j * np.pi * m / size)
+        _twiddles[key] = wp.array(np.stack([w.real, w.imag], axis=1).astype(np.float32), dtype=wp.vec2f, device=device)
+    return _twiddles[key]
+
+
+def _fft_rows(size):
+    return min(size, FFT_ROWS)
+
+
+def _centre_threads(size, device):
+    """Threads per block of the centring kernel: a few samples each on a GPU; one on the CPU."""
+    return 1 if device.is_cpu else min(256, max(size * size // 4, 1))
+
+
+def _fft_threads(size, device):
+    """Threads per block of the tile-FFT kernels: two samples of a row each on a GPU (Warp's tile FFT
+    wants at least two); one on the CPU, whose sequential FFT is the fastest there."""
+    return 1 if device.is_cpu else size // 2
 
 
 def _search_block(size, first):
@@ -53,22 +87,15 @@ def _search_block(size, first):
     return size // 2 - size // 4, 2 * (size // 4) + 1
 
 
-def _pass_constants(size, first, device):
-    """The spectral factors ``(-1)^(r + c) / size^2`` (the inverse FFT's scale and the shift of zero
-    displacement to the plane's centre) and the search region (sample index where searched, else -1)
-    of a pass, on ``device`` (uploaded once per process)."""
-    key = (size, bool(first), str(device))
-    if key not in _constants:
+def _spectral_factors(size, device):
+    """The spectral factors ``(-1)^(r + c) / size^2`` of a pass (the inverse FFT's scale and the shift
+    of zero displacement to the plane's centre), on ``device`` (uploaded once per process)."""
+    key = (size, str(device))
+    if key not in _spectral:
         r, c = np.indices((size, size))
         spectral = (np.where((r + c) % 2 == 0, 1.0, -1.0) / (size * size)).astype(np.float32)
-        lo, m = _search_block(size, first)
-        region = np.full((size, size), -1, dtype=np.int32)
-        region[lo : lo + m, lo : lo + m] = (r * size + c)[lo : lo + m, lo : lo + m]
-        _constants[key] = (
-            wp.array(spectral, dtype=wp.float32, device=device),
-            wp.array(region, dtype=wp.int32, device=device),
-        )
-    return _constants[key]
+        _spectral[key] = wp.array(spectral, dtype=wp.float32, device=device)
+    return _spectral[key]
 
 
 def _grid(shape, size, sparse):
@@ -82,6 +109,82 @@ def _grid(shape, size, sparse):
     g.col_step = int(xs[1] - xs[0]) if len(xs) > 1 else size
     g.size, g.ny, g.nx = int(size), len(ys), len(xs)
     return g
+
+
+def correlate_tiles(references, moved, weight, shift, changed, p, grid, device):
+    """The correlation planes of pass ``p``'s tile pairs and their peaks, for the pairs that run the pass.
+
+    Parameters
+    ----------
+    references : (B, H, W) float64 Warp array
+        The reference images.
+    moved, weight : (B, ny * size, nx * size) float32 Warp arrays
+        The gradient image's tiles moved back by the coarser field, side by side, and their pixels'
+        weights (1 inside the image), as :func:`predict_kernels.deform_tiles` writes them.
+    shift : (B, ny * size, nx * size) ``wp.vec2f`` Warp array
+        The whole-pixel shift of each moved pixel.
+    changed : (B, passes) int32 Warp array
+        Which pairs run the pass (:func:`predict_kernels.runs`).
+    p : int
+        The pass.
+    grid : :class:`predict_kernels.TileGrid`
+        The pass's tiles.
+    device : warp.context.Device
+
+    Returns
+    -------
+    planes : (B ny nx size, size) float32 Warp array
+        Each tile pair's circular cross-correlation, zero displacement at ``(size // 2, size // 2)``.
+    peak : (B, ny, nx) int32 Warp array
+        The index (row * size + column) of each plane's first maximum over the pass's search block.
+    norm, count, energy, base : (B, ny, nx) Warp arrays
+        As :func:`predict_kernels.make_centre_tiles` writes them.
+
+    Notes
+    -----
+    Tile sizes that are powers of two from ``FFT_FROM`` go through Warp's tile FFT in three kernels of
+    ``FFT_ROWS`` rows per block (:func:`predict_kernels.make_tile_fft_steps`); other sizes through four
+    kernels of direct DFTs over half the spectrum (the tiles are real), one thread per sample.
+    """
+    size = grid.size
+    count_tiles = references.shape[0] * grid.ny * grid.nx
+    per_tile = (references.shape[0], grid.ny, grid.nx)
+
+    def empty(dtype, shape=per_tile):
+        return wp.empty(shape, dtype=dtype, device=device)
+
+    planes = empty(wp.float32, (count_tiles * size, size))
+    centred = empty(wp.float32, (2, count_tiles * size, size))
+    peak, norm, count, energy, base = (empty(t) for t in (wp.int32, wp.float64, wp.float32, wp.vec2d, wp.vec2d))
+    inputs = [references, moved, weight, shift, changed, p, grid, centred, norm, count, energy, base]
+    wp.launch_tiled(_kernel("centre", size), dim=[count_tiles], inputs=inputs, block_dim=_centre_threads(size, device),
+                    device=device)  # fmt: skip
+    if uses_tile_fft(size):
+        rows_forward, columns, rows_inverse = _kernel("fft", size)
+        spectra = empty(wp.vec2f, (2, size, count_tiles * size))
+        cross = empty(wp.vec2f, (count_tiles * size, size))
+        for kernel, inputs in (
+            (rows_forward, [centred, changed, p, grid, spectra]),
+            (columns, [spectra, _spectral_factors(size, device), changed, p, grid, cross]),
+            (rows_inverse, [cross, changed, p, grid, planes]),
+        ):
+            wp.launch_tiled(kernel, dim=[count_tiles * (size // _fft_rows(size))], inputs=inputs,
+                            block_dim=_fft_threads(size, device), device=device)  # fmt: skip
+    else:
+        tw = _twiddle(size, device)
+        half = (count_tiles * size, size // 2 + 1)
+        spectra = empty(wp.vec2f, (2, *half))
+        cross = empty(wp.vec2f, half)
+        for kernel, dim, inputs in (
+            (pk.dft_rows, (2, *half), [centred, tw, changed, p, grid, spectra]),
+            (pk.dft_columns_cross, half, [spectra, tw, _spectral_factors(size, device), changed, p, grid, cross]),
+            (pk.dft_columns_inverse, half, [cross, tw, changed, p, grid, spectra[0]]),
+            (pk.dft_rows_inverse_real, (count_tiles * size, size), [spectra[0], tw, changed, p, grid, planes]),
+        ):
+            wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+    lo, m = _search_block(size, p == 0)
+    wp.launch(pk.search_peaks, dim=per_tile, inputs=[planes, changed, p, grid, lo, m, peak], device=device)
+    return planes, peak, norm, count, energy, base
 
 
 def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per_box=20.0, density, device=None):
@@ -116,10 +219,9 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
 
     Notes
     -----
-    Every pass is launched for the whole batch (13 launches, 15 for a tile size that is not a power of
-    two); a pair that stopped at an earlier pass is skipped by every kernel. Tile sizes that are powers
-    of two are correlated by Warp's tile FFT, others by the direct circular correlation
-    (:func:`uses_tile_fft`). Nothing is copied back to the host.
+    Every pass is launched for the whole batch (17 launches, 18 where the correlation is by direct DFTs:
+    :func:`correlate_tiles`); a pair that stopped at an earlier pass is skipped by every kernel. Nothing
+    is copied back to the host.
     """
     device = wp.get_device(device)
     refs = on_device(references, wp.float64, 3, device, "references")
@@ -138,8 +240,6 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
             wp.zeros((nb, n_dots), dtype=wp.float64, device=device),
         )
     grids = [_grid((h, w), s, p == 0 and len(sizes) > 1 and _sparse_grid(h, w, s)) for p, s in enumerate(sizes)]
-    constants = [_pass_constants(s, p == 0, device) for p, s in enumerate(sizes)]
-    kernels = [_correlate_kernel(s) for s in sizes]
 
     def launch(kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=device)
@@ -151,9 +251,6 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
     coarse = None  # (grid, u, v) of the previous pass
     for p, (size, g) in enumerate(zip(sizes, grids, strict=True)):
         last = int(p == len(sizes) - 1)
-        fft = uses_tile_fft(size)
-        spectral, region = constants[p]
-        count_tiles = nb * g.ny * g.nx
         rows, cols = g.ny * size, g.nx * size
         run = size if device.is_cpu else 1  # pixels per thread of the deformation: fewer, longer threads on the CPU
         per_tile = (nb, g.ny, g.nx)
@@ -168,21 +265,7 @@ def predict_displacement_batch(references, gradients, xy, *, sizes, min_dots_per
                                                              cv, run, moved, weight, shift])  # fmt: skip
 
         # correlation planes and their peaks
-        planes = tiles(wp.float32, (count_tiles * size, size))
-        centred = tiles(wp.float32, (2, count_tiles * size, size) if not fft else (2, 1, 1))
-        peak, norm, count, energy, base = (tiles(t) for t in (wp.int32, wp.float64, wp.float32, wp.vec2d, wp.vec2d))
-        wp.launch_tiled(
-            kernels[p],
-            dim=[count_tiles],
-            inputs=[refs, moved, weight, shift, changed, p, g, spectral, region, planes, centred, peak, norm, count,
-                    energy, base],
-            block_dim=TILE_THREADS.get(size, max(size // 2, 1)),
-            device=device,
-        )  # fmt: skip
-        if not fft:
-            launch(pk.correlate_direct, (count_tiles, size, size), [centred, changed, p, g, planes])
-            lo, m = _search_block(size, p == 0)
-            launch(pk.search_peaks, per_tile, [planes, changed, p, g, lo, m, peak])
+        planes, peak, norm, count, energy, base = correlate_tiles(refs, moved, weight, shift, changed, p, g, device)
 
         # the field: peak fits, the normalised median test, holes filled from the nearest tile
         res_u, res_v, raw_u, raw_v, rep_u, rep_v, field_u, field_v = (tiles() for _ in range(8))

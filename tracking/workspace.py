@@ -17,7 +17,10 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["on_device", "scratch"]
+__all__ = ["hold_freed_memory", "on_device", "scratch"]
+
+#: The share of a GPU's memory that its CUDA memory pool keeps when freed (:func:`hold_freed_memory`).
+POOL_HOLD = 0.25
 
 _local = threading.local()
 
@@ -78,3 +81,19 @@ def on_device(a, dtype, ndim, device, name):
         pairs = " (x, y)" if dtype == wp.vec2d else ""
         raise SynthbosError(f"{name} must be a {ndim}-D array{pairs}, got shape {np.shape(a)}")
     return wp.array(np.ascontiguousarray(arr), dtype=dtype, device=wp.get_device(device))
+
+
+def hold_freed_memory(device):
+    """Let ``device``'s CUDA memory pool keep up to ``POOL_HOLD`` of the GPU's memory once freed.
+
+    A batch of pairs allocates and frees some GB per call. CUDA's pool returns freed memory to the
+    driver at every synchronisation by default (release threshold 0), so each later allocation maps
+    its pages afresh, which cost more than the kernels that use them. The threshold is only raised,
+    never lowered; nothing happens on the CPU or where the device has no memory pool.
+    """
+    device = wp.get_device(device)
+    if not device.is_cuda or not device.is_mempool_supported:
+        return
+    hold = int(POOL_HOLD * device.total_memory)
+    if wp.get_mempool_release_threshold(device) < hold:
+        wp.set_mempool_release_threshold(device, hold)

@@ -15,7 +15,7 @@ from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import predict
 from synthbos.tracking import predict_kernels as pk
 from synthbos.tracking.predict import dots_inside, predict_displacement, predictor_passes
-from synthbos.tracking.predict_batch import predict_displacement_batch, uses_tile_fft
+from synthbos.tracking.predict_batch import correlate_tiles, predict_displacement_batch, uses_tile_fft
 
 D = 3.0
 NOISE = 0.01
@@ -205,34 +205,22 @@ def test_empty_schedule_gives_zeros(device):
     assert uv.shape == (1, 0) and q.shape == (1, 0)
 
 
-@pytest.mark.parametrize("n", [24, 16])
+@pytest.mark.parametrize("n", [24, 16, 32])
 def test_tile_correlation_and_peak(device, n):
-    """The planes of the route each tile size takes (24 px: direct circular correlation; 16 px: tile
-    FFT) agree with a NumPy circular correlation of the mean-subtracted tiles, and the peak search finds
-    their first maximum."""
+    """The planes of the route each tile size takes (24 and 16 px: direct DFTs over half the spectrum;
+    32 px: tile FFTs in two blocks of rows per transform) agree with a NumPy circular correlation of the
+    mean-subtracted tiles, and the peak search finds their first maximum."""
     rng = np.random.default_rng(8)
     nb, side = 2, 2 * n
     refs = rng.random((nb, side, side))
     grads = np.roll(refs, (2, -3), axis=(1, 2)) + 0.1 * rng.random((nb, side, side))
     g = pk.TileGrid()
     g.top, g.left, g.row_step, g.col_step, g.size, g.ny, g.nx = 0, 0, n, n, n, 2, 2
-    tiles, fft = nb * 4, uses_tile_fft(n)
-    r, c = np.indices((n, n))
-    spectral = wp.array((np.where((r + c) % 2 == 0, 1.0, -1.0) / n**2).astype(np.float32), device=device)
-    region = wp.array((r * n + c).astype(np.int32), device=device)
     changed = wp.zeros((nb, 1), dtype=wp.int32, device=device)
-    planes = wp.zeros((tiles * n, n), dtype=wp.float32, device=device)
-    centred = wp.zeros((2, tiles * n, n), dtype=wp.float32, device=device)
-    peak = wp.zeros((nb, 2, 2), dtype=wp.int32, device=device)
-    stats = [wp.zeros((nb, 2, 2), dtype=t, device=device) for t in (wp.float64, wp.float32, wp.vec2d, wp.vec2d)]
     images = [wp.array(refs, dtype=wp.float64, device=device), wp.array(grads, dtype=wp.float32, device=device),
               wp.array(np.ones_like(grads), dtype=wp.float32, device=device),
               wp.zeros(grads.shape, dtype=wp.vec2f, device=device)]  # fmt: skip
-    wp.launch_tiled(pk.make_correlate_tiles(n, fft), dim=[tiles], inputs=[*images, changed, 0, g, spectral, region,
-                    planes, centred, peak, *stats], block_dim=n // 2, device=device)  # fmt: skip
-    if not fft:
-        wp.launch(pk.correlate_direct, dim=(tiles, n, n), inputs=[centred, changed, 0, g, planes], device=device)
-        wp.launch(pk.search_peaks, dim=(nb, 2, 2), inputs=[planes, changed, 0, g, 0, n, peak], device=device)
+    planes, peak, *_ = correlate_tiles(*images, changed, 0, g, wp.get_device(device))
     got = planes.numpy().reshape(nb, 2, 2, n, n)
     for b, i, j in np.ndindex(nb, 2, 2):
         a = refs[b, i * n : (i + 1) * n, j * n : (j + 1) * n].astype(np.float32)
