@@ -17,7 +17,7 @@ from synthbos import SynthbosError
 
 from .diameter import estimate_dot_diameter
 from .identify import estimate_noise
-from .stats_kernels import column_lags, column_pass, frame_moments, frame_results
+from .stats_kernels import band_lags, band_moments, column_lags, column_pass, frame_moments, frame_results
 from .workspace import on_device
 
 __all__ = ["FRAME_STATISTICS", "frame_statistics", "frame_statistics_numpy"]
@@ -67,7 +67,7 @@ def frame_statistics(images, *, device=None):
     a constant frame gets NaN as diameter (its mean-subtracted image is zero), where the host can
     return a number when NumPy's mean of the constant is not the constant itself.
 
-    Launches: four kernels and two radix sorts, whatever ``F``.
+    Launches: six kernels and two radix sorts, whatever ``F``.
     """
     img = on_device(images, wp.float64, 3, device, "frame_statistics' images")
     device = img.device
@@ -105,14 +105,20 @@ def frame_statistics(images, *, device=None):
         outputs=[keys, segment, col_min, col_max, col_count, col_sum, col_flags],
         device=device,
     )
+    bands = (n_frames, parts[1], 1)  # each band reduced to one column: the frames' threads read a few
+    band = [wp.empty(bands, dtype=a.dtype, device=device) for a in (col_min, col_max, col_count, col_sum, col_flags)]
+    wp.launch(band_moments, dim=parts[:2], inputs=[col_min, col_max, col_count, col_sum, col_flags], outputs=band,
+              device=device)  # fmt: skip
     wp.launch(
         frame_moments,
         dim=n_frames,
-        inputs=[col_min, col_max, col_count, col_sum, col_flags, float(h * w)],
+        inputs=[*band, float(h * w)],
         outputs=[out["lo"], out["hi"], out["bad"], out["saturation"], mean, frame_flags],
         device=device,
     )
     wp.launch(column_lags, dim=parts, inputs=[img, _BAND, mean], outputs=[lags], device=device)
+    band_lag = wp.empty(bands, dtype=wp.vec4d, device=device)
+    wp.launch(band_lags, dim=parts[:2], inputs=[lags], outputs=[band_lag], device=device)
     # By value (segment as payload), then stably by segment (value as payload): every segment in order.
     wp.utils.radix_sort_pairs(keys, segment, count)
     wp.utils.radix_sort_pairs(segment, keys, count, 0, max(1, (2 * n_frames - 1).bit_length()))
@@ -121,7 +127,7 @@ def frame_statistics(images, *, device=None):
     wp.launch(
         frame_results,
         dim=n_frames,
-        inputs=[keys, frame_flags, lags, n_frame, n_noise, n_fill, q_index, pos - q_index, _NOISE_SCALE],
+        inputs=[keys, frame_flags, band_lag, n_frame, n_noise, n_fill, q_index, pos - q_index, _NOISE_SCALE],
         outputs=[out["fill"], out["noise"], out["diameter"]],
         device=device,
     )

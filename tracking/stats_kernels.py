@@ -6,7 +6,8 @@ Kernels only; the host code that allocates, launches and sorts lives next to it 
 :mod:`tracking.frame_stats`, whose ``frame_statistics_numpy`` (the host functions of the tracker, frame by
 frame) defines what they compute. Frames are ``images[f]`` of an ``(F, H, W)`` array, cut into bands of
 ``band`` rows; one thread walks one column of one band down its rows (neighbouring threads read
-neighbouring pixels), and one thread per frame reduces the partial results of its bands' columns.
+neighbouring pixels), one thread per band reduces its columns' partial results, and one thread per
+frame its bands'.
 
 The order statistics (the median of every fourth row and column, the lower quartile of the horizontal
 differences) come from one sorted buffer: each frame owns ``n_frame`` slots, first its ``n_noise``
@@ -103,6 +104,43 @@ def column_pass(
 
 
 @wp.kernel
+def band_moments(
+    col_min: wp.array3d(dtype=wp.float64),
+    col_max: wp.array3d(dtype=wp.float64),
+    col_count: wp.array3d(dtype=wp.int32),
+    col_sum: wp.array3d(dtype=wp.float64),
+    col_flags: wp.array3d(dtype=wp.int32),
+    band_min: wp.array3d(dtype=wp.float64),
+    band_max: wp.array3d(dtype=wp.float64),
+    band_count: wp.array3d(dtype=wp.int32),
+    band_sum: wp.array3d(dtype=wp.float64),
+    band_flags: wp.array3d(dtype=wp.int32),
+):
+    """Band ``b`` of frame ``f`` from its columns, as one column ``(f, b, 0)`` of the same kind: extremes,
+    how many pixels equal its maximum (those of the columns whose maximum it is), sum and flags. One
+    thread per band, so that :func:`frame_moments` reduces a few bands instead of every column."""
+    f, b = wp.tid()
+    vmin = wp.float64(wp.inf)
+    vmax = wp.float64(-wp.inf)
+    total = wp.float64(0.0)
+    flags = int(0)
+    for j in range(col_min.shape[2]):
+        vmin = wp.min(vmin, col_min[f, b, j])
+        vmax = wp.max(vmax, col_max[f, b, j])
+        total += col_sum[f, b, j]
+        flags = flags | col_flags[f, b, j]
+    count = int(0)
+    for j in range(col_min.shape[2]):
+        if col_max[f, b, j] == vmax:
+            count += col_count[f, b, j]
+    band_min[f, b, 0] = vmin
+    band_max[f, b, 0] = vmax
+    band_count[f, b, 0] = count
+    band_sum[f, b, 0] = total
+    band_flags[f, b, 0] = flags
+
+
+@wp.kernel
 def frame_moments(
     col_min: wp.array3d(dtype=wp.float64),
     col_max: wp.array3d(dtype=wp.float64),
@@ -117,7 +155,7 @@ def frame_moments(
     mean: wp.array(dtype=wp.float64),
     frame_flags: wp.array(dtype=wp.int32),
 ):
-    """Frame ``f`` from its bands' columns: min and max (NaN if a pixel is NaN, as NumPy's), the check of the
+    """Frame ``f`` from its bands (:func:`band_moments`): min and max (NaN if a pixel is NaN, as NumPy's), the check of the
     tracker's ``_check_image`` (1 non-finite, 2 all zero, else 0), the saturation level (the maximum if
     five or more pixels equal it, else +inf) and the mean (exactly ``lo`` for a constant frame)."""
     f = wp.tid()
@@ -189,6 +227,16 @@ def column_lags(
         if i + 2 < h:
             s20 += a * (images[f, i + 2, j] - m)
     lags[f, b, j] = wp.vec4d(s01, s10, s02, s20)
+
+
+@wp.kernel
+def band_lags(lags: wp.array3d(dtype=wp.vec4d), band_total: wp.array3d(dtype=wp.vec4d)):
+    """Band ``b`` of frame ``f``: the sum of its columns' lag sums, as one column ``(f, b, 0)``."""
+    f, b = wp.tid()
+    s = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for j in range(lags.shape[2]):
+        s = s + lags[f, b, j]
+    band_total[f, b, 0] = s
 
 
 @wp.kernel
