@@ -155,9 +155,10 @@ def frame_moments(
     mean: wp.array(dtype=wp.float64),
     frame_flags: wp.array(dtype=wp.int32),
 ):
-    """Frame ``f`` from its bands (:func:`band_moments`): min and max (NaN if a pixel is NaN, as NumPy's), the check of the
-    tracker's ``_check_image`` (1 non-finite, 2 all zero, else 0), the saturation level (the maximum if
-    five or more pixels equal it, else +inf) and the mean (exactly ``lo`` for a constant frame)."""
+    """Frame ``f`` from its bands (:func:`band_moments`): min and max (NaN if a pixel is NaN, as NumPy's),
+    the check of the tracker's ``_check_image`` (1 non-finite, 2 all zero, else 0), the saturation level
+    (the maximum if five or more pixels equal it, else +inf) and the mean (exactly ``lo`` for a constant
+    frame)."""
     f = wp.tid()
     n_bands = col_min.shape[1]
     w = col_min.shape[2]
