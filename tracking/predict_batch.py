@@ -25,7 +25,7 @@ from .workspace import on_device
 __all__ = ["correlate_tiles", "predict_displacement_batch", "uses_tile_fft"]
 
 #: Rows (or columns) of a tile that one block of the tile-FFT kernels transforms (at most the tile size).
-FFT_ROWS = 16
+FFT_ROWS = 8
 
 #: The smallest tile size correlated by Warp's tile FFT (powers of two only); smaller tiles, and sizes
 #: that are not powers of two, by direct DFTs, one thread per sample (a tile FFT's block would be a few
