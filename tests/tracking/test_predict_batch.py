@@ -208,7 +208,7 @@ def test_empty_schedule_gives_zeros(device):
 @pytest.mark.parametrize("n", [24, 16, 32])
 def test_tile_correlation_and_peak(device, n):
     """The planes of the route each tile size takes (24 and 16 px: direct DFTs over half the spectrum;
-    32 px: tile FFTs in two blocks of rows per transform) agree with a NumPy circular correlation of the
+    32 px: tile FFTs in blocks of rows per transform) agree with a NumPy circular correlation of the
     mean-subtracted tiles, and the peak search finds their first maximum."""
     rng = np.random.default_rng(8)
     nb, side = 2, 2 * n
