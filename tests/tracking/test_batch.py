@@ -99,3 +99,40 @@ def test_track_pairs_pairs_of_different_dot_sizes(device):
     for b in range(3):
         _assert_same(tables[b], track_pair(refs[b], grads[b], prior_xy=xy, device=device))
     assert np.median(tables["diameter"][1]) > 1.4 * np.median(tables["diameter"][0])
+
+
+def test_track_pairs_in_turns(device, monkeypatch):
+    """Pairs beyond what one turn holds (pairs_per_call, set to 3 here) are tracked in turns: the same
+    table as in one turn (the fit's fixed-point scale depends on the batch: rounding apart), from NumPy
+    or Warp stacks, and errors name the pair in the whole stack."""
+    import warp as wp
+    from synthbos.tracking import batch
+
+    refs, grads, prior = _batch(seed=9)
+    refs, grads, prior = np.concatenate([refs, refs[:1]]), np.concatenate([grads, grads[:1]]), prior[[0, 1, 2, 3, 0]]
+    whole = track_pairs(refs, grads, prior_xy=prior, device=device)
+    asked = []
+
+    def three(shape, dots, dev, *, on_device=True):
+        asked.append((shape, dots, on_device))
+        return 3
+
+    monkeypatch.setattr(batch, "pairs_per_call", three)
+    in_turns = track_pairs(refs, grads, prior_xy=prior, device=device)
+    assert asked == [(SHAPE, prior.shape[1], False)]
+    for b in range(len(refs)):
+        _assert_same(in_turns[b], whole[b])
+    stacks = [wp.array(a, dtype=wp.float64, device=device) for a in (refs, grads)]
+    shared = track_pairs(*stacks, prior_xy=prior[0], device=device)
+    assert asked[-1][2] is True
+    _assert_same(shared[4], whole[0])
+    bad = grads.copy()
+    bad[4] = 0.0
+    with pytest.raises(SynthbosError, match="pair 4's gradient image is all zero"):
+        track_pairs(refs, bad, prior_xy=prior, device=device)
+
+
+def test_pairs_per_call_on_the_cpu_is_unbounded():
+    from synthbos.tracking.batch import pairs_per_call
+
+    assert pairs_per_call((512, 512), 5120, "cpu") is None
