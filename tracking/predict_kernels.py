@@ -80,6 +80,12 @@ def takes_part(changed: wp.array2d(dtype=wp.int32), b: int, p: int, last: int, a
     return stops(changed, b, p, last)
 
 
+@wp.func
+def row_runs(changed: wp.array2d(dtype=wp.int32), grid: TileGrid, g: int, p: int) -> bool:
+    """:func:`runs` for the pair of row ``g`` of a pass's stacked tiles (tile ``g // size``)."""
+    return runs(changed, (g // grid.size) // (grid.ny * grid.nx), p)
+
+
 # --- tile grids and the bilinear interpolation of tile fields ------------------------------------------
 
 
@@ -308,7 +314,7 @@ def make_tile_fft_steps(n: int, rows: int):
     ):
         q = wp.tid()
         g0 = q * rows
-        if not runs(changed, (g0 // n) // (grid.ny * grid.nx), p):
+        if not row_runs(changed, grid, g0, p):
             return
         za = wp.tile_map(as_complex, wp.tile_load(centred[0], shape=(rows, n), offset=(g0, 0)))
         zb = wp.tile_map(as_complex, wp.tile_load(centred[1], shape=(rows, n), offset=(g0, 0)))
@@ -352,7 +358,7 @@ def make_tile_fft_steps(n: int, rows: int):
     ):
         q = wp.tid()
         g0 = q * rows
-        if not runs(changed, (g0 // n) // (grid.ny * grid.nx), p):
+        if not row_runs(changed, grid, g0, p):
             return
         s = wp.tile_load(cross, shape=(rows, n), offset=(g0, 0))
         wp.tile_ifft(s)
@@ -374,6 +380,15 @@ def times(z: wp.vec2f, w: wp.vec2f) -> wp.vec2f:
 # for. ``twiddle[m]`` = exp(-2 pi i m / size); the index ``(j c) mod size`` is stepped, not divided.
 
 
+@wp.func
+def step_index(m: int, step: int, n: int) -> int:
+    """``(m + step) mod n`` for ``m`` and ``step`` in ``[0, n)``: the next twiddle of a DFT's sum."""
+    m += step
+    if m >= n:
+        m -= n
+    return m
+
+
 @wp.kernel
 def dft_rows(
     centred: wp.array3d(dtype=wp.float32),
@@ -387,15 +402,13 @@ def dft_rows(
     ``t`` at frequency ``c``, ``sum_j x_j w^(j c)``."""
     t, g, c = wp.tid()
     n = grid.size
-    if not runs(changed, (g // n) // (grid.ny * grid.nx), p):
+    if not row_runs(changed, grid, g, p):
         return
     acc = wp.vec2f()
     m = int(0)
     for j in range(n):
         acc += centred[t, g, j] * twiddle[m]
-        m += c
-        if m >= n:
-            m -= n
+        m = step_index(m, c, n)
     spectra[t, g, c] = acc
 
 
@@ -425,9 +438,7 @@ def dft_columns_cross(
         w = twiddle[m]
         fa += times(spectra[0, k * n + r, c], w)
         fb += times(spectra[1, k * n + r, c], w)
-        m += f
-        if m >= n:
-            m -= n
+        m = step_index(m, f, n)
     cross[g, c] = cross_spectrum(fa, fb, spectral[f, c])
 
 
@@ -453,9 +464,7 @@ def dft_columns_inverse(
     for f in range(n):
         w = twiddle[m]
         acc += times(cross[k * n + f, c], wp.vec2f(w[0], -w[1]))
-        m += r
-        if m >= n:
-            m -= n
+        m = step_index(m, r, n)
     out[g, c] = acc
 
 
@@ -472,7 +481,7 @@ def dft_rows_inverse_real(
     frequencies, each but 0 and size / 2 counted twice (for itself and its conjugate)."""
     g, c = wp.tid()
     n = grid.size
-    if not runs(changed, (g // n) // (grid.ny * grid.nx), p):
+    if not row_runs(changed, grid, g, p):
         return
     acc = wp.float32(0.0)
     m = int(0)
@@ -484,9 +493,7 @@ def dft_rows_inverse_real(
             acc += term
         else:
             acc += wp.float32(2.0) * term
-        m += c
-        if m >= n:
-            m -= n
+        m = step_index(m, c, n)
     planes[g, c] = acc
 
 
