@@ -103,6 +103,37 @@ def column_pass(
     col_flags[f, b, j] = flags
 
 
+@wp.func
+def reduce_columns(
+    col_min: wp.array3d(dtype=wp.float64),
+    col_max: wp.array3d(dtype=wp.float64),
+    col_count: wp.array3d(dtype=wp.int32),
+    col_sum: wp.array3d(dtype=wp.float64),
+    col_flags: wp.array3d(dtype=wp.int32),
+    f: int,
+    b0: int,
+    b1: int,
+) -> tuple[wp.float64, wp.float64, int, wp.float64, int]:
+    """Frame ``f``'s columns of bands ``b0 ... b1 - 1`` (in order): min, max, how many pixels equal the
+    max (those of the columns whose max it is), sum and flags."""
+    vmin = wp.float64(wp.inf)
+    vmax = wp.float64(-wp.inf)
+    total = wp.float64(0.0)
+    flags = int(0)
+    for b in range(b0, b1):
+        for j in range(col_min.shape[2]):
+            vmin = wp.min(vmin, col_min[f, b, j])
+            vmax = wp.max(vmax, col_max[f, b, j])
+            total += col_sum[f, b, j]
+            flags = flags | col_flags[f, b, j]
+    count = int(0)
+    for b in range(b0, b1):
+        for j in range(col_min.shape[2]):
+            if col_max[f, b, j] == vmax:
+                count += col_count[f, b, j]
+    return vmin, vmax, count, total, flags
+
+
 @wp.kernel
 def band_moments(
     col_min: wp.array3d(dtype=wp.float64),
@@ -120,19 +151,7 @@ def band_moments(
     how many pixels equal its maximum (those of the columns whose maximum it is), sum and flags. One
     thread per band, so that :func:`frame_moments` reduces a few bands instead of every column."""
     f, b = wp.tid()
-    vmin = wp.float64(wp.inf)
-    vmax = wp.float64(-wp.inf)
-    total = wp.float64(0.0)
-    flags = int(0)
-    for j in range(col_min.shape[2]):
-        vmin = wp.min(vmin, col_min[f, b, j])
-        vmax = wp.max(vmax, col_max[f, b, j])
-        total += col_sum[f, b, j]
-        flags = flags | col_flags[f, b, j]
-    count = int(0)
-    for j in range(col_min.shape[2]):
-        if col_max[f, b, j] == vmax:
-            count += col_count[f, b, j]
+    vmin, vmax, count, total, flags = reduce_columns(col_min, col_max, col_count, col_sum, col_flags, f, b, b + 1)
     band_min[f, b, 0] = vmin
     band_max[f, b, 0] = vmax
     band_count[f, b, 0] = count
@@ -160,23 +179,9 @@ def frame_moments(
     (the maximum if five or more pixels equal it, else +inf) and the mean (exactly ``lo`` for a constant
     frame)."""
     f = wp.tid()
-    n_bands = col_min.shape[1]
-    w = col_min.shape[2]
-    vmin = wp.float64(wp.inf)
-    vmax = wp.float64(-wp.inf)
-    total = wp.float64(0.0)
-    flags = int(0)
-    for b in range(n_bands):
-        for j in range(w):
-            vmin = wp.min(vmin, col_min[f, b, j])
-            vmax = wp.max(vmax, col_max[f, b, j])
-            total += col_sum[f, b, j]
-            flags = flags | col_flags[f, b, j]
-    count = int(0)
-    for b in range(n_bands):
-        for j in range(w):
-            if col_max[f, b, j] == vmax:
-                count += col_count[f, b, j]
+    vmin, vmax, count, total, flags = reduce_columns(
+        col_min, col_max, col_count, col_sum, col_flags, f, 0, col_min.shape[1]
+    )
     sat = wp.float64(wp.inf)
     if (flags & ANY_NAN) != 0:
         vmin = wp.float64(wp.nan)
@@ -230,14 +235,21 @@ def column_lags(
     lags[f, b, j] = wp.vec4d(s01, s10, s02, s20)
 
 
+@wp.func
+def summed_lags(lags: wp.array3d(dtype=wp.vec4d), f: int, b0: int, b1: int) -> wp.vec4d:
+    """The sum of frame ``f``'s lag sums over the columns of bands ``b0 ... b1 - 1`` (in order)."""
+    s = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for b in range(b0, b1):
+        for j in range(lags.shape[2]):
+            s = s + lags[f, b, j]
+    return s
+
+
 @wp.kernel
 def band_lags(lags: wp.array3d(dtype=wp.vec4d), band_total: wp.array3d(dtype=wp.vec4d)):
     """Band ``b`` of frame ``f``: the sum of its columns' lag sums, as one column ``(f, b, 0)``."""
     f, b = wp.tid()
-    s = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for j in range(lags.shape[2]):
-        s = s + lags[f, b, j]
-    band_total[f, b, 0] = s
+    band_total[f, b, 0] = summed_lags(lags, f, b, b + 1)
 
 
 @wp.kernel
@@ -293,10 +305,7 @@ def frame_results(
         med = (sorted_keys[start + k - 1] + sorted_keys[start + k]) / wp.float64(2.0)
     fill[f] = med
 
-    s = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for b in range(lags.shape[1]):
-        for j in range(lags.shape[2]):
-            s = s + lags[f, b, j]
+    s = summed_lags(lags, f, 0, lags.shape[1])
     r1 = wp.float64(0.5) * (s[0] + s[1])
     r2 = wp.float64(0.5) * (s[2] + s[3])
     d = wp.float64(wp.nan)
