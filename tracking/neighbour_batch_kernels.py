@@ -284,6 +284,14 @@ def roles_kernel(
     role[b, i] = r
 
 
+@wp.func
+def deviation(uv: wp.array2d(dtype=wp.vec2d), value: wp.array(dtype=wp.vec2d), b: int, i: int) -> wp.float64:
+    """``|uv - value|`` of dot ``i`` of pair ``b`` from its neighbours' fitted value (``value`` flat, by
+    global index): the distance of the normalised median test (unfused in the kernels that call it)."""
+    d = uv[b, i] - value[b * uv.shape[1] + i]
+    return wp.sqrt(d[0] * d[0] + d[1] * d[1])
+
+
 @wp.kernel(**_UNFUSED)
 def outlier_flags_kernel(
     uv: wp.array2d(dtype=wp.vec2d),
@@ -306,8 +314,7 @@ def outlier_flags_kernel(
             bad[b, i] = 0
         return
     g = b * role.shape[1] + i
-    d = uv[b, i] - value[g]
-    far = wp.sqrt(d[0] * d[0] + d[1] * d[1]) > threshold * (spread[g] + epsilon)
+    far = deviation(uv, value, b, i) > threshold * (spread[g] + epsilon)
     if far:
         bad[b, i] = 1
         if first_round != 0:
@@ -367,7 +374,6 @@ def confirm_flags_kernel(
     if (role[b, i] & QUERY) == 0 or shape[b][0] == 0:
         return
     g = b * role.shape[1] + i
-    d = uv[b, i] - value[g]
     limit = wp.min(threshold * (spread[g] + epsilon), tolerance)
-    if wp.sqrt(d[0] * d[0] + d[1] * d[1]) <= limit:
+    if deviation(uv, value, b, i) <= limit:
         ok[b, i] = 1
