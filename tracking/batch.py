@@ -84,16 +84,13 @@ def pairs_per_call(shape, dots, device, *, on_device=True):
 
 
 def _upload(a, name, device):
-    """A (B, H, W) float64 Warp array on ``device`` from a Warp array or anything NumPy takes."""
+    """A (B, H, W) float64 Warp array on ``device`` from a stack :func:`_stack_shape` checked (a Warp
+    array or anything NumPy takes)."""
     if isinstance(a, wp.array):
-        if a.ndim != 3:
-            raise SynthbosError(f"{name} images must be a (pairs, height, width) stack, got shape {a.shape}")
         if a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)):
             return a
         a = a.numpy()
     a = np.asarray(a)
-    if a.ndim != 3:
-        raise SynthbosError(f"{name} images must be a (pairs, height, width) stack, got shape {a.shape}")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise SynthbosError(f"{name} images must hold real numbers, got dtype {a.dtype}")
     return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
