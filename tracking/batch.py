@@ -313,7 +313,29 @@ class _Batch:
                 ],
             )  # fmt: skip
             cur, nxt = nxt, cur
-        return cur, ok, shared, live
+        moved = self.zeros(rows, wp.int32)
+        if s.distortion == "moment":
+            self.moment_step(cur, frame, partner, live, models[:layer], prof, shared, moved)
+        return cur, ok, shared, live, moved
+
+    def moment_step(self, params, frame, partner, live, models, prof, shared, moved):
+        """``tracking.dotfit.moment_shifts`` of every row, in place: the model image of every dot at the
+        fitted parameters is drawn again (with their profiles), then each row moves to its first moment."""
+        rows = params.shape[0]
+        peak = self.zeros(1, wp.float64)
+        self.launch(bk.largest_peak, rows, [params, live, peak])
+        scale = _fixed_point_scale(float(peak.numpy()[0]))
+        models.zero_()
+        half = self.geometry.render_half
+        self.launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, self.H, self.W, models])
+        self.launch(
+            bk.moment_shift_batch,
+            rows,
+            [
+                self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
+                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), 1.0, prof, shared, moved,
+            ],
+        )  # fmt: skip
 
 
 def _frame_statistics(images, name, settings, device, first):
@@ -481,6 +503,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         "sat": [arr(st["sat"], wp.float64) for st in (st_r, st_g)],
         "floor": [arr(s.noise_threshold * st["noise"], wp.float64) for st in (st_r, st_g)],
         "sat_frames": arr(np.stack([st_r["sat"], st_g["sat"]], axis=1).ravel(), wp.float64),
+        "noise_frames": arr(np.stack([st_r["noise"], st_g["noise"]], axis=1).ravel(), wp.float64),
     }
     if prior.ndim == 2:  # one set for all pairs, repeated on the device
         one = arr(prior, wp.vec2d)
@@ -530,12 +553,12 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
         quality = wp.empty(M, dtype=wp.float64, device=device)
 
-    params, ok, shared, live = batch.fit(r, g)
+    params, ok, shared, live, moved = batch.fit(r, g)
     for row0, found in ((0, r), (M, g)):
         batch.launch(
             bk.take_model,
             M,
-            [params, ok, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
+            [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
         )
     status = wp.empty(M, dtype=wp.int32, device=device)
     xy = wp.empty(M, dtype=wp.vec2d, device=device)

@@ -13,6 +13,7 @@ import warp as wp
 from synthbos.correlation.pass_kernels import three_point_offset
 
 from .kernels import fit_dot_step, measure_window
+from .moment_kernels import moment_shift, reference_background, reference_spread2
 from .pipeline import DotStatus
 
 wp.config.quiet = True
@@ -30,6 +31,7 @@ SATURATED = wp.constant(int(DotStatus.SATURATED))
 OVERLAPPED = wp.constant(int(DotStatus.OVERLAPPED))
 AMBIGUOUS = wp.constant(int(DotStatus.AMBIGUOUS))
 FIT_FALLBACK = wp.constant(int(DotStatus.FIT_FALLBACK))
+DISTORTED = wp.constant(int(DotStatus.DISTORTED))
 PREDICTOR_MISMATCH = wp.constant(int(DotStatus.PREDICTOR_MISMATCH))
 PREDICTOR_WEAK = wp.constant(int(DotStatus.PREDICTOR_WEAK))
 EDGE_CUT = wp.constant(int(DotStatus.EDGE_CUT))
@@ -673,9 +675,60 @@ class TrackRow:
 
 
 @wp.kernel
+def moment_shift_batch(
+    references: wp.array3d(dtype=wp.float64),
+    gradients: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    noise: wp.array(dtype=wp.float64),
+    half: int,
+    chi2: wp.float64,
+    max_shift: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    moved: wp.array(dtype=wp.int32),
+):
+    """``tracking.pipeline._fit_models``' first-moment step of row i, in place: its position and its
+    common-shape position move by ``moment_shift`` (model frame ``2 b``: pair b's reference image, ``2 b
+    + 1`` its gradient image; ``noise`` per frame). Reads only row i's position and its partner's
+    background, so rows move independently."""
+    i = wp.tid()
+    moved[i] = 0
+    if live[i] == 0:
+        return
+    f = frame[i]
+    b = f // 2
+    bg = reference_background(params, partner, i, f % 2 == 1)
+    s2 = reference_spread2(params, partner, i)
+    d = wp.vec3d()
+    if f % 2 == 0:
+        d = moment_shift(
+            references[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+    else:
+        d = moment_shift(
+            gradients[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+    if d[2] > wp.float64(0.5):
+        params[i, 0] = params[i, 0] + d[0]
+        params[i, 1] = params[i, 1] + d[1]
+        shared_xy[i, 0] = shared_xy[i, 0] + d[0]
+        shared_xy[i, 1] = shared_xy[i, 1] + d[1]
+        moved[i] = 1
+
+
+@wp.kernel
 def take_model(
     params: wp.array2d(dtype=wp.float64),
     ok: wp.array(dtype=wp.int32),
+    moved: wp.array(dtype=wp.int32),
     live: wp.array(dtype=wp.int32),
     row0: int,
     x: wp.array(dtype=wp.float64),
@@ -684,7 +737,8 @@ def take_model(
     i0: wp.array(dtype=wp.float64),
     flags: wp.array(dtype=wp.int32),
 ):
-    """``_take_model``: the fit's position, width and peak (a refused last step flagged FIT_FALLBACK)."""
+    """``_take_model``: the fit's position, width and peak (a refused last step flagged FIT_FALLBACK, a
+    dot moved to its first moment DISTORTED)."""
     i = wp.tid()
     j = row0 + i
     if live[j] == 0 or not wp.isfinite(params[j, 0]):
@@ -695,6 +749,8 @@ def take_model(
     i0[i] = params[j, 2]
     if ok[j] == 0:
         flags[i] = flags[i] | FIT_FALLBACK
+    if moved[j] != 0:
+        flags[i] = flags[i] | DISTORTED
 
 
 @wp.func

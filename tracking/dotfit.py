@@ -23,6 +23,13 @@ import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .kernels import fit_dot_step_kernel, render_dots_kernel
+from .moment_kernels import (
+    MAX_RESIDUAL_FLUX_REL,
+    MAX_SHIFT_PER_SPREAD_REL,
+    MIN_SHIFT_PX,
+    SHARE_FLOOR_REL,
+    moment_shift_kernel,
+)
 from .workspace import scratch
 
 __all__ = [
@@ -33,6 +40,8 @@ __all__ = [
     "fit_dots_numpy",
     "fit_window_half",
     "integrated_profile",
+    "moment_shifts",
+    "moment_shifts_numpy",
     "render_dots",
 ]
 
@@ -485,3 +494,167 @@ def fit_dots(
         )
         cur, nxt = nxt, cur
     return np.take(cur.numpy(), back, axis=0), ok.numpy()[back].astype(bool), np.take(shared.numpy(), back, axis=0)
+
+
+def _noise(noise, k):
+    return np.zeros(k) if noise is None else np.broadcast_to(np.asarray(noise, dtype=np.float64), (k,)).copy()
+
+
+def moment_shifts_numpy(
+    images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=1.0
+):
+    """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
+
+    A symmetric model's centre is the mean of a dot's light only while the dot's image is symmetric. A
+    dot seen through a flow is the spot spread by the landing positions of rays that crossed different
+    density, and the mean landing position is what the truth (and BOS) defines. The step weighs what the
+    model leaves over: with ``M`` the model image of every dot, ``m_i`` dot i's own model and ``R = I - b_i
+    - M`` the residual on dot i's stamp, dot i's share of the light is ``m_i + w R`` with ``w = m_i / M``
+    (``M`` taken as at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak),
+    and its first moment about the model centre ``(x_i, y_i)`` is
+
+    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``
+
+    (the own model, symmetric about the centre, adds nothing to the numerators).
+
+    Parameters
+    ----------
+    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
+        As for :func:`fit_dots_numpy`.
+    params : (N, 5) array
+        Fitted parameters (columns :data:`PARAMS`).
+    half : int, keyword-only
+        Half-width of the stamp on which each dot is rendered and weighed (the fit's ``render_half``).
+    frame : (N,) int array, optional, keyword-only
+        Image of each dot in the stack: 0 the reference, 1 the gradient image.
+    partner : (N,) int array, optional, keyword-only
+        Row of the same dot in the other image, -1 for none. The background ``b_i`` under a gradient
+        image's dot is its reference partner's fitted background (the same target and light, seen
+        undistorted: a distorted dot's own fit lifts or lowers its background by up to 1 % of the peak
+        to absorb the asymmetric light, which would bias the moment); other dots keep their own.
+    saturation : float or (K,) array, optional, keyword-only
+        Saturation level of each image; a stamp holding a pixel at or above it is left alone.
+    noise : float or (K,) array, optional, keyword-only
+        Noise standard deviation of each image (0 by default).
+    chi2 : float, keyword-only
+        The shift is applied only where it is significant: ``|d|^2 / (var_d / 2) > chi2``, with
+        ``var_d = noise^2 sum (r - r_i)^2 w^2 / F^2`` (both axes) its variance under white noise.
+        Where the dot is an undistorted spot under noise, a shift this large is a chance event of
+        probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
+    max_shift : float, keyword-only
+        A larger shift (px) is not applied.
+
+    Returns
+    -------
+    shift : (N, 2) array
+        ``(dx, dy)``, px: 0 where not applied.
+    applied : (N,) bool array
+        Where the stamp lies inside its image with no saturated pixel, the residual light of the
+        dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is another dot's
+        light, not a distortion), and the shift is significant, at least ``MIN_SHIFT_PX`` (1e-3 px), at
+        most ``max_shift`` and at most ``MAX_SHIFT_PER_SPREAD_REL`` (1) times the spread the dot's
+        fitted width adds to its partner's, ``sqrt(sigma^2 - sigma_partner^2)`` (a dot without a partner,
+        or no wider than it, keeps its centre).
+
+    Examples
+    --------
+    A reference spot, and in the gradient image the same spot with a faint second one 1 px to its right:
+    the fit's centre sits on the main spot (its width grown to 0.85 px), the first moment 0.111 px further
+    right (the second spot holds 1/9 of the light); the undistorted reference keeps its centre.
+
+    >>> import numpy as np
+    >>> reference = render_dots((15, 15), [[7.0, 7.0, 1.0, 0.8, 0.0]], half=5)
+    >>> gradient = reference + render_dots((15, 15), [[8.0, 7.0, 0.125, 0.8, 0.0]], half=5)
+    >>> fitted = [[7.0, 7.0, 1.0, 0.8, 0.0], [7.0, 7.0, 1.0, 0.85, 0.0]]
+    >>> shift, applied = moment_shifts_numpy(
+    ...     [reference, gradient], fitted, half=5, frame=[0, 1], partner=[1, 0]
+    ... )
+    >>> np.round(shift, 3).tolist(), applied.tolist()
+    ([[0.0, 0.0], [0.111, 0.0]], [False, True])
+    """
+    stack, p, frame, partner = _checked(images, params, frame, partner)
+    stack = np.stack(stack)
+    k, h, w = stack.shape
+    other = p[np.maximum(partner, 0)]
+    background = np.where((frame == 1) & (partner >= 0), other[:, 4], p[:, 4])
+    spread2 = np.where(partner >= 0, MAX_SHIFT_PER_SPREAD_REL**2 * np.maximum(p[:, 3] ** 2 - other[:, 3] ** 2, 0), 0.0)
+    sat, sigma = _saturation(saturation, k), _noise(noise, k)
+    n = 2 * half + 1
+    ox, oy = _origin(p, half)
+    px, _, _ = integrated_profile(p[:, 0], p[:, 3], ox, n)
+    py, _, _ = integrated_profile(p[:, 1], p[:, 3], oy, n)
+    own = p[:, 2, None, None] * py[:, :, None] * px[:, None, :]
+    whole = (ox >= 0) & (oy >= 0) & (ox + n <= w) & (oy + n <= h)
+    rows = np.clip(oy[:, None] + np.arange(n), 0, h - 1)[:, :, None]
+    cols = np.clip(ox[:, None] + np.arange(n), 0, w - 1)[:, None, :]
+    image = stack[frame[:, None, None], rows, cols]
+    total = render_dots(stack.shape, p, half=half, frame=frame)[frame[:, None, None], rows, cols]
+    whole &= ~(image >= sat[frame][:, None, None]).any(axis=(1, 2))
+    share = np.clip(own / np.maximum(total, SHARE_FLOOR_REL * np.abs(p[:, 2, None, None])), 0.0, 1.0)
+    wr = share * (image - background[:, None, None] - total)
+    dx = (ox[:, None] + np.arange(n) - p[:, 0, None])[:, None, :]
+    dy = (oy[:, None] + np.arange(n) - p[:, 1, None])[:, :, None]
+    own_flux = own.sum(axis=(1, 2))
+    flux = own_flux + wr.sum(axis=(1, 2))
+    safe = np.where(flux > 0, flux, 1.0)
+    shift = np.stack([(dx * wr).sum(axis=(1, 2)), (dy * wr).sum(axis=(1, 2))], axis=1) / safe[:, None]
+    var = sigma[frame] ** 2 * ((dx**2 + dy**2) * share**2).sum(axis=(1, 2)) / safe**2
+    size2 = (shift**2).sum(axis=1)
+    applied = whole & (flux > 0) & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux)
+    applied &= (size2 > 0.5 * chi2 * var) & (size2 >= MIN_SHIFT_PX**2) & (size2 <= np.minimum(max_shift**2, spread2))
+    return np.where(applied[:, None], shift, 0.0), applied
+
+
+def moment_shifts(
+    images,
+    params,
+    *,
+    half,
+    frame=None,
+    partner=None,
+    saturation=None,
+    noise=None,
+    chi2=25.0,
+    max_shift=1.0,
+    device=None,
+):
+    """Same as :func:`moment_shifts_numpy`, with Warp kernels (one thread per dot).
+
+    Parameters
+    ----------
+    device : str or None, keyword-only
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
+    Other parameters and the result are those of :func:`moment_shifts_numpy`.
+    """
+    stack, p, frame, partner = _checked(images, params, frame, partner)
+    n = len(p)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    if len(stack) > 2:
+        raise ValueError(f"moment_shifts takes one image or a pair, got {len(stack)}")
+    k = len(stack)
+    img0 = _on_device(stack[0], wp.float64, device)
+    img1 = _on_device(stack[-1], wp.float64, device)
+    pw = _on_device(p, wp.float64, device)
+    fr = _on_device(frame, wp.int32, device)
+    models = scratch("moment_models", (k, *stack[0].shape), wp.int64, device)
+    models.zero_()
+    prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
+    scale = _fixed_point_scale(float(np.max(np.abs(p[:, 2]))))
+    pa = _on_device(partner, wp.int32, device)
+    h, w = stack[0].shape
+    wp.launch(render_dots_kernel, dim=n, inputs=[pw, fr, pa, int(half), 0, 1, prof, scale, h, w, models.flatten()],
+              device=device)  # fmt: skip
+    sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
+    sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
+    out = wp.empty(n, dtype=wp.vec3d, device=device)
+    wp.launch(
+        moment_shift_kernel,
+        dim=n,
+        inputs=[img0, img1, models.flatten(), 1.0 / scale, pw, fr, pa, sat, sig, int(half), float(chi2),
+                float(max_shift), prof, out],
+        device=device,
+    )  # fmt: skip
+    res = out.numpy()
+    return res[:, :2].copy(), res[:, 2] > 0.5

@@ -36,7 +36,7 @@ from synthbos import SynthbosError
 from .centroid import CENTROID_METHODS, fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
-from .dotfit import fit_dots, fit_dots_numpy, fit_window_half
+from .dotfit import fit_dots, fit_dots_numpy, fit_window_half, moment_shifts, moment_shifts_numpy
 from .identify import (
     blob_properties,
     dynamic_threshold_identification,
@@ -118,6 +118,7 @@ class DotStatus(enum.IntFlag):
     PREDICTOR_WEAK = 8192
     EDGE_CUT = 16384
     OUTLIER = 32768
+    DISTORTED = 65536
 
 
 TRACK_DTYPE = np.dtype(
@@ -177,6 +178,18 @@ class TrackingSettings:
         without noise in a dense pattern), so it wins over "gaussian3" only from ~3 % noise.
     fit_iterations : int
         Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
+    distortion : {"moment", "none"}
+        What the model fit's positions are taken to measure on a dot whose image the flow has distorted
+        (rays through different parts of the aperture crossing different density spread and skew it).
+        "moment" (default): the mean of its light, the mean landing position of its rays that the
+        renderer's truth and BOS define: after the fit, each dot moves from the symmetric model's centre
+        to the first moment of its share of the light (:func:`tracking.dotfit.moment_shifts`) where that
+        shift is significant against the image noise, and is flagged DISTORTED. "none": the symmetric
+        model's centre. Only the model estimators (``centroid`` or ``correction`` "model") use it.
+    distortion_chi2 : float
+        Significance of that shift: it is applied where ``|d|^2`` exceeds this many times half its
+        variance under the image's white noise (a false alarm on an undistorted dot has probability
+        ``exp(-distortion_chi2 / 2)``: 3.7e-6 at the default 25, so the fit stays at the Cramer-Rao bound).
         Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
         ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
     weights : (W_A, W_I, W_dx)
@@ -267,6 +280,8 @@ class TrackingSettings:
     centroid: str = "model"
     correction: str = "model"
     fit_iterations: int = 3
+    distortion: str = "moment"
+    distortion_chi2: float = 25.0
     weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
     diameter: float | None = None
     window_margin: float = 1.0
@@ -304,6 +319,10 @@ class TrackingSettings:
             raise SynthbosError(f"unknown correction {self.correction!r}; choose 'model' or 'paper'")
         if self.fit_iterations < 1:
             raise SynthbosError(f"fit_iterations must be at least 1, got {self.fit_iterations}")
+        if self.distortion not in ("moment", "none"):
+            raise SynthbosError(f"unknown distortion {self.distortion!r}; choose 'moment' or 'none'")
+        if not (np.isfinite(self.distortion_chi2) and self.distortion_chi2 > 0):
+            raise SynthbosError(f"distortion_chi2 must be a positive number, got {self.distortion_chi2!r}")
         if self.matching not in MATCH_METHODS:
             raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
         if self.background not in ("ring-median", "minimum"):
@@ -328,7 +347,7 @@ class TrackingSettings:
     @classmethod
     def paper(cls, **overrides):
         """The procedure of Rajendran, Bane and Vlachos (2019): three-point Gaussian, map correlation."""
-        return cls(**{"centroid": "gaussian3", "correction": "paper", **overrides})
+        return cls(**{"centroid": "gaussian3", "correction": "paper", "distortion": "none", **overrides})
 
     def as_dict(self):
         """Plain ``{name: value}`` (tuples as lists, None as the string "auto") for file attributes."""
@@ -590,13 +609,15 @@ def prior_inside(prior, shape):
     return fin & (p[..., 0] > -0.5) & (p[..., 0] < w - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < h - 0.5)
 
 
-def _fit_models(images, founds, partner, eta0, saturation, settings, device):
+def _fit_models(images, founds, partner, eta0, saturation, noise, settings, device):
     """Joint least-squares fit of the pixel-integrated dot model to every dot found in both images.
 
     Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
-    last step also gives their positions at the pair's common shape (the model correction). Returns per
-    image a dict of ``params`` (N, 5; NaN where not found), ``ok`` (N,) and ``shared_xy`` (N, 2; NaN
-    where not matched).
+    last step also gives their positions at the pair's common shape (the model correction); with
+    ``settings.distortion == "moment"``, the positions (both kinds) then move to the first moments of
+    the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
+    (N, 5; NaN where not found), ``ok`` (N,), ``shared_xy`` (N, 2; NaN where not matched) and ``moved``
+    (N,) bool.
     """
     half, render_half = fit_window_half(eta0)
     sigma0 = _start_sigma(founds, eta0)
@@ -613,23 +634,35 @@ def _fit_models(images, founds, partner, eta0, saturation, settings, device):
     pair[idx_r.size + pair_r[has]] = has
     fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
     extra = {"device": device} if settings.backend == "warp" else {}
+    frame = np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)]
     params, ok, shared = fit(
         images,
         np.vstack([start_r, start_g]),
         half=half,
         render_half=render_half,
-        frame=np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)],
+        frame=frame,
         partner=pair,
         saturation=saturation,
         iterations=settings.fit_iterations,
         sigma_range=(0.25 * eta0, 4.0 * eta0),
         **extra,
     )
+    moved = np.zeros(len(params), dtype=bool)
+    if settings.distortion == "moment":
+        shift = moment_shifts if settings.backend == "warp" else moment_shifts_numpy
+        d, moved = shift(
+            images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
+            chi2=settings.distortion_chi2, **extra,
+        )  # fmt: skip
+        params[:, :2] += d
+        shared += d
     fits = []
     for (idx, _), found, rows in zip(starts, founds, (slice(0, idx_r.size), slice(idx_r.size, None)), strict=True):
         n = len(found["x"])
-        f = {"params": np.full((n, 5), np.nan), "ok": np.zeros(n, dtype=bool), "shared_xy": np.full((n, 2), np.nan)}
-        f["params"][idx], f["ok"][idx], f["shared_xy"][idx] = params[rows], ok[rows], shared[rows]
+        f = {"params": np.full((n, 5), np.nan), "ok": np.zeros(n, dtype=bool), "shared_xy": np.full((n, 2), np.nan),
+             "moved": np.zeros(n, dtype=bool)}  # fmt: skip
+        for key, value in (("params", params), ("ok", ok), ("shared_xy", shared), ("moved", moved)):
+            f[key][idx] = value[rows]
         fits.append(f)
     return fits
 
@@ -643,6 +676,7 @@ def _take_model(found, fit):
     found["eta"] = np.where(has, params[:, 3], found["eta"])
     found["i0"] = np.where(has, params[:, 2], found["i0"])
     found["flags"][has & ~fit["ok"]] |= DotStatus.FIT_FALLBACK
+    found["flags"][has & fit["moved"]] |= DotStatus.DISTORTED
 
 
 def _drop_shared_blobs(found, pred):
@@ -972,7 +1006,8 @@ def track_pair(
     fits = None
     if settings.centroid == "model" or settings.correction == "model":
         saturation = (frame_r.saturation, frame_g.saturation)
-        fits = _fit_models((ref, grad), (r, g), partner, eta0, saturation, settings, device)
+        noise = (frame_r.noise, frame_g.noise)
+        fits = _fit_models((ref, grad), (r, g), partner, eta0, saturation, noise, settings, device)
     if settings.centroid == "model":
         _take_model(r, fits[0])
         _take_model(g, fits[1])
@@ -1000,6 +1035,7 @@ def track_pair(
     if prior_xy is not None:
         status |= g["flags"].astype(np.int32) & ~np.int32(DotStatus.OUTSIDE_IMAGE)
     status[found_g] |= DotStatus.FOUND_GRADIENT
+    status[found_g] |= g["flags"][pi[found_g]].astype(np.int32) & np.int32(DotStatus.DISTORTED)
     matched = found_r & found_g
     if near_mask is not None:
         hidden = _touches(near_mask, np.stack([out["x"], out["y"]], axis=1))

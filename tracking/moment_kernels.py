@@ -1,0 +1,169 @@
+"""Warp kernels of the first-moment step: a distorted dot's position moved to the mean of its light.
+
+A dot seen through a flow is no longer a symmetric spot: rays through different parts of the aperture
+cross different density, so its image is the spot spread (and skewed) by the distribution of their
+landing positions. The renderer's truth, and the quantity BOS measures, is the mean landing position;
+the symmetric model's centre is not. The mean of a dot's light is its image's first moment, and the
+model fit already gives everything needed to take it in a dense pattern: the model image of every dot
+tells which share of each pixel's light belongs to which dot, and the dot's own model carries the
+symmetric part exactly. Only the residual (image less background less every model) is left to weigh.
+
+The host code and the NumPy reference (``moment_shifts_numpy``, which defines the result) live in
+:mod:`tracking.dotfit`.
+"""
+
+import warp as wp
+
+from .kernels import window_is_whole
+
+wp.set_module_options({"enable_backward": False})
+
+#: Shifts below this (px) are left alone: far below any measurement's noise, they would only flag the
+#: dots of noise-free images whose models leave rounding-level residuals.
+MIN_SHIFT_PX = 1.0e-3
+MIN_SHIFT = wp.constant(wp.float64(MIN_SHIFT_PX))
+#: A dot's share of a pixel is its model over the model of every dot there, the latter taken as at least
+#: this fraction of the dot's peak: in the far tails, where both are rounding-level, the share falls off
+#: instead of depending on the fixed-point model image's last bits.
+SHARE_FLOOR_REL = 1.0e-6
+SHARE_FLOOR = wp.constant(wp.float64(SHARE_FLOOR_REL))
+#: The light a dot's model leaves over on its stamp (its share, signed) may be at most this fraction of
+#: the model's own light. A distorted dot's is within 0.12 (99.9 % of the dots of the default snapshot 2
+#: at 256 px, zero noise): the flow moves light, the fit keeps the flux. Beyond it the stamp holds a
+#: dot the fit does not know (one entering at the image edge, one identification missed), whose light
+#: would drag the moment: the dot keeps its model centre.
+MAX_RESIDUAL_FLUX_REL = 0.25
+MAX_RESIDUAL_FLUX = wp.constant(wp.float64(MAX_RESIDUAL_FLUX_REL))
+#: A dot's first moment can leave its symmetric centre only as far as the flow spread its light: the
+#: shift may be at most this times ``sqrt(sigma^2 - sigma_partner^2)``, the spread its fitted width adds
+#: to its partner's in the other image. Distorted dots of the default snapshot 2 (256 px, zero noise)
+#: stay below 0.28 of it; a neighbour's light the fit does not know has no such bound.
+MAX_SHIFT_PER_SPREAD_REL = 1.0
+MAX_SHIFT_PER_SPREAD = wp.constant(wp.float64(MAX_SHIFT_PER_SPREAD_REL))
+
+
+@wp.func
+def moment_shift(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    background: wp.float64,
+    spread2: wp.float64,
+    sat: wp.float64,
+    noise: wp.float64,
+    chi2: wp.float64,
+    max_shift: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+) -> wp.vec3d:
+    """Shift ``(dx, dy)`` from dot i's model centre to the first moment of its share of the light, and
+    1.0 where it is applied (0.0 where not: see ``moment_shifts_numpy``).
+
+    ``models``: the fixed-point model images ``[frames, height, width]`` (flat) of every dot at
+    ``params``; ``prof`` holds dot i's profiles on its ``2 half + 1`` stamp at ``params``;
+    ``background``: the level under the dot; ``spread2``: the square of the largest shift its width
+    allows (``reference_spread2``).
+    """
+    zero = wp.float64(0.0)
+    if not window_is_whole(image, params, i, half, sat):
+        return wp.vec3d(zero, zero, zero)
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    height = image.shape[0]
+    width = image.shape[1]
+    x0 = params[i, 0]
+    y0 = params[i, 1]
+    floor = SHARE_FLOOR * wp.abs(params[i, 2])
+    flux = zero
+    own_flux = zero
+    sx = zero
+    sy = zero
+    vx = zero
+    vy = zero
+    for r in range(n):
+        own_row = params[i, 2] * prof[i, 3, r]
+        at = (f * height + oy + r) * width + ox
+        dy = wp.float64(oy + r) - y0
+        for c in range(n):
+            own = own_row * prof[i, 0, c]
+            total = wp.float64(models[at + c]) * inv_scale
+            share = wp.clamp(own / wp.max(total, floor), zero, wp.float64(1.0))
+            wr = share * (image[oy + r, ox + c] - background - total)
+            dx = wp.float64(ox + c) - x0
+            flux += own + wr
+            own_flux += own
+            sx += dx * wr
+            sy += dy * wr
+            vx += dx * dx * share * share
+            vy += dy * dy * share * share
+    if not (flux > zero) or wp.abs(flux - own_flux) > MAX_RESIDUAL_FLUX * own_flux:
+        return wp.vec3d(zero, zero, zero)
+    mx = sx / flux
+    my = sy / flux
+    shift2 = mx * mx + my * my
+    var = noise * noise * (vx + vy) / (flux * flux)
+    big_enough = shift2 >= MIN_SHIFT * MIN_SHIFT and shift2 <= max_shift * max_shift and shift2 <= spread2
+    if shift2 > chi2 * wp.float64(0.5) * var and big_enough:
+        return wp.vec3d(mx, my, wp.float64(1.0))
+    return wp.vec3d(zero, zero, zero)
+
+
+@wp.func
+def reference_background(
+    params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int, gradient: bool
+) -> wp.float64:
+    """The level under dot i: its partner's fitted background where dot i lies in a gradient image and
+    has a partner (the reference image sees the same target and light, undistorted), else its own."""
+    j = partner[i]
+    if gradient and j >= 0:
+        return params[j, 4]
+    return params[i, 4]
+
+
+@wp.func
+def reference_spread2(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.float64:
+    """The square of the largest first-moment shift dot i's image allows: ``MAX_SHIFT_PER_SPREAD^2`` times
+    the variance its fitted width adds to its partner's, ``sigma_i^2 - sigma_j^2`` (0 without a partner
+    or when it is not the wider of the two)."""
+    j = partner[i]
+    if j < 0:
+        return wp.float64(0.0)
+    extra = params[i, 3] * params[i, 3] - params[j, 3] * params[j, 3]
+    return MAX_SHIFT_PER_SPREAD * MAX_SHIFT_PER_SPREAD * wp.max(extra, wp.float64(0.0))
+
+
+@wp.kernel
+def moment_shift_kernel(
+    image0: wp.array2d(dtype=wp.float64),
+    image1: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    noise: wp.array(dtype=wp.float64),
+    half: int,
+    chi2: wp.float64,
+    max_shift: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    shift: wp.array(dtype=wp.vec3d),
+):
+    """``moment_shift`` of dot i; ``image0``, ``image1``: the images of frames 0 (the reference) and 1
+    (the gradient; the same array twice for a single image)."""
+    i = wp.tid()
+    f = frame[i]
+    b = reference_background(params, partner, i, f == 1)
+    s2 = reference_spread2(params, partner, i)
+    if f == 0:
+        shift[i] = moment_shift(
+            image0, models, inv_scale, f, params, i, half, b, s2, saturation[f], noise[f], chi2, max_shift, prof
+        )
+    else:
+        shift[i] = moment_shift(
+            image1, models, inv_scale, f, params, i, half, b, s2, saturation[f], noise[f], chi2, max_shift, prof
+        )
