@@ -32,3 +32,30 @@ def smooth_displacement(xy, shape, amplitude=1.5):
     u = amplitude * np.sin(2 * np.pi * y / h) * np.cos(2 * np.pi * x / w)
     v = amplitude * np.cos(2 * np.pi * x / w) * np.sin(2 * np.pi * y / h)
     return np.stack([u, v], axis=1)
+
+
+def distorted_dots(rng, shape, xy, *, diameter=3.0, strength=0.4, rays=48):
+    """Dots seen through a sharp interface inside the light cone: each dot is ``rays`` spots of equal weight
+    (its rays through the aperture), each displaced by ``strength * tanh((a . n - c) / 0.15)`` along ``n``
+    for aperture points ``a`` in the unit disk, with a random direction ``n`` and interface offset ``c``
+    per dot. The image is skewed, not just spread; the truth is the mean landing position of the rays.
+
+    Returns
+    -------
+    image : (H, W) float64 array
+    mean_xy : (N, 2) array
+        Each dot's mean ray landing position.
+    """
+    from synthbos.raytrace.dots import draw_dots
+
+    n = len(xy)
+    r = np.sqrt(rng.uniform(0, 1, (n, rays)))
+    t = rng.uniform(0, 2 * np.pi, (n, rays))
+    a = np.stack([r * np.cos(t), r * np.sin(t)], axis=-1)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    normal = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    c = rng.uniform(-0.6, 0.6, n)
+    along = strength * np.tanh((np.einsum("nkd,nd->nk", a, normal) - c[:, None]) / 0.15)
+    landing = xy[:, None, :] + along[..., None] * normal[:, None, :]
+    image = draw_dots(shape, landing.reshape(-1, 2), diameter, intensity=1.0 / rays)
+    return image, landing.mean(axis=1)
