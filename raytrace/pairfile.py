@@ -12,7 +12,9 @@ File layout
 ``/dots/theory_cone_px`` (N, 2)
     Eq. 4 averaged over the rays the renderer traced for the dot (its emission points and aperture
     points, each ray taken straight): the displacement the camera's cone of rays sees in the
-    weak-deflection limit.
+    weak-deflection limit. In both Eq. 4 truths each depth z counts with its own lever arm z / Z_D and
+    the ray's slope u (integrand (grad_xy n - u dn/dz)(1 + |u|^2)), so that they hold for 3-D fields
+    too; through a field whose gradient does not vary along the ray this is Eq. 4 as printed.
 ``/dots/density_cone_kg_m3``, ``/dots/density_chief_kg_m3`` (N,)
     The density averaged over the volume's depth, averaged over the dot's cone of rays, and along its
     chief ray (where a ray passes beside the volume, the volume's edge density continued outwards: the
@@ -106,9 +108,11 @@ PAIR_DATASETS = {
     "dots/reference_px": ("px", "ray-mean image position (x = column, y = row) of each dot without the flow"),
     "dots/gradient_px": ("px", "ray-mean image position (x = column, y = row) of each dot through the flow"),
     "dots/displacement_px": ("px", "exact dot displacement, gradient_px - reference_px (x, y)"),
-    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray (x, y)"),
-    "dots/theory_cone_px": ("px", "Eq. 4's displacement averaged over the rays traced for the dot (its dot and "
-                                  "aperture samples, each ray straight): the aperture's cone (x, y)"),
+    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray, each "
+                             "depth z weighted by its lever arm z / Z_D and the ray's obliquity (x, y)"),
+    "dots/theory_cone_px": ("px", "Eq. 4's displacement (as theory_px, depth-weighted) averaged over the rays traced "
+                                  "for the dot (its dot and aperture samples, each ray straight): the aperture's "
+                                  "cone (x, y)"),
     "dots/density_cone_kg_m3": ("kg/m^3", "density averaged over the volume's depth and over the dot's cone of rays"),
     "dots/density_chief_kg_m3": ("kg/m^3", "density averaged over the volume's depth along the dot's chief ray"),
     "dots/ray_covariance_px2": ("px^2", "covariance [var_x, var_y, cov_xy] of the landing positions of the dot's "

@@ -327,7 +327,11 @@ def fixed_to_image(fixed):
 
 
 def _eq4_px(plan: RenderPlan, integral):
-    """Eq. 4 in pixels from the integral of grad n dz: dX = -(M Z_D / n0) * integral / pitch."""
+    """Eq. 4 in pixels from its integral of grad n dz: dX = -(M Z_D / n0) * integral / pitch.
+
+    ``integral`` is ``kernels.straight_ray_integrals``'s: each depth weighted by its lever arm z / Z_D
+    and the ray's obliquity, which is Eq. 4's plain integral where grad n does not vary along the ray.
+    """
     m, z_d = plan.camera.magnification, plan.medium.centre[2]
     return -(m * z_d / plan.medium.n0) * np.asarray(integral, dtype=np.float64) / plan.camera.pitch
 
@@ -356,7 +360,10 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium
     Returns
     -------
     theory_px : (N, 2) float64
-        Eq. 4: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels.
+        Eq. 4: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels, each depth z
+        weighted by its own lever arm z / Z_D and the ray's obliquity (see
+        ``kernels.straight_ray_integrals``): the displacement of a pinhole camera's dot in the
+        weak-deflection limit, for 3-D fields too.
     density : (N,) float64
         The density averaged over the volume's depth along the chief ray, kg/m^3 (the volume's edge
         density continued where the ray passes beside the volume).
@@ -381,6 +388,11 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     the dot and point on the aperture) and followed as the straight line of the undisturbed medium,
     the reference image's ray. The mean over those rays of Eq. 4 is what the ray-traced displacement
     tends to when deflections are weak: the camera's finite aperture averages the flow over the cone.
+    Along each ray a deflection at distance z from the target counts with its own lever arm z (not
+    the mid-plane's Z_D) and the ray's slope u adds -u dn/dz and the factor 1 + |u|^2 (see
+    ``kernels.straight_ray_integrals``); on a 3-D field (a sinusoid along (1, 0, 1), 256 x 256 px)
+    Eq. 4 with one Z_D for every depth left 5.5 % RMS between traced and cone truth, the lever arms
+    alone 0.9 %, both 0.11 %.
     ``medium``: the plan's medium already on ``device`` (see :func:`truth_medium`), uploaded if None.
     ``group``: consecutive threads take this many chunks of ``rays_per_thread`` rays of one dot (the
     dots in the plan's launch order), so a warp's rays read nearby nodes; it never changes a bit.
