@@ -33,6 +33,10 @@ LENS_THICK = wp.constant(1)
 # bits from run to run): intensities in units of 2^-40, positions in units of 2^-32 px.
 IMAGE_SCALE = wp.constant(1099511627776.0)  # 2^40
 POSITION_SCALE = wp.constant(4294967296.0)  # 2^32
+# The sums of the products of a ray's offset from its dot's nominal position (second and third powers)
+# take a scale per render (``raytrace.render.moment_scales``): a ray summed in them lies within
+# MOMENT_RANGE_PX of the nominal position on both axes (a dot with a ray beyond has no moments).
+MOMENT_RANGE_PX = wp.constant(256.0)
 
 RAY_OK = wp.constant(0)
 RAY_MISSED_LENS = wp.constant(1)
@@ -617,6 +621,38 @@ def group_member(tid: int, group: int, n_dots: int):
     return g - block * n_dots, block * group + (tid - g * group)
 
 
+@wp.func
+def fixed(value: wp.float64, scale: wp.float64):
+    """``value`` in fixed point: the nearest integer to value * scale."""
+    return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
+
+
+@wp.func
+def add_moments(
+    sums: wp.array2d(dtype=wp.int64), far: wp.array(dtype=wp.int32), dot: int, d: wp.vec2,
+    scale2: wp.float64, scale3: wp.float64,
+):
+    """Add a ray's offset ``d`` (px, from its dot's nominal position) to the dot's sums of products
+    in fixed point: xx, yy, xy in units of 1 / scale2, then xxx, xxy, xyy, yyy in units of 1 / scale3,
+    formed in float64 from the float32 offset (the values ``sum_x``, ``sum_y`` hold). An offset beyond
+    MOMENT_RANGE_PX counts in ``far`` instead (its powers could overflow the sums)."""
+    if wp.abs(d[0]) > MOMENT_RANGE_PX or wp.abs(d[1]) > MOMENT_RANGE_PX:
+        wp.atomic_add(far, dot, 1)
+        return
+    x = wp.float64(d[0])
+    y = wp.float64(d[1])
+    xx = x * x
+    yy = y * y
+    xy = x * y
+    wp.atomic_add(sums, dot, 0, fixed(xx, scale2))
+    wp.atomic_add(sums, dot, 1, fixed(yy, scale2))
+    wp.atomic_add(sums, dot, 2, fixed(xy, scale2))
+    wp.atomic_add(sums, dot, 3, fixed(xx * x, scale3))
+    wp.atomic_add(sums, dot, 4, fixed(xx * y, scale3))
+    wp.atomic_add(sums, dot, 5, fixed(xy * y, scale3))
+    wp.atomic_add(sums, dot, 6, fixed(yy * y, scale3))
+
+
 @wp.kernel
 def render_rays(
     medium: Any,
@@ -634,9 +670,13 @@ def render_rays(
     ray_start: int,
     ray_count: int,
     group: int,
+    scale2: wp.float64,
+    scale3: wp.float64,
     image: wp.array2d(dtype=wp.int64),
     sum_x: wp.array(dtype=wp.int64),
     sum_y: wp.array(dtype=wp.int64),
+    sums: wp.array2d(dtype=wp.int64),
+    far: wp.array(dtype=wp.int32),
     hits: wp.array(dtype=wp.int32),
     lost: wp.array(dtype=wp.int32),
     tir: wp.array(dtype=wp.int32),
@@ -650,6 +690,9 @@ def render_rays(
     ``launch_order`` and a larger group make a warp's rays read nearby nodes. The order changes
     nothing else: a ray's random numbers depend only on (seed, dot, ray), and the images and sums are
     accumulated in fixed point, so every order gives the same bits.
+
+    Per dot: ``sum_x``, ``sum_y`` (offsets of the landing positions from the nominal position, units
+    of 1 / POSITION_SCALE px), ``sums`` (N, 7): the sums of their products (see ``add_moments``).
     """
     n_dots = dots.shape[0]
     slot, local = group_member(wp.tid(), group, n_dots)
@@ -677,21 +720,34 @@ def render_rays(
     if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
         wp.atomic_add(lost, dot, 1)
     deposit_gaussian(image, sen, px, sen.energy)
-    wp.atomic_add(sum_x, dot, wp.int64(wp.floor((px[0] - nominal_px[dot][0]) * POSITION_SCALE + 0.5)))
-    wp.atomic_add(sum_y, dot, wp.int64(wp.floor((px[1] - nominal_px[dot][1]) * POSITION_SCALE + 0.5)))
+    d = px - nominal_px[dot]
+    wp.atomic_add(sum_x, dot, wp.int64(wp.floor(d[0] * POSITION_SCALE + 0.5)))
+    wp.atomic_add(sum_y, dot, wp.int64(wp.floor(d[1] * POSITION_SCALE + 0.5)))
+    add_moments(sums, far, dot, d, scale2, scale3)
     wp.atomic_add(hits, dot, 1)
 
 
 @wp.func
 def straight_ray_integrals(m: Any, origin: wp.vec3, aim: wp.vec3, n_samples: int):
     """Along the straight line from ``origin`` towards ``aim``, through the depth of the box (midpoint
-    rule in z): the integral of (dn/dx, dn/dy) dz (Eq. 4's integral) and the depth average of n - 1.
+    rule in z): Eq. 4's integral with each depth weighted by its own geometry, and the depth average
+    of n - 1.
+
+    The first is ``(1 + |u|^2) / Z_D * integral of z (grad_xy n - u dn/dz) dz`` (Z_D the box centre's
+    distance from the target, u = t_xy / t_z the line's slope): in the weak-deflection limit the ray's
+    apparent origin on the target moves by -(1 / n0) times the integral of z (grad_xy n - u dn/dz) /
+    t_z^2 dz (a deflection at distance z from the target moves it by z times the change of slope, and
+    d u / dz = (grad_xy n - u dn/dz) / (n t_z^2) by Fermat's equation), so that ``-(M Z_D / n0)`` times
+    it is the image displacement. Where grad n does not vary along the line (a linear field) and the
+    line is axial, this is Eq. 4's integral of (dn/dx, dn/dy) dz exactly; through an extruded slice it
+    differs only by the line's lateral travel across the depth and the obliquity factor 1 + |u|^2.
 
     Where the line passes beside the box, n - 1 is read at the nearest point of the box's side (the
     volume's edge density continued outwards): the renderer sees no gradient there, so no jump either.
     Inside the box that point is the sample itself, which is read once.
     """
     t = wp.normalize(aim - origin)
+    u = wp.vec2(t[0] / t[2], t[1] / t[2])
     z0 = m.centre[2] - m.half[2]
     dz = 2.0 * m.half[2] / float(n_samples)
     acc = wp.vec2(0.0)
@@ -700,13 +756,13 @@ def straight_ray_integrals(m: Any, origin: wp.vec3, aim: wp.vec3, n_samples: int
         z = z0 + (float(k) + 0.5) * dz
         p = origin + ((z - origin[2]) / t[2]) * t - m.centre
         s = sample_medium(m, p)
-        acc = acc + wp.vec2(s[0], s[1]) * dz
+        acc = acc + (wp.vec2(s[0], s[1]) - u * s[2]) * (z * dz)
         edge = wp.vec3(wp.clamp(p[0], -m.half[0], m.half[0]), wp.clamp(p[1], -m.half[1], m.half[1]), p[2])
         if edge[0] == p[0] and edge[1] == p[1]:
             nm1 = nm1 + s[3]
         else:
             nm1 = nm1 + sample_medium(m, edge)[3]
-    return acc, nm1 / float(n_samples)
+    return acc * ((1.0 + wp.dot(u, u)) / m.centre[2]), nm1 / float(n_samples)
 
 
 @wp.kernel
@@ -718,8 +774,9 @@ def integrate_grad_n(
     out: wp.array(dtype=wp.vec2),
     out_nm1: wp.array(dtype=float),
 ):
-    """Along the straight chief ray from each dot to the centre of the aperture: the integral of
-    (dn/dx, dn/dy) dz in Eq. 4 and the depth-averaged n - 1 (see ``straight_ray_integrals``)."""
+    """Along the straight chief ray from each dot to the centre of the aperture: Eq. 4's integral of
+    grad n dz, each depth weighted by its geometry, and the depth-averaged n - 1 (see
+    ``straight_ray_integrals``)."""
     i = wp.tid()
     origin = wp.vec3(dots[i][0], dots[i][1], 0.0)
     acc, nm1 = straight_ray_integrals(medium, origin, wp.vec3(0.0, 0.0, cam.z_stop), n_samples)

@@ -12,11 +12,22 @@ File layout
 ``/dots/theory_cone_px`` (N, 2)
     Eq. 4 averaged over the rays the renderer traced for the dot (its emission points and aperture
     points, each ray taken straight): the displacement the camera's cone of rays sees in the
-    weak-deflection limit.
+    weak-deflection limit. In both Eq. 4 truths each depth z counts with its own lever arm z / Z_D and
+    the ray's slope u (integrand (grad_xy n - u dn/dz)(1 + |u|^2)), so that they hold for 3-D fields
+    too; through a field whose gradient does not vary along the ray this is Eq. 4 as printed.
 ``/dots/density_cone_kg_m3``, ``/dots/density_chief_kg_m3`` (N,)
     The density averaged over the volume's depth, averaged over the dot's cone of rays, and along its
     chief ray (where a ray passes beside the volume, the volume's edge density continued outwards: the
     renderer sees no gradient there).
+``/dots/ray_covariance_px2``, ``/dots/ray_covariance_reference_px2`` (N, 3)
+    [var_x, var_y, cov_xy] of the landing positions of the dot's rays about their mean (the ray-mean
+    position above), in the gradient image and in the reference image, px^2. The reference's is the
+    dot's own disk and any defocus or thick-lens spread (zero for a point dot through a thin lens, up
+    to float32 rounding); what the gradient's adds is the spread the flow makes inside the aperture's
+    cone (:func:`in_cone_spread_px`).
+``/dots/ray_third_moment_px3`` (N, 4)
+    [m30, m21, m12, m03], the central third moments E[dx^a dy^b] (a + b = 3, dx, dy about the mean) of
+    the gradient image's landing positions, px^3: the skew of the distorted dot.
 ``/dots/valid`` (N,) bool
     Every ray of the dot reached the sensor in both images.
 root attributes
@@ -27,7 +38,8 @@ root attributes
     ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3`` (all scalars).
 
 Every dataset carries ``units`` and ``description`` attributes, from ``PAIR_DATASETS``. Files written
-before the cone truth existed read with ``theory_cone_px`` and the two densities set to None.
+before the cone truth existed read with ``theory_cone_px`` and the two densities set to None; files
+written before the ray moments existed read with the three moment fields set to None.
 
 Sign convention: the image is upright (columns grow with target x, rows with target y) and a
 displacement is gradient-image position minus reference-image position. A ray bends towards higher
@@ -45,7 +57,9 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_hdf5
 
-__all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "read_pair", "write_pair"]
+__all__ = [
+    "PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "in_cone_spread_px", "read_pair", "write_pair",
+]
 
 SIGN_CONVENTION = (
     "upright image (x = column grows with target x, y = row grows with target y); "
@@ -55,6 +69,8 @@ SIGN_CONVENTION = (
 
 _DOT_SETS = ("target_xy_m", "reference_px", "gradient_px", "displacement_px", "theory_px")
 _TRUTH_SETS = ("theory_cone_px", "density_cone_kg_m3", "density_chief_kg_m3")
+# Per-dot ray moments: name -> number of columns.
+_MOMENT_SETS = {"ray_covariance_px2": 3, "ray_covariance_reference_px2": 3, "ray_third_moment_px3": 4}
 
 @dataclass
 class Pair:
@@ -71,6 +87,9 @@ class Pair:
     theory_cone_px: np.ndarray | None = None
     density_cone_kg_m3: np.ndarray | None = None
     density_chief_kg_m3: np.ndarray | None = None
+    ray_covariance_px2: np.ndarray | None = None
+    ray_covariance_reference_px2: np.ndarray | None = None
+    ray_third_moment_px3: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
 
     @property
@@ -89,13 +108,63 @@ PAIR_DATASETS = {
     "dots/reference_px": ("px", "ray-mean image position (x = column, y = row) of each dot without the flow"),
     "dots/gradient_px": ("px", "ray-mean image position (x = column, y = row) of each dot through the flow"),
     "dots/displacement_px": ("px", "exact dot displacement, gradient_px - reference_px (x, y)"),
-    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray (x, y)"),
-    "dots/theory_cone_px": ("px", "Eq. 4's displacement averaged over the rays traced for the dot (its dot and "
-                                  "aperture samples, each ray straight): the aperture's cone (x, y)"),
+    "dots/theory_px": ("px", "Eq. 4's displacement -(M Z_D / n0) * integral(grad n) dz along the chief ray, each "
+                             "depth z weighted by its lever arm z / Z_D and the ray's obliquity (x, y)"),
+    "dots/theory_cone_px": ("px", "Eq. 4's displacement (as theory_px, depth-weighted) averaged over the rays traced "
+                                  "for the dot (its dot and aperture samples, each ray straight): the aperture's "
+                                  "cone (x, y)"),
     "dots/density_cone_kg_m3": ("kg/m^3", "density averaged over the volume's depth and over the dot's cone of rays"),
     "dots/density_chief_kg_m3": ("kg/m^3", "density averaged over the volume's depth along the dot's chief ray"),
+    "dots/ray_covariance_px2": ("px^2", "covariance [var_x, var_y, cov_xy] of the landing positions of the dot's "
+                                        "rays in the gradient image about their mean: the dot's spread"),
+    "dots/ray_covariance_reference_px2": ("px^2", "covariance [var_x, var_y, cov_xy] of the landing positions of "
+                                                  "the dot's rays in the reference image about their mean (the "
+                                                  "dot's disk, defocus and lens spread)"),
+    "dots/ray_third_moment_px3": ("px^3", "central third moments [m30, m21, m12, m03] = E[dx^a dy^b] of the landing "
+                                          "positions of the dot's rays in the gradient image: the skew"),
     "dots/valid": ("1", "true where every ray of the dot reached the sensor in both images"),
 }
+
+
+def in_cone_spread_px(pair: Pair) -> np.ndarray:
+    """RMS spread the flow adds to each dot's image inside the aperture's cone of rays, px.
+
+    ``sqrt(max(0, (var_x + var_y) of the gradient image - (var_x + var_y) of the reference image))``
+    from the pair's ray covariances: 0 where every ray of a dot is displaced alike (a linear field, a
+    uniform medium), large where the flow varies across the cone (a sharp interface).
+
+    Parameters
+    ----------
+    pair : Pair
+        A rendered pair (``render_pair``) or one read back (``read_pair``).
+
+    Returns
+    -------
+    (N,) float64
+        The spread, px; NaN for every dot where the pair holds no ray covariances (a file written
+        before they were recorded) and where a dot's are NaN.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pair = Pair(reference=np.zeros((2, 2)), gradient=np.zeros((2, 2)), target_xy_m=np.zeros((2, 2)),
+    ...             reference_px=np.zeros((2, 2)), gradient_px=np.zeros((2, 2)),
+    ...             displacement_px=np.zeros((2, 2)), theory_px=np.zeros((2, 2)), valid=np.ones(2, bool),
+    ...             ray_covariance_px2=np.array([[0.02, 0.05, 0.01], [0.01, 0.0, 0.0]]),
+    ...             ray_covariance_reference_px2=np.array([[0.01, 0.02, 0.0], [0.01, 0.0, 0.0]]))
+    >>> in_cone_spread_px(pair)
+    array([0.2, 0. ])
+    >>> pair.ray_covariance_px2 = None
+    >>> in_cone_spread_px(pair)
+    array([nan, nan])
+    """
+    if pair.ray_covariance_px2 is None or pair.ray_covariance_reference_px2 is None:
+        return np.full(pair.n_dots, np.nan)
+    grad = np.asarray(pair.ray_covariance_px2, dtype=np.float64)
+    ref = np.asarray(pair.ray_covariance_reference_px2, dtype=np.float64)
+    added = (grad[:, 0] + grad[:, 1]) - (ref[:, 0] + ref[:, 1])
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.maximum(added, 0.0))
 
 
 def describe_datasets(h5file, schema: dict) -> None:
@@ -114,7 +183,7 @@ def write_pair(path, pair: Pair) -> Path:
         img.create_dataset("reference", data=np.asarray(pair.reference, np.float32), compression="gzip")
         img.create_dataset("gradient", data=np.asarray(pair.gradient, np.float32), compression="gzip")
         dots = f.create_group("dots")
-        for name in _DOT_SETS + _TRUTH_SETS:
+        for name in (*_DOT_SETS, *_TRUTH_SETS, *_MOMENT_SETS):
             if getattr(pair, name) is not None:
                 dots.create_dataset(name, data=np.asarray(getattr(pair, name), np.float64))
         dots.create_dataset("valid", data=np.asarray(pair.valid, bool))
@@ -138,7 +207,8 @@ def read_pair(path) -> Pair:
                 raise SynthbosError(f"{path} is not a synthbos pair file: missing {', '.join(missing)}")
             _check_layout(f, path)
             kwargs = {n: f[f"dots/{n}"][()] for n in _DOT_SETS}
-            kwargs.update({n: (f[f"dots/{n}"][()] if f"dots/{n}" in f else None) for n in _TRUTH_SETS})
+            optional = (*_TRUTH_SETS, *_MOMENT_SETS)
+            kwargs.update({n: (f[f"dots/{n}"][()] if f"dots/{n}" in f else None) for n in optional})
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
             return Pair(
                 reference=f["images/reference"][()], gradient=f["images/gradient"][()],
@@ -172,6 +242,9 @@ def _check_layout(f, path):
         if obj.ndim != 2 or obj.shape[1] != 2 or (n is not None and obj.shape[0] != n):
             raise SynthbosError(f"{path}: /dots/{name} must be (N, 2) like the other dot sets, got shape {obj.shape}")
         n = obj.shape[0]
+    for name, columns in _MOMENT_SETS.items():
+        if f"dots/{name}" in f and dataset(f"dots/{name}").shape != (n, columns):
+            raise SynthbosError(f"{path}: /dots/{name} must be ({n}, {columns}), got shape {f['dots/' + name].shape}")
     if dataset("dots/valid").shape != (n,):
         raise SynthbosError(f"{path}: /dots/valid must be ({n},), got shape {f['dots/valid'].shape}")
     config = f.attrs.get("config")

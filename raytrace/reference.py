@@ -38,12 +38,14 @@ def sample_medium(medium: MediumData, p_local):
 def straight_ray_integrals(medium: MediumData, origins, aims, n_samples):
     """Float64 twin of ``kernels.straight_ray_integrals`` for rays (N, 3) from ``origins`` towards ``aims``.
 
-    Returns the integral of (dn/dx, dn/dy) dz over the box's depth (N, 2) and the depth-mean of n - 1
-    (N,), read at the nearest point of the box's side where a ray passes beside it.
+    Returns Eq. 4's integral with each depth weighted by its geometry, ``(1 + |u|^2) / Z_D * integral
+    of z (grad_xy n - u dn/dz) dz`` over the box's depth (N, 2), and the depth-mean of n - 1 (N,),
+    read at the nearest point of the box's side where a ray passes beside it.
     """
     o = np.asarray(origins, dtype=np.float64)
     t = np.asarray(aims, dtype=np.float64) - o
     t = t / np.linalg.norm(t, axis=-1, keepdims=True)
+    u = t[:, :2] / t[:, 2:3]
     centre, half = np.array(medium.centre), np.array(medium.size) / 2.0
     dz = 2.0 * half[2] / n_samples
     z = centre[2] - half[2] + (np.arange(n_samples) + 0.5) * dz  # (S,)
@@ -52,7 +54,8 @@ def straight_ray_integrals(medium: MediumData, origins, aims, n_samples):
     edge = p.copy()
     edge[..., :2] = np.clip(p[..., :2], -half[:2], half[:2])
     nm1 = sample_medium(medium, edge)[..., 3].mean(axis=1)
-    return s[..., :2].sum(axis=1) * dz, nm1
+    weighted = ((s[..., :2] - u[:, None, :] * s[..., 2:3]) * z[None, :, None]).sum(axis=1) * dz
+    return weighted * ((1.0 + np.sum(u * u, axis=1)) / centre[2])[:, None], nm1
 
 
 def _rate(medium, x, t):
