@@ -328,14 +328,16 @@ class _Batch:
         models.zero_()
         half = self.geometry.render_half
         self.launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, self.H, self.W, models])
+        shift = wp.empty(rows, dtype=wp.vec3d, device=self.device)
         self.launch(
             bk.moment_shift_batch,
             rows,
             [
                 self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
-                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), 1.0, prof, shared, moved,
+                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), 1.0, prof, shift,
             ],
         )  # fmt: skip
+        self.launch(bk.apply_moment_shift, rows, [shift, partner, params, shared, moved])
 
 
 def _frame_statistics(images, name, settings, device, first):

@@ -13,7 +13,7 @@ import warp as wp
 from synthbos.correlation.pass_kernels import three_point_offset
 
 from .kernels import fit_dot_step, measure_window
-from .moment_kernels import moment_shift, reference_background, reference_spread2
+from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
 from .pipeline import DotStatus
 
 wp.config.quiet = True
@@ -690,33 +690,44 @@ def moment_shift_batch(
     chi2: wp.float64,
     max_shift: wp.float64,
     prof: wp.array3d(dtype=wp.float64),
-    shared_xy: wp.array2d(dtype=wp.float64),
-    moved: wp.array(dtype=wp.int32),
+    shift: wp.array(dtype=wp.vec3d),
 ):
-    """``tracking.pipeline._fit_models``' first-moment step of row i, in place: its position and its
-    common-shape position move by ``moment_shift`` (model frame ``2 b``: pair b's reference image, ``2 b
-    + 1`` its gradient image; ``noise`` per frame). Reads only row i's position and its partner's
-    background, so rows move independently."""
+    """``moment_shift`` of row i (model frame ``2 b``: pair b's reference image, ``2 b + 1`` its gradient
+    image; ``noise`` per frame); ``apply_moment_shift`` then moves the rows."""
     i = wp.tid()
-    moved[i] = 0
+    shift[i] = wp.vec3d()
     if live[i] == 0:
         return
     f = frame[i]
     b = f // 2
     bg = reference_background(params, partner, i, f % 2 == 1)
     s2 = reference_spread2(params, partner, i)
-    d = wp.vec3d()
     if f % 2 == 0:
-        d = moment_shift(
+        shift[i] = moment_shift(
             references[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
             prof,
         )  # fmt: skip
     else:
-        d = moment_shift(
+        shift[i] = moment_shift(
             gradients[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
             prof,
         )  # fmt: skip
-    if d[2] > wp.float64(0.5):
+
+
+@wp.kernel
+def apply_moment_shift(
+    shift: wp.array(dtype=wp.vec3d),
+    partner: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    moved: wp.array(dtype=wp.int32),
+):
+    """``tracking.pipeline._fit_models``' first-moment step, in place: where row i ``moves``, its position
+    and its common-shape position move by its shift."""
+    i = wp.tid()
+    moved[i] = 0
+    if moves(shift, partner, i):
+        d = shift[i]
         params[i, 0] = params[i, 0] + d[0]
         params[i, 1] = params[i, 1] + d[1]
         shared_xy[i, 0] = shared_xy[i, 0] + d[0]

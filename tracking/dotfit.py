@@ -28,6 +28,7 @@ from .moment_kernels import (
     MAX_SHIFT_PER_SPREAD_REL,
     MIN_SHIFT_PX,
     SHARE_FLOOR_REL,
+    moment_moves_kernel,
     moment_shift_kernel,
 )
 from .workspace import scratch
@@ -549,18 +550,20 @@ def moment_shifts_numpy(
     shift : (N, 2) array
         ``(dx, dy)``, px: 0 where not applied.
     applied : (N,) bool array
-        Where the stamp lies inside its image with no saturated pixel, the residual light of the
-        dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is another dot's
-        light, not a distortion), and the shift is significant, at least ``MIN_SHIFT_PX`` (1e-3 px), at
-        most ``max_shift`` and at most ``MAX_SHIFT_PER_SPREAD_REL`` (1) times the spread the dot's
-        fitted width adds to its partner's, ``sqrt(sigma^2 - sigma_partner^2)`` (a dot without a partner,
-        or no wider than it, keeps its centre).
+        Where the shift is usable and the dot or its partner is distorted: a matched pair is measured
+        alike in both images (the fit's own residuals in a tight cluster, alike in both, then cancel in
+        the displacement). Usable: the stamp lies inside its image with no saturated pixel, the residual
+        light of the dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is
+        another dot's light, not a distortion) and the shift is at most ``max_shift``. Distorted: the
+        shift is also significant, at least ``MIN_SHIFT_PX`` (1e-3 px) and at most
+        ``MAX_SHIFT_PER_SPREAD_REL`` (1) times the spread the dot's fitted width adds to its partner's,
+        ``sqrt(sigma^2 - sigma_partner^2)`` (a dot without a partner, or no wider than it, is not).
 
     Examples
     --------
     A reference spot, and in the gradient image the same spot with a faint second one 1 px to its right:
     the fit's centre sits on the main spot (its width grown to 0.85 px), the first moment 0.111 px further
-    right (the second spot holds 1/9 of the light); the undistorted reference keeps its centre.
+    right (the second spot holds 1/9 of the light); the undistorted reference's first moment is its centre.
 
     >>> import numpy as np
     >>> reference = render_dots((15, 15), [[7.0, 7.0, 1.0, 0.8, 0.0]], half=5)
@@ -570,7 +573,7 @@ def moment_shifts_numpy(
     ...     [reference, gradient], fitted, half=5, frame=[0, 1], partner=[1, 0]
     ... )
     >>> np.round(shift, 3).tolist(), applied.tolist()
-    ([[0.0, 0.0], [0.111, 0.0]], [False, True])
+    ([[0.0, 0.0], [0.111, 0.0]], [True, True])
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     stack = np.stack(stack)
@@ -600,8 +603,11 @@ def moment_shifts_numpy(
     shift = np.stack([(dx * wr).sum(axis=(1, 2)), (dy * wr).sum(axis=(1, 2))], axis=1) / safe[:, None]
     var = sigma[frame] ** 2 * ((dx**2 + dy**2) * share**2).sum(axis=(1, 2)) / safe**2
     size2 = (shift**2).sum(axis=1)
-    applied = whole & (flux > 0) & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux)
-    applied &= (size2 > 0.5 * chi2 * var) & (size2 >= MIN_SHIFT_PX**2) & (size2 <= np.minimum(max_shift**2, spread2))
+    usable = (
+        whole & (flux > 0) & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux) & (size2 <= max_shift**2)
+    )
+    distorted = usable & (size2 > 0.5 * chi2 * var) & (size2 >= MIN_SHIFT_PX**2) & (size2 <= spread2)
+    applied = usable & (distorted | ((partner >= 0) & distorted[np.maximum(partner, 0)]))
     return np.where(applied[:, None], shift, 0.0), applied
 
 
@@ -656,5 +662,7 @@ def moment_shifts(
                 float(max_shift), prof, out],
         device=device,
     )  # fmt: skip
-    res = out.numpy()
-    return res[:, :2].copy(), res[:, 2] > 0.5
+    moved = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
+    applied = moved.numpy().astype(bool)
+    return np.where(applied[:, None], out.numpy()[:, :2], 0.0), applied

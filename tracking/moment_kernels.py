@@ -40,6 +40,8 @@ MAX_RESIDUAL_FLUX = wp.constant(wp.float64(MAX_RESIDUAL_FLUX_REL))
 #: stay below 0.28 of it; a neighbour's light the fit does not know has no such bound.
 MAX_SHIFT_PER_SPREAD_REL = 1.0
 MAX_SHIFT_PER_SPREAD = wp.constant(wp.float64(MAX_SHIFT_PER_SPREAD_REL))
+USABLE_CODE = wp.constant(wp.float64(1.0))
+DISTORTED_CODE = wp.constant(wp.float64(2.0))
 
 
 @wp.func
@@ -60,7 +62,8 @@ def moment_shift(
     prof: wp.array3d(dtype=wp.float64),
 ) -> wp.vec3d:
     """Shift ``(dx, dy)`` from dot i's model centre to the first moment of its share of the light, and
-    1.0 where it is applied (0.0 where not: see ``moment_shifts_numpy``).
+    its code: ``DISTORTED_CODE`` where the dot is distorted, ``USABLE_CODE`` where the shift is usable
+    but not significant on its own, 0 where neither (see ``moment_shifts_numpy``).
 
     ``models``: the fixed-point model images ``[frames, height, width]`` (flat) of every dot at
     ``params``; ``prof`` holds dot i's profiles on its ``2 half + 1`` stamp at ``params``;
@@ -105,11 +108,22 @@ def moment_shift(
     mx = sx / flux
     my = sy / flux
     shift2 = mx * mx + my * my
+    if shift2 > max_shift * max_shift:
+        return wp.vec3d(zero, zero, zero)
     var = noise * noise * (vx + vy) / (flux * flux)
-    big_enough = shift2 >= MIN_SHIFT * MIN_SHIFT and shift2 <= max_shift * max_shift and shift2 <= spread2
-    if shift2 > chi2 * wp.float64(0.5) * var and big_enough:
-        return wp.vec3d(mx, my, wp.float64(1.0))
-    return wp.vec3d(zero, zero, zero)
+    if shift2 > chi2 * wp.float64(0.5) * var and shift2 >= MIN_SHIFT * MIN_SHIFT and shift2 <= spread2:
+        return wp.vec3d(mx, my, DISTORTED_CODE)
+    return wp.vec3d(mx, my, USABLE_CODE)
+
+
+@wp.func
+def moves(code: wp.array(dtype=wp.vec3d), partner: wp.array(dtype=wp.int32), i: int) -> bool:
+    """Whether dot i moves to its first moment: its shift is usable and it or its partner is distorted
+    (a matched pair is measured alike in both images)."""
+    if code[i][2] < USABLE_CODE:
+        return False
+    j = partner[i]
+    return code[i][2] == DISTORTED_CODE or (j >= 0 and code[j][2] == DISTORTED_CODE)
 
 
 @wp.func
@@ -153,8 +167,8 @@ def moment_shift_kernel(
     prof: wp.array3d(dtype=wp.float64),
     shift: wp.array(dtype=wp.vec3d),
 ):
-    """``moment_shift`` of dot i; ``image0``, ``image1``: the images of frames 0 (the reference) and 1
-    (the gradient; the same array twice for a single image)."""
+    """``moment_shift`` of dot i (shift and code; ``moves`` then decides); ``image0``, ``image1``: the images
+    of frames 0 (the reference) and 1 (the gradient; the same array twice for a single image)."""
     i = wp.tid()
     f = frame[i]
     b = reference_background(params, partner, i, f == 1)
@@ -167,3 +181,12 @@ def moment_shift_kernel(
         shift[i] = moment_shift(
             image1, models, inv_scale, f, params, i, half, b, s2, saturation[f], noise[f], chi2, max_shift, prof
         )
+
+
+@wp.kernel
+def moment_moves_kernel(
+    shift: wp.array(dtype=wp.vec3d), partner: wp.array(dtype=wp.int32), moved: wp.array(dtype=wp.int32)
+):
+    """``moves`` of dot i."""
+    i = wp.tid()
+    moved[i] = int(moves(shift, partner, i))
