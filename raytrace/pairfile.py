@@ -17,6 +17,11 @@ File layout
     The density averaged over the volume's depth, averaged over the dot's cone of rays, and along its
     chief ray (where a ray passes beside the volume, the volume's edge density continued outwards: the
     renderer sees no gradient there).
+``/dots/ray_covariance_px2``, ``/dots/ray_covariance_reference_px2`` (N, 3)
+    Covariance [var_x, var_y, cov_xy] of the landing positions of the dot's rays about their mean, in
+    the gradient and in the reference image, px^2.
+``/dots/ray_third_moment_px3`` (N, 4)
+    Third central moments [m30, m21, m12, m03] of the gradient image's ray landing positions, px^3.
 ``/dots/valid`` (N,) bool
     Every ray of the dot reached the sensor in both images.
 root attributes
@@ -45,7 +50,8 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_hdf5
 
-__all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "read_pair", "write_pair"]
+__all__ = ["PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "in_cone_spread_px", "read_pair",
+           "write_pair"]
 
 SIGN_CONVENTION = (
     "upright image (x = column grows with target x, y = row grows with target y); "
@@ -54,7 +60,8 @@ SIGN_CONVENTION = (
 )
 
 _DOT_SETS = ("target_xy_m", "reference_px", "gradient_px", "displacement_px", "theory_px")
-_TRUTH_SETS = ("theory_cone_px", "density_cone_kg_m3", "density_chief_kg_m3")
+_TRUTH_SETS = ("theory_cone_px", "density_cone_kg_m3", "density_chief_kg_m3", "ray_covariance_px2",
+               "ray_covariance_reference_px2", "ray_third_moment_px3")
 
 @dataclass
 class Pair:
@@ -71,6 +78,9 @@ class Pair:
     theory_cone_px: np.ndarray | None = None
     density_cone_kg_m3: np.ndarray | None = None
     density_chief_kg_m3: np.ndarray | None = None
+    ray_covariance_px2: np.ndarray | None = None
+    ray_covariance_reference_px2: np.ndarray | None = None
+    ray_third_moment_px3: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
 
     @property
@@ -94,8 +104,29 @@ PAIR_DATASETS = {
                                   "aperture samples, each ray straight): the aperture's cone (x, y)"),
     "dots/density_cone_kg_m3": ("kg/m^3", "density averaged over the volume's depth and over the dot's cone of rays"),
     "dots/density_chief_kg_m3": ("kg/m^3", "density averaged over the volume's depth along the dot's chief ray"),
+    "dots/ray_covariance_px2": ("px^2", "covariance [var_x, var_y, cov_xy] of the landing positions of the dot's "
+                                        "rays in the gradient image about their mean"),
+    "dots/ray_covariance_reference_px2": ("px^2", "covariance [var_x, var_y, cov_xy] of the landing positions of "
+                                                  "the dot's rays in the reference image about their mean"),
+    "dots/ray_third_moment_px3": ("px^3", "third central moments [m30, m21, m12, m03] of the landing positions of "
+                                          "the dot's rays in the gradient image"),
     "dots/valid": ("1", "true where every ray of the dot reached the sensor in both images"),
 }
+
+
+def in_cone_spread_px(pair: Pair) -> np.ndarray:
+    """The spread the flow adds to each dot's rays: sqrt(max(0, trace(cov_gradient) - trace(cov_reference))).
+
+    (N,) px; NaN where the pair holds no ray covariance (files written before it existed). A reference
+    covariance that is absent counts as a point (zero).
+    """
+    if pair.ray_covariance_px2 is None:
+        return np.full(pair.n_dots, np.nan)
+    grad = np.asarray(pair.ray_covariance_px2, np.float64)
+    ref = pair.ray_covariance_reference_px2
+    ref = np.zeros_like(grad) if ref is None else np.asarray(ref, np.float64)
+    added = (grad[:, 0] + grad[:, 1]) - (ref[:, 0] + ref[:, 1])
+    return np.sqrt(np.maximum(added, 0.0))
 
 
 def describe_datasets(h5file, schema: dict) -> None:
