@@ -66,9 +66,11 @@ def save_scores(path, scores: dict) -> None:
 def load_scores(spec, folder, method: str, noise: float) -> dict:
     """Concatenate the scores of one method and noise level over all pairs of a campaign.
 
-    ``process_device`` is the processing device(s) of those scores, sorted and joined by "+".
+    ``process_device`` is the processing device(s) of those scores, sorted and joined by "+". ``spread``
+    (the in-cone spread at each point, px) is NaN for score files written before it was recorded.
     """
-    parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "measured": 0, "expected": 0}
+    parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "spread": [], "measured": 0,
+             "expected": 0}
     devices = set()
     for truth in DENSITY_TRUTHS:
         parts[f"density_{truth}"], parts[f"density_{truth}_rel"] = [], []
@@ -84,6 +86,7 @@ def load_scores(spec, folder, method: str, noise: float) -> dict:
             parts["true_mag"].append(z["true_mag"])
             parts["grad_error"].append(z["grad_error"])
             parts["threshold"].append(np.full(n, float(z["threshold"])))
+            parts["spread"].append(z["spread"] if "spread" in z else np.full(n, np.nan))  # older scores: none
             parts["measured"] += int(z["measured"])
             parts["expected"] += int(z["expected"])
             devices.add(str(z["process_device"]) if "process_device" in z else "unknown")
