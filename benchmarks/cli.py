@@ -359,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_process)
 
     p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
-    p.add_argument("result", help="result file from 'synthbos process'")
+    p.add_argument("result", help="result file from 'synthbos process', or a pair file from 'synthbos render' alone: "
+                                  "its exact displacements, the floor set by the dot spacing and the solver")
     p.add_argument("--pair", help="the pair file the result came from: its set-up, and the truths to score against")
     p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file "
                                     "(default: the embedded default)")
