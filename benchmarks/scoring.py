@@ -57,10 +57,10 @@ PERCENTILES = (50, 68, 90, 95, 99)
 
 #: The error budget's bins of in-cone spread (name, lower edge px, upper edge px; lower edge included).
 #: Chosen from tracking at zero noise on the default set-up (256 x 256 px, 1,000 rays per dot, f/11,
-#: snapshots 0-3; 2026-11-26, spread from the per-ray Eq. 4 displacements): below 0.05 px its error p90
-#: stays <= 0.0002 px, the level of exact dot images ("undistorted"); 0.05-0.2 px gives p90 0.0015-0.006
-#: px, below the 0.01 px the paper reports and below the noise at 1 % ("mild"); 0.2-0.5 px gives p90
-#: 0.014-0.05 px ("distorted"); beyond 0.5 px p90 0.08-0.13 px ("strong").
+#: snapshots 0-4, one pair each: 6,341 dots, the renderer's recorded ray covariances; 2026-11-26): below
+#: 0.05 px its error p90 is 0.0001 px, the level of exact dot images ("undistorted"); 0.05-0.2 px gives
+#: p90 0.0006-0.004 px, below the 0.01 px the paper reports and below the noise at 1 % ("mild"); 0.2-0.5
+#: px gives p90 0.011-0.039 px ("distorted"); beyond 0.5 px p90 0.10-0.14 px ("strong").
 SPREAD_BINS = (("undistorted", 0.0, 0.05), ("mild", 0.05, 0.2), ("distorted", 0.2, 0.5),
                ("strong", 0.5, float("inf")))
 

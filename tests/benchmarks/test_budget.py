@@ -80,6 +80,7 @@ def test_in_cone_spread_of_a_pair():
         theory_px=np.zeros((3, 2)), valid=np.ones(3, bool))
     assert np.isnan(in_cone_spread_px(pair)).all()  # a pair from before the covariance
     pair.ray_covariance_px2 = np.array([[0.09, 0.16, 0.05], [0.01, 0.0, 0.0], [np.nan, 0.0, 0.0]])
+    pair.ray_covariance_reference_px2 = np.zeros((3, 3))
     assert_allclose(in_cone_spread_px(pair)[:2], [0.5, 0.1])
     pair.ray_covariance_reference_px2 = np.array([[0.05, 0.04, 0.0], [0.02, 0.0, 0.0], [0.0, 0.0, 0.0]])
     assert_allclose(in_cone_spread_px(pair)[:2], [0.4, 0.0])  # more spread in the reference: none added
