@@ -5,13 +5,16 @@ dot's image position, so the spread at every scored point (dots, and window cent
 and each bin's counts and percentiles are known exactly.
 """
 
+import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.benchmarks import figures, items, scoring
 from synthbos.benchmarks.campaign import run_campaign, write_summary
+from synthbos.benchmarks.cli import main
 from synthbos.benchmarks.registry import GRID, get_method
 from synthbos.benchmarks.spec import REGRESS
 from synthbos.benchmarks.storage import load_scores, pair_path, score_path
@@ -35,11 +38,8 @@ def linear_spread(xy):
     return 0.01 + 0.0075 * xy[:, 0]
 
 
-@pytest.fixture
-def spread_campaign(tmp_path_factory, request):
-    """A tiny campaign whose pairs carry a ray covariance giving ``linear_spread``."""
-    mp = pytest.MonkeyPatch()
-    render = items.render_pair
+def _with_covariance(render):
+    """``render_pair`` whose pairs carry a ray covariance giving ``linear_spread``."""
 
     def with_covariance(config, device=None):
         pair = render(config, device=device)
@@ -49,13 +49,32 @@ def spread_campaign(tmp_path_factory, request):
         pair.ray_covariance_reference_px2 = np.tile([half, half, 0.0], (pair.n_dots, 1))
         return pair
 
-    mp.setattr(items, "render_pair", with_covariance)
+    return with_covariance
+
+
+@pytest.fixture(scope="module")
+def spread_campaign(tmp_path_factory):
+    """A tiny campaign whose pairs carry a ray covariance giving ``linear_spread``."""
+    mp = pytest.MonkeyPatch()
+    mp.setattr(items, "render_pair", _with_covariance(items.render_pair))
     folder = tmp_path_factory.mktemp("budget")
     try:
         rows = run_campaign(TINY, folder, device="cpu", workers=1, progress=False)
     finally:
         mp.undo()
     return folder, rows
+
+
+def test_sweep_draws_its_budget(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(items, "render_pair", _with_covariance(items.render_pair))
+    cfg = tmp_path / "base.toml"
+    cfg.write_text('[camera]\npixels = [96, 96]\n[rays]\nper_dot = 10\n[target]\ndots_per_32px = 12.0\n')
+    out = tmp_path / "sweep"
+    assert main(["sweep", str(cfg), "--param", "f_number=11,16", "--param", "noise=0", "--out", str(out),
+                 "--workers", "1", "-q", "--device", "cpu"]) == 0
+    assert "not drawn" not in capsys.readouterr().out
+    for fmt in ("png", "pdf"):
+        assert (out / f"sweep_budget.{fmt}").stat().st_size > 10_000
 
 
 def test_spread_bins_and_interpolation():
@@ -158,6 +177,7 @@ def test_budget_figure_drawn_with_spread_and_skipped_without(spread_campaign, tm
     assert "Cramér-Rao bound, median" in texts and "in-cone spread (px)" in texts
     assert "noise 3 %" in texts
     # Scores from before the spread was recorded: the table still loads, the figure is left out.
+    folder = Path(shutil.copytree(folder, tmp_path / "old_campaign"))
     for method in TINY.methods:
         for noise in TINY.noise_percent:
             path = score_path(folder, 2, 0, noise, method)
