@@ -108,13 +108,14 @@ def load_density_map(folder, snapshot: int, pair: int, noise: float, method: str
 
 
 def write_tables(rows: list[dict], folder, *, stem: str = "results") -> None:
-    """``{stem}.csv`` and ``{stem}.json`` in ``folder`` (atomic)."""
+    """``{stem}.csv`` and ``{stem}.json`` in ``folder`` (atomic); a None value is an empty CSV field (JSON null)."""
     folder = Path(folder)
     cols = list(rows[0].keys())
     with atomic_output(folder / f"{stem}.csv") as tmp:
         lines = [",".join(cols)]
         for r in rows:
-            lines.append(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+            lines.append(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else ("" if r[c] is None else str(r[c]))
+                                  for c in cols))
         tmp.write_text("\n".join(lines) + "\n")
     with atomic_output(folder / f"{stem}.json") as tmp:
         tmp.write_text(json.dumps(rows, indent=1))

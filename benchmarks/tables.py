@@ -3,8 +3,9 @@
 Columns: ``method, noise_percent, split, quantity, n, yield, p50, p68, p90, p95, p99, rms, process_device``,
 then the error budget by in-cone spread (``scoring.SPREAD_BINS``): for each bin ``B`` (``undistorted``,
 ``mild``, ``distorted``, ``strong``) the points of the row's set in it, ``n_B``, and their error
-percentiles ``p50_B``, ``p90_B``, ``p99_B`` (NaN where the bin is empty, and for density rows, which
-belong to no dot). The budget columns come last, so readers of the older table keep working.
+percentiles ``p50_B``, ``p90_B``, ``p99_B`` (missing where the bin is empty, and in density rows, which
+belong to no dot: None in the rows and results.json, an empty field in results.csv). The budget
+columns come last, so readers of the older table keep working.
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ def _row(method, noise, split, quantity, e, yield_, device, *, spread=None):
         sel = e[bins[name]]
         row[f"n_{name}"] = int(np.isfinite(sel).sum())
         pct = scoring.error_percentiles(sel, BUDGET_PERCENTILES)
-        row.update({f"p{k}_{name}": v for k, v in pct.items()})
+        row.update({f"p{k}_{name}": (v if row[f"n_{name}"] else None) for k, v in pct.items()})
     return row
 
 

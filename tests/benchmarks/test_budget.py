@@ -144,9 +144,11 @@ def test_results_table_splits_errors_by_spread(spread_campaign):
                     assert row[f"n_{name}"] == len(inside)
                     if len(inside):
                         assert_allclose(row[f"p90_{name}"], np.percentile(inside, 90), rtol=1e-12)
+                    else:
+                        assert row[f"p50_{name}"] is None
             dens = next(r for r in rows if r["method"] == method and r["quantity"] == "density_cone_rel"
                         and r["noise_percent"] == noise)
-            assert all(dens[f"n_{b}"] == 0 and np.isnan(dens[f"p90_{b}"]) for b in names)
+            assert all(dens[f"n_{b}"] == 0 and dens[f"p90_{b}"] is None for b in names)
     tracked = next(r for r in rows if (r["method"], r["noise_percent"], r["split"], r["quantity"])
                    == ("tracking", 0.0, "all", "displacement"))
     assert all(tracked[f"n_{b}"] > 0 for b in names)  # the synthesised spread reaches every bin
@@ -186,6 +188,8 @@ def test_budget_figure_drawn_with_spread_and_skipped_without(spread_campaign, tm
             with open(path, "wb") as f:
                 np.savez(f, **old)
     rows = write_summary(TINY, folder)
-    assert all(r["n_undistorted"] == 0 for r in rows)
+    assert all(r["n_undistorted"] == 0 and r["p90_strong"] is None for r in rows)
+    line = (folder / "results.csv").read_text().splitlines()[1]
+    assert line.endswith(",0,,," * 4)  # empty bins: empty fields
     assert figures.figure_budget(TINY, folder, tmp_path / "old", formats=("png",)) is None
     assert not (tmp_path / "old.png").exists()
