@@ -106,7 +106,7 @@ def score_result(pair, method: str, res) -> dict:
     m = get_method(method)
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
-    spread = in_cone_spread_px(pair)
+    spread = _spread(pair)
     if m.kind == GRID:
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
         spread = scoring.interpolate_dots(pair.reference_px[valid], spread[valid], res.xy)
@@ -134,6 +134,14 @@ def score_result(pair, method: str, res) -> dict:
         "measured": np.int64(measured[keep].sum()),
         "expected": np.int64(keep.sum()),
     }
+
+
+def _spread(pair) -> np.ndarray:
+    """Each dot's in-cone spread (px, ``in_cone_spread_px``); NaN for a pair (or pair-like object) without
+    ray covariances."""
+    if getattr(pair, "ray_covariance_px2", None) is None:
+        return np.full(len(pair.valid), np.nan)
+    return in_cone_spread_px(pair)
 
 
 def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict, device=None) -> str:
