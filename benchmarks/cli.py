@@ -215,8 +215,16 @@ def _paper(args):
     print(format_summary(rows))
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'}, {out / 'fig_density.png'} (and .pdf) ({time.perf_counter() - t0:.0f} s: {phases})")
+          f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf) "
+          f"({time.perf_counter() - t0:.0f} s: {phases})")
+    _budget_note(out / "fig_budget.png")
     return 0
+
+
+def _budget_note(png: Path) -> None:
+    """A note where an error-budget figure was left out: its pairs hold no ray covariance."""
+    if not png.exists():
+        print(f"note: {png.name} not drawn: the pair files hold no ray covariance (rendered before it was recorded)")
 
 
 def _regress(args):
@@ -245,7 +253,9 @@ def _sweep(args):
                      process_device=process_device, worker_device=worker_device,
                      workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
-    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'} (and .pdf)")
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
+          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf)")
+    _budget_note(Path(args.out) / "sweep_budget.png")
     return 0
 
 
@@ -349,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_process)
 
     p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
-    p.add_argument("result", help="result file from 'synthbos process'")
+    p.add_argument("result", help="result file from 'synthbos process', or a pair file from 'synthbos render' alone: "
+                                  "its exact displacements, the floor set by the dot spacing and the solver")
     p.add_argument("--pair", help="the pair file the result came from: its set-up, and the truths to score against")
     p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file "
                                     "(default: the embedded default)")

@@ -1,6 +1,7 @@
 """Figures of a campaign: the flows and displacements (fig4) and the error CDFs (fig5), as in
 section 4 of Rajendran, Bane & Vlachos (2019); the density integrated from each method (fig_density);
-and the experiment-design plots of a sweep."""
+the error budget (fig_budget: error against the dots' in-cone spread); and the experiment-design plots
+of a sweep (sweep, sweep_budget)."""
 
 from __future__ import annotations
 
@@ -34,12 +35,15 @@ __all__ = [
     "CAMPAIGN_FIGURES",
     "FIRST_PAIR_FIGURES",
     "FORMATS",
+    "binned_errors",
     "campaign_figure",
     "figure4",
     "figure5",
+    "figure_budget",
     "figure_density",
     "method_style",
     "save_figure",
+    "sweep_budget_figure",
     "sweep_figure",
 ]
 
@@ -528,8 +532,188 @@ def figure_density(spec, folder, path, *, formats=None):
     save_figure(fig, path, formats=formats)
 
 
+#: The in-cone spread bins (edges, px) along the budget figures' x axis; a bin is drawn where it holds at
+#: least ``_BUDGET_MIN_POINTS`` scored points, at the median spread of its points (spreads below
+#: ``_BUDGET_LEFT`` at that left edge of the log axis).
+_BUDGET_EDGES = np.array([0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0, 1.5, 2.0, np.inf])
+_BUDGET_MIN_POINTS = 10
+_BUDGET_LEFT = 5e-3
+#: Text sizes of the figures drawn at journal width (7.2 in): 7 pt and more.
+_JOURNAL_TEXT = {"font.size": 7.5, "axes.titlesize": 7.5, "axes.labelsize": 7.5, "xtick.labelsize": 7.0,
+                 "ytick.labelsize": 7.0, "legend.fontsize": 7.0, "figure.titlesize": 8.0}
+
+
+def binned_errors(spread, errors, *, edges=_BUDGET_EDGES, min_points=_BUDGET_MIN_POINTS) -> np.ndarray:
+    """Errors binned by in-cone spread: (k, 4) rows (median spread, median error, p90 error, count) of
+    the bins of ``edges`` (px) that hold at least ``min_points`` points with a finite spread and error."""
+    s, e = np.asarray(spread, dtype=np.float64), np.asarray(errors, dtype=np.float64)
+    ok = np.isfinite(s) & np.isfinite(e)
+    s, e = s[ok], e[ok]
+    idx = np.digitize(s, edges[1:-1])
+    rows = []
+    for b in range(len(edges) - 1):
+        sel = idx == b
+        if sel.sum() >= min_points:
+            rows.append((np.median(s[sel]), np.median(e[sel]), np.percentile(e[sel], 90), sel.sum()))
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+def _crlb_quantile(noise: float, q: float) -> float:
+    """The ``q`` quantile of the displacement error magnitude at the Cramér-Rao bound (a Rayleigh law)."""
+    return scoring.cramer_rao_displacement(noise) * float(np.sqrt(-2.0 * np.log(1.0 - q)))
+
+
+def _has_spread(scores) -> bool:
+    return any(np.isfinite(sc["spread"]).any() for sc in scores)
+
+
+def _budget_axes(ax, lo, hi, xmax):
+    """Log axes of a budget panel: spread from ``_BUDGET_LEFT`` to ``xmax``, error ``lo``..``hi``; the
+    table's bins (``scoring.SPREAD_BINS``) as dashed grey lines."""
+    for _, edge, _ in scoring.SPREAD_BINS[1:]:
+        ax.axvline(edge, color="0.7", ls="--", lw=0.6, zorder=0)
+    ax.set_xscale("log")
+    ax.set_xlim(_BUDGET_LEFT / 1.2, xmax)
+    _log_axis(ax.yaxis, lo, hi)
+    ax.set_ylim(lo, hi)
+    ax.grid(True, which="major", alpha=0.3)
+
+
+def _budget_legend(fig, methods, *, crlb=True, ncol=4):
+    handles = [plt.Line2D([], [], marker=METHODS[m].marker if m in METHODS else "o", ms=3, **method_style(m))
+               for m in methods]
+    labels = [method_style(m)["label"] for m in methods]
+    handles += [plt.Line2D([], [], color="0.3", marker="o", ms=3, lw=1.1), plt.Line2D([], [], color="0.3", lw=0.6)]
+    labels += ["median (markers)", "90th percentile (thin)"]
+    if crlb:
+        handles += [plt.Line2D([], [], color="k", ls=":", lw=1.0), plt.Line2D([], [], color="0.5", ls=":", lw=0.8)]
+        labels += ["Cramér-Rao bound, median", "Cramér-Rao bound, 90th pct."]
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, frameon=False)
+
+
+def _bins_text() -> str:
+    names = ", ".join(f"{n} < {hi:g}" if lo == 0 else (f"{n} {lo:g}-{hi:g}" if np.isfinite(hi) else f"{n} ≥ {lo:g}")
+                      for n, lo, hi in scoring.SPREAD_BINS)
+    return f"dashed: the bins of results.csv ({names} px)"
+
+
+@_collector_paused
+def figure_budget(spec, folder, path, *, formats=None):
+    """The error budget: displacement error against each dot's in-cone spread, per method and noise level.
+
+    One column per noise level; rows: points whose true displacement is below and above the threshold
+    (fig5's split: the spatial-resolution part); the Cramér-Rao bound's median and 90th percentile of the
+    error magnitude as dotted lines (the noise part); the spread (``raytrace.pairfile.in_cone_spread_px``)
+    on the x axis (the part of distorted dots). Each method's median error per spread bin with markers,
+    its 90th percentile as a thin line. 7.2 in wide, text >= 7 pt.
+
+    Returns the paths written, or None (and writes nothing) when no score holds a spread: pairs rendered
+    before the ray covariance was recorded.
+    """
+    noises, methods = list(spec.noise_percent), list(spec.methods)
+    scores = {(m, n): load_scores(spec, folder, m, n) for m in methods for n in noises}
+    if not _has_spread(scores.values()):
+        return None
+    splits = (("below", "<"), ("above", "≥"))
+    thresholds = np.concatenate([sc["threshold"] for sc in scores.values()])
+    with plt.rc_context(_JOURNAL_TEXT):
+        fig, axes = plt.subplots(2, len(noises), figsize=(7.2, 4.4), squeeze=False, sharex=True, sharey=True,
+                                 layout="constrained")
+        ys, xmax = [], 2 * _BUDGET_LEFT
+        for c, noise in enumerate(noises):
+            for m in methods:
+                sc = scores[(m, noise)]
+                masks = split_masks(sc)
+                for r, (split, _) in enumerate(splits):
+                    b = binned_errors(sc["spread"][masks[split]], sc["error"][masks[split]])
+                    _draw_binned(axes[r, c], b, m)
+                    ys.append(b[:, 1:3])
+                    xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
+            if noise > 0:
+                for r in range(2):
+                    axes[r, c].axhline(_crlb_quantile(noise, 0.5), color="k", ls=":", lw=1.0)
+                    axes[r, c].axhline(_crlb_quantile(noise, 0.9), color="0.5", ls=":", lw=0.8)
+                ys.append(np.array([_crlb_quantile(noise, 0.5), _crlb_quantile(noise, 0.9)]))
+            axes[0, c].set_title(f"noise {noise:g} %")
+            axes[-1, c].set_xlabel("in-cone spread (px)")
+        lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
+        for ax in axes.ravel():
+            _budget_axes(ax, lo, hi, xmax)
+        for r, (_, sign) in enumerate(splits):
+            axes[r, 0].set_ylabel(f"|ΔX| {sign} threshold\nerror (px)")
+        _budget_legend(fig, methods, crlb=any(n > 0 for n in noises))
+        fig.suptitle(
+            f"Error budget, campaign '{spec.name}': displacement error against the in-cone spread of each dot's "
+            f"rays;\nthreshold {_threshold_text(thresholds)} (fig5's split); spread bins of ≥ {_BUDGET_MIN_POINTS} "
+            f"points drawn;\n{_bins_text()}"
+        )
+        return save_figure(fig, path, formats=formats)
+
+
+def _draw_binned(ax, b, method, *, color=None, p90=True):
+    """One method's binned median (markers) and 90th percentile (thin line) on a budget panel."""
+    style = method_style(method)
+    if color is not None:
+        style["color"] = color
+    style.pop("label", None)
+    x = np.maximum(b[:, 0], _BUDGET_LEFT)
+    marker = METHODS[method].marker if method in METHODS else "o"
+    ax.plot(x, b[:, 1], marker=marker, ms=3, lw=1.1, **style)
+    if p90:
+        ax.plot(x, b[:, 2], lw=0.6, alpha=0.8, **style)
+
+
+@_collector_paused
+def sweep_budget_figure(points, path, *, param_label, formats=None):
+    """The error budget of a sweep: median displacement error against the in-cone spread, one column per
+    method (its line style), one row per noise level, one colour per sweep point (cividis, colour-blind safe).
+
+    ``points``: ``(label, spec, folder)`` of each sweep point (label: its value(s) in words). The Cramér-Rao
+    bound's median as a dotted line where the row has one noise level. Returns the paths written, or None
+    (nothing written) when no point's scores hold a spread.
+    """
+    methods = list(dict.fromkeys(m for _, spec, _ in points for m in spec.methods))
+    noise_swept = len({tuple(spec.noise_percent) for _, spec, _ in points}) > 1
+    noises = [None] if noise_swept else list(points[0][1].noise_percent)
+    scores = {}
+    for k, (_, spec, folder) in enumerate(points):
+        for m in spec.methods:
+            for n in spec.noise_percent:
+                scores[(k, m, None if noise_swept else n)] = load_scores(spec, folder, m, n)
+    if not _has_spread(scores.values()):
+        return None
+    colors = plt.get_cmap("cividis")(np.linspace(0.0, 0.9, len(points)))
+    with plt.rc_context(_JOURNAL_TEXT):
+        fig, axes = plt.subplots(len(noises), len(methods), figsize=(7.2, 1.9 * len(noises) + 1.1), squeeze=False,
+                                 sharex=True, sharey=True, layout="constrained")
+        ys, xmax = [], 2 * _BUDGET_LEFT
+        for (k, m, n), sc in scores.items():
+            b = binned_errors(sc["spread"], sc["error"])
+            _draw_binned(axes[noises.index(n), methods.index(m)], b, m, color=colors[k], p90=False)
+            ys.append(b[:, 1])
+            xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
+        for r, n in enumerate(noises):
+            if n:
+                for ax in axes[r]:
+                    ax.axhline(_crlb_quantile(n, 0.5), color="k", ls=":", lw=1.0)
+                ys.append(np.array([_crlb_quantile(n, 0.5)]))
+            axes[r, 0].set_ylabel(("" if n is None else f"noise {n:g} %\n") + "median error (px)")
+        lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
+        for ax in axes.ravel():
+            _budget_axes(ax, lo, hi, xmax)
+        for c, m in enumerate(methods):
+            axes[0, c].set_title(method_style(m)["label"].replace(" + ", "\n+ "))
+            axes[-1, c].set_xlabel("in-cone spread (px)")
+        fig.legend([plt.Line2D([], [], color=colors[k], lw=1.1) for k in range(len(points))],
+                   [label for label, _, _ in points], title=param_label.replace(" (", "\n("),
+                   loc="outside right center", frameon=False)
+        fig.suptitle(f"Error budget of the sweep: median displacement error against the in-cone spread "
+                     f"(bins of ≥ {_BUDGET_MIN_POINTS} points);\ndotted: Cramér-Rao bound, median;\n{_bins_text()}")
+        return save_figure(fig, path, formats=formats)
+
+
 #: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path, *, formats=None)``).
-CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density}
+CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density, "fig_budget": figure_budget}
 #: The campaign figures that read only the first pair file of each snapshot (a campaign draws them early).
 FIRST_PAIR_FIGURES = frozenset({"fig4"})
 

@@ -24,6 +24,14 @@ Steps
    frame) the region; with ``--dirichlet`` the ``lsq``/``wlsq`` solvers hold the region at that value.
    ``--mask-region x0,x1,y0,y1`` (mm) removes nodes (a model in the flow, a bad area) from the domain.
 
+The floor
+---------
+Given a pair file alone (``synthbos integrate PAIR.h5 -o DENSITY.h5``), the pair's exact per-dot
+displacements (``/dots/displacement_px`` at ``/dots/reference_px``, valid dots) take the place of a
+tracked result, through the same steps and with the same scores: the density error left when the
+displacements are exact, set by the dot spacing and the solver. What the input is, is told by its
+content (:func:`input_kind`).
+
 Output file (HDF5)
 ------------------
 ``/density_kg_m3`` (ny, nx), ``/x_mm`` (nx), ``/y_mm`` (ny), ``/measured`` (ny, nx) bool, ``/x_px``,
@@ -68,9 +76,11 @@ __all__ = [
     "Geometry",
     "GradientGrid",
     "density_from_result",
+    "exact_grid",
     "geometry_from_config",
     "geometry_from_pair",
     "gradient_grid",
+    "input_kind",
     "score_density",
     "solve_density",
     "truth_on_grid",
@@ -215,14 +225,34 @@ def gradient_grid(result: MethodResult, geometry: Geometry, *, spacing_px=None) 
         u = np.where(ok, result.uv[:, 0], np.nan).reshape(ny, nx)
         v = np.where(ok, result.uv[:, 1], np.nan).reshape(ny, nx)
         s = np.where(ok, sigma_px, np.nan).reshape(ny, nx)
-    else:
-        if ok.sum() < 3:
-            raise SynthbosError(f"the result holds {int(ok.sum())} valid vector(s); integration needs at least 3")
-        x, y = result.xy[ok, 0], result.xy[ok, 1]
-        x_px, y_px = grid_for_points(x, y, spacing=spacing_px)
-        grid = scattered_to_grid(x, y, np.stack([result.uv[ok, 0], result.uv[ok, 1], sigma_px[ok]], axis=1),
-                                 x_px, y_px)
-        u, v, s = grid[..., 0], grid[..., 1], grid[..., 2]
+        return _to_gradients(u, v, s, x_px, y_px, geometry)
+    if ok.sum() < 3:
+        raise SynthbosError(f"the result holds {int(ok.sum())} valid vector(s); integration needs at least 3")
+    return _scattered_grid(result.xy[ok], result.uv[ok], sigma_px[ok], geometry, spacing_px=spacing_px)
+
+
+def exact_grid(pair, geometry: Geometry, *, spacing_px=None) -> GradientGrid:
+    """The pair's exact displacements at its valid dots on the grid a tracked result gets (the floor).
+
+    Every dot weighs alike in ``wlsq`` (the uncertainty ``SIGMA_FLOOR_PX``).
+    """
+    ok = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1) & np.all(np.isfinite(pair.reference_px), 1)
+    if ok.sum() < 3:
+        raise SynthbosError(f"the pair file holds {int(ok.sum())} valid dot(s); integration needs at least 3")
+    sigma = np.full(int(ok.sum()), SIGMA_FLOOR_PX)
+    return _scattered_grid(pair.reference_px[ok], pair.displacement_px[ok], sigma, geometry, spacing_px=spacing_px)
+
+
+def _scattered_grid(xy, uv, sigma_px, geometry: Geometry, *, spacing_px=None) -> GradientGrid:
+    """Displacements at scattered points (all valid) interpolated onto the square grid of step 2."""
+    x, y = xy[:, 0], xy[:, 1]
+    x_px, y_px = grid_for_points(x, y, spacing=spacing_px)
+    grid = scattered_to_grid(x, y, np.stack([uv[:, 0], uv[:, 1], sigma_px], axis=1), x_px, y_px)
+    return _to_gradients(grid[..., 0], grid[..., 1], grid[..., 2], x_px, y_px, geometry)
+
+
+def _to_gradients(u, v, s, x_px, y_px, geometry: Geometry) -> GradientGrid:
+    """Displacements and their uncertainties (px) on a grid to density gradients (kg/m^4)."""
     measured = np.isfinite(u) & np.isfinite(v)
     if measured.sum() < 2:
         raise SynthbosError("fewer than two grid nodes carry a valid vector: nothing to integrate")
@@ -435,23 +465,71 @@ def mask_grid(grid: GradientGrid, masked) -> GradientGrid:
     return grid
 
 
-def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq", spacing_px=None,
-                   reference_density=None, reference_region_mm=None, dirichlet=False, mask_region_mm=None) -> dict:
-    """The work of ``synthbos integrate``: read, integrate, (score,) write; return the summary."""
+def input_kind(path) -> str:
+    """What ``synthbos integrate`` was given, by the file's content: ``"pair"`` (a pair file of ``synthbos
+    render``: ``/images/reference`` and ``/dots/displacement_px``) or ``"result"`` (a result file of
+    ``synthbos process``: a ``method`` attribute); anything else raises SynthbosError."""
+    path = Path(path)
+    if not path.is_file():
+        raise SynthbosError(f"input file {path} does not exist")
+    if not h5py.is_hdf5(path):
+        raise SynthbosError(f"{path} is not an HDF5 file: give a result file of 'synthbos process' or a pair "
+                            "file of 'synthbos render'")
+    try:
+        with h5py.File(path, "r") as f:
+            if "density_kg_m3" in f:
+                raise SynthbosError(f"{path} is a density file of 'synthbos integrate': give the result file or "
+                                    "the pair file it came from")
+            if "images/reference" in f and "dots/displacement_px" in f:
+                return "pair"
+            if "method" in f.attrs:
+                return "result"
+    except OSError as err:
+        raise SynthbosError(f"cannot read {path}: {err}") from None
+    raise SynthbosError(f"{path} is neither a result file of 'synthbos process' (no 'method' attribute) nor a pair "
+                        "file of 'synthbos render' (no /images/reference and /dots/displacement_px)")
+
+
+def _input_grid(input_path, *, pair_path, config, spacing_px):
+    """The gradient grid, the pair (or None) and the file attributes of ``synthbos integrate``'s input: a
+    result (with its pair file, or a set-up) or a pair file alone (its exact displacements)."""
+    from synthbos.raytrace import read_pair
+
     from .process import read_result
 
-    result, rattrs = read_result(result_path)
+    if input_kind(input_path) == "pair":
+        if pair_path is not None or config is not None:
+            raise SynthbosError(f"{input_path} is a pair file: it integrates alone (its exact displacements and "
+                                "its own set-up); leave out --pair and --config")
+        pair = read_pair(input_path)
+        geometry = geometry_from_pair(pair)
+        attrs = {"method": "exact", "input": str(input_path), "pair": str(input_path),
+                 "note": "the pair's exact per-dot displacements: the floor set by the dot spacing and the solver"}
+        return exact_grid(pair, geometry, spacing_px=spacing_px), geometry, pair, attrs
+    result, rattrs = read_result(input_path)
     pair = None
     if pair_path is not None:
-        from synthbos.raytrace import read_pair
-
         pair = read_pair(pair_path)
         geometry = geometry_from_pair(pair)
         check_belongs(rattrs, result, geometry)
     else:
         geometry = geometry_from_config(config)
         check_belongs({k: v for k, v in rattrs.items() if k == "image_shape"}, result, geometry, what="set-up")
-    grid = gradient_grid(result, geometry, spacing_px=spacing_px)
+    attrs = {"method": result.method, "input": str(input_path)}
+    if pair_path is not None:
+        attrs["pair"] = str(pair_path)
+    return gradient_grid(result, geometry, spacing_px=spacing_px), geometry, pair, attrs
+
+
+def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq", spacing_px=None,
+                   reference_density=None, reference_region_mm=None, dirichlet=False, mask_region_mm=None) -> dict:
+    """The work of ``synthbos integrate``: read, integrate, (score,) write; return the summary.
+
+    ``result_path``: a result file (scored when ``pair_path`` is given), or a pair file alone, whose exact
+    displacements are integrated and scored against its own truths (the floor).
+    """
+    grid, geometry, pair, attrs = _input_grid(result_path, pair_path=pair_path, config=config,
+                                              spacing_px=spacing_px)
     if mask_region_mm is not None:
         grid = mask_grid(grid, _region_mm(grid, mask_region_mm))
     region = None
@@ -464,8 +542,6 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
                          dirichlet=dirichlet, ambient=geometry.ambient_density_kg_m3)
     truths = truth_on_grid(pair, grid) if pair is not None else None
     summary = density_summary(dmap, truths) if truths is not None else {}
-    attrs = {"method": result.method, "input": str(result_path), "geometry": json.dumps(asdict(geometry))}
-    if pair_path is not None:
-        attrs["pair"] = str(pair_path)
+    attrs["geometry"] = json.dumps(asdict(geometry))
     write_density(out, dmap, truths=truths, summary=summary, attrs=attrs)
     return {"density": dmap, "summary": summary}

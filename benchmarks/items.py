@@ -21,6 +21,7 @@ import tomllib
 import numpy as np
 from synthbos.raytrace import add_noise, load_config, read_pair, render_pair, write_pair
 from synthbos.raytrace.camera import camera_from_config
+from synthbos.raytrace.pairfile import in_cone_spread_px
 
 from synthbos.device import init_warp
 
@@ -98,14 +99,17 @@ def score_result(pair, method: str, res) -> dict:
         ``error`` (displacement error magnitude at each scored point, px), ``true_mag`` (true
         displacement magnitude there, for the threshold split), ``grad_error`` (Frobenius norm of the
         displacement-gradient error), ``threshold`` (half the std of Eq. 4's displacement magnitudes),
-        ``measured`` / ``expected`` (for the yield); and the density errors of the method's result
+        ``measured`` / ``expected`` (for the yield), ``spread`` (the in-cone spread at each scored point, px,
+        NaN where the pair holds no ray covariance; see ``scoring``); and the density errors of the method's result
         integrated by ``integrate.DENSITY_SOLVER`` against both truths (``integrate.score_density``).
     """
     m = get_method(method)
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
+    spread = _spread(pair)
     if m.kind == GRID:
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
+        spread = scoring.interpolate_dots(pair.reference_px[valid], spread[valid], res.xy)
         keep = np.all(np.isfinite(truth), axis=1)
         measured = keep & res.valid
         ny, nx = res.grid_shape
@@ -126,9 +130,18 @@ def score_result(pair, method: str, res) -> dict:
         "true_mag": np.hypot(truth[:, 0], truth[:, 1])[keep],
         "grad_error": np.where(measured, grad_err, np.nan)[keep],
         "threshold": np.float64(threshold),
+        "spread": spread[keep],
         "measured": np.int64(measured[keep].sum()),
         "expected": np.int64(keep.sum()),
     }
+
+
+def _spread(pair) -> np.ndarray:
+    """Each dot's in-cone spread (px, ``in_cone_spread_px``); NaN for a pair (or pair-like object) without
+    ray covariances."""
+    if getattr(pair, "ray_covariance_px2", None) is None:
+        return np.full(len(pair.valid), np.nan)
+    return in_cone_spread_px(pair)
 
 
 def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict, device=None) -> str:

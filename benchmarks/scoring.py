@@ -18,6 +18,10 @@ How the truth reaches each method's points
   interpolated true field on the same grid; at dots, a least-squares plane through each dot and its
   nearest neighbours, fitted to the measured and to the true displacements alike. The error is the
   Frobenius norm of the difference of the 2 x 2 gradient tensors (px / px).
+* In-cone spread: how much the flow spreads each dot's rays, ``raytrace.pairfile.in_cone_spread_px``
+  (the root of the trace of the ray covariance added by the flow, px). Errors at dots take their dot's
+  spread; errors at window centres take the dots' spreads interpolated like the truth. The error
+  budget splits every error set into the bins ``SPREAD_BINS``.
 * Density: the reconstructed depth-averaged density against the renderer's two truths (the cone of
   rays of each dot, and its chief ray) on the integration grid; errors in kg/m^3 and relative to the
   truth's range (max - min over the grid), RMS and percentiles of the absolute error.
@@ -35,18 +39,30 @@ from synthbos.memo import RecentResults
 
 __all__ = [
     "PERCENTILES",
+    "SPREAD_BINS",
     "cramer_rao_displacement",
     "density_errors",
     "empirical_cdf",
     "error_percentiles",
     "grid_gradient",
+    "interpolate_dots",
     "interpolate_truth",
     "scattered_gradient",
     "split_threshold",
+    "spread_bin_masks",
     "vector_errors",
 ]
 
 PERCENTILES = (50, 68, 90, 95, 99)
+
+#: The error budget's bins of in-cone spread (name, lower edge px, upper edge px; lower edge included).
+#: Chosen from tracking at zero noise on the default set-up (256 x 256 px, 1,000 rays per dot, f/11,
+#: snapshots 0-4, one pair each: 6,341 dots, the renderer's recorded ray covariances; 2026-11-26): below
+#: 0.05 px its error p90 is 0.0001 px, the level of exact dot images ("undistorted"); 0.05-0.2 px gives
+#: p90 0.0006-0.004 px, below the 0.01 px the paper reports and below the noise at 1 % ("mild"); 0.2-0.5
+#: px gives p90 0.011-0.039 px ("distorted"); beyond 0.5 px p90 0.10-0.14 px ("strong").
+SPREAD_BINS = (("undistorted", 0.0, 0.05), ("mild", 0.05, 0.2), ("distorted", 0.2, 0.5),
+               ("strong", 0.5, float("inf")))
 
 
 def vector_errors(measured, truth):
@@ -97,6 +113,29 @@ def interpolate_truth(dot_xy, dot_disp, points_xy):
     interp = LinearNDInterpolator(triangulate(np.asarray(dot_xy)[ok]), np.asarray(dot_disp)[ok], fill_value=np.nan)
     pts = np.asarray(points_xy, dtype=np.float64)
     return interp(pts.reshape(-1, 2)).reshape(*pts.shape[:-1], 2)
+
+
+def interpolate_dots(dot_xy, values, points_xy):
+    """Linear (Delaunay barycentric) interpolation of per-dot values (N,) or (N, k) to points (M, 2).
+
+    Dots whose position or value is not finite are left out; NaN outside the hull of the others, and
+    everywhere when fewer than three remain.
+    """
+    dot_xy = np.asarray(dot_xy, dtype=np.float64)
+    vals = np.asarray(values, dtype=np.float64)
+    flat = vals.reshape(len(vals), -1)
+    ok = np.all(np.isfinite(dot_xy), axis=1) & np.all(np.isfinite(flat), axis=1)
+    pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if ok.sum() < 3:
+        return np.full((len(pts), *vals.shape[1:]), np.nan)
+    interp = LinearNDInterpolator(triangulate(dot_xy[ok]), flat[ok], fill_value=np.nan)
+    return interp(pts).reshape(len(pts), *vals.shape[1:])
+
+
+def spread_bin_masks(spread) -> dict:
+    """Masks of the points in each bin of ``SPREAD_BINS`` (name -> bool array); NaN spreads in none."""
+    s = np.asarray(spread, dtype=np.float64)
+    return {name: (s >= lo) & (s < hi) for name, lo, hi in SPREAD_BINS}
 
 
 def grid_gradient(u, v, x, y):

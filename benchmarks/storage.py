@@ -66,9 +66,11 @@ def save_scores(path, scores: dict) -> None:
 def load_scores(spec, folder, method: str, noise: float) -> dict:
     """Concatenate the scores of one method and noise level over all pairs of a campaign.
 
-    ``process_device`` is the processing device(s) of those scores, sorted and joined by "+".
+    ``process_device`` is the processing device(s) of those scores, sorted and joined by "+". ``spread``
+    (the in-cone spread at each point, px) is NaN for score files written before it was recorded.
     """
-    parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "measured": 0, "expected": 0}
+    parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "spread": [], "measured": 0,
+             "expected": 0}
     devices = set()
     for truth in DENSITY_TRUTHS:
         parts[f"density_{truth}"], parts[f"density_{truth}_rel"] = [], []
@@ -84,6 +86,7 @@ def load_scores(spec, folder, method: str, noise: float) -> dict:
             parts["true_mag"].append(z["true_mag"])
             parts["grad_error"].append(z["grad_error"])
             parts["threshold"].append(np.full(n, float(z["threshold"])))
+            parts["spread"].append(z["spread"] if "spread" in z else np.full(n, np.nan))  # older scores: none
             parts["measured"] += int(z["measured"])
             parts["expected"] += int(z["expected"])
             devices.add(str(z["process_device"]) if "process_device" in z else "unknown")
@@ -105,13 +108,14 @@ def load_density_map(folder, snapshot: int, pair: int, noise: float, method: str
 
 
 def write_tables(rows: list[dict], folder, *, stem: str = "results") -> None:
-    """``{stem}.csv`` and ``{stem}.json`` in ``folder`` (atomic)."""
+    """``{stem}.csv`` and ``{stem}.json`` in ``folder`` (atomic); a None value is an empty CSV field (JSON null)."""
     folder = Path(folder)
     cols = list(rows[0].keys())
     with atomic_output(folder / f"{stem}.csv") as tmp:
         lines = [",".join(cols)]
         for r in rows:
-            lines.append(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+            lines.append(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else ("" if r[c] is None else str(r[c]))
+                                  for c in cols))
         tmp.write_text("\n".join(lines) + "\n")
     with atomic_output(folder / f"{stem}.json") as tmp:
         tmp.write_text(json.dumps(rows, indent=1))

@@ -4,7 +4,8 @@ At every point of the sweep the campaign machinery renders, processes and scores
 default the small ``REGRESS`` size; ``--size quick`` or ``full`` for more), in its own resumable
 folder; the results are gathered into ``sweep.csv`` / ``sweep.json`` and plotted in ``sweep.png``
 (error percentiles and yield against the parameter, for every method), so a researcher can choose a
-set-up before building it.
+set-up before building it; ``sweep_budget.png`` draws each point's error budget (median error against
+the dots' in-cone spread) when the pairs record their rays' covariance.
 
 Parameters are named by a configuration key, ``table.key`` (e.g. ``target.dots_per_32px``,
 ``camera.f_number``, ``volume.distance_from_target_mm``, ``rays.per_dot``), or by one of these:
@@ -29,7 +30,7 @@ from synthbos.raytrace import DEFAULT_CONFIG, load_config
 from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
 from .campaign import check_spec, resolve_process_device, run_campaign
-from .figures import sweep_figure
+from .figures import sweep_budget_figure, sweep_figure
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
 
@@ -127,7 +128,9 @@ def _slug(name, value):
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
               scheduler=None, wait=False, process_device=None, worker_device=None):
-    """Run the sweep; write sweep.csv, sweep.json and sweep.png in ``folder``; return the rows.
+    """Run the sweep; write sweep.csv, sweep.json, sweep.png and sweep_budget.png in ``folder``; return the rows.
+
+    ``sweep_budget.png`` (``figures.sweep_budget_figure``) is left out when the pairs hold no ray covariance.
 
     ``device`` renders and ``process_device`` processes (default: ``device``; see ``run_campaign``).
     Every point is checked (configuration, settings, resource limits) before the first is run; the
@@ -180,6 +183,10 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
             tmp.write_text(json.dumps({"params": [list(p) for p in params], "size": size, "base": base_config}))
         sweep_figure(rows, folder / "sweep.png", param=name1, param2=name2, param_label=parameter_label(name1),
                      param2_label=parameter_label(name2) if name2 else None)
+        budget = [(f"{v1:g}" if name2 is None else f"{v1:g}, {v2:g}", spec, folder / "points" / label)
+                  for v1, v2, label, spec in points]
+        words = parameter_label(name1) if name2 is None else f"{parameter_label(name1)}, {parameter_label(name2)}"
+        sweep_budget_figure(budget, folder / "sweep_budget", param_label=words)
     return rows
 
 

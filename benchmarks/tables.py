@@ -1,4 +1,12 @@
-"""The results table of a campaign: error percentiles and yield per method, noise, split and quantity."""
+"""The results table of a campaign: error percentiles and yield per method, noise, split and quantity.
+
+Columns: ``method, noise_percent, split, quantity, n, yield, p50, p68, p90, p95, p99, rms, process_device``,
+then the error budget by in-cone spread (``scoring.SPREAD_BINS``): for each bin ``B`` (``undistorted``,
+``mild``, ``distorted``, ``strong``) the points of the row's set in it, ``n_B``, and their error
+percentiles ``p50_B``, ``p90_B``, ``p99_B`` (missing where the bin is empty, and in density rows, which
+belong to no dot: None in the rows and results.json, an empty field in results.csv). The budget
+columns come last, so readers of the older table keep working.
+"""
 
 from __future__ import annotations
 
@@ -7,12 +15,14 @@ import numpy as np
 from . import scoring
 from .storage import DENSITY_TRUTHS, load_scores
 
-__all__ = ["DENSITY_QUANTITIES", "QUANTITIES", "SPLITS", "format_summary", "split_masks", "summarise"]
+__all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "QUANTITIES", "SPLITS", "format_summary", "split_masks",
+           "summarise"]
 
 SPLITS = ("all", "below", "above")
 QUANTITIES = ("displacement", "gradient")
 # Density errors (split "all" only): kg/m^3, and relative to the truth's range (``_rel``).
 DENSITY_QUANTITIES = tuple(q for t in DENSITY_TRUTHS for q in (f"density_{t}", f"density_{t}_rel"))
+BUDGET_PERCENTILES = (50, 90, 99)  # the error percentiles of each in-cone spread bin
 
 
 def split_masks(scores: dict) -> dict:
@@ -38,13 +48,14 @@ def summarise(spec, folder) -> list[dict]:
                 errors = sc["error"] if quantity == "displacement" else sc["grad_error"]
                 for split in SPLITS:
                     e = errors[masks[split]]
-                    rows.append(_row(method, noise, split, quantity, e, yield_, sc["process_device"]))
+                    rows.append(_row(method, noise, split, quantity, e, yield_, sc["process_device"],
+                                     spread=sc["spread"][masks[split]]))
             for quantity in DENSITY_QUANTITIES:
                 rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_, sc["process_device"]))
     return rows
 
 
-def _row(method, noise, split, quantity, e, yield_, device):
+def _row(method, noise, split, quantity, e, yield_, device, *, spread=None):
     e = np.asarray(e, dtype=np.float64)
     fin = e[np.isfinite(e)]
     row = {"method": method, "noise_percent": noise, "split": split, "quantity": quantity,
@@ -52,6 +63,12 @@ def _row(method, noise, split, quantity, e, yield_, device):
     row.update({f"p{k}": v for k, v in scoring.error_percentiles(e).items()})
     row["rms"] = float(np.sqrt(np.mean(fin**2))) if len(fin) else float("nan")
     row["process_device"] = device
+    bins = scoring.spread_bin_masks(np.full(len(e), np.nan) if spread is None else spread)
+    for name, _, _ in scoring.SPREAD_BINS:
+        sel = e[bins[name]]
+        row[f"n_{name}"] = int(np.isfinite(sel).sum())
+        pct = scoring.error_percentiles(sel, BUDGET_PERCENTILES)
+        row.update({f"p{k}_{name}": (v if row[f"n_{name}"] else None) for k, v in pct.items()})
     return row
 
 

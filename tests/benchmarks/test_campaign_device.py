@@ -304,7 +304,8 @@ def test_pipeline_draws_first_pair_figures_early_and_the_rest_after_the_last_ite
     rows = run_campaign(SMALL, tmp_path / "f", device="cpu", workers=1, progress=False, figures=True,
                         pipeline=True, timings=timings)
     assert rows == plain[1]
-    assert seen["fig4"] < 12 and seen["fig5"] == seen["fig_density"] == 12
-    assert drawn == {"fig4": [None], "fig5": [("png",), ("pdf",)], "fig_density": [("png",), ("pdf",)]}
+    assert seen["fig4"] < 12 and seen["fig5"] == seen["fig_density"] == seen["fig_budget"] == 12
+    assert drawn == {"fig4": [None], "fig5": [("png",), ("pdf",)], "fig_density": [("png",), ("pdf",)],
+                     "fig_budget": [("png",), ("pdf",)]}
     assert (tmp_path / "f" / "results.csv").read_bytes() == (plain[0] / "results.csv").read_bytes()
     assert set(timings) == {"render and process", "tables and figures, after the last item"}

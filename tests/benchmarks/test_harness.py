@@ -123,12 +123,14 @@ def test_process_bad_input_exits_2_without_output(tmp_path, capsys, monkeypatch,
     assert not (tmp_path / "out.h5").exists()
 
 
-def test_sweep_writes_table_and_figure(tmp_path):
+def test_sweep_writes_table_and_figure(tmp_path, capsys):
     cfg = tmp_path / "base.toml"
     cfg.write_text('[camera]\npixels = [96, 96]\n[rays]\nper_dot = 10\n[target]\ndots_per_32px = 10.0\n')
     out = tmp_path / "sweep"
     assert main(["sweep", str(cfg), "--param", "noise=0,4", "--out", str(out), "--workers", "1", "-q",
                  "--device", "cpu"]) == 0
+    if not (out / "sweep_budget.png").exists():  # pairs without the ray covariance: said, not drawn
+        assert "note: sweep_budget.png not drawn" in capsys.readouterr().out
     rows = json.loads((out / "sweep.json").read_text())
     assert {r["param_value"] for r in rows} == {0.0, 4.0}
     assert (out / "sweep.png").stat().st_size > 10_000
