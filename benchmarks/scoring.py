@@ -14,6 +14,9 @@ How the truth reaches each method's points
   interpolated linearly (barycentric interpolation on the Delaunay triangulation of the reference dot
   positions) to the window centre. Window centres outside the convex hull of the valid dots are
   not scored.
+* A dense method (optical flow) measures at every pixel: its field is sampled bilinearly at each
+  dot's reference position (``sample_field``) and scored there, like tracking. Dots whose four
+  neighbouring pixels are not all measured are not scored.
 * Displacement gradients: on the correlation grid, central differences of the measured and of the
   interpolated true field on the same grid; at dots, a least-squares plane through each dot and its
   nearest neighbours, fitted to the measured and to the true displacements alike. The error is the
@@ -41,6 +44,7 @@ __all__ = [
     "error_percentiles",
     "grid_gradient",
     "interpolate_truth",
+    "sample_field",
     "scattered_gradient",
     "split_threshold",
     "vector_errors",
@@ -97,6 +101,27 @@ def interpolate_truth(dot_xy, dot_disp, points_xy):
     interp = LinearNDInterpolator(triangulate(np.asarray(dot_xy)[ok]), np.asarray(dot_disp)[ok], fill_value=np.nan)
     pts = np.asarray(points_xy, dtype=np.float64)
     return interp(pts.reshape(-1, 2)).reshape(*pts.shape[:-1], 2)
+
+
+def sample_field(field, points_xy):
+    """Bilinear samples of a dense (H, W, C) field at points (x = column, y = row; pixel centres at integers).
+
+    NaN at points outside the pixel centres' rectangle or where one of the four neighbours is NaN.
+    """
+    f = np.asarray(field, dtype=np.float64)
+    if f.ndim == 2:
+        return sample_field(f[..., None], points_xy)[..., 0]
+    pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    h, w = f.shape[:2]
+    x, y = pts[:, 0], pts[:, 1]
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    x0 = np.clip(np.floor(np.where(inside, x, 0)).astype(np.int64), 0, max(w - 2, 0))
+    y0 = np.clip(np.floor(np.where(inside, y, 0)).astype(np.int64), 0, max(h - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (np.where(inside, x, 0) - x0)[:, None], (np.where(inside, y, 0) - y0)[:, None]
+    out = ((1 - fy) * ((1 - fx) * f[y0, x0] + fx * f[y0, x1]) + fy * ((1 - fx) * f[y1, x0] + fx * f[y1, x1]))
+    out[~inside] = np.nan
+    return out.reshape(*np.shape(points_xy)[:-1], *f.shape[2:])
 
 
 def grid_gradient(u, v, x, y):
