@@ -5,8 +5,11 @@ OpenPIV (``pip install "synthbos[methods]"``) runs with the passes of our own ``
 correlate-deform iterations per window size (the first of all a plain correlation), a three-point
 Gaussian peak fit, a normalised median test (threshold 2) and symmetric deformation by cubic
 interpolation. Everything else is OpenPIV's own default (its signal-to-noise test, outlier replacement).
-Its window centres are reported in synthbos's convention, pixel centres at integers: a window
-over columns ``a .. a + w - 1`` is centred at ``a + (w - 1) / 2`` (OpenPIV writes ``a + w / 2``).
+Its window centres are reported as OpenPIV gives them, ``a + w / 2`` for the window over columns
+``a .. a + w - 1`` (half a pixel past its middle, in synthbos's convention of pixel centres at
+integers): OpenPIV interpolates each pass's field from those positions to deform the images for the
+next one, so the final vectors belong to them (a linear field, ``tests/benchmarks/test_external_methods.py``:
+placed at the middles they are off by half the field's gradient).
 """
 
 from __future__ import annotations
@@ -124,7 +127,7 @@ def run_openpiv(reference, gradient, *, prior_xy=None, settings=None, device=Non
     except ValueError as err:  # OpenPIV gives up when every vector fails its validation
         raise SynthbosError(f"openpiv: {err}") from None
     u, v = np.ma.filled(u, np.nan).astype(np.float64), np.ma.filled(v, np.nan).astype(np.float64)
-    x, y = np.asarray(x, np.float64) - 0.5, np.asarray(y, np.float64) - 0.5
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     replaced = np.asarray(flags, bool).reshape(u.shape)
     valid = ~replaced
     if mask is not None:

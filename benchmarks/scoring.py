@@ -104,22 +104,25 @@ def interpolate_truth(dot_xy, dot_disp, points_xy):
 
 
 def sample_field(field, points_xy):
-    """Bilinear samples of a dense (H, W, C) field at points (x = column, y = row; pixel centres at integers).
+    """Bilinear samples of a dense (H, W, C) or (H, W) field at points (x = column, y = row; pixel centres
+    at integers).
 
-    NaN at points outside the pixel centres' rectangle or where one of the four neighbours is NaN.
+    Points in the outer half pixel of the image take the value at the nearest pixel centre's row or
+    column; NaN beyond the image, or where one of the four neighbours is NaN.
     """
     f = np.asarray(field, dtype=np.float64)
     if f.ndim == 2:
         return sample_field(f[..., None], points_xy)[..., 0]
     pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     h, w = f.shape[:2]
-    x, y = pts[:, 0], pts[:, 1]
-    inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    x0 = np.clip(np.floor(np.where(inside, x, 0)).astype(np.int64), 0, max(w - 2, 0))
-    y0 = np.clip(np.floor(np.where(inside, y, 0)).astype(np.int64), 0, max(h - 2, 0))
+    inside = np.all(np.isfinite(pts), axis=1) & np.all((pts >= -0.5) & (pts <= [w - 0.5, h - 0.5]), axis=1)
+    x = np.clip(np.where(inside, pts[:, 0], 0.0), 0, w - 1)
+    y = np.clip(np.where(inside, pts[:, 1], 0.0), 0, h - 1)
+    x0 = np.clip(np.floor(x).astype(np.int64), 0, max(w - 2, 0))
+    y0 = np.clip(np.floor(y).astype(np.int64), 0, max(h - 2, 0))
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (np.where(inside, x, 0) - x0)[:, None], (np.where(inside, y, 0) - y0)[:, None]
-    out = ((1 - fy) * ((1 - fx) * f[y0, x0] + fx * f[y0, x1]) + fy * ((1 - fx) * f[y1, x0] + fx * f[y1, x1]))
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    out = (1 - fy) * ((1 - fx) * f[y0, x0] + fx * f[y0, x1]) + fy * ((1 - fx) * f[y1, x0] + fx * f[y1, x1])
     out[~inside] = np.nan
     return out.reshape(*np.shape(points_xy)[:-1], *f.shape[2:])
 

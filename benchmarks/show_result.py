@@ -143,8 +143,9 @@ def plot_result(path, out, *, max_arrows=40) -> str:
             ax.scatter(x[res["masked"]], y[res["masked"]], s=6, color=MASKED_COLOR,
                        label=f"masked ({int(res['masked'].sum())})")
     arrows = sub & np.isfinite(u) & np.isfinite(v)
+    still = not np.any(mag[arrows] > 0)  # nothing moved: matplotlib cannot scale zero-length arrows
     ax.quiver(x[arrows], y[arrows], u[arrows], v[arrows], angles="xy", color="white", edgecolor="black",
-              linewidth=0.3, width=0.003)
+              linewidth=0.3, width=0.003, scale=1.0 if still else None)
     if res["replaced"].any():
         ax.scatter(x[res["replaced"]], y[res["replaced"]], s=30, facecolors="none", edgecolors=REPLACED_COLOR,
                    linewidths=1.2, label=f"replaced ({int(res['replaced'].sum())})")
