@@ -4,7 +4,8 @@ Each window of the reference image and the same window of the gradient image are
 the inverse transform of their cross-power spectrum, normalised to unit magnitude, peaks at the
 window's displacement (Kuglin and Hines 1975). The normalised spectrum is weighted by that of a
 Gaussian of ``width`` px, which makes the peak that Gaussian (as robust phase correlation does,
-Eckstein and Vlachos 2009), and a three-point Gaussian fit in x and in y finds its sub-pixel position. One pass, no window deformation: a baseline to beat. Installed, it is the method
+Eckstein and Vlachos 2009), and a three-point Gaussian fit in x and in y finds its sub-pixel
+position. One pass, no window deformation: a baseline to beat. Installed, it is the method
 ``phase-correlation`` of every synthbos command (the entry point in ``pyproject.toml``).
 """
 
