@@ -2,8 +2,11 @@
 
 The command line (``--method``), ``synthbos process``, the campaign, the scoring and the figures read
 this table and never switch on a method's name. Adding a method takes its algorithm module and one
-``Method`` entry in ``METHODS`` below (its ``run`` adapter turns the algorithm's output into a
-:class:`MethodResult`).
+``Method`` entry in ``BUILT_IN`` below (its ``run`` adapter turns the algorithm's output into a
+:class:`MethodResult`); the public method API (``Method``, ``MethodResult``, the kinds, the result
+builders and checks) lives in ``method_api``. Installed packages add methods through the
+``synthbos.methods`` entry points (``plugins``): ``METHODS`` holds the built-in methods, then theirs,
+each loaded when first asked for; a plugin's run is checked (``method_api.check_result``).
 
 Styles use the Okabe-Ito colour-blind-safe palette, with a distinct line style and marker per method,
 so the curves stay apart in grey-scale print too.
