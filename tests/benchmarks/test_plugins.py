@@ -148,6 +148,7 @@ def test_cli_lists_methods_and_reports_skipped_plugins_on_one_line_each(plugins,
     assert len(warned) == len(SKIPPED) == len(err.strip().splitlines())
 
 
+@pytest.mark.filterwarnings("ignore::synthbos.benchmarks.plugins.PluginWarning")
 def test_a_wrong_result_is_one_line_naming_the_method(plugins, tmp_path, capsys):
     pair = tmp_path / "pair.h5"
     write_pair(pair, render_pair(TINY.pair_config(2, 0), device="cpu"))
@@ -196,6 +197,7 @@ def test_sample_field_is_bilinear_and_exact_for_a_linear_field():
     assert np.isnan(got[0]).all() and np.isfinite(got[1]).all()
 
 
+@pytest.mark.filterwarnings("ignore::synthbos.benchmarks.plugins.PluginWarning")
 def test_plugins_run_through_a_campaign_with_figures_and_process_integrate_show(plugins, tmp_path, capsys):
     spec = replace(TINY, methods=("correlation", "phase-correlation", "zero-dense"))
     rows = run_campaign(spec, tmp_path / "c", device="cpu", workers=1, progress=False)
@@ -210,6 +212,11 @@ def test_plugins_run_through_a_campaign_with_figures_and_process_integrate_show(
     assert main(["process", str(pair), "--method", "phase-correlation", "-o", str(result)]) == 0
     res, attrs = read_result(result)
     assert attrs["kind"] == "grid" and res.grid_shape == (7, 7)
+    config = tmp_path / "process.toml"  # the plugin's own table of a process configuration
+    config.write_text("[phase-correlation]\nwindow = 64\nstep = 32\n")
+    assert main(["process", str(pair), "--method", "phase-correlation", "--config", str(config), "-o",
+                 str(tmp_path / "r64.h5")]) == 0
+    assert read_result(tmp_path / "r64.h5")[0].grid_shape == (3, 3)
     assert main(["integrate", str(result), "--pair", str(pair), "-o", str(tmp_path / "d.h5")]) == 0
     assert main(["show-result", str(result), "-o", str(tmp_path / "r.png")]) == 0
     assert main(["process", str(pair), "--method", "zero-dense", "-o", str(tmp_path / "z.h5")]) == 0
@@ -219,6 +226,7 @@ def test_plugins_run_through_a_campaign_with_figures_and_process_integrate_show(
     assert main(["show-result", str(tmp_path / "z.h5"), "-o", str(tmp_path / "z.png")]) == 0
 
 
+@pytest.mark.filterwarnings("ignore::synthbos.benchmarks.plugins.PluginWarning")
 def test_regress_adds_a_plugins_rows_to_a_baseline_only_when_asked(plugins, tmp_path, monkeypatch):
     monkeypatch.setattr("synthbos.benchmarks.regress.REGRESS", replace(TINY, noise_percent=(3.0,)))
     base = tmp_path / "baseline.json"
@@ -229,6 +237,17 @@ def test_regress_adds_a_plugins_rows_to_a_baseline_only_when_asked(plugins, tmp_
     rows, problems = run_regress(baseline=base, progress=False, workers=1,
                                  methods=("correlation", "phase-correlation"))
     assert problems == [] and {r["method"] for r in rows} == {"correlation", "phase-correlation"}
+
+
+@pytest.mark.filterwarnings("ignore::synthbos.benchmarks.plugins.PluginWarning")
+def test_sweep_runs_the_named_methods_only(plugins, tmp_path):
+    from synthbos.benchmarks.sweep import run_sweep
+
+    rows = run_sweep({"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 10}}, [("noise", [0.0, 3.0])],
+                     tmp_path / "s", methods=("phase-correlation",), workers=1, progress=False)
+    assert {r["method"] for r in rows} == {"phase-correlation"}
+    assert {r["param_value"] for r in rows} == {0.0, 3.0}
+    assert (tmp_path / "s" / "sweep.png").is_file()
 
 
 def test_check_method_refuses_a_run_without_the_harness_keywords():
