@@ -458,21 +458,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _warning_line(message, category, filename, lineno, file=None, line=None):
-    """Warnings of skipped plugins as one line, ``synthbos: warning: ...``; others as Python shows them."""
-    if issubclass(category, PluginWarning):
-        print(f"synthbos: warning: {message}", file=sys.stderr if file is None else file)
-    else:
-        _show_warning(message, category, filename, lineno, file, line)
+def _one_line_warnings(show):
+    """``warnings.showwarning`` that prints a skipped plugin's warning as one line, ``synthbos: warning:
+    ...``, and hands every other warning to ``show``."""
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, PluginWarning):
+            print(f"synthbos: warning: {message}", file=sys.stderr if file is None else file)
+        else:
+            show(message, category, filename, lineno, file, line)
 
-
-_show_warning = warnings.showwarning
+    return showwarning
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    warnings.showwarning = _warning_line
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warnings(shown)
     try:
         return args.func(args)
     except SynthbosError as err:
@@ -482,7 +484,7 @@ def main(argv=None) -> int:
         print("synthbos: interrupted; finished items are kept, re-run to resume", file=sys.stderr)
         return 130
     finally:
-        warnings.showwarning = _show_warning
+        warnings.showwarning = shown
 
 
 if __name__ == "__main__":

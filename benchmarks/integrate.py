@@ -175,9 +175,9 @@ def uncertainty_px(result: MethodResult) -> np.ndarray:
     return np.hypot(SIGMA_FLOOR_PX, np.where(np.isfinite(spread), spread, 0.0))
 
 
-#: The integration grid of a dense field (px): the spacing of correlation's final grid (16 px windows, 50 %
-#: overlap) and about the mean dot spacing of the default pattern (7.2 px), so every kind is integrated at
-#: about the same resolution.
+#: The integration grid of a dense field (px): about the mean dot spacing of the default pattern (7.2 px),
+#: the grid tracked dots are integrated on, since a dense field is scored at the dots like tracking
+#: (correlation's own grid is its window spacing, 16 px by default).
 DENSE_SPACING_PX = 8.0
 
 
