@@ -64,8 +64,8 @@ def _render(args):
 
 def _process(args):
     out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
+    method = get_method(args.method)  # an unknown or skipped method is the only line
     device = _device(args.device)  # the method's processing device
-    method = get_method(args.method)
     invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
     settings, options = process_settings(
         args.method,
