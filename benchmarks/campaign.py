@@ -20,7 +20,7 @@ from synthbos.device import check_device
 
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .items import render_item, score_item
-from .registry import get_method
+from .registry import check_available, get_method
 from .scheduling import default_workers, run_items, run_pipeline
 from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
@@ -98,6 +98,7 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
             raise SynthbosError(f"noise level must be a percentage in 0..100, got {noise!r}")
     for name in spec.methods:
         m = get_method(name)
+        check_available(m)
         overrides = spec.overrides_for(m)
         if overrides:
             m.settings(overrides)

@@ -69,7 +69,8 @@ from synthbos.integration import (
 from synthbos import SynthbosError, atomic_output
 
 from . import scoring
-from .registry import GRID, MethodResult, get_method
+from .method_api import grid_result
+from .registry import DENSE, MethodResult, get_method
 
 __all__ = [
     "DensityMap",
@@ -169,16 +170,38 @@ def uncertainty_px(result: MethodResult) -> np.ndarray:
       Charonko and Vlachos 2013);
     * tracking: ``hypot(SIGMA_FLOOR_PX, |d_cc - d_centroid| / sqrt(2))``, the disagreement of the two
       displacement estimates the tracker makes of the same dot (centroid difference and correlation
-      correction).
+      correction);
+    * any other method: ``SIGMA_FLOOR_PX`` everywhere (``wlsq`` is then ``lsq``).
     """
     t = result.table
-    if get_method(result.method).kind == GRID:
+    if "peak_ratio" in t:
         pr = np.asarray(t["peak_ratio"], dtype=np.float64).ravel()
         return SIGMA_FLOOR_PX + PEAK_RATIO_SCALE_PX / np.maximum(pr - 1.0, 1e-3)
+    if "u_cc" not in t:
+        return np.full(len(result.xy), SIGMA_FLOOR_PX)
     du = np.asarray(t["u_cc"], float) - np.asarray(t["u"], float)
     dv = np.asarray(t["v_cc"], float) - np.asarray(t["v"], float)
     spread = np.hypot(du, dv) / np.sqrt(2.0)
     return np.hypot(SIGMA_FLOOR_PX, np.where(np.isfinite(spread), spread, 0.0))
+
+
+#: The integration grid of a dense field (px): about the mean dot spacing of the default pattern (7.2 px),
+#: the grid tracked dots are integrated on, since a dense field is scored at the dots like tracking
+#: (correlation's own grid is its window spacing, 16 px by default).
+DENSE_SPACING_PX = 8.0
+
+
+def dense_on_grid(result: MethodResult, spacing_px: float) -> MethodResult:
+    """A dense result sampled (bilinearly) on a regular grid of ``spacing_px``, centred on the image."""
+    h, w = result.grid_shape
+    axes = []
+    for n in (w, h):
+        count = int((n - 1) // spacing_px) + 1
+        axes.append(((n - 1) - (count - 1) * spacing_px) / 2 + spacing_px * np.arange(count))
+    gx, gy = np.meshgrid(*axes)
+    field = np.where(np.asarray(result.valid, bool)[:, None], result.uv, np.nan).reshape(h, w, 2)
+    uv = scoring.sample_field(field, np.stack([gx, gy], axis=-1))
+    return grid_result(result.method, gx, gy, uv[..., 0], uv[..., 1], settings=result.settings)
 
 
 @dataclass
@@ -217,8 +240,11 @@ def gradient_grid(result: MethodResult, geometry: Geometry, *, spacing_px=None) 
     ok = _valid_vectors(result)
     if not ok.any():
         raise SynthbosError("the result holds no valid vector: nothing to integrate")
+    if get_method(result.method).kind == DENSE:
+        result, spacing_px = dense_on_grid(result, spacing_px or DENSE_SPACING_PX), None
+        ok = _valid_vectors(result)
     sigma_px = uncertainty_px(result)
-    if get_method(result.method).kind == GRID and result.grid_shape is not None and spacing_px is None:
+    if result.grid_shape is not None and spacing_px is None:
         ny, nx = result.grid_shape
         x_px = result.xy[:, 0].reshape(ny, nx)[0]
         y_px = result.xy[:, 1].reshape(ny, nx)[:, 0]

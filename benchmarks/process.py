@@ -29,7 +29,9 @@ Command-line flags override the file.
 Result files (HDF5)
 -------------------
 A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
-``/peak_ratio``, ``/correlation``.
+``/peak_ratio``, ``/correlation``; any other grid method ``/x``, ``/y``, ``/u``, ``/v`` and its own columns.
+A dense method (``optical-flow``): the same layout with one vector per pixel (``/x``, ``/y`` the pixel
+centres, all of the image's shape).
 A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, ``/dots/masked``, plus every other column of the tracking table under ``/dots/`` (the
@@ -68,7 +70,7 @@ from synthbos.tracking import DotStatus
 
 from synthbos import SynthbosError, atomic_hdf5
 
-from .registry import GRID, METHODS, MethodResult, get_method
+from .registry import DENSE, GRID, METHODS, MethodResult, get_method
 
 __all__ = [
     "FLAG_BITS",
@@ -430,7 +432,7 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     path = Path(path)
     method = get_method(result.method)
     with atomic_hdf5(path) as f:
-        if method.kind == GRID:
+        if method.kind in (GRID, DENSE):
             for name, values in result.table.items():
                 f.create_dataset(name, data=np.asarray(values))
             if result.valid is not None:
@@ -456,6 +458,9 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
         for key, value in (extra_attrs or {}).items():
             f.attrs[key] = value
         _describe(f)
+        if method.kind == DENSE:
+            for axis, words in (("x", "column"), ("y", "row")):
+                f[axis].attrs["description"] = f"pixel centre {axis} ({words}) of the reference image"
     return path
 
 
@@ -477,12 +482,12 @@ def read_result(path):
                 settings = json.loads(attrs.get("settings", "{}"))
             except json.JSONDecodeError:
                 settings = {}
-            if method.kind == GRID:
-                need = ("x", "y", "u", "v", "flags", "peak_ratio")
+            if method.kind in (GRID, DENSE):
+                need = ("x", "y", "u", "v", *(("flags", "peak_ratio") if method.name == "correlation" else ()))
                 missing = [f"/{n}" for n in need if n not in f]
                 if missing:
                     raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
-                table = {n: f[n][()] for n in need}
+                table = {n: f[n][()] for n in f if isinstance(f[n], h5py.Dataset) and n not in ("valid", "correlation")}
                 shape = tuple(np.shape(table["u"]))
                 valid = f["valid"][()].ravel().astype(bool) if "valid" in f else None
                 xy = np.stack([np.ravel(table["x"]), np.ravel(table["y"])], axis=1).astype(np.float64)

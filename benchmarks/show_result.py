@@ -18,7 +18,7 @@ import numpy as np
 from synthbos import SynthbosError
 
 from .figures import save_figure
-from .registry import GRID, get_method
+from .registry import DENSE, GRID, get_method
 
 __all__ = ["plot_result", "read_result"]
 
@@ -50,7 +50,13 @@ def read_result(path) -> dict:
         method = str(f.attrs["method"])
         kind = str(f.attrs["kind"]) if "kind" in f.attrs else get_method(method).kind
         settings = json.loads(f.attrs.get("settings", "{}"))
-        if kind == GRID:
+        if kind in (GRID, DENSE) and method != "correlation":  # another method's own valid vectors
+            x, y, u, v = (f[k][()] for k in ("x", "y", "u", "v"))
+            grid_shape = u.shape
+            ok = f["valid"][()].astype(bool) if "valid" in f else np.isfinite(u) & np.isfinite(v)
+            replaced = ~ok & (f["replaced"][()].astype(bool) if "replaced" in f else False)
+            failed, masked = ~ok & ~replaced, np.zeros(u.shape, bool)
+        elif kind == GRID:
             x, y, u, v = (f[k][()] for k in ("x", "y", "u", "v"))
             flags = f["flags"][()].astype(np.int64)
             grid_shape = u.shape
@@ -79,7 +85,7 @@ def summary_line(res) -> str:
     """Counts and the measured displacement of a :func:`read_result` dict, on one line."""
     n = {k: int(res[k].sum()) for k in ("measured", "replaced", "failed", "masked")}
     mag = np.hypot(res["u"], res["v"])[res["measured"]]
-    noun = "vectors" if res["kind"] == GRID else "dots"
+    noun = {GRID: "vectors", DENSE: "pixels"}.get(res["kind"], "dots")
     text = (f"{res['method']}: {len(res['x'])} {noun}: {n['measured']} measured, {n['replaced']} replaced, "
             f"{n['failed']} failed, {n['masked']} masked")
     if len(mag):
@@ -112,7 +118,7 @@ def plot_result(path, out, *, max_arrows=40) -> str:
     shown = res["measured"] | res["replaced"] | res["failed"]
     vmax = float(np.nanmax(mag[res["measured"]])) if res["measured"].any() else 1.0
     fig, ax = plt.subplots(figsize=(7.0, 6.0), layout="constrained")
-    if res["kind"] == GRID:
+    if res["kind"] in (GRID, DENSE):
         ny, nx = res["grid_shape"]
         gx, gy = x.reshape(ny, nx), y.reshape(ny, nx)
         m = np.where(res["masked"], np.nan, mag).reshape(ny, nx)
@@ -137,8 +143,9 @@ def plot_result(path, out, *, max_arrows=40) -> str:
             ax.scatter(x[res["masked"]], y[res["masked"]], s=6, color=MASKED_COLOR,
                        label=f"masked ({int(res['masked'].sum())})")
     arrows = sub & np.isfinite(u) & np.isfinite(v)
+    still = not np.any(mag[arrows] > 0)  # nothing moved: matplotlib cannot scale zero-length arrows
     ax.quiver(x[arrows], y[arrows], u[arrows], v[arrows], angles="xy", color="white", edgecolor="black",
-              linewidth=0.3, width=0.003)
+              linewidth=0.3, width=0.003, scale=1.0 if still else None)
     if res["replaced"].any():
         ax.scatter(x[res["replaced"]], y[res["replaced"]], s=30, facecolors="none", edgecolors=REPLACED_COLOR,
                    linewidths=1.2, label=f"replaced ({int(res['replaced'].sum())})")
