@@ -31,6 +31,7 @@ import importlib.util
 import json
 import logging
 import os
+import signal
 import threading
 import time
 import uuid
@@ -207,6 +208,30 @@ def _remove_stale_temporaries(paths) -> None:
                 tmp.unlink(missing_ok=True)
 
 
+# A local cluster's workers log only what is critical: their errors reach this process through the tasks, and a
+# Ctrl-C, which closes the scheduler under workers still busy, would otherwise print their lost heartbeats.
+WORKER_LOG_LEVEL = logging.CRITICAL
+
+# The warning multiprocessing's resource tracker prints at its exit for the semaphores of worker processes
+# that a Ctrl-C ended (it removes them all the same): noise after the one line of an interrupted run.
+_TRACKER_WARNING = "ignore:resource_tracker:UserWarning"
+
+
+def _leave_sigint_to_the_client() -> None:
+    """In a local cluster's worker: ignore SIGINT (Ctrl-C), which the client handles by closing the cluster;
+    the worker would otherwise end with a traceback. Runs on the worker's event loop, its main thread."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _quiet_resource_tracker() -> None:
+    """Silence the resource tracker's leak warning in the processes a local cluster starts (they read it from
+    ``PYTHONWARNINGS``), and in the tracker they start."""
+    current = os.environ.get("PYTHONWARNINGS", "")
+    if _TRACKER_WARNING not in current.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(w for w in (current, _TRACKER_WARNING) if w)
+
+
 class DaskRunner:
     """A Dask client for a campaign or a sweep: a local cluster it starts, or a cluster it joins.
 
@@ -271,6 +296,8 @@ class DaskRunner:
         if self.scheduler == "local":
             self.cluster = self._local_cluster(distributed)
             self.client = distributed.Client(self.cluster)
+            # A terminal's Ctrl-C reaches the whole process group; this process closes the workers in order.
+            self.client.run(_leave_sigint_to_the_client)
         else:
             address = self.scheduler
             where = check_scheduler(address)
@@ -306,12 +333,14 @@ class DaskRunner:
         memory = distributed.system.MEMORY_LIMIT // n
         return {
             name: {"cls": distributed.Nanny, "options": {
-                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": logging.ERROR, "env": env,
+                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": WORKER_LOG_LEVEL,
+                "env": env,
             }}
             for name, env in zip(names, envs, strict=True)
         }
 
     def _local_cluster(self, distributed):
+        _quiet_resource_tracker()
         workers = self.local_worker_specs(distributed)
         scheduler = {"cls": distributed.Scheduler,
                      "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}
