@@ -166,7 +166,7 @@ def plot_result(path, out, *, max_arrows=40) -> str:
     fig.colorbar(im, ax=ax, label="|displacement| [px]", shrink=0.85)
     if ax.get_legend_handles_labels()[0]:
         fig.legend(loc="outside lower center", ncols=3, fontsize=8, frameon=False)
-    save_figure(fig, out, formats=(fmt,))
+    save_figure(fig, Path(out).with_suffix(""), formats=(fmt,))
     return summary
 
 
