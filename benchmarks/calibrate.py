@@ -157,7 +157,8 @@ def dots_from_mapping(mapping_path, target_path, dots_out):
     """Map a target file's mm positions to the image with a saved mapping and write the dots file."""
     mapping, data = read_mapping(mapping_path)
     target = read_target_csv(target_path)
-    xy = mapping(target)
+    with np.errstate(all="ignore"):  # an overflow is reported as the non-finite positions it gives
+        xy = mapping(target)
     if not np.isfinite(xy).all():
         raise SynthbosError("the mapping gives non-finite image positions for this target")
     n_inside = len(xy)

@@ -175,8 +175,8 @@ def figure_format(out) -> str:
     from matplotlib.figure import Figure
 
     kinds = Figure().canvas.get_supported_filetypes()
-    kind = Path(out).suffix.lstrip(".").lower()
-    if kind not in kinds:
+    kind = Path(out).suffix[1:]  # as written: the file gets exactly the name asked for
+    if kind.lower() not in kinds:
         raise SynthbosError(f"-o {shorten(str(out))}: name a figure file ending in one of "
                             f"{', '.join('.' + k for k in sorted(kinds))}")
     return kind

@@ -154,7 +154,11 @@ def mapping_from_dict(data):
         raise SynthbosError(f"calibration mapping order must be 1 to {MAX_ORDER}, got {order}")
     if not (len(cx) == len(cy) == len(_terms(order))):
         raise SynthbosError(f"calibration mapping of order {order} needs {len(_terms(order))} coefficients per axis")
-    if "terms" in data and [list(t) for t in data["terms"]] != [list(t) for t in _terms(order)]:
+    try:
+        terms = [list(t) for t in data.get("terms", _terms(order))]
+    except TypeError:
+        terms = None
+    if terms != [list(t) for t in _terms(order)]:
         raise SynthbosError("calibration mapping lists its polynomial terms in an unknown order")
     coef = np.stack([cx, cy], axis=1)
     if not (np.isfinite(coef).all() and np.isfinite(centre).all() and np.isfinite(scale).all() and (scale > 0).all()):
