@@ -73,6 +73,10 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     folder = Path(folder)
     process_device = resolve_process_device(device, process_device)
     check_spec(spec, device, process_device)  # a bad method, setting, device or configuration fails before any work
+    if isinstance(scheduler, str):
+        from .distributed import check_scheduler
+
+        check_scheduler(scheduler)  # so does a bad --scheduler, even for a finished campaign
     methods = [get_method(name) for name in spec.methods]
     if pipeline is None:
         pipeline = process_device.startswith("cuda")

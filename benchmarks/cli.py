@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
 import time
 import warnings
@@ -21,6 +23,7 @@ from synthbos.raytrace.config import read_toml
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, resolve_device
+from synthbos.values import error_line
 
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
@@ -63,7 +66,8 @@ def _render(args):
 
 
 def _process(args):
-    out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
+    inputs = [args.pair, args.reference, args.gradient, args.dots, args.config, args.mask]
+    out = check_output_file(args.output, inputs=inputs, what="-o")
     method = get_method(args.method)  # an unknown or skipped method is the only line
     device = _device(args.device)  # the method's processing device
     invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
@@ -74,6 +78,7 @@ def _process(args):
                "max_displacement": args.max_displacement},
         image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
     )
+    check_output_file(out, inputs=[options.mask], what="-o")  # the configuration's mask is an input too
     prior = None
     attrs = {}
     notes = []
@@ -280,7 +285,7 @@ def _show_density(args):
 def _show_result(args):
     out = check_output_file(args.output, inputs=[args.result], what="-o")
     summary = plot_result(args.result, out)
-    print(f"wrote {out} (and .pdf)\n{summary}")
+    print(f"wrote {out}\n{summary}")
     return 0
 
 
@@ -464,7 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
     p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
-    p.add_argument("-o", "--output", required=True, help="PNG to write (a PDF beside it)")
+    p.add_argument("-o", "--output", required=True, help="figure to write: .png, .pdf, .svg (only this file)")
     p.set_defaults(func=_show_result)
     return parser
 
@@ -481,15 +486,31 @@ def _one_line_warnings(show):
     return showwarning
 
 
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so the interpreter's last flush to a closed pipe writes nothing."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture)
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, fd)
+    os.close(null)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     shown = warnings.showwarning
     warnings.showwarning = _one_line_warnings(shown)
     try:
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, inside the try, not at the interpreter's exit
+        return status
+    except BrokenPipeError:  # `synthbos ... | head`: the reader is gone; end quietly, as Unix tools do
+        _silence_stdout()
+        return 128 + signal.SIGPIPE
     except SynthbosError as err:
-        print(f"synthbos: error: {err}", file=sys.stderr)
+        print(error_line(err), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("synthbos: interrupted; finished items are kept, re-run to resume", file=sys.stderr)

@@ -67,6 +67,7 @@ from synthbos.integration import (
 )
 
 from synthbos import SynthbosError, atomic_output
+from synthbos.values import numbers, optional_number
 
 from . import scoring
 from .method_api import grid_result
@@ -541,6 +542,7 @@ def _input_grid(input_path, *, pair_path, config, spacing_px):
     else:
         geometry = geometry_from_config(config)
         check_belongs({k: v for k, v in rattrs.items() if k == "image_shape"}, result, geometry, what="set-up")
+    check_displacements(result, geometry)
     attrs = {"method": result.method, "input": str(input_path)}
     if pair_path is not None:
         attrs["pair"] = str(pair_path)
@@ -554,6 +556,8 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
     ``result_path``: a result file (scored when ``pair_path`` is given), or a pair file alone, whose exact
     displacements are integrated and scored against its own truths (the floor).
     """
+    check_integrate_options(spacing_px=spacing_px, reference_density=reference_density,
+                            regions={"--reference-region": reference_region_mm, "--mask-region": mask_region_mm})
     grid, geometry, pair, attrs = _input_grid(result_path, pair_path=pair_path, config=config,
                                               spacing_px=spacing_px)
     if mask_region_mm is not None:
@@ -566,8 +570,49 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
             raise SynthbosError(f"the reference region x {x0:g}..{x1:g} mm, y {y0:g}..{y1:g} mm holds no measured node")
     dmap = solve_density(grid, solver=solver, reference_value=reference_density, reference_region=region,
                          dirichlet=dirichlet, ambient=geometry.ambient_density_kg_m3)
+    check_density_range(dmap)
     truths = truth_on_grid(pair, grid) if pair is not None else None
     summary = density_summary(dmap, truths) if truths is not None else {}
     attrs["geometry"] = json.dumps(asdict(geometry))
     write_density(out, dmap, truths=truths, summary=summary, attrs=attrs)
     return {"density": dmap, "summary": summary}
+
+
+# Bounds of the integrate options (px, kg/m^3): a grid finer than a pixel only interpolates.
+SPACING_PX = (1.0, 1e4)
+
+
+def check_integrate_options(*, spacing_px=None, reference_density=None, regions=None) -> None:
+    """Refuse integrate options out of range, before any file is read: ``--spacing`` (``SPACING_PX``),
+    ``--reference-density`` (> 0 and at most ``MAX_DENSITY_KG_M3``) and the regions (finite mm)."""
+    from synthbos.raytrace.checks import MAX_DENSITY_KG_M3
+
+    optional_number("--spacing (px)", spacing_px, minimum=SPACING_PX[0], maximum=SPACING_PX[1])
+    optional_number("--reference-density (kg/m^3)", reference_density, above=0.0, maximum=MAX_DENSITY_KG_M3)
+    for name, box in (regions or {}).items():
+        if box is not None:
+            numbers(f"{name} (mm)", box, sizes=(4,), minimum=-1e6, maximum=1e6)
+
+
+def check_displacements(result: MethodResult, geometry: Geometry) -> None:
+    """Refuse displacements no BOS image can show: a valid vector longer than the image's diagonal."""
+    ok = _valid_vectors(result)
+    if not ok.any():
+        return
+    largest = float(np.max(np.hypot(result.uv[ok, 0], result.uv[ok, 1])))
+    H, W = geometry.image_shape
+    if largest > np.hypot(H, W):
+        raise SynthbosError(f"the result holds a displacement of {largest:.4g} px, longer than the {W} x {H} px "
+                            "image's diagonal: it is no measurement to integrate")
+
+
+def check_density_range(dmap: DensityMap) -> None:
+    """Refuse a reconstructed density that is no fluid: negative, or above ``MAX_DENSITY_KG_M3`` (the
+    set-up, the reference density or the displacements are in the wrong units)."""
+    from synthbos.raytrace.checks import MAX_DENSITY_KG_M3
+
+    rho = dmap.density[np.isfinite(dmap.density)]
+    if rho.size and (rho.min() < 0 or rho.max() > MAX_DENSITY_KG_M3):
+        raise SynthbosError(f"the integrated density spans {rho.min():.4g} .. {rho.max():.4g} kg/m^3, which no "
+                            f"fluid has (0 .. {MAX_DENSITY_KG_M3:g}): check the reference density, the set-up "
+                            "(--pair or --config) and the result's units")

@@ -144,6 +144,10 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
     load_config(base_config)  # the base configuration alone, before any point
+    if isinstance(scheduler, str):
+        from .distributed import check_scheduler
+
+        check_scheduler(scheduler)
     process_device = resolve_process_device(device, process_device)
     folder = Path(folder)
     check_output_folder(folder)
