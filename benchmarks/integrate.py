@@ -378,6 +378,12 @@ def truth_on_grid(pair, grid: GradientGrid):
 DENSITY_SOLVER = "lsq"  # the solver campaigns score every method with
 
 
+def _no_density_scores() -> dict:
+    empty = {k: np.zeros(0) for k in ("density_error_cone", "density_error_chief", "density_map",
+                                      "density_truth_cone", "density_truth_chief", "density_x_mm", "density_y_mm")}
+    return empty | {"density_range_cone": np.float64(np.nan), "density_range_chief": np.float64(np.nan)}
+
+
 def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
     """A campaign item's density scores: integrate one method's result and compare with both truths.
 
@@ -389,19 +395,27 @@ def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
     ``density_truth_cone``, ``density_truth_chief`` with ``density_x_mm``, ``density_y_mm``. Empty
     arrays when the pair has no density truth or nothing could be integrated.
     """
-    empty = {k: np.zeros(0) for k in ("density_error_cone", "density_error_chief", "density_map",
-                                      "density_truth_cone", "density_truth_chief", "density_x_mm", "density_y_mm")}
-    empty.update(density_range_cone=np.float64(np.nan), density_range_chief=np.float64(np.nan))
     if pair.density_cone_kg_m3 is None:
-        return empty
+        return _no_density_scores()
     try:
         grid = gradient_grid(result, geometry_from_pair(pair))
+    except SynthbosError:
+        return _no_density_scores()
+    return score_density_grid(pair, grid, solver=solver)
+
+
+def score_density_grid(pair, grid: GradientGrid, *, solver=DENSITY_SOLVER) -> dict:
+    """:func:`score_density` of a gradient grid already made: a result's, or the pair's exact
+    displacements' (:func:`exact_grid`, the floor)."""
+    if pair.density_cone_kg_m3 is None:
+        return _no_density_scores()
+    try:
         cone, chief = truth_on_grid(pair, grid)
         region = border_region(grid.measured & np.isfinite(cone))
         dmap = solve_density(grid, solver=solver, reference_value=np.where(region, cone, np.nan),
                              reference_region=region)
     except SynthbosError:
-        return empty
+        return _no_density_scores()
     ok = np.isfinite(dmap.density) & np.isfinite(cone) & np.isfinite(chief)
     return {
         "density_error_cone": (dmap.density - cone)[ok],

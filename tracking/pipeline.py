@@ -101,6 +101,11 @@ class DotStatus(enum.IntFlag):
         The displacement fails the normalised median test against the local linear fit of its nearest
         matched neighbours (``TrackingSettings.outlier_threshold``): probably paired with the wrong blob.
         Never MATCHED.
+    DISTORTED
+        The dot's light in either image was measurably asymmetric (a dot distorted by the flow inside the
+        camera's light cone): both its positions are the first moments of its share of the light (the
+        mean landing positions of its rays), not the symmetric model's centres
+        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts_numpy`).
     """
 
     FOUND_REFERENCE = 1

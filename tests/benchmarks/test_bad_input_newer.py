@@ -188,7 +188,7 @@ def test_pair_and_result_files_declaring_huge_shapes(files, tmp_path, capsys):
     pair_big = _huge_copy(files / "p.h5", tmp_path / "big_images.h5",
                           {"images/reference": big, "images/gradient": big})
     with h5py.File(files / "p.h5") as f:
-        dots = {f"dots/{n}": (10**12, 2) for n in f["dots"] if f[f"dots/{n}"].ndim == 2}
+        dots = {f"dots/{n}": (10**12, f[f"dots/{n}"].shape[1]) for n in f["dots"] if f[f"dots/{n}"].ndim == 2}
         dots.update({f"dots/{n}": (10**12,) for n in f["dots"] if f[f"dots/{n}"].ndim == 1})
     pair_dots = _huge_copy(files / "p.h5", tmp_path / "big_dots.h5", dots)
     out = tmp_path / "r.h5"
