@@ -21,16 +21,11 @@ import pytest
 import tifffile
 from synthbos.benchmarks.cli import main
 from synthbos.raytrace import render_pair, write_pair
+from test_bad_input import BASE  # the small render set-up of the first round's bad-input tests
 
 from synthbos.values import MAX_LINE, error_line
 
 ROOT = Path(__file__).resolve().parents[2]
-BASE = {
-    "camera": {"pixels": [96, 96]},
-    "rays": {"per_dot": 20},
-    "target": {"dots_per_32px": 8.0},
-    "volume": {"source": "gaussian"},
-}
 
 
 def _listing(folder):
