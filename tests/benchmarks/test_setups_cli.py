@@ -31,7 +31,7 @@ def test_render_starts_from_the_named_setup_and_the_file_changes_it(tmp_path):
     assert expected["camera"]["pixels"] == [48, 48] and expected["camera"]["f_number"] == 32.0
     assert pair.reference.shape == (48, 48)
     assert "f_number = 32.0" in pair.attrs["config"]
-    assert "density_scale_kg_m3 = 4.9" in pair.attrs["config"]
+    assert "density_scale_kg_m3 = 1.225" in pair.attrs["config"]
 
 
 @pytest.mark.parametrize("argv", [
@@ -77,6 +77,6 @@ def test_paper_and_sweep_pass_the_setup_on(tmp_path, monkeypatch):
     assert main(["sweep", str(cfg_file), "--setup", "narrow", "--param", "f_number=16,32", "--out", "s",
                  "--device", "cpu", "-q"]) == 0
     base, params = seen["sweep"]
-    assert base["camera"] == {"f_number": 32.0, "pixels": [48, 48]}
-    assert base["volume"] == {"density_scale_kg_m3": 4.9}
+    assert base == {"camera": {"f_number": 32.0, "pixels": [48, 48]}, "rays": {"per_dot": 20},
+                    "target": {"dots_per_32px": 8.0}}
     assert params == [("camera.f_number", [16.0, 32.0])]
