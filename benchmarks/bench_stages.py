@@ -179,9 +179,10 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
 def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     """Best time of ``track_pairs`` on ``batch`` noisy copies of ``pair``: from images already on the device
     (``seconds``, as a pipeline that keeps them there) and from NumPy stacks (``seconds_host``, the upload
-    included), host tables out both times; dots per second, and the largest difference from
-    ``track_pair`` on the first copy."""
-    from synthbos.tracking import track_pair
+    included), host tables out both times, and without the first-moment step (``seconds_symmetric``, from
+    images on the device); dots per second, and the largest difference from ``track_pair`` on the first
+    copy."""
+    from synthbos.tracking import TrackingSettings, track_pair
     from synthbos.tracking.batch import track_pairs
 
     noisy = [noisy_pair(pair, noise_percent=noise_percent, seeds=(100 + 2 * k, 101 + 2 * k)) for k in range(batch)]
@@ -190,6 +191,10 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     on_device = [wp.array(a, dtype=wp.float64, device=device) for a in (refs, grads)]
     seconds, tables = _best(lambda: track_pairs(*on_device, prior_xy=prior, device=device), repeats, device)
     seconds_host, _ = _best(lambda: track_pairs(refs, grads, prior_xy=prior, device=device), repeats, device)
+    symmetric = TrackingSettings(distortion="none")  # the same without the first-moment step, for its cost
+    seconds_symmetric, _ = _best(
+        lambda: track_pairs(*on_device, prior_xy=prior, settings=symmetric, device=device), repeats, device
+    )
     single = track_pair(refs[0], grads[0], prior_xy=prior, device=device)
     diff = 0.0
     for name in ("u", "v", "u_cc", "v_cc"):
@@ -200,6 +205,7 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     dots = int(np.prod(tables.shape))
     return {"pairs": batch, "dots": dots, "seconds": seconds, "dots_per_second": dots / seconds,
             "seconds_host": seconds_host, "dots_per_second_host": dots / seconds_host,
+            "seconds_symmetric": seconds_symmetric, "dots_per_second_symmetric": dots / seconds_symmetric,
             "max_difference_px": diff, "status_equal": same_status}
 
 
@@ -286,7 +292,8 @@ def main(argv=None):
         if tb:
             print(f"tracking, batched on {r['device']}: {tb['pairs']} pairs ({tb['dots']} dots) in "
                   f"{tb['seconds']:.4f} s = {tb['dots_per_second']:.3g} dots/s from images on the device "
-                  f"({tb['seconds_host']:.4f} s = {tb['dots_per_second_host']:.3g} dots/s from NumPy images); "
+                  f"({tb['seconds_host']:.4f} s = {tb['dots_per_second_host']:.3g} dots/s from NumPy images; "
+                  f"without the first-moment step {tb['dots_per_second_symmetric']:.3g} dots/s); "
                   f"largest difference from track_pair on the first pair {tb['max_difference_px']:.2e} px, "
                   f"status equal: {tb['status_equal']}")
     paper = None

@@ -27,9 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from synthbos.tracking.calibration import calibrate_grid, mapping_from_dict, mapping_to_dict
+from synthbos.tracking.calibration import MAX_ORDER, calibrate_grid, mapping_from_dict, mapping_to_dict
 
 from synthbos import SynthbosError, atomic_output
+from synthbos.values import number
 
 __all__ = [
     "CalibrationSummary",
@@ -122,10 +123,8 @@ def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source
     -------
     CalibrationSummary
     """
-    if not (np.isfinite(spacing_mm) and spacing_mm > 0):
-        raise SynthbosError(f"grid spacing must be a positive number of mm, got {spacing_mm!r}")
-    if not 1 <= order <= 5:
-        raise SynthbosError(f"mapping order must be 1 to 5, got {order}")
+    number("--grid (the grid spacing, mm)", spacing_mm, above=0.0, maximum=1e4)
+    number("--order (the mapping's polynomial degree)", order, integer=True, minimum=1, maximum=MAX_ORDER)
     for out in (dots_out, mapping_out):
         if out is not None and not Path(out).parent.is_dir():
             raise SynthbosError(f"output folder {Path(out).parent} does not exist")
@@ -158,13 +157,19 @@ def dots_from_mapping(mapping_path, target_path, dots_out):
     """Map a target file's mm positions to the image with a saved mapping and write the dots file."""
     mapping, data = read_mapping(mapping_path)
     target = read_target_csv(target_path)
-    xy = mapping(target)
+    with np.errstate(all="ignore"):  # an overflow is reported as the non-finite positions it gives
+        xy = mapping(target)
     if not np.isfinite(xy).all():
         raise SynthbosError("the mapping gives non-finite image positions for this target")
     n_inside = len(xy)
     shape = data.get("image_shape")
     if isinstance(shape, list) and len(shape) == 2:
-        h, w = (float(s) for s in shape)
+        h, w = (number(f"mapping file {mapping_path}: image_shape[{i}]", v, above=0.0) for i, v in enumerate(shape))
         n_inside = int(((xy[:, 0] > -0.5) & (xy[:, 0] < w - 0.5) & (xy[:, 1] > -0.5) & (xy[:, 1] < h - 0.5)).sum())
+        if n_inside == 0:
+            lo, hi = target.min(axis=0), target.max(axis=0)
+            raise SynthbosError(f"none of the {len(xy)} target dots maps into the calibrated {w:g} x {h:g} px "
+                                f"image (target x {lo[0]:.4g} .. {hi[0]:.4g}, y {lo[1]:.4g} .. {hi[1]:.4g}): "
+                                "is the target in mm, in the grid's frame?")
     write_dots_csv(dots_out, xy)
     return CalibrationSummary(n_dots=len(xy), n_inside=n_inside, residual_rms=mapping.rms)

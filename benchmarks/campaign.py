@@ -20,7 +20,7 @@ from synthbos.device import check_device
 
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .items import render_item, score_item
-from .registry import get_method
+from .registry import check_available, get_method
 from .scheduling import default_workers, run_items, run_pipeline
 from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
@@ -73,6 +73,10 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     folder = Path(folder)
     process_device = resolve_process_device(device, process_device)
     check_spec(spec, device, process_device)  # a bad method, setting, device or configuration fails before any work
+    if isinstance(scheduler, str):
+        from .distributed import check_scheduler
+
+        check_scheduler(scheduler)  # so does a bad --scheduler, even for a finished campaign
     methods = [get_method(name) for name in spec.methods]
     if pipeline is None:
         pipeline = process_device.startswith("cuda")
@@ -98,6 +102,7 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
             raise SynthbosError(f"noise level must be a percentage in 0..100, got {noise!r}")
     for name in spec.methods:
         m = get_method(name)
+        check_available(m)
         overrides = spec.overrides_for(m)
         if overrides:
             m.settings(overrides)

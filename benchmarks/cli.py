@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,12 +23,14 @@ from synthbos.raytrace.config import merge_tables, read_toml
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, resolve_device
+from synthbos.values import error_line
 
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
+from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
-from .registry import GRID, default_methods, get_method, method_names
+from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, methods_table
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
 from .show_result import plot_result
@@ -62,9 +67,10 @@ def _render(args):
 
 
 def _process(args):
-    out = check_output_file(args.output, inputs=[args.pair, args.reference, args.gradient, args.dots], what="-o")
+    inputs = [args.pair, args.reference, args.gradient, args.dots, args.config, args.mask]
+    out = check_output_file(args.output, inputs=inputs, what="-o")
+    method = get_method(args.method)  # an unknown or skipped method is the only line
     device = _device(args.device)  # the method's processing device
-    method = get_method(args.method)
     invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
     settings, options = process_settings(
         args.method,
@@ -73,6 +79,7 @@ def _process(args):
                "max_displacement": args.max_displacement},
         image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
     )
+    check_output_file(out, inputs=[options.mask], what="-o")  # the configuration's mask is an input too
     prior = None
     attrs = {}
     notes = []
@@ -107,7 +114,7 @@ def _process(args):
     c = res.counts or {}
     ok = res.valid if res.valid is not None else np.all(np.isfinite(res.uv), axis=1)
     med = np.median(np.hypot(*res.uv[ok].T)) if ok.any() else float("nan")
-    noun = "vectors" if method.kind == GRID else "dots"
+    noun = {GRID: "vectors", DENSE: "pixels"}.get(method.kind, "dots")
     print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
@@ -244,17 +251,19 @@ def _budget_note(png: Path) -> None:
 
 def _regress(args):
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
+    methods = _method_list(args.methods) if args.methods else None
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
-                                 scheduler=args.scheduler, wait=args.wait)
+                                 scheduler=args.scheduler, wait=args.wait, methods=methods,
+                                 baseline=args.baseline or BASELINE)
     if args.update:
-        print(f"regression baseline written to {BASELINE} ({len(rows)} rows)")
+        print(f"regression baseline written to {args.baseline or BASELINE} ({len(rows)} rows)")
         return 0
     if problems:
         print(f"synthbos regress: {len(problems)} result(s) worse than the baseline:", file=sys.stderr)
         for p in problems:
             print(f"  {p}", file=sys.stderr)
         return 1
-    print(f"synthbos regress: all {len(rows)} rows within tolerance of {BASELINE.name}")
+    print(f"synthbos regress: all {len(rows)} rows within tolerance of {Path(args.baseline or BASELINE).name}")
     return 0
 
 
@@ -265,6 +274,7 @@ def _sweep(args):
     device = _device(args.device)
     process_device, worker_device = _process_device(args, device), _worker_device(args)
     rows = run_sweep(base, params, args.out, size=args.size, device=device,
+                     methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
                      workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
@@ -290,7 +300,12 @@ def _show_density(args):
 def _show_result(args):
     out = check_output_file(args.output, inputs=[args.result], what="-o")
     summary = plot_result(args.result, out)
-    print(f"wrote {out} (and .pdf)\n{summary}")
+    print(f"wrote {out}\n{summary}")
+    return 0
+
+
+def _methods(args):
+    print(methods_table())
     return 0
 
 
@@ -359,7 +374,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("process", help="measure displacements: correlation or dot tracking")
     p.add_argument("pair", nargs="?", default=None, help="pair file from 'synthbos render'")
-    p.add_argument("--method", required=True, choices=method_names())
+    p.add_argument("--method", required=True, metavar="NAME",
+                   help=f"a registered method: {', '.join(BUILT_IN)} or an installed plugin's (synthbos methods)")
     p.add_argument("--reference", help="reference (no-flow) camera image, TIFF or PNG")
     p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
@@ -427,13 +443,20 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
         p.add_argument("--methods", default=None, metavar="A,B,...",
                        help=f"methods to run (default: {','.join(default_methods())}; also: "
-                            f"{','.join(n for n in method_names() if n not in default_methods())})")
+                            f"{','.join(n for n in BUILT_IN if n not in default_methods())} and installed "
+                            "plugins' methods: synthbos methods lists them)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         _add_scheduler_option(p)
         p.set_defaults(func=_paper)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
-    p.add_argument("--update", action="store_true", help="rewrite the baseline on purpose")
+    p.add_argument("--update", action="store_true",
+                   help="rewrite the baseline on purpose (with --methods: only those methods' rows)")
+    p.add_argument("--methods", default=None, metavar="A,B,...",
+                   help=f"methods to check (default: {','.join(default_methods())}); a plugin's rows enter the "
+                        "baseline only with --update")
+    p.add_argument("--baseline", default=None, metavar="FILE.json",
+                   help="baseline file (default: the one synthbos ships); e.g. your own for a plugin")
     p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
     p.add_argument("--workers", type=_workers, default=None)
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
@@ -449,6 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_setup_option(p, "the configuration changes it")
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
+    p.add_argument("--methods", default=None, metavar="A,B,...",
+                   help=f"methods to run at every point (default: {','.join(default_methods())})")
     p.add_argument("--device", default=None,
                    help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
     _add_process_device_option(p)
@@ -458,6 +483,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scheduler_option(p)
     p.set_defaults(func=_sweep)
 
+    p = sub.add_parser("methods", help="list the registered methods: kind, source package and version")
+    p.set_defaults(func=_methods)
+
     p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
     p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
@@ -465,22 +493,54 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
     p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
-    p.add_argument("-o", "--output", required=True, help="PNG to write (a PDF beside it)")
+    p.add_argument("-o", "--output", required=True, help="figure to write: .png, .pdf, .svg (only this file)")
     p.set_defaults(func=_show_result)
     return parser
+
+
+def _one_line_warnings(show):
+    """``warnings.showwarning`` that prints a skipped plugin's warning as one line, ``synthbos: warning:
+    ...``, and hands every other warning to ``show``."""
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, PluginWarning):
+            print(f"synthbos: warning: {message}", file=sys.stderr if file is None else file)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    return showwarning
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so the interpreter's last flush to a closed pipe writes nothing."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture)
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, fd)
+    os.close(null)
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warnings(shown)
     try:
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, inside the try, not at the interpreter's exit
+        return status
+    except BrokenPipeError:  # `synthbos ... | head`: the reader is gone; end quietly, as Unix tools do
+        _silence_stdout()
+        return 128 + signal.SIGPIPE
     except SynthbosError as err:
-        print(f"synthbos: error: {err}", file=sys.stderr)
+        print(error_line(err), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("synthbos: interrupted; finished items are kept, re-run to resume", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown
 
 
 if __name__ == "__main__":

@@ -28,8 +28,10 @@ Dask is imported only here, and only when a scheduler is asked for.
 from __future__ import annotations
 
 import importlib.util
+import json
 import logging
 import os
+import signal
 import threading
 import time
 import uuid
@@ -39,11 +41,12 @@ from pathlib import Path
 from tqdm.auto import tqdm
 
 from synthbos import SynthbosError
+from synthbos.values import shorten
 
 from .items import render_item, score_item
 from .scheduling import default_workers, pair_tasks
 
-__all__ = ["DaskRunner", "pair_task", "run_pairs", "visible_gpus"]
+__all__ = ["DaskRunner", "check_address", "check_scheduler", "pair_task", "run_pairs", "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
@@ -61,6 +64,70 @@ def _distributed():
         raise SynthbosError("--scheduler needs Dask: pip install 'dask[distributed]' "
                             "(or synthbos with its 'dask' extra)") from None
     return distributed
+
+
+#: Dask's communication protocols a scheduler address may name.
+PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+#: Largest scheduler file read (Dask's own are a few hundred bytes).
+MAX_SCHEDULER_FILE = 1 << 20
+_SCHEDULER_HINT = "'local', PROTOCOL://HOST:PORT (e.g. tcp://10.0.0.1:8786) or a scheduler file (JSON)"
+
+
+def check_address(address, *, what="--scheduler") -> str:
+    """Check a Dask scheduler address ``PROTOCOL://HOST:PORT`` (or ``HOST:PORT``, TCP); return it."""
+    if not isinstance(address, str) or not address or len(address) > 1024:
+        raise SynthbosError(f"{what}: the scheduler address must be text {_SCHEDULER_HINT}, got {shorten(address)}")
+    protocol, sep, rest = address.partition("://")
+    if not sep:
+        protocol, rest = "tcp", address
+    if protocol not in PROTOCOLS:
+        raise SynthbosError(f"{what} {shorten(address)}: unknown protocol {shorten(protocol)}; "
+                            f"Dask knows {', '.join(PROTOCOLS)}")
+    if protocol == "inproc":
+        return address
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host or any(c.isspace() or c in "/?#@" for c in host):
+        raise SynthbosError(f"{what} {shorten(address)}: expected {protocol}://HOST:PORT")
+    if not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise SynthbosError(f"{what} {shorten(address)}: the port must be a number 1 to 65535, got {shorten(port)}")
+    return address
+
+
+def check_scheduler(scheduler) -> dict | None:
+    """Check a ``--scheduler`` value before any work; return how to join it (None for ``"local"``).
+
+    Returns ``{"address": ...}`` for an address, ``{"scheduler_file": ...}`` for a scheduler file whose
+    JSON object names a valid ``address``. Anything else (a missing, empty, unreadable or over-large
+    file, JSON that is not an object, no address, an unknown protocol, a bad port) is refused with
+    one line.
+    """
+    text = str(scheduler)
+    if text == "local":
+        return None
+    path = Path(text) if len(text) <= 4096 and "\0" not in text else None
+    looks_like_file = path is not None and (text.endswith(".json") or path.is_file())
+    if not looks_like_file:
+        if "://" not in text and ":" not in text:
+            raise SynthbosError(f"--scheduler must be {_SCHEDULER_HINT}, got {shorten(text)}")
+        return {"address": check_address(text)}
+    if not path.is_file():
+        raise SynthbosError(f"scheduler file {path} does not exist")
+    if path.stat().st_size > MAX_SCHEDULER_FILE:
+        raise SynthbosError(f"scheduler file {path} is {path.stat().st_size:,} bytes: not a Dask scheduler file")
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        raise SynthbosError(f"scheduler file {path} is not JSON (Dask writes one with `dask scheduler "
+                            "--scheduler-file FILE`)") from None
+    except OSError as err:
+        raise SynthbosError(f"cannot read scheduler file {path}: {err.strerror}") from None
+    if not isinstance(data, dict):
+        raise SynthbosError(f"scheduler file {path} holds a JSON {type(data).__name__}, not an object "
+                            "with the scheduler's address")
+    if "address" not in data:
+        raise SynthbosError(f"scheduler file {path} names no address (its keys: {shorten(sorted(data))})")
+    check_address(data["address"], what=f"scheduler file {path}:")
+    return {"scheduler_file": str(path)}
 
 
 def visible_gpus() -> list[str]:
@@ -141,6 +208,30 @@ def _remove_stale_temporaries(paths) -> None:
                 tmp.unlink(missing_ok=True)
 
 
+# A local cluster's workers log only what is critical: their errors reach this process through the tasks, and a
+# Ctrl-C, which closes the scheduler under workers still busy, would otherwise print their lost heartbeats.
+WORKER_LOG_LEVEL = logging.CRITICAL
+
+# The warning multiprocessing's resource tracker prints at its exit for the semaphores of worker processes
+# that a Ctrl-C ended (it removes them all the same): noise after the one line of an interrupted run.
+_TRACKER_WARNING = "ignore:resource_tracker:UserWarning"
+
+
+def _leave_sigint_to_the_client() -> None:
+    """In a local cluster's worker: ignore SIGINT (Ctrl-C), which the client handles by closing the cluster;
+    the worker would otherwise end with a traceback. Runs on the worker's event loop, its main thread."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _quiet_resource_tracker() -> None:
+    """Silence the resource tracker's leak warning in the processes a local cluster starts (they read it from
+    ``PYTHONWARNINGS``), and in the tracker they start."""
+    current = os.environ.get("PYTHONWARNINGS", "")
+    if _TRACKER_WARNING not in current.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(w for w in (current, _TRACKER_WARNING) if w)
+
+
 class DaskRunner:
     """A Dask client for a campaign or a sweep: a local cluster it starts, or a cluster it joins.
 
@@ -205,17 +296,11 @@ class DaskRunner:
         if self.scheduler == "local":
             self.cluster = self._local_cluster(distributed)
             self.client = distributed.Client(self.cluster)
+            # A terminal's Ctrl-C reaches the whole process group; this process closes the workers in order.
+            self.client.run(_leave_sigint_to_the_client)
         else:
             address = self.scheduler
-            if address.endswith(".json") or Path(address).is_file():
-                if not Path(address).is_file():
-                    raise SynthbosError(f"scheduler file {address} does not exist")
-                where = {"scheduler_file": address}
-            elif ":" in address:
-                where = {"address": address}
-            else:
-                raise SynthbosError(f"--scheduler must be 'local', tcp://HOST:PORT or a scheduler file, "
-                                    f"got {address!r}")
+            where = check_scheduler(address)
             try:
                 self.client = distributed.Client(**where, timeout="30s")
             except OSError as err:  # TimeoutError included
@@ -248,12 +333,14 @@ class DaskRunner:
         memory = distributed.system.MEMORY_LIMIT // n
         return {
             name: {"cls": distributed.Nanny, "options": {
-                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": logging.ERROR, "env": env,
+                "nthreads": 1, "host": "127.0.0.1", "memory_limit": memory, "silence_logs": WORKER_LOG_LEVEL,
+                "env": env,
             }}
             for name, env in zip(names, envs, strict=True)
         }
 
     def _local_cluster(self, distributed):
+        _quiet_resource_tracker()
         workers = self.local_worker_specs(distributed)
         scheduler = {"cls": distributed.Scheduler,
                      "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}

@@ -67,9 +67,11 @@ from synthbos.integration import (
 )
 
 from synthbos import SynthbosError, atomic_output
+from synthbos.values import numbers, optional_number
 
 from . import scoring
-from .registry import GRID, MethodResult, get_method
+from .method_api import grid_result
+from .registry import DENSE, MethodResult, get_method
 
 __all__ = [
     "DensityMap",
@@ -169,16 +171,38 @@ def uncertainty_px(result: MethodResult) -> np.ndarray:
       Charonko and Vlachos 2013);
     * tracking: ``hypot(SIGMA_FLOOR_PX, |d_cc - d_centroid| / sqrt(2))``, the disagreement of the two
       displacement estimates the tracker makes of the same dot (centroid difference and correlation
-      correction).
+      correction);
+    * any other method: ``SIGMA_FLOOR_PX`` everywhere (``wlsq`` is then ``lsq``).
     """
     t = result.table
-    if get_method(result.method).kind == GRID:
+    if "peak_ratio" in t:
         pr = np.asarray(t["peak_ratio"], dtype=np.float64).ravel()
         return SIGMA_FLOOR_PX + PEAK_RATIO_SCALE_PX / np.maximum(pr - 1.0, 1e-3)
+    if "u_cc" not in t:
+        return np.full(len(result.xy), SIGMA_FLOOR_PX)
     du = np.asarray(t["u_cc"], float) - np.asarray(t["u"], float)
     dv = np.asarray(t["v_cc"], float) - np.asarray(t["v"], float)
     spread = np.hypot(du, dv) / np.sqrt(2.0)
     return np.hypot(SIGMA_FLOOR_PX, np.where(np.isfinite(spread), spread, 0.0))
+
+
+#: The integration grid of a dense field (px): about the mean dot spacing of the default pattern (7.2 px),
+#: the grid tracked dots are integrated on, since a dense field is scored at the dots like tracking
+#: (correlation's own grid is its window spacing, 16 px by default).
+DENSE_SPACING_PX = 8.0
+
+
+def dense_on_grid(result: MethodResult, spacing_px: float) -> MethodResult:
+    """A dense result sampled (bilinearly) on a regular grid of ``spacing_px``, centred on the image."""
+    h, w = result.grid_shape
+    axes = []
+    for n in (w, h):
+        count = int((n - 1) // spacing_px) + 1
+        axes.append(((n - 1) - (count - 1) * spacing_px) / 2 + spacing_px * np.arange(count))
+    gx, gy = np.meshgrid(*axes)
+    field = np.where(np.asarray(result.valid, bool)[:, None], result.uv, np.nan).reshape(h, w, 2)
+    uv = scoring.sample_field(field, np.stack([gx, gy], axis=-1))
+    return grid_result(result.method, gx, gy, uv[..., 0], uv[..., 1], settings=result.settings)
 
 
 @dataclass
@@ -217,8 +241,11 @@ def gradient_grid(result: MethodResult, geometry: Geometry, *, spacing_px=None) 
     ok = _valid_vectors(result)
     if not ok.any():
         raise SynthbosError("the result holds no valid vector: nothing to integrate")
+    if get_method(result.method).kind == DENSE:
+        result, spacing_px = dense_on_grid(result, spacing_px or DENSE_SPACING_PX), None
+        ok = _valid_vectors(result)
     sigma_px = uncertainty_px(result)
-    if get_method(result.method).kind == GRID and result.grid_shape is not None and spacing_px is None:
+    if result.grid_shape is not None and spacing_px is None:
         ny, nx = result.grid_shape
         x_px = result.xy[:, 0].reshape(ny, nx)[0]
         y_px = result.xy[:, 1].reshape(ny, nx)[:, 0]
@@ -351,6 +378,12 @@ def truth_on_grid(pair, grid: GradientGrid):
 DENSITY_SOLVER = "lsq"  # the solver campaigns score every method with
 
 
+def _no_density_scores() -> dict:
+    empty = {k: np.zeros(0) for k in ("density_error_cone", "density_error_chief", "density_map",
+                                      "density_truth_cone", "density_truth_chief", "density_x_mm", "density_y_mm")}
+    return empty | {"density_range_cone": np.float64(np.nan), "density_range_chief": np.float64(np.nan)}
+
+
 def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
     """A campaign item's density scores: integrate one method's result and compare with both truths.
 
@@ -362,19 +395,27 @@ def score_density(pair, result: MethodResult, *, solver=DENSITY_SOLVER) -> dict:
     ``density_truth_cone``, ``density_truth_chief`` with ``density_x_mm``, ``density_y_mm``. Empty
     arrays when the pair has no density truth or nothing could be integrated.
     """
-    empty = {k: np.zeros(0) for k in ("density_error_cone", "density_error_chief", "density_map",
-                                      "density_truth_cone", "density_truth_chief", "density_x_mm", "density_y_mm")}
-    empty.update(density_range_cone=np.float64(np.nan), density_range_chief=np.float64(np.nan))
     if pair.density_cone_kg_m3 is None:
-        return empty
+        return _no_density_scores()
     try:
         grid = gradient_grid(result, geometry_from_pair(pair))
+    except SynthbosError:
+        return _no_density_scores()
+    return score_density_grid(pair, grid, solver=solver)
+
+
+def score_density_grid(pair, grid: GradientGrid, *, solver=DENSITY_SOLVER) -> dict:
+    """:func:`score_density` of a gradient grid already made: a result's, or the pair's exact
+    displacements' (:func:`exact_grid`, the floor)."""
+    if pair.density_cone_kg_m3 is None:
+        return _no_density_scores()
+    try:
         cone, chief = truth_on_grid(pair, grid)
         region = border_region(grid.measured & np.isfinite(cone))
         dmap = solve_density(grid, solver=solver, reference_value=np.where(region, cone, np.nan),
                              reference_region=region)
     except SynthbosError:
-        return empty
+        return _no_density_scores()
     ok = np.isfinite(dmap.density) & np.isfinite(cone) & np.isfinite(chief)
     return {
         "density_error_cone": (dmap.density - cone)[ok],
@@ -515,6 +556,7 @@ def _input_grid(input_path, *, pair_path, config, spacing_px):
     else:
         geometry = geometry_from_config(config)
         check_belongs({k: v for k, v in rattrs.items() if k == "image_shape"}, result, geometry, what="set-up")
+    check_displacements(result, geometry)
     attrs = {"method": result.method, "input": str(input_path)}
     if pair_path is not None:
         attrs["pair"] = str(pair_path)
@@ -528,6 +570,8 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
     ``result_path``: a result file (scored when ``pair_path`` is given), or a pair file alone, whose exact
     displacements are integrated and scored against its own truths (the floor).
     """
+    check_integrate_options(spacing_px=spacing_px, reference_density=reference_density,
+                            regions={"--reference-region": reference_region_mm, "--mask-region": mask_region_mm})
     grid, geometry, pair, attrs = _input_grid(result_path, pair_path=pair_path, config=config,
                                               spacing_px=spacing_px)
     if mask_region_mm is not None:
@@ -540,8 +584,49 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
             raise SynthbosError(f"the reference region x {x0:g}..{x1:g} mm, y {y0:g}..{y1:g} mm holds no measured node")
     dmap = solve_density(grid, solver=solver, reference_value=reference_density, reference_region=region,
                          dirichlet=dirichlet, ambient=geometry.ambient_density_kg_m3)
+    check_density_range(dmap)
     truths = truth_on_grid(pair, grid) if pair is not None else None
     summary = density_summary(dmap, truths) if truths is not None else {}
     attrs["geometry"] = json.dumps(asdict(geometry))
     write_density(out, dmap, truths=truths, summary=summary, attrs=attrs)
     return {"density": dmap, "summary": summary}
+
+
+# Bounds of the integrate options (px, kg/m^3): a grid finer than a pixel only interpolates.
+SPACING_PX = (1.0, 1e4)
+
+
+def check_integrate_options(*, spacing_px=None, reference_density=None, regions=None) -> None:
+    """Refuse integrate options out of range, before any file is read: ``--spacing`` (``SPACING_PX``),
+    ``--reference-density`` (> 0 and at most ``MAX_DENSITY_KG_M3``) and the regions (finite mm)."""
+    from synthbos.raytrace.checks import MAX_DENSITY_KG_M3
+
+    optional_number("--spacing (px)", spacing_px, minimum=SPACING_PX[0], maximum=SPACING_PX[1])
+    optional_number("--reference-density (kg/m^3)", reference_density, above=0.0, maximum=MAX_DENSITY_KG_M3)
+    for name, box in (regions or {}).items():
+        if box is not None:
+            numbers(f"{name} (mm)", box, sizes=(4,), minimum=-1e6, maximum=1e6)
+
+
+def check_displacements(result: MethodResult, geometry: Geometry) -> None:
+    """Refuse displacements no BOS image can show: a valid vector longer than the image's diagonal."""
+    ok = _valid_vectors(result)
+    if not ok.any():
+        return
+    largest = float(np.max(np.hypot(result.uv[ok, 0], result.uv[ok, 1])))
+    H, W = geometry.image_shape
+    if largest > np.hypot(H, W):
+        raise SynthbosError(f"the result holds a displacement of {largest:.4g} px, longer than the {W} x {H} px "
+                            "image's diagonal: it is no measurement to integrate")
+
+
+def check_density_range(dmap: DensityMap) -> None:
+    """Refuse a reconstructed density that is no fluid: negative, or above ``MAX_DENSITY_KG_M3`` (the
+    set-up, the reference density or the displacements are in the wrong units)."""
+    from synthbos.raytrace.checks import MAX_DENSITY_KG_M3
+
+    rho = dmap.density[np.isfinite(dmap.density)]
+    if rho.size and (rho.min() < 0 or rho.max() > MAX_DENSITY_KG_M3):
+        raise SynthbosError(f"the integrated density spans {rho.min():.4g} .. {rho.max():.4g} kg/m^3, which no "
+                            f"fluid has (0 .. {MAX_DENSITY_KG_M3:g}): check the reference density, the set-up "
+                            "(--pair or --config) and the result's units")

@@ -27,7 +27,7 @@ from synthbos.device import init_warp
 
 from . import scoring
 from .integrate import score_density
-from .registry import GRID, get_method
+from .registry import DENSE, DOTS, GRID, get_method
 from .storage import save_scores
 
 __all__ = ["finish_item", "finish_items", "item_images", "measure_item", "measure_pair", "noisy_pair",
@@ -107,23 +107,33 @@ def score_result(pair, method: str, res) -> dict:
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
     spread = _spread(pair)
-    if m.kind == GRID:
+    uv = res.uv
+    if m.kind == GRID or (m.kind == DOTS and not m.uses_prior):  # the truth interpolated to its points
         truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
         spread = scoring.interpolate_dots(pair.reference_px[valid], spread[valid], res.xy)
         keep = np.all(np.isfinite(truth), axis=1)
         measured = keep & res.valid
+    else:  # at the rendered dots: tracked (one row per prior dot), or sampled from a dense field
+        if m.kind == DENSE:
+            ny, nx = res.grid_shape
+            field = np.where(res.valid[:, None], res.uv, np.nan).reshape(ny, nx, 2)
+            uv = scoring.sample_field(field, pair.reference_px)
+        truth = pair.displacement_px
+        keep = valid
+        measured = valid & np.all(np.isfinite(uv), axis=1)
+        if m.kind == DOTS:
+            measured &= res.valid
+    if m.kind == GRID:
         ny, nx = res.grid_shape
         gx, gy = res.xy[:, 0].reshape(ny, nx), res.xy[:, 1].reshape(ny, nx)
         g_meas = scoring.grid_gradient(res.uv[:, 0].reshape(ny, nx), res.uv[:, 1].reshape(ny, nx), gx, gy)
         g_true = scoring.grid_gradient(truth[:, 0].reshape(ny, nx), truth[:, 1].reshape(ny, nx), gx, gy)
         g_meas, g_true = g_meas.reshape(-1, 2, 2), g_true.reshape(-1, 2, 2)
     else:
-        truth = pair.displacement_px
-        keep = valid
-        measured = valid & res.valid
-        at = np.where(measured[:, None], pair.reference_px, np.nan)
-        g_meas, g_true = scoring.scattered_gradient(at, np.stack([res.uv, truth]))
-    err = scoring.vector_errors(res.uv, truth)
+        points = res.xy if m.kind == DOTS and not m.uses_prior else pair.reference_px
+        at = np.where(measured[:, None], points, np.nan)
+        g_meas, g_true = scoring.scattered_gradient(at, np.stack([uv, truth]))
+    err = scoring.vector_errors(uv, truth)
     grad_err = np.sqrt(np.sum((g_meas - g_true) ** 2, axis=(1, 2)))
     return score_density(pair, res) | {
         "error": np.where(measured, err, np.nan)[keep],

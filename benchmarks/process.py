@@ -29,7 +29,9 @@ Command-line flags override the file.
 Result files (HDF5)
 -------------------
 A grid method (``correlation``): ``/x``, ``/y`` (window centres, px), ``/u``, ``/v`` (px), ``/flags``,
-``/peak_ratio``, ``/correlation``.
+``/peak_ratio``, ``/correlation``; any other grid method ``/x``, ``/y``, ``/u``, ``/v`` and its own columns.
+A dense method (``optical-flow``): the same layout with one vector per pixel (``/x``, ``/y`` the pixel
+centres, all of the image's shape).
 A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, ``/dots/masked``, plus every other column of the tracking table under ``/dots/`` (the
@@ -67,8 +69,9 @@ from synthbos.raytrace.pairfile import describe_datasets
 from synthbos.tracking import DotStatus
 
 from synthbos import SynthbosError, atomic_hdf5
+from synthbos.values import cut, shorten
 
-from .registry import GRID, METHODS, MethodResult, get_method
+from .registry import DENSE, DOTS, GRID, METHODS, MethodResult, get_method
 
 __all__ = [
     "FLAG_BITS",
@@ -76,6 +79,8 @@ __all__ = [
     "SHORT_FLAGS",
     "ImageOptions",
     "apply_invert",
+    "check_prior",
+    "check_result_file",
     "decide_invert",
     "flag_bits",
     "image_options_dict",
@@ -94,6 +99,12 @@ __all__ = [
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 MASK_POLARITIES = ("dark", "bright")
+#: Longest path a setting may name (Linux's PATH_MAX).
+MAX_PATH = 4096
+#: Smallest camera image processed (px along each side).
+MIN_IMAGE_PX = 8
+#: Prior positions closer than this (px) are the same dot twice.
+DUPLICATE_PX = 0.5
 
 
 def _int_flag_bits(flag_class: type[enum.IntFlag]) -> dict[int, tuple[str, str]]:
@@ -201,7 +212,10 @@ class ImageOptions:
 
     def __post_init__(self):
         if self.mask is not None and not isinstance(self.mask, str):
-            raise SynthbosError(f"image option mask must be a path, got {self.mask!r}")
+            raise SynthbosError(f"image option mask must be a path, got {shorten(self.mask)}")
+        if isinstance(self.mask, str) and (not 0 < len(self.mask) <= MAX_PATH or "\0" in self.mask):
+            raise SynthbosError(f"image option mask must be a path of 1 to {MAX_PATH} characters without NUL, "
+                                f"got {shorten(self.mask)}")
         if self.mask_excludes not in MASK_POLARITIES:
             raise SynthbosError(
                 f"image option mask_excludes must be one of {', '.join(MASK_POLARITIES)}, got {self.mask_excludes!r}"
@@ -257,7 +271,11 @@ def load_image(path, *, notes=None) -> np.ndarray:
         Missing or unreadable file, more than one frame, non-finite pixels.
     """
     path = Path(path)
-    if not path.is_file():
+    try:
+        exists = path.is_file()
+    except (OSError, ValueError) as err:  # a name too long for the file system, a NUL byte
+        raise SynthbosError(f"image {cut(str(path))}: {getattr(err, 'strerror', None) or err}") from None
+    if not exists:
         raise SynthbosError(f"image {path} does not exist")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
@@ -430,7 +448,7 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
     path = Path(path)
     method = get_method(result.method)
     with atomic_hdf5(path) as f:
-        if method.kind == GRID:
+        if method.kind in (GRID, DENSE):
             for name, values in result.table.items():
                 f.create_dataset(name, data=np.asarray(values))
             if result.valid is not None:
@@ -456,7 +474,53 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
         for key, value in (extra_attrs or {}).items():
             f.attrs[key] = value
         _describe(f)
+        if method.kind == DENSE:
+            for axis, words in (("x", "column"), ("y", "row")):
+                f[axis].attrs["description"] = f"pixel centre {axis} ({words}) of the reference image"
     return path
+
+
+# Datasets every result file of a kind holds.
+RESULT_NEEDS = {
+    GRID: ("x", "y", "u", "v"),
+    DENSE: ("x", "y", "u", "v"),
+    DOTS: ("dots/x", "dots/y", "dots/u", "dots/v"),
+}
+
+
+def check_result_file(f, path):
+    """Check an open result file before reading it; return its method and kind.
+
+    Refused with one line: a file of another command (a density file, a pair file), an unknown method
+    or kind, a missing dataset, datasets of different lengths, or declared shapes that need more than
+    the memory limit (``limits.memory_gb``'s default).
+    """
+    from synthbos.raytrace.checks import check_file_memory
+
+    if "density_kg_m3" in f:
+        raise SynthbosError(f"{path} is a density file of 'synthbos integrate', not a result file of "
+                            "'synthbos process'")
+    if "images" in f:
+        raise SynthbosError(f"{path} is a pair file of 'synthbos render', not a result file of 'synthbos process'")
+    if "method" not in f.attrs:
+        raise SynthbosError(f"{path} is not a synthbos result file: no 'method' attribute")
+    method = get_method(_text(f.attrs["method"]))
+    kind = _text(f.attrs.get("kind", method.kind))
+    if kind != method.kind:
+        raise SynthbosError(f"{path}: its kind attribute {shorten(kind)} is not that of method {method.name} "
+                            f"({method.kind})")
+    missing = [f"/{n}" for n in RESULT_NEEDS[kind] if not isinstance(f.get(n), h5py.Dataset)]
+    if missing:
+        raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
+    alike = RESULT_NEEDS[kind] if kind == DOTS else ("u", "v")  # (a dense field's x, y may be its axes)
+    if len({f[n].size for n in alike}) != 1:
+        raise SynthbosError(f"{path}: its datasets {', '.join(alike)} differ in length")
+    check_file_memory([d for _, d in _datasets(f)], f"result file {path}")
+    return method, kind
+
+
+def _text(value):
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
 
 
 def read_result(path):
@@ -469,20 +533,18 @@ def read_result(path):
         raise SynthbosError(f"result file {path} does not exist")
     try:
         with h5py.File(path, "r") as f:
-            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-            if "method" not in attrs:
-                raise SynthbosError(f"{path} is not a synthbos result file: no 'method' attribute")
-            method = get_method(str(attrs["method"]))
+            method, _ = check_result_file(f, path)
+            attrs = {k: (v.decode("utf-8", "replace") if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
             try:
                 settings = json.loads(attrs.get("settings", "{}"))
             except json.JSONDecodeError:
                 settings = {}
-            if method.kind == GRID:
-                need = ("x", "y", "u", "v", "flags", "peak_ratio")
+            if method.kind in (GRID, DENSE):
+                need = ("x", "y", "u", "v", *(("flags", "peak_ratio") if method.name == "correlation" else ()))
                 missing = [f"/{n}" for n in need if n not in f]
                 if missing:
                     raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
-                table = {n: f[n][()] for n in need}
+                table = {n: f[n][()] for n in f if isinstance(f[n], h5py.Dataset) and n not in ("valid", "correlation")}
                 shape = tuple(np.shape(table["u"]))
                 valid = f["valid"][()].ravel().astype(bool) if "valid" in f else None
                 xy = np.stack([np.ravel(table["x"]), np.ravel(table["y"])], axis=1).astype(np.float64)
@@ -616,6 +678,12 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
     options = options or ImageOptions()
     if np.shape(reference) != np.shape(gradient):
         raise SynthbosError(f"images differ in shape: reference {np.shape(reference)}, gradient {np.shape(gradient)}")
+    if min(np.shape(reference)) < MIN_IMAGE_PX:
+        h, w = np.shape(reference)
+        raise SynthbosError(f"the images are {w} x {h} px; processing needs at least {MIN_IMAGE_PX} x "
+                            f"{MIN_IMAGE_PX} px")
+    if prior_xy is not None:
+        check_prior(prior_xy, np.shape(reference))
     mask = None
     if options.mask is not None:
         mask = load_mask(options.mask, np.shape(reference), excludes=options.mask_excludes)
@@ -626,3 +694,23 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
             notes.append(f"images inverted ({reason})")
     res = run_method(method, reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
     return res, image_options_dict(options, inverted, reason)
+
+
+def check_prior(prior_xy, shape) -> None:
+    """Refuse a tracking prior that can only give nonsense: the same dot twice (two positions closer than
+    ``DUPLICATE_PX``), or no position inside the ``(H, W)`` image."""
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(prior_xy, dtype=np.float64).reshape(-1, 2)
+    pairs = cKDTree(xy).query_pairs(DUPLICATE_PX, output_type="ndarray")
+    if len(pairs):
+        i, j = (int(k) for k in pairs[np.argmin(pairs.max(axis=1))])
+        raise SynthbosError(f"the dots prior lists {len(np.unique(pairs))} positions that are another's within "
+                            f"{DUPLICATE_PX} px (e.g. entries {min(i, j) + 1} and {max(i, j) + 1} at "
+                            f"{xy[i, 0]:.4g}, {xy[i, 1]:.4g}): each dot must be listed once")
+    h, w = shape
+    inside = (xy[:, 0] > -0.5) & (xy[:, 0] < w - 0.5) & (xy[:, 1] > -0.5) & (xy[:, 1] < h - 0.5)
+    if not inside.any():
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        raise SynthbosError(f"no dot of the prior lies in the {w} x {h} px image (x {lo[0]:.4g} .. {hi[0]:.4g}, "
+                            f"y {lo[1]:.4g} .. {hi[1]:.4g} px): wrong units or another image?")

@@ -2,8 +2,11 @@
 
 The command line (``--method``), ``synthbos process``, the campaign, the scoring and the figures read
 this table and never switch on a method's name. Adding a method takes its algorithm module and one
-``Method`` entry in ``METHODS`` below (its ``run`` adapter turns the algorithm's output into a
-:class:`MethodResult`).
+``Method`` entry in ``BUILT_IN`` below (its ``run`` adapter turns the algorithm's output into a
+:class:`MethodResult`); the public method API (``Method``, ``MethodResult``, the kinds, the result
+builders and checks) lives in ``method_api``. Installed packages add methods through the
+``synthbos.methods`` entry points (``plugins``): ``METHODS`` holds the built-in methods, then theirs,
+each loaded when first asked for; a plugin's run is checked (``method_api.check_result``).
 
 Styles use the Okabe-Ito colour-blind-safe palette, with a distinct line style and marker per method,
 so the curves stay apart in grey-scale print too.
@@ -12,111 +15,26 @@ so the curves stay apart in grey-scale print too.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
 
+import synthbos
 from synthbos import SynthbosError
 
-__all__ = ["METHODS", "Method", "MethodResult", "default_methods", "forget_shared_results", "get_method",
-           "method_names", "settings_dict"]
+from .method_api import DENSE, DOTS, GRID, KINDS, Method, MethodResult, check_result, settings_dict
+from .openpiv_method import OpenPIVSettings, run_openpiv
+from .optical_flow import OpticalFlowSettings, run_optical_flow
+from .plugins import load_plugins
 
-GRID = "grid"  # a vector on a regular grid of window centres
-DOTS = "dots"  # a vector at each tracked dot's reference position
-
-
-@dataclass
-class MethodResult:
-    """What a method measured: points (px), displacements (px), and method-specific extras."""
-
-    method: str
-    xy: np.ndarray  # (N, 2) measurement points (window centres or reference dot positions)
-    uv: np.ndarray  # (N, 2) displacements, NaN where nothing was measured
-    grid_shape: tuple | None  # (ny, nx) for grid methods, None for scattered dots
-    table: dict  # every array the method returned, for the result file
-    settings: dict
-    valid: np.ndarray | None = None  # (N,) bool: a measured, unflagged vector
-    counts: dict | None = None  # measured, replaced, failed, masked, total
-
-
-@dataclass(frozen=True)
-class Method:
-    """One processing method.
-
-    Attributes
-    ----------
-    name : str
-        What ``--method`` and the campaign call it.
-    kind : {"grid", "dots"}
-        Vectors on a grid of windows, or at scattered dots (decides how results are stored and scored).
-    settings_class : type
-        The frozen dataclass of the method's settings (its fields are the keys users may set).
-    run : callable
-        ``run(reference, gradient, *, prior_xy, settings, device, mask) -> MethodResult``; ``mask`` is a
-        bool image, True on pixels to leave out, or None.
-    label, color, linestyle, marker : str
-        How figures draw it.
-    uses_prior : bool
-        Whether the method takes predicted reference-image dot positions.
-    settings_key : str
-        The table of a process configuration (and the campaign spec's field) holding its settings;
-        methods that share a settings class share it.
-    make_settings : callable or None
-        Builds the settings from overrides (default: ``settings_class``): how one algorithm is registered
-        a second time with another procedure, e.g. the paper's exact tracking procedure
-        (``TrackingSettings.paper``).
-    in_default_campaign : bool
-        Whether ``paper``, ``sweep`` and ``regress`` run it unless methods are named.
-    device_resident : bool
-        Whether its run keeps the images on a CUDA processing device from upload to result, with no
-        host work between its kernels. A campaign that processes on a GPU runs such methods in the
-        process that drives the GPU and the others, whose host code would hold that process up, in
-        its worker processes (on the same device): ``scheduling.run_pipeline``.
-    kernels : tuple of str
-        The modules of the Warp kernels its run launches: a campaign's worker processes that will run
-        it load them as they start.
-    """
-
-    name: str
-    kind: str
-    settings_class: type
-    run: Callable
-    label: str
-    color: str
-    linestyle: str
-    marker: str
-    uses_prior: bool = False
-    settings_key: str = ""
-    make_settings: Callable | None = None
-    in_default_campaign: bool = True
-    device_resident: bool = False
-    kernels: tuple[str, ...] = ()
-
-    def settings(self, overrides: dict | None = None):
-        """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""
-        overrides = dict(overrides or {})
-        known = {f for f in self.settings_class.__dataclass_fields__}
-        unknown = sorted(set(overrides) - known)
-        if unknown:
-            raise SynthbosError(f"unknown {self.name} setting(s) {', '.join(unknown)}; "
-                                f"known: {', '.join(sorted(known))}")
-        try:
-            return (self.make_settings or self.settings_class)(**overrides)
-        except (TypeError, ValueError) as err:
-            raise SynthbosError(f"{self.name} settings: {err}") from None
-
-
-def settings_dict(settings) -> dict:
-    """A settings object as a plain dict (for result files and campaign specs)."""
-    if settings is None:
-        return {}
-    if hasattr(settings, "as_dict"):
-        return settings.as_dict()
-    return dict(settings)
+__all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "Method", "MethodResult", "check_available",
+           "default_methods", "forget_plugins", "forget_shared_results", "get_method", "method_names",
+           "methods_table", "missing_modules", "settings_dict"]
 
 
 def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
@@ -202,9 +120,28 @@ def _tracker(columns: tuple[str, str], name: str):
 
 _TRACKING_KERNELS = ("synthbos.tracking.kernels",)
 
-# Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00.
-METHODS: dict[str, Method] = {
-    m.name: m
+def _checked(method: Method) -> Method:
+    """``method`` whose run first checks that its modules are there and then checks its result
+    (``method_api.check_result``): how a method the project does not test itself is registered."""
+    run = method.run
+
+    def checked_run(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
+        check_available(method)
+        res = run(reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
+        return check_result(method, res, np.shape(reference), prior_count=None if prior_xy is None else len(prior_xy))
+
+    checked_run.__name__ = getattr(run, "__name__", "run")
+    checked_run.__doc__ = getattr(run, "__doc__", None)
+    return replace(method, run=checked_run)
+
+
+_TRACKING_KERNELS = ("synthbos.tracking.kernels",)
+_SYNTHBOS = f"synthbos {synthbos.__version__}"
+
+# Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,
+# sky blue #56B4E9, yellow #F0E442, black.
+BUILT_IN: dict[str, Method] = {
+    m.name: replace(m, source=_SYNTHBOS)
     for m in (
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
@@ -226,23 +163,117 @@ METHODS: dict[str, Method] = {
                label="tracking + cc, paper's procedure", color="#CC79A7", linestyle=(0, (3, 1, 1, 1, 1, 1)),
                marker="D", uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
                kernels=_TRACKING_KERNELS, in_default_campaign=False),
+        # Two families from other libraries (``pip install "synthbos[methods]"``), for comparison.
+        _checked(Method("optical-flow", DENSE, OpticalFlowSettings, run_optical_flow,
+                        label="optical flow (TV-L1, scikit-image)", color="#56B4E9", linestyle=(0, (5, 2)),
+                        marker="P", settings_key="optical_flow", in_default_campaign=False,
+                        requires=("skimage",))),
+        _checked(Method("openpiv", GRID, OpenPIVSettings, run_openpiv,
+                        label="OpenPIV (32→16 px)", color="#7F7F7F", linestyle=(0, (8, 2, 2, 2)), marker="X",
+                        settings_key="openpiv", in_default_campaign=False, requires=("openpiv",))),
     )
 }
 
+#: How to get the modules a method ``requires``: module -> what to install.
+INSTALL_HINTS = {"skimage": 'scikit-image (pip install "synthbos[methods]")',
+                 "openpiv": 'openpiv (pip install "synthbos[methods]")'}
+
+
+class MethodTable(Mapping):
+    """The registered methods: the built-in ones, then the plugins (``plugins.load_plugins``).
+
+    A built-in name never loads a plugin; another name loads only the plugin of that name; listing
+    the table (iterating, ``len``, ``values``) loads every plugin, once per process. A name that no
+    method answers to is simply absent.
+    """
+
+    def __init__(self, built_in: dict[str, Method]):
+        self._built_in = built_in
+        self._all: dict[str, Method] | None = None
+        self._one: dict[str, Method] = {}
+        self.problems: dict[str, str] = {}
+        self._lock = threading.RLock()
+
+    def __getitem__(self, name: str) -> Method:
+        if name in self._built_in:
+            return self._built_in[name]
+        with self._lock:
+            if self._all is not None:
+                return self._all[name]
+            if name not in self._one and name not in self.problems and isinstance(name, str):
+                found, problems = load_plugins(taken=self._built_in, name=name)
+                self._one.update({k: _checked(m) for k, m in found.items()})
+                self.problems.update(problems)
+            return self._one[name]
+
+    def _everything(self) -> dict[str, Method]:
+        with self._lock:
+            if self._all is None:
+                found, problems = load_plugins(taken=self._built_in)
+                self.problems.update(problems)
+                self._all = {**self._built_in, **{k: self._one.get(k) or _checked(m) for k, m in found.items()}}
+            return self._all
+
+    def __iter__(self):
+        return iter(self._everything())
+
+    def __len__(self) -> int:
+        return len(self._everything())
+
+    def forget(self) -> None:
+        """Forget the loaded plugins (the next look-up finds them again, e.g. after an install)."""
+        with self._lock:
+            self._all, self._one, self.problems = None, {}, {}
+
+
+METHODS = MethodTable(BUILT_IN)
+
+
+def forget_plugins() -> None:
+    """Forget the loaded plugins: the next look-up reads the installed entry points again."""
+    METHODS.forget()
+
 
 def method_names() -> tuple[str, ...]:
-    """The registered method names, in the registry's order."""
+    """The registered method names: the built-in ones in the registry's order, then the plugins'."""
     return tuple(METHODS)
 
 
 def default_methods() -> tuple[str, ...]:
-    """The methods a campaign runs unless it names others."""
-    return tuple(name for name, m in METHODS.items() if m.in_default_campaign)
+    """The methods a campaign runs unless it names others (built-in ones only: no plugin is loaded)."""
+    return tuple(name for name, m in BUILT_IN.items() if m.in_default_campaign)
 
 
 def get_method(name: str) -> Method:
-    """The registry entry of ``name``; a one-line error naming the choices otherwise."""
+    """The registry entry of ``name``; a one-line error naming the choices (or the plugin's fault) otherwise."""
     try:
         return METHODS[name]
     except KeyError:
+        if name in METHODS.problems:
+            raise SynthbosError(METHODS.problems[name]) from None
         raise SynthbosError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}") from None
+
+
+def missing_modules(method: Method) -> list[str]:
+    """The modules a method ``requires`` that cannot be imported here."""
+    return [name for name in method.requires if importlib.util.find_spec(name) is None]
+
+
+def check_available(method: Method) -> None:
+    """Refuse, in one line, a method whose required modules are not installed."""
+    missing = missing_modules(method)
+    if missing:
+        raise SynthbosError(f"method {method.name} needs {', '.join(INSTALL_HINTS.get(m, m) for m in missing)}")
+
+
+def methods_table() -> str:
+    """Every registered method on one line each: name, kind, whether campaigns run it by default, its
+    source package and version, and what is missing to run it; then the plugins that were skipped."""
+    lines = [f"{'method':<20} {'kind':<6} {'default':<8} {'source':<28} label"]
+    for name, m in METHODS.items():
+        missing = missing_modules(m)
+        note = f"  [needs {', '.join(INSTALL_HINTS.get(x, x) for x in missing)}]" if missing else ""
+        lines.append(f"{name:<20} {m.kind:<6} {'yes' if m.in_default_campaign else 'no':<8} {m.source:<28} "
+                     f"{m.label}{note}")
+    lines += [f"skipped: {line}" for line in METHODS.problems.values()]
+    return "\n".join(lines)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from synthbos import SynthbosError, atomic_output, check_output_folder, data_file
@@ -58,8 +59,14 @@ def compare_to_baseline(rows, baseline_rows):
 
 
 def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True, scheduler=None,
-                wait=False):
-    """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead."""
+                wait=False, methods=None):
+    """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead.
+
+    ``methods`` (names) runs those instead of the default ones and compares only their rows; with
+    ``update`` their rows replace theirs in the baseline and the other methods' rows stay (also without
+    ``methods``), so a
+    plugin's rows enter a baseline only when asked for.
+    """
     baseline = Path(baseline)
     if not update and not baseline.is_file():
         raise SynthbosError(f"no regression baseline at {baseline}; create it with 'synthbos regress --update'")
@@ -67,14 +74,21 @@ def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, prog
         raise SynthbosError("with a joined --scheduler give --out: a folder the workers see at the same path")
     if out is not None:
         check_output_folder(out)
+    spec = REGRESS if methods is None else replace(REGRESS, methods=tuple(methods))
     with tempfile.TemporaryDirectory(prefix="synthbos-regress-") as tmp:
         folder = Path(out) if out else Path(tmp)
-        rows = run_campaign(REGRESS, folder, device="cpu", workers=workers, progress=progress, figures=False,
+        rows = run_campaign(spec, folder, device="cpu", workers=workers, progress=progress, figures=False,
                             scheduler=scheduler, wait=wait)
     if update:
+        kept = []
+        if baseline.is_file():
+            kept = [r for r in json.loads(baseline.read_text())["rows"] if r["method"] not in spec.methods]
+        merged = kept + rows
+        names = tuple(dict.fromkeys(r["method"] for r in merged))
         baseline.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(baseline) as tmp_file:
-            tmp_file.write_text(json.dumps({"campaign": REGRESS.as_dict(), "rows": rows}, indent=1))
+            tmp_file.write_text(json.dumps({"campaign": replace(spec, methods=names).as_dict(), "rows": merged},
+                                           indent=1))
         return rows, []
     base = json.loads(baseline.read_text())
     return rows, compare_to_baseline(rows, base["rows"])

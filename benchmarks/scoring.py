@@ -14,6 +14,9 @@ How the truth reaches each method's points
   interpolated linearly (barycentric interpolation on the Delaunay triangulation of the reference dot
   positions) to the window centre. Window centres outside the convex hull of the valid dots are
   not scored.
+* A dense method (optical flow) measures at every pixel: its field is sampled bilinearly at each
+  dot's reference position (``sample_field``) and scored there, like tracking. Dots whose four
+  neighbouring pixels are not all measured are not scored.
 * Displacement gradients: on the correlation grid, central differences of the measured and of the
   interpolated true field on the same grid; at dots, a least-squares plane through each dot and its
   nearest neighbours, fitted to the measured and to the true displacements alike. The error is the
@@ -47,6 +50,7 @@ __all__ = [
     "grid_gradient",
     "interpolate_dots",
     "interpolate_truth",
+    "sample_field",
     "scattered_gradient",
     "split_threshold",
     "spread_bin_masks",
@@ -136,6 +140,30 @@ def spread_bin_masks(spread) -> dict:
     """Masks of the points in each bin of ``SPREAD_BINS`` (name -> bool array); NaN spreads in none."""
     s = np.asarray(spread, dtype=np.float64)
     return {name: (s >= lo) & (s < hi) for name, lo, hi in SPREAD_BINS}
+
+
+def sample_field(field, points_xy):
+    """Bilinear samples of a dense (H, W, C) or (H, W) field at points (x = column, y = row; pixel centres
+    at integers).
+
+    Points in the outer half pixel of the image take the value at the nearest pixel centre's row or
+    column; NaN beyond the image, or where one of the four neighbours is NaN.
+    """
+    f = np.asarray(field, dtype=np.float64)
+    if f.ndim == 2:
+        return sample_field(f[..., None], points_xy)[..., 0]
+    pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    h, w = f.shape[:2]
+    inside = np.all(np.isfinite(pts), axis=1) & np.all((pts >= -0.5) & (pts <= [w - 0.5, h - 0.5]), axis=1)
+    x = np.clip(np.where(inside, pts[:, 0], 0.0), 0, w - 1)
+    y = np.clip(np.where(inside, pts[:, 1], 0.0), 0, h - 1)
+    x0 = np.clip(np.floor(x).astype(np.int64), 0, max(w - 2, 0))
+    y0 = np.clip(np.floor(y).astype(np.int64), 0, max(h - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    out = (1 - fy) * ((1 - fx) * f[y0, x0] + fx * f[y0, x1]) + fy * ((1 - fx) * f[y1, x0] + fx * f[y1, x1])
+    out[~inside] = np.nan
+    return out.reshape(*np.shape(points_xy)[:-1], *f.shape[2:])
 
 
 def grid_gradient(u, v, x, y):

@@ -127,7 +127,7 @@ def _slug(name, value):
 
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
-              scheduler=None, wait=False, process_device=None, worker_device=None):
+              scheduler=None, wait=False, process_device=None, worker_device=None, methods=None):
     """Run the sweep; write sweep.csv, sweep.json, sweep.png and sweep_budget.png in ``folder``; return the rows.
 
     ``sweep_budget.png`` (``figures.sweep_budget_figure``) is left out when the pairs hold no ray covariance.
@@ -135,6 +135,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     ``device`` renders and ``process_device`` processes (default: ``device``; see ``run_campaign``).
     Every point is checked (configuration, settings, resource limits) before the first is run; the
     sweep folder is locked for the sweep's life (``wait``: wait for another sweep into it to finish).
+    ``methods`` (names) replaces the campaign size's default methods at every point.
     With ``scheduler`` (see ``run_campaign``) one Dask client serves the whole sweep and all its points
     run together, so every worker stays busy however few pairs a point has.
     """
@@ -143,10 +144,16 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     if size not in SIZES:
         raise SynthbosError(f"sweep size must be one of {sorted(SIZES)}, got {size!r}")
     load_config(base_config)  # the base configuration alone, before any point
+    if isinstance(scheduler, str):
+        from .distributed import check_scheduler
+
+        check_scheduler(scheduler)
     process_device = resolve_process_device(device, process_device)
     folder = Path(folder)
     check_output_folder(folder)
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
+    if methods is not None:
+        spec0 = replace(spec0, methods=tuple(methods))
     (name1, vals1), *rest = params
     name2, vals2 = rest[0] if rest else (None, [None])
     points = []

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from synthbos import SynthbosError
+from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
@@ -145,6 +146,23 @@ def _tuple_of(value, n, name):
     if len(value) != n:
         raise SynthbosError(f"correlation setting {name} has {len(value)} entries for {n} passes")
     return value
+
+
+# Upper bounds of CorrelationSettings' numbers (``synthbos.values.check_ranges``), beyond the checks of
+# ``__post_init__``: a window is at most MAX_WINDOW px, a pass iterates at most MAX_ITERATIONS times.
+MAX_WINDOW = 1024
+MAX_ITERATIONS = 20
+CORRELATION_RANGES = {
+    "window_sizes": {"list": {"max_size": 8}, "integer": True, "minimum": 4, "maximum": MAX_WINDOW},
+    "iterations": {"list": {"max_size": 8}, "integer": True, "minimum": 1, "maximum": MAX_ITERATIONS},
+    "median_epsilon": {"minimum": 0.0, "maximum": 100.0},
+    "median_threshold": {"above": 0.0, "maximum": 100.0},
+    "confirm_tolerance": {"minimum": 0.0, "maximum": 100.0},
+    "peak_ratio_min": {"minimum": 0.0, "maximum": 100.0},
+    "max_disagreement": {"above": 0.0, "maximum": 10.0},
+    "rpc_diameter": {"above": 0.0, "maximum": 64.0},
+    "workers": {"integer": True, "minimum": -1024, "maximum": 1024},
+}
 
 
 @dataclass(frozen=True)
@@ -287,6 +305,7 @@ class CorrelationSettings:
         object.__setattr__(self, "overlaps", tuple(float(o) for o in overlaps))
         object.__setattr__(self, "iterations", tuple(int(i) for i in iterations))
         object.__setattr__(self, "rpc", bool(self.rpc))
+        check_ranges(self, CORRELATION_RANGES, "")
 
     def as_dict(self):
         """Settings as plain values (lists, numbers, strings) for file attributes."""

@@ -48,7 +48,11 @@ def triangulate(points):
     return _triangulations.get([pts], lambda: Delaunay(pts))
 
 
-def grid_for_points(x, y, *, spacing=None, extent=None):
+#: Most nodes of a grid (about a 3000 x 3000 image at one node per pixel).
+MAX_NODES = 1e7
+
+
+def grid_for_points(x, y, *, spacing=None, extent=None, max_nodes=MAX_NODES):
     """A regular grid of nodes covering scattered points.
 
     Parameters
@@ -59,6 +63,8 @@ def grid_for_points(x, y, *, spacing=None, extent=None):
         Node spacing; default: the mean point spacing ``sqrt(area / N)`` of the points' bounding box.
     extent : (x0, x1, y0, y1), optional
         Span of the grid; default: the points' bounding box.
+    max_nodes : float, keyword-only
+        A grid of more nodes is refused (``SynthbosError``): a spacing far finer than the points'.
 
     Returns
     -------
@@ -72,6 +78,12 @@ def grid_for_points(x, y, *, spacing=None, extent=None):
     x0, x1, y0, y1 = extent if extent is not None else (x[ok].min(), x[ok].max(), y[ok].min(), y[ok].max())
     if spacing is None:
         spacing = np.sqrt(max((x1 - x0) * (y1 - y0), 1e-300) / ok.sum())
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise SynthbosError(f"grid spacing must be a positive number, got {spacing!r}")
+    nodes = ((x1 - x0) / spacing + 1.0) * ((y1 - y0) / spacing + 1.0)
+    if not nodes <= max_nodes:
+        raise SynthbosError(f"a grid of spacing {spacing:.4g} over {x1 - x0:.4g} x {y1 - y0:.4g} would have "
+                            f"{nodes:.3g} nodes, more than {max_nodes:.3g} (points on a line? a spacing too fine?)")
     nx = int(np.floor((x1 - x0) / spacing)) + 1
     ny = int(np.floor((y1 - y0) / spacing)) + 1
     ox = x0 + 0.5 * ((x1 - x0) - (nx - 1) * spacing)

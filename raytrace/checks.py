@@ -17,12 +17,14 @@ import os
 import numpy as np
 
 from synthbos import SynthbosError
+from synthbos.values import number  # the one home of a checked number; here for the renderer's modules
 
 __all__ = [
     "BYTES_PER_NODE",
     "MAX_DENSITY_KG_M3",
     "MAX_SPOT_PX",
     "check_density",
+    "check_file_memory",
     "check_memory",
     "check_ray_steps",
     "check_render_plan",
@@ -36,56 +38,6 @@ MAX_DENSITY_KG_M3 = 1.0e5
 # Host memory per node of a density grid from reading to the packed medium (float64 copies of the raw,
 # scaled and extruded data, the gradient, the packed float32 field): a deliberate over-estimate.
 BYTES_PER_NODE = 128
-
-
-def _fmt(v):
-    return f"{v:g}" if isinstance(v, float) else str(v)
-
-
-def number(name, value, *, integer=False, minimum=None, maximum=None, above=None, why=""):
-    """Check one configuration number and return it as float (or int with ``integer``).
-
-    Parameters
-    ----------
-    name : str
-        The key as the user wrote it, ``table.key`` (or ``table.key[i]``).
-    value : object
-        The value read from the configuration.
-    integer : bool
-        A whole number is required (returned as int; floats such as 3.0 are accepted).
-    minimum, maximum : float, optional
-        Inclusive bounds.
-    above : float, optional
-        Exclusive lower bound (``above=0`` for "> 0").
-    why : str
-        The reason for the range, appended to the message.
-
-    Raises
-    ------
-    SynthbosError
-        Not a number (booleans and strings included), not finite, not whole, or out of range; the
-        message names ``name`` and the allowed range.
-    """
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise SynthbosError(f"{name} must be a number, got {value!r}")
-    if isinstance(value, float) and not math.isfinite(value):
-        raise SynthbosError(f"{name} must be finite, got {value!r}")
-    if integer and int(value) != value:
-        raise SynthbosError(f"{name} must be a whole number, got {value!r}")
-    low = ""
-    if above is not None:
-        low = f"> {_fmt(above)}"
-    elif minimum is not None:
-        low = f">= {_fmt(minimum)}"
-    rng = " and ".join(s for s in (low, f"<= {_fmt(maximum)}" if maximum is not None else "") if s)
-    bad = (
-        (above is not None and not value > above)
-        or (minimum is not None and value < minimum)
-        or (maximum is not None and value > maximum)
-    )
-    if bad:
-        raise SynthbosError(f"{name} must be {rng}, got {value!r}{why}")
-    return int(value) if integer else float(value)
 
 
 def vector(name, value, sizes, **bounds):
@@ -169,6 +121,35 @@ def check_memory(nbytes, what, *, memory_gb=None):
             f"{what} needs about {nbytes / 1e9:.3g} GB of memory, over the limit of {limit:.3g} GB "
             "(raise limits.memory_gb in the configuration if this machine has the memory)"
         )
+
+
+# Working copies of a dataset read from a file (as stored, float64, the arrays built from it): a
+# deliberate over-estimate of the memory reading a file and working on its contents takes.
+COPIES_PER_READ = 4
+
+
+def check_file_memory(datasets, what, *, memory_gb=None):
+    """Refuse to read HDF5 datasets whose declared shapes need more than ``limits.memory_gb``.
+
+    Parameters
+    ----------
+    datasets : iterable of h5py.Dataset
+        The datasets about to be read; only their declared shape and type are looked at, so a file
+        declaring a 1e6 x 1e6 image (chunked, nearly empty on disk) is refused before any allocation.
+    what : str
+        The file, for the message.
+    memory_gb : float, optional
+        The limit (default: ``default_memory_gb()``).
+    """
+    total, largest = 0, None
+    for d in datasets:
+        n = math.prod(int(k) for k in d.shape) * max(int(d.dtype.itemsize), 8)
+        total += n
+        if largest is None or n > largest[0]:
+            largest = (n, d.name, tuple(int(k) for k in d.shape))
+    if largest is not None:
+        check_memory(COPIES_PER_READ * total,
+                     f"{what} (its {largest[1]} declares shape {largest[2]})", memory_gb=memory_gb)
 
 
 # Largest spot (image diameter of a dot, px): beyond it a "dot" covers a whole interrogation window and

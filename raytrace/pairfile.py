@@ -253,6 +253,19 @@ def _check_layout(f, path):
     if not isinstance(config, str):
         raise SynthbosError(f"{path} is not a synthbos pair file: its 'config' attribute is missing or not text")
     try:
-        tomllib.loads(config)
+        limits = tomllib.loads(config).get("limits")
     except tomllib.TOMLDecodeError as err:
         raise SynthbosError(f"{path}: its 'config' attribute is not valid TOML ({err})") from None
+    _check_memory(f, path, limits)
+
+
+def _check_memory(f, path, limits):
+    """The declared sizes of the datasets ``read_pair`` reads, against the file's ``limits.memory_gb``."""
+    from .checks import check_file_memory
+
+    memory = limits.get("memory_gb") if isinstance(limits, dict) else None
+    if isinstance(memory, bool) or not isinstance(memory, int | float) or not 0 < memory < float("inf"):
+        memory = None
+    names = ["images/reference", "images/gradient", *(f"dots/{n}" for n in (*_DOT_SETS, *_TRUTH_SETS, "valid"))]
+    check_file_memory([f[n] for n in names if n in f and isinstance(f[n], h5py.Dataset)], f"pair file {path}",
+                      memory_gb=memory)

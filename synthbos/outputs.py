@@ -78,6 +78,9 @@ def disk_error(err: OSError, path) -> SynthbosError | None:
     return SynthbosError(f"cannot write {path}: {reason}")
 
 
+_MAX_PATH = 4096  # Linux's PATH_MAX
+
+
 def _writable(folder: Path) -> bool:
     return os.access(folder, os.W_OK | os.X_OK)
 
@@ -113,6 +116,11 @@ def check_output_file(path, *, inputs=(), what="output") -> Path:
     """
     if path is None or str(path) == "":
         raise SynthbosError(f"{what}: no file name given")
+    if len(str(path)) > _MAX_PATH or "\0" in str(path):
+        raise SynthbosError(f"{what}: a path of at most {_MAX_PATH} characters without NUL, got "
+                            f"{len(str(path)):,} characters")
+    if str(path).endswith(("/", os.sep)):  # Path() drops the slash and would write a file of that name
+        raise SynthbosError(f"{what} {path} names a folder; name a file to write")
     path = Path(path)
     if path.is_dir():
         raise SynthbosError(f"{what} {path} is a folder; name a file to write")

@@ -26,6 +26,10 @@ __all__ = [
 ]
 
 
+#: Highest polynomial degree of a mapping (a cubic is the usual one; higher ones only fit noise).
+MAX_ORDER = 5
+
+
 def _terms(order):
     return [(i, j) for i in range(order + 1) for j in range(order + 1 - i)]
 
@@ -144,11 +148,17 @@ def mapping_from_dict(data):
         centre = np.array(data["centre"], dtype=np.float64).reshape(2)
         scale = np.array(data["scale"], dtype=np.float64).reshape(2)
         rms = float(data.get("rms_px", np.nan))
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, OverflowError) as err:
         raise SynthbosError(f"calibration mapping is malformed: {err!s}") from None
-    if order < 1 or not (len(cx) == len(cy) == len(_terms(order))):
+    if not 1 <= order <= MAX_ORDER:
+        raise SynthbosError(f"calibration mapping order must be 1 to {MAX_ORDER}, got {order}")
+    if not (len(cx) == len(cy) == len(_terms(order))):
         raise SynthbosError(f"calibration mapping of order {order} needs {len(_terms(order))} coefficients per axis")
-    if "terms" in data and [list(t) for t in data["terms"]] != [list(t) for t in _terms(order)]:
+    try:
+        terms = [list(t) for t in data.get("terms", _terms(order))]
+    except TypeError:
+        terms = None
+    if terms != [list(t) for t in _terms(order)]:
         raise SynthbosError("calibration mapping lists its polynomial terms in an unknown order")
     coef = np.stack([cx, cy], axis=1)
     if not (np.isfinite(coef).all() and np.isfinite(centre).all() and np.isfinite(scale).all() and (scale > 0).all()):

@@ -370,6 +370,23 @@ def fit_dots_numpy(
     return p, ok, shared
 
 
+def _raster_order(p, frame):
+    """Dots in raster order of 4-row bands, and its inverse: neighbouring threads read neighbouring pixels.
+
+    Only the speed depends on the order; one integer key, quicksorted, sorts in a twentieth of the time
+    of a lexsort of the floats. Bands of 4 rows keep fewer model-image rows in flight than 8 (a tenth
+    less time for the render and step kernels on the CPU; 16 rows take a quarter more).
+    """
+    band = np.floor(p[:, 1] / 4.0).astype(np.int64)
+    col = np.rint(p[:, 0]).astype(np.int64)
+    band -= band.min()
+    col -= col.min()
+    order = np.argsort((frame * (band.max() + 1) + band) * (col.max() + 1) + col)
+    back = np.empty_like(order)
+    back[order] = np.arange(len(p))
+    return order, back
+
+
 def _on_device(a, dtype, device):
     """A Warp array of ``a``; on the CPU it shares the NumPy array's memory (no copy)."""
     a = np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32)
@@ -405,17 +422,7 @@ def fit_dots(
         return p, np.ones(0, dtype=bool), np.zeros((0, 2))
     if render_half < half:
         raise ValueError(f"render_half ({render_half}) must be at least half ({half})")
-    # Dots in raster order of 4-row bands: neighbouring threads read neighbouring pixels (only the speed
-    # depends on the order; one integer key, quicksorted, sorts in a twentieth of the time of a lexsort
-    # of the floats). Bands of 4 rows keep fewer model-image rows in flight than 8 (a tenth less time
-    # for the render and step kernels on the CPU; 16 rows take a quarter more).
-    band = np.floor(p[:, 1] / 4.0).astype(np.int64)
-    col = np.rint(p[:, 0]).astype(np.int64)
-    band -= band.min()
-    col -= col.min()
-    order = np.argsort((frame * (band.max() + 1) + band) * (col.max() + 1) + col)
-    back = np.empty_like(order)
-    back[order] = np.arange(n)
+    order, back = _raster_order(p, frame)
     # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
     if len(stack) > 2:
         raise ValueError(f"fit_dots takes one image or a pair, got {len(stack)}")
@@ -642,13 +649,15 @@ def moment_shifts(
     k = len(stack)
     img0 = _on_device(stack[0], wp.float64, device)
     img1 = _on_device(stack[-1], wp.float64, device)
-    pw = _on_device(p, wp.float64, device)
-    fr = _on_device(frame, wp.int32, device)
+    order, back = _raster_order(p, frame)  # (as in fit_dots: the speed of the CPU's caches)
+    pw = _on_device(np.take(p, order, axis=0), wp.float64, device)
+    fr = _on_device(np.take(frame, order), wp.int32, device)
+    po = np.take(partner, order)
+    pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
     models = scratch("moment_models", (k, *stack[0].shape), wp.int64, device)
     models.zero_()
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
     scale = _fixed_point_scale(float(np.max(np.abs(p[:, 2]))))
-    pa = _on_device(partner, wp.int32, device)
     h, w = stack[0].shape
     wp.launch(render_dots_kernel, dim=n, inputs=[pw, fr, pa, int(half), 0, 1, prof, scale, h, w, models.flatten()],
               device=device)  # fmt: skip
@@ -664,5 +673,5 @@ def moment_shifts(
     )  # fmt: skip
     moved = wp.empty(n, dtype=wp.int32, device=device)
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
-    applied = moved.numpy().astype(bool)
-    return np.where(applied[:, None], out.numpy()[:, :2], 0.0), applied
+    applied = moved.numpy()[back].astype(bool)
+    return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied

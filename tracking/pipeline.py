@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
+from synthbos.values import check_ranges
 
 from .centroid import CENTROID_METHODS, fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
@@ -100,6 +101,11 @@ class DotStatus(enum.IntFlag):
         The displacement fails the normalised median test against the local linear fit of its nearest
         matched neighbours (``TrackingSettings.outlier_threshold``): probably paired with the wrong blob.
         Never MATCHED.
+    DISTORTED
+        The dot's light in either image was measurably asymmetric (a dot distorted by the flow inside the
+        camera's light cone): both its positions are the first moments of its share of the light (the
+        mean landing positions of its rays), not the symmetric model's centres
+        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts_numpy`).
     """
 
     FOUND_REFERENCE = 1
@@ -146,6 +152,36 @@ TRACK_DTYPE = np.dtype(
 def is_valid(status):
     """True where a row's displacement is valid (the MATCHED bit)."""
     return (np.asarray(status) & DotStatus.MATCHED) != 0
+
+
+# Allowed range of every number of TrackingSettings (``synthbos.values.check_ranges``): finite, with bounds
+# past which a run only allocates or iterates without end (a dot window is ~(d + 2 max_displacement)^2 px).
+TRACKING_RANGES = {
+    "fit_iterations": {"integer": True, "minimum": 1, "maximum": 20},
+    "distortion_chi2": {"above": 0.0, "maximum": 1e4},
+    "weights": {"list": {"sizes": (3,)}, "minimum": 0.0, "maximum": 1e3},
+    "diameter": {"optional": True, "above": 0.0, "maximum": 64.0},
+    "window_margin": {"minimum": 0.0, "maximum": 16.0},
+    "max_iterations": {"integer": True, "minimum": 1, "maximum": 20},
+    "max_displacement": {"above": 0.0, "maximum": 100.0},
+    "prior_radius": {"above": 0.0, "maximum": 64.0},
+    "cc_threshold": {"above": 0.0, "maximum": 100.0},
+    "threshold_fraction": {"minimum": 0.0, "below": 1.0},
+    "noise_threshold": {"minimum": 0.0, "maximum": 100.0},
+    "detection_snr": {"minimum": 0.0, "maximum": 1e3},
+    "min_relative_peak": {"minimum": 0.0, "maximum": 1.0},
+    "match_weights": {"list": {"sizes": (3,)}, "minimum": 0.0, "maximum": 1e3},
+    "search_radius": {"optional": True, "above": 0.0, "maximum": 128.0},
+    "threshold": {"optional": True},
+    "n_levels": {"integer": True, "minimum": 1, "maximum": 64},
+    "saturation_level": {"optional": True},
+    "predictor_windows": {"list": {"max_size": 8}, "integer": True, "minimum": 8, "maximum": 1024},
+    "predictor_tolerance": {"above": 0.0, "maximum": 100.0},
+    "predictor_min_correlation": {"minimum": -1.0, "maximum": 1.0},
+    "outlier_threshold": {"above": 0.0, "infinite": True},
+    "outlier_epsilon": {"minimum": 0.0, "maximum": 100.0},
+    "outlier_neighbours": {"integer": True, "minimum": 3, "maximum": 64},
+}
 
 
 @dataclass(frozen=True)
@@ -311,6 +347,7 @@ class TrackingSettings:
     backend: str = "warp"
 
     def __post_init__(self):
+        check_ranges(self, TRACKING_RANGES, "")
         if self.centroid not in ("model", *CENTROID_METHODS):
             raise SynthbosError(
                 f"unknown centroid method {self.centroid!r}; choose one of {('model', *CENTROID_METHODS)}"
@@ -321,8 +358,6 @@ class TrackingSettings:
             raise SynthbosError(f"fit_iterations must be at least 1, got {self.fit_iterations}")
         if self.distortion not in ("moment", "none"):
             raise SynthbosError(f"unknown distortion {self.distortion!r}; choose 'moment' or 'none'")
-        if not (np.isfinite(self.distortion_chi2) and self.distortion_chi2 > 0):
-            raise SynthbosError(f"distortion_chi2 must be a positive number, got {self.distortion_chi2!r}")
         if self.matching not in MATCH_METHODS:
             raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
         if self.background not in ("ring-median", "minimum"):

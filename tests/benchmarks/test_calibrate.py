@@ -168,7 +168,7 @@ def test_calibrate_bad_input_one_line_exit_2(tmp_path, grid, capsys):
     cases = [
         (["--reference", str(noise), "--grid", "2"], "no regular dot grid"),
         (["--reference", str(tmp_path / "missing.tif"), "--grid", "2"], "does not exist"),
-        (["--reference", str(path), "--grid", "-1"], "positive"),
+        (["--reference", str(path), "--grid", "-1"], "--grid (the grid spacing, mm) must be > 0"),
         (["--mapping", str(good_map), "--target", str(latin)], "not UTF-8"),
         (["--mapping", str(good_map), "--target", str(header)], "x_mm,y_mm"),
         (["--mapping", str(bad_json), "--target", str(header)], "not valid JSON"),

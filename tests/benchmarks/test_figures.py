@@ -46,11 +46,12 @@ def captured(monkeypatch):
 
 def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
     run_campaign(TINY, tmp_path, device="cpu", workers=1, progress=False)
-    for stem in ("fig4", "fig5", "fig_density"):
+    for stem in ("fig4", "fig5", "fig_density", "fig_budget"):
         _assert_png_and_pdf(tmp_path / stem)
-    # fig4 is drawn once; fig5 and fig_density once for each format (PNG, then PDF), alike
-    (_, texts4), (_, texts5), (_, texts5_pdf), (_, texts_d), (_, texts_d_pdf) = captured
-    assert texts5 == texts5_pdf and texts_d == texts_d_pdf
+    # fig4 is drawn once; fig5, fig_density and (the pairs record their ray covariance) fig_budget once for
+    # each format (PNG, then PDF), alike
+    (_, texts4), (_, texts5), (_, texts5_pdf), (_, texts_d), (_, texts_d_pdf), (_, texts_b), (_, texts_b_pdf) = captured
+    assert texts5 == texts5_pdf and texts_d == texts_d_pdf and texts_b == texts_b_pdf
     assert any("ray-traced" in t for t in texts4)
     assert any("over the ray cone" in t for t in texts4)
     assert any("cone" in t and "chief" in t for t in texts_d)

@@ -12,7 +12,7 @@ from synthbos import SynthbosError
 
 def test_every_entry_is_complete_and_styles_are_distinct():
     for m in METHODS.values():
-        assert m.kind in ("grid", "dots") and callable(m.run) and m.label and m.settings_key
+        assert m.kind in ("grid", "dots", "dense") and callable(m.run) and m.label and m.settings_key
     styles = {(m.color, str(m.linestyle), m.marker) for m in METHODS.values()}
     assert len(styles) == len(METHODS)  # no two methods draw alike
     assert len({m.color for m in METHODS.values()}) == len(METHODS)
@@ -27,7 +27,7 @@ def test_settings_from_overrides_and_unknown_keys():
     with pytest.raises(SynthbosError, match="unknown tracking-paper setting"):
         get_method("tracking-paper").settings({"no_such_key": 1})
     with pytest.raises(SynthbosError, match="unknown method"):
-        get_method("optical-flow")
+        get_method("no-such-method")
 
 
 def test_paper_entry_runs_the_paper_procedure():

@@ -34,7 +34,7 @@ def test_show_result_draws_and_summarises(images, tmp_path, capsys, method):
     assert main(["show-result", str(res_file), "-o", str(fig)]) == 0
     printed = capsys.readouterr().out
     assert fig.stat().st_size > 10_000 and fig.read_bytes()[:4] == b"\x89PNG"
-    assert fig.with_suffix(".pdf").read_bytes()[:4] == b"%PDF"
+    assert not fig.with_suffix(".pdf").exists()  # only the file named
     r = read_result(res_file)
     n = {k: int(r[k].sum()) for k in ("measured", "replaced", "failed", "masked")}
     assert sum(n.values()) == len(r["x"])

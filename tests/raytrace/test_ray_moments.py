@@ -110,8 +110,13 @@ def test_uniform_medium_adds_nothing_to_the_reference_spread(device):
                        target={"dot_model": "disk", "dot_diameter_px": 3.0}, rays={"per_dot": 300})
     pair = render_pair(cfg, device=device)
     v = pair.valid
-    np.testing.assert_array_equal(pair.ray_covariance_px2, pair.ray_covariance_reference_px2)
-    np.testing.assert_array_equal(in_cone_spread_px(pair), 0.0)
+    # The same rays to the last bit on the CPU; CUDA contracts the traced path's float32 arithmetic into fused
+    # multiply-adds, so there to 5e-6 px^2 (5e-7 measured on an H100, 2026-11-26), a spread below 3e-3 px.
+    cuda = device != "cpu"
+    np.testing.assert_allclose(
+        pair.ray_covariance_px2, pair.ray_covariance_reference_px2, rtol=0, atol=5e-6 if cuda else 0.0
+    )
+    np.testing.assert_allclose(in_cone_spread_px(pair), 0.0, rtol=0, atol=3e-3 if cuda else 0.0)
     ref = pair.ray_covariance_reference_px2[v]
     # The mean over dots of a 300-ray sample variance: within 3 % of 1.5^2 / 4 = 0.5625 px^2.
     assert_allclose(ref[:, :2].mean(axis=0), [1.5**2 / 4] * 2, rtol=0.03)
