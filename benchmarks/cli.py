@@ -17,8 +17,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from synthbos.raytrace import read_pair, render_pair, write_pair
-from synthbos.raytrace.config import read_toml
+from synthbos.raytrace import SETUPS, load_config, read_pair, render_pair, setup_tables, write_pair
+from synthbos.raytrace.config import merge_tables, read_toml
 
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
@@ -50,8 +50,9 @@ def _device(requested) -> str:
 
 def _render(args):
     out = check_output_file(args.output, inputs=[args.config], what="-o")
+    config = load_config(args.config, setup=args.setup)  # a bad set-up, key or value: before the device line
     device = _device(args.device)
-    pair = render_pair(args.config, device=device, progress=not args.quiet)
+    pair = render_pair(config, device=device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
     d = pair.displacement_px[v]
@@ -202,13 +203,12 @@ def _process_device(args, device: str) -> str:
 
 
 def _paper(args):
+    setup_tables(args.setup)  # an unknown set-up: one line, before the device line
     device = _device(args.device)
     process_device = _process_device(args, device)
     worker_device = _worker_device(args)
     full = args.full or (not args.quick and device.startswith("cuda"))
-    spec = FULL if full else QUICK
-    if args.methods:
-        spec = replace(spec, methods=_method_list(args.methods))
+    spec = paper_spec(full=full, methods=args.methods, setup=args.setup)
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
     check_spec(spec, device, process_device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
@@ -226,6 +226,21 @@ def _paper(args):
           f"({time.perf_counter() - t0:.0f} s: {phases})")
     _budget_note(out / "fig_budget.png")
     return 0
+
+
+def paper_spec(*, full=False, methods=None, setup="default"):
+    """The campaign of ``synthbos paper``: ``FULL`` or ``QUICK``, with ``methods`` (``"a,b"``) and a named set-up.
+
+    A set-up other than the default is merged into the campaign's configuration and named in the campaign
+    (``quick-narrow``), so its folder, figures and tables say which set-up they show; the seeds stay the
+    same, so two set-ups see the same dot patterns and rays.
+    """
+    spec = FULL if full else QUICK
+    if methods:
+        spec = replace(spec, methods=_method_list(methods))
+    if setup != "default":
+        spec = replace(spec.with_config(setup_tables(setup)), name=f"{spec.name}-{setup}")
+    return spec
 
 
 def _budget_note(png: Path) -> None:
@@ -253,7 +268,7 @@ def _regress(args):
 
 
 def _sweep(args):
-    base = read_toml(args.config) if args.config else {}
+    base = merge_tables(setup_tables(args.setup), read_toml(args.config) if args.config else {})
     params = [parse_parameter(p) for p in args.param]
     check_output_folder(args.out)
     device = _device(args.device)
@@ -304,6 +319,12 @@ def _method_list(text: str) -> tuple[str, ...]:
     return names
 
 
+def _add_setup_option(p, note) -> None:
+    names = "; ".join(f"{name}: {what}" for name, (_, what) in SETUPS.items())
+    p.add_argument("--setup", default="default", metavar="NAME",
+                   help=f"named set-up to start from ({note}; see docs/fig5.md): {names}")
+
+
 def _add_scheduler_option(p) -> None:
     p.add_argument("--scheduler", default=None, metavar="local|tcp://HOST:PORT|FILE.json",
                    help="run on a Dask cluster: 'local' starts one worker per GPU (or --workers CPU workers), "
@@ -346,6 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="ray-trace one BOS image pair into an HDF5 pair file")
     p.add_argument("config", nargs="?", default=None, help="TOML configuration (default: the embedded default)")
     p.add_argument("-o", "--output", required=True, help="pair file to write (HDF5)")
+    _add_setup_option(p, "the configuration changes it")
     p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render)
@@ -410,6 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
         g = p.add_mutually_exclusive_group()
         g.add_argument("--quick", action="store_true", help="reduced campaign for two CPU cores (default without GPU)")
         g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
+        _add_setup_option(p, "default folder runs/paper-quick-NAME")
         p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
         p.add_argument("--device", default=None,
                        help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
@@ -446,6 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--param", action="append", required=True,
                    help="name=v1,v2,... (table.key, or density, diameter, noise, f_number, z_d, magnification, "
                         "rays, window); give it once or twice")
+    _add_setup_option(p, "the configuration changes it")
     p.add_argument("--out", required=True, help="sweep folder")
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
     p.add_argument("--methods", default=None, metavar="A,B,...",

@@ -4,7 +4,8 @@ A configuration is a dict of tables, ``camera``, ``target``, ``volume``, ``rays`
 defaults are in ``raytrace/default.toml`` (the paper's set-up). ``load_config`` accepts a path, a TOML
 string path-like, or a dict (possibly partial), merges it over the defaults, checks every key and
 value, and returns a new nested dict. Unknown keys and bad values raise ``SynthbosError`` naming the
-key as ``table.key``.
+key as ``table.key``. ``load_config(config, setup=NAME)`` starts from a named set-up instead (``SETUPS``:
+small TOML files beside ``default.toml`` holding only what they change, e.g. ``narrow.toml``).
 
 Keys
 ----
@@ -74,10 +75,10 @@ from pathlib import Path
 from synthbos import SynthbosError
 
 from . import checks, sources
-from .defaults import DEFAULT_CONFIG
+from .defaults import DEFAULT_CONFIG, SETUPS, setup_tables
 from .medium import FIELDS
 
-__all__ = ["DEFAULT_CONFIG", "config_to_toml", "load_config", "read_toml"]
+__all__ = ["DEFAULT_CONFIG", "SETUPS", "config_to_toml", "load_config", "merge_tables", "read_toml", "setup_tables"]
 
 
 
@@ -284,13 +285,34 @@ def read_toml(path) -> dict:
         raise SynthbosError(f"cannot read configuration file {path}: {os.strerror(err.errno or 0)}") from None
 
 
-def load_config(config=None) -> dict:
+def merge_tables(*layers) -> dict:
+    """Configuration tables merged key by key, later layers winning (a new dict; the inputs are not modified).
+
+    Examples
+    --------
+    >>> merge_tables({"camera": {"f_number": 32.0}}, {"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 10}})
+    {'camera': {'f_number': 32.0, 'pixels': [64, 64]}, 'rays': {'per_dot': 10}}
+    """
+    merged = {}
+    for layer in layers:
+        for table, values in copy.deepcopy(layer).items():
+            if isinstance(values, dict) and isinstance(merged.get(table), dict):
+                merged[table].update(values)
+            else:
+                merged[table] = values
+    return merged
+
+
+def load_config(config=None, *, setup="default") -> dict:
     """Read, merge over the defaults and validate a render configuration.
 
     Parameters
     ----------
     config : None, dict, str or Path
         None for the defaults; a dict of tables (partial is fine); or a path to a TOML file.
+    setup : str
+        A named set-up (``SETUPS``) merged over the defaults before ``config``: ``config`` changes that
+        set-up instead of the default.
 
     Returns
     -------
@@ -301,6 +323,7 @@ def load_config(config=None) -> dict:
     for table, extra in _OPTIONAL.items():
         for key, value in extra.items():
             cfg.setdefault(table, {}).setdefault(key, value)
+    _merge(cfg, setup_tables(setup), f" in set-up {setup!r}")
     where = ""
     if config is None:
         user = {}

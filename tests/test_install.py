@@ -17,6 +17,7 @@ from pathlib import Path
 
 import h5py
 import pytest
+from synthbos.raytrace import SETUPS
 
 REPO = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
@@ -97,6 +98,8 @@ def test_wheel_installs_only_the_synthbos_package(wheel):
         for data in ("synthbos/raytrace/default.toml", "synthbos/data/buoyancy_snapshots.h5",
                      "synthbos/data/baselines/regress.json", "synthbos/__main__.py"):
             assert data in names
+        for file, _ in SETUPS.values():  # every named set-up
+            assert f"synthbos/raytrace/{file}" in names
 
 
 def test_installed_wheel_renders_from_another_folder(wheel, tmp_path):
@@ -118,10 +121,12 @@ def test_installed_wheel_renders_from_another_folder(wheel, tmp_path):
     assert version == f"synthbos {PYPROJECT['project']['version']}"
 
     (work / "tiny.toml").write_text(TINY_TOML)
-    proc = _run([bindir / "synthbos", "render", "tiny.toml", "-o", "pair.h5", "--device", "cpu", "-q"], cwd=work)
+    proc = _run([bindir / "synthbos", "render", "tiny.toml", "--setup", "narrow", "-o", "pair.h5", "--device", "cpu",
+                 "-q"], cwd=work)
     assert WARP_NO_DRIVER not in proc.stderr
     assert proc.stdout.count("device: ") == 1
     with h5py.File(work / "pair.h5", "r") as f:
         assert f["images/reference"].shape == (64, 64)
         assert f["dots/displacement_px"].attrs["units"] == "px"
         assert 'source = "slice"' in f.attrs["config"]
+        assert "f_number = 32.0" in f.attrs["config"]  # the named set-up, read from the installed package
