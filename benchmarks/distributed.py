@@ -27,6 +27,7 @@ Dask is imported only here, and only when a scheduler is asked for.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
@@ -224,6 +225,40 @@ def _leave_sigint_to_the_client() -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+@contextlib.contextmanager
+def _deferred_sigint():
+    """Hold a Ctrl-C back while a local cluster starts and raise it (KeyboardInterrupt) once it stands, so
+    that the cluster is whole when it is closed again (one interrupted half-way fails its own closing)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if caught:
+        raise KeyboardInterrupt
+
+
+def _ignoring_sigint_forkserver() -> None:
+    """Start multiprocessing's fork server (if not yet running) with SIGINT ignored, for the local cluster's
+    workers (``distributed.worker.multiprocessing-method`` "forkserver"): every worker forked from it then
+    ignores SIGINT from its first instruction, so a terminal's Ctrl-C while the cluster starts (which
+    reaches the whole process group) ends no worker with a traceback; this process closes them. Only
+    the server's launch, a fraction of a second, runs with SIGINT ignored here."""
+    from multiprocessing import forkserver
+
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        forkserver.ensure_running()
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+
+
 def _quiet_resource_tracker() -> None:
     """Silence the resource tracker's leak warning in the processes a local cluster starts (they read it from
     ``PYTHONWARNINGS``), and in the tracker they start."""
@@ -294,10 +329,16 @@ class DaskRunner:
     def _open(self) -> None:
         distributed = _distributed()
         if self.scheduler == "local":
-            self.cluster = self._local_cluster(distributed)
-            self.client = distributed.Client(self.cluster)
-            # A terminal's Ctrl-C reaches the whole process group; this process closes the workers in order.
-            self.client.run(_leave_sigint_to_the_client)
+            import dask
+
+            # A terminal's Ctrl-C reaches the whole process group; this process closes the workers in order,
+            # and the workers, forked from a fork server that ignores SIGINT, ignore it from their start.
+            _quiet_resource_tracker()
+            _ignoring_sigint_forkserver()
+            with _deferred_sigint(), dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+                self.cluster = self._local_cluster(distributed)
+                self.client = distributed.Client(self.cluster)
+                self.client.run(_leave_sigint_to_the_client)
         else:
             address = self.scheduler
             where = check_scheduler(address)
@@ -340,7 +381,6 @@ class DaskRunner:
         }
 
     def _local_cluster(self, distributed):
-        _quiet_resource_tracker()
         workers = self.local_worker_specs(distributed)
         scheduler = {"cls": distributed.Scheduler,
                      "options": {"host": "127.0.0.1", "dashboard_address": self.dashboard_address}}

@@ -398,6 +398,23 @@ def test_long_values_in_commands_give_short_lines(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("delay", [1.0, 2.0, 3.0, 5.0])
+def test_ctrl_c_while_a_local_dask_campaign_starts_prints_one_line(tmp_path, delay):
+    """Ctrl-C while the command loads, while the cluster starts its workers (which would end with
+    tracebacks of their own) or while they import: one line, status 130, the whole run stopped."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "camp"
+    proc = _cli(["paper", "--quick", "--device", "cpu", "--scheduler", "local", "--workers", "2", "-q", "--out", out],
+                tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    time.sleep(delay)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warp")]
+    assert proc.returncode == 130, err
+    assert len(lines) == 1 and lines[0].startswith("synthbos: interrupted"), err
+
+
+@pytest.mark.slow
 def test_ctrl_c_on_a_local_dask_campaign_prints_one_line(tmp_path):
     pytest.importorskip("distributed")
     out = tmp_path / "camp"
