@@ -112,7 +112,7 @@ _RANGES = {
     "target.seed": {"integer": True, "minimum": 0, "maximum": _SEED_MAX},
     "target.min_spacing_px": {"minimum": 0.0, "maximum": 1024.0},
     "volume.distance_from_target_mm": {"above": 0.0, "maximum": 1.0e6},
-    "volume.gladstone_dale_m3_per_kg": {"minimum": 0.0, "maximum": 1.0e-2},
+    "volume.gladstone_dale_m3_per_kg": {"above": 0.0, "maximum": 1.0e-2},
     "volume.density_scale_kg_m3": {"above": 0.0, "maximum": checks.MAX_DENSITY_KG_M3},
     "rays.per_dot": {"integer": True, "minimum": 1, "maximum": 10**8},
     "rays.seed": {

@@ -293,31 +293,52 @@ def folder_lock(folder, *, wait=False, poll_s=0.5, what="campaign folder"):
     Notes
     -----
     ``flock`` locks belong to the open file: the operating system releases them when the holder
-    exits, even by SIGKILL, so a stale lock file never blocks a later run.
+    exits, even by SIGKILL, so a stale lock file never blocks a later run. A run that ends removes the
+    lock file (one killed leaves it, unlocked).
     """
     folder = Path(folder)
     lock = folder / ".lock"
+    fd = _locked_file(lock, folder, wait=wait, poll_s=poll_s, what=what)
     try:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
-    except OSError as err:
-        e = disk_error(err, lock)
-        if e is None:
-            raise
-        raise e from None
-    try:
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if not wait:
-                    holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
-                    raise SynthbosError(
-                        f"{what} {folder} is in use by {holder}; wait for it to finish or add --wait"
-                    ) from None
-                time.sleep(poll_s)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"process {os.getpid()}\n".encode(), 0)
         yield lock
     finally:
+        with contextlib.suppress(OSError):  # the lock file goes with the run (still locked: no one else has it)
+            lock.unlink()
+        os.close(fd)
+
+
+def _locked_file(lock: Path, folder: Path, *, wait, poll_s, what) -> int:
+    """Open ``lock`` and take its ``flock``; the descriptor. The file is removed when a run ends, so a lock
+    taken on a file that has since been removed (or replaced) is let go and taken again on the new one."""
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as err:
+            e = disk_error(err, lock)
+            if e is None:
+                raise
+            raise e from None
+        try:
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if not wait:
+                        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+                        raise SynthbosError(
+                            f"{what} {folder} is in use by {holder}; wait for it to finish or add --wait"
+                        ) from None
+                    time.sleep(poll_s)
+            try:
+                same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            return fd
         os.close(fd)

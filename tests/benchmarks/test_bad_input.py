@@ -554,7 +554,34 @@ def test_row20_busy_campaign_folder_is_refused(tmp_path, capsys):
     with folder_lock(folder):
         line = _error_line(capsys, ["paper", "--quick", "--device", "cpu", "--out", folder, "-q"], "is in use by")
         assert f"process {os.getpid()}" in line and "--wait" in line
-    assert _listing(folder) == [".lock"]
+        assert _listing(folder) == [".lock"]
+    assert _listing(folder) == []  # the lock file goes with the run that held it
+
+
+def test_lock_taken_on_a_removed_lock_file_is_taken_again(tmp_path):
+    """A waiter that opened the lock file before its holder removed it locks the new file, not the old one:
+    two runs never hold the folder at once."""
+    import threading
+
+    folder = tmp_path / "camp"
+    folder.mkdir()
+    order = []
+    with folder_lock(folder):
+        waiter = threading.Thread(target=lambda: order.append(_hold(folder)))
+        waiter.start()
+        time.sleep(0.3)  # the waiter has opened .lock and polls it
+        order.append("first done")
+    waiter.join(10)
+    assert order == ["first done", "second held"]
+    with pytest.raises(SynthbosError, match="is in use"):  # while a lock is held, the folder is refused
+        with folder_lock(folder), folder_lock(folder):
+            pass
+    assert _listing(folder) == []
+
+
+def _hold(folder):
+    with folder_lock(folder, wait=True, poll_s=0.05):
+        return "second held"
 
 
 def test_row03_resume_removes_temporaries_of_a_killed_run(tmp_path):

@@ -429,3 +429,14 @@ def test_ctrl_c_on_a_local_dask_campaign_prints_one_line(tmp_path):
     lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warp")]
     assert proc.returncode == 130
     assert lines == ["synthbos: interrupted; finished items are kept, re-run to resume"], err
+
+
+# ---------------------------------------------------------------- a refractivity of zero
+
+
+def test_gladstone_dale_of_zero_is_refused(tmp_path, capsys):
+    """K = 0 makes every ray straight and every density truth 0/0: refused in one line, nothing written."""
+    cfg = tmp_path / "k0.toml"
+    cfg.write_text("[volume]\ngladstone_dale_m3_per_kg = 0.0\n")
+    _error_line(capsys, ["render", cfg, "-o", tmp_path / "p.h5"], "gladstone_dale_m3_per_kg", "> 0")
+    assert _listing(tmp_path) == ["k0.toml"]
