@@ -387,6 +387,20 @@ def _raster_order(p, frame):
     return order, back
 
 
+def _device_layout(stack, p, frame, partner, what, device):
+    """The images of frames 0 and 1 on ``device`` as they are (no stacked copy; the same one twice for a
+    single image), the dots' raster order and its inverse, and their frames and partners in that order."""
+    if len(stack) > 2:
+        raise ValueError(f"{what} takes one image or a pair, got {len(stack)}")
+    order, back = _raster_order(p, frame)
+    img0 = _on_device(stack[0], wp.float64, device)
+    img1 = _on_device(stack[-1], wp.float64, device)
+    fr = _on_device(np.take(frame, order), wp.int32, device)
+    po = np.take(partner, order)
+    pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
+    return img0, img1, order, back, fr, pa
+
+
 def _on_device(a, dtype, device):
     """A Warp array of ``a``; on the CPU it shares the NumPy array's memory (no copy)."""
     a = np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32)
@@ -422,16 +436,8 @@ def fit_dots(
         return p, np.ones(0, dtype=bool), np.zeros((0, 2))
     if render_half < half:
         raise ValueError(f"render_half ({render_half}) must be at least half ({half})")
-    order, back = _raster_order(p, frame)
-    # The images as they are (no stacked copy): frame 0 and frame 1 (the same one for a single image).
-    if len(stack) > 2:
-        raise ValueError(f"fit_dots takes one image or a pair, got {len(stack)}")
-    img0 = _on_device(stack[0], wp.float64, device)
-    img1 = _on_device(stack[-1], wp.float64, device)
-    fr = _on_device(np.take(frame, order), wp.int32, device)
+    img0, img1, order, back, fr, pa = _device_layout(stack, p, frame, partner, "fit_dots", device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
-    po = np.take(partner, order)
-    pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
     # The free model image every step; the common-shape one only for the last step (the only one whose
     # common-shape positions are kept).
     # Working arrays from the thread's workspace (results are copied out at the end). The starting
@@ -644,16 +650,9 @@ def moment_shifts(
     n = len(p)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
-    if len(stack) > 2:
-        raise ValueError(f"moment_shifts takes one image or a pair, got {len(stack)}")
     k = len(stack)
-    img0 = _on_device(stack[0], wp.float64, device)
-    img1 = _on_device(stack[-1], wp.float64, device)
-    order, back = _raster_order(p, frame)  # (as in fit_dots: the speed of the CPU's caches)
+    img0, img1, order, back, fr, pa = _device_layout(stack, p, frame, partner, "moment_shifts", device)
     pw = _on_device(np.take(p, order, axis=0), wp.float64, device)
-    fr = _on_device(np.take(frame, order), wp.int32, device)
-    po = np.take(partner, order)
-    pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
     models = scratch("moment_models", (k, *stack[0].shape), wp.int64, device)
     models.zero_()
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
