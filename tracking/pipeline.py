@@ -214,6 +214,8 @@ class TrackingSettings:
         without noise in a dense pattern), so it wins over "gaussian3" only from ~3 % noise.
     fit_iterations : int
         Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
+        Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
+        ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
     distortion : {"moment", "none"}
         What the model fit's positions are taken to measure on a dot whose image the flow has distorted
         (rays through different parts of the aperture crossing different density spread and skew it).
@@ -226,8 +228,6 @@ class TrackingSettings:
         Significance of that shift: it is applied where ``|d|^2`` exceeds this many times half its
         variance under the image's white noise (a false alarm on an undistorted dot has probability
         ``exp(-distortion_chi2 / 2)``: 3.7e-6 at the default 25, so the fit stays at the Cramer-Rao bound).
-        Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
-        ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
     weights : (W_A, W_I, W_dx)
         Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
     diameter : float or None
