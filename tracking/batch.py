@@ -30,6 +30,7 @@ from . import batch_kernels as bk
 from .dotfit import _fixed_point_scale, fit_window_half
 from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
+from .moment_kernels import MAX_SHIFT_PX
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
 from .pipeline import TRACK_DTYPE, TrackingSettings, prior_inside, residual_reach, start_width, window_sizes
 from .predict import pooling_block, predictor_passes
@@ -334,7 +335,7 @@ class _Batch:
             rows,
             [
                 self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
-                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), 1.0, prof, shift,
+                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), MAX_SHIFT_PX, prof, shift,
             ],
         )  # fmt: skip
         self.launch(bk.apply_moment_shift, rows, [shift, partner, params, shared, moved])

@@ -26,6 +26,7 @@ from .kernels import fit_dot_step_kernel, render_dots_kernel
 from .moment_kernels import (
     MAX_RESIDUAL_FLUX_REL,
     MAX_SHIFT_PER_SPREAD_REL,
+    MAX_SHIFT_PX,
     MIN_SHIFT_PX,
     SHARE_FLOOR_REL,
     moment_moves_kernel,
@@ -515,7 +516,7 @@ def _noise(noise, k):
 
 
 def moment_shifts_numpy(
-    images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=1.0
+    images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=MAX_SHIFT_PX
 ):
     """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
 
@@ -556,7 +557,7 @@ def moment_shifts_numpy(
         Where the dot is an undistorted spot under noise, a shift this large is a chance event of
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
-        A larger shift (px) is not applied.
+        A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
 
     Returns
     -------
@@ -634,7 +635,7 @@ def moment_shifts(
     saturation=None,
     noise=None,
     chi2=25.0,
-    max_shift=1.0,
+    max_shift=MAX_SHIFT_PX,
     device=None,
 ):
     """Same as :func:`moment_shifts_numpy`, with Warp kernels (one thread per dot).

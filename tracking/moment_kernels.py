@@ -40,6 +40,8 @@ MAX_RESIDUAL_FLUX = wp.constant(wp.float64(MAX_RESIDUAL_FLUX_REL))
 #: stay below 0.28 of it; a neighbour's light the fit does not know has no such bound.
 MAX_SHIFT_PER_SPREAD_REL = 1.0
 MAX_SHIFT_PER_SPREAD = wp.constant(wp.float64(MAX_SHIFT_PER_SPREAD_REL))
+#: No first-moment shift beyond this (px) is taken, whatever the rest says.
+MAX_SHIFT_PX = 1.0
 USABLE_CODE = wp.constant(wp.float64(1.0))
 DISTORTED_CODE = wp.constant(wp.float64(2.0))
 
