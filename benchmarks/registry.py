@@ -118,8 +118,6 @@ def _tracker(columns: tuple[str, str], name: str):
     return run
 
 
-_TRACKING_KERNELS = ("synthbos.tracking.kernels",)
-
 def _checked(method: Method) -> Method:
     """``method`` whose run first checks that its modules are there and then checks its result
     (``method_api.check_result``): how a method the project does not test itself is registered."""
@@ -135,7 +133,8 @@ def _checked(method: Method) -> Method:
     return replace(method, run=checked_run)
 
 
-_TRACKING_KERNELS = ("synthbos.tracking.kernels",)
+# the Warp modules that track_pair launches (compiled ahead of the work by a campaign: scheduling)
+_TRACKING_KERNELS = ("synthbos.tracking.kernels", "synthbos.tracking.moment_kernels")
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,

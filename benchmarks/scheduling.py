@@ -36,7 +36,7 @@ from multiprocessing import get_all_start_methods, get_context
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from synthbos.device import shared_by_threads
+from synthbos.device import load_kernels, shared_by_threads
 
 __all__ = ["default_workers", "die_with_parent", "pair_tasks", "run_items", "run_pipeline", "same_image_runs",
            "worker_kernels"]
@@ -159,6 +159,17 @@ def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
     there = split_by_residency(scores, worker_device=worker_device)[1]
     return sorted({(name, str(args[-1])) for args in there for name in get_method(args[1]).kernels
                    if args[-1] is not None})
+
+
+def campaign_kernels(renders, scores, *, worker_device=None) -> list[tuple[str, str]]:
+    """Every ``(kernel module, device)`` pair that :func:`run_pipeline` launches: the renderer's on each
+    render device, the device-resident methods' here and :func:`worker_kernels`."""
+    from .registry import get_method
+
+    here, _ = split_by_residency(scores, worker_device=worker_device)
+    pairs = {("synthbos.raytrace.kernels", str(args[2])) for args in renders if args[2] is not None}
+    pairs |= {(name, str(args[-1])) for args in here for name in get_method(args[1]).kernels if args[-1] is not None}
+    return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device)))
 
 
 def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
@@ -337,6 +348,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
 
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
     preload = sorted({fn.__module__ for fn, _, _ in jobs})
+    load_kernels(campaign_kernels(renders, scores, worker_device=worker_device))  # all at once: a cold cache
     pool = None
     if workers > 1:
         pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device), nice=WORKER_NICE)

@@ -10,16 +10,18 @@ error still shows. Worker processes call it too (each spawned process initialise
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["check_device", "describe_device", "graph_capture_allowed", "init_warp", "resolve_device",
-           "shared_by_threads"]
+__all__ = ["check_device", "describe_device", "graph_capture_allowed", "init_warp", "load_kernels",
+           "resolve_device", "shared_by_threads"]
 
 # What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -122,3 +124,44 @@ def shared_by_threads():
 def graph_capture_allowed() -> bool:
     """False inside :func:`shared_by_threads`: do not record CUDA graphs."""
     return _sharing_threads == 0
+
+
+def _warp_modules(name: str) -> list:
+    """The Warp modules of Python module ``name``: its own and those of its ``module="unique"`` kernels."""
+    from warp._src.context import user_modules  # Warp's registry of modules (no public listing)
+
+    importlib.import_module(name)
+
+    def kernels(m):
+        return m.kernels.values() if isinstance(m.kernels, dict) else m.kernels
+
+    return [m for m in list(user_modules.values())
+            if m.name == name or any(getattr(k.func, "__module__", None) == name for k in kernels(m))]
+
+
+def load_kernels(pairs, *, max_workers=None) -> None:
+    """Compile (or find in Warp's kernel cache) the kernels of ``(Python module, device)`` ``pairs`` now,
+    several modules at a time.
+
+    Warp compiles a module on its first launch, one module after another; a campaign calls this before
+    its work starts, so that a first run on a machine with an empty kernel cache compiles all of them in
+    parallel (``max_workers`` threads, default one per CPU core: the compilers release the GIL) instead
+    of one by one, and its worker processes find them compiled.
+
+    Examples
+    --------
+    >>> load_kernels([("synthbos.tracking.moment_kernels", "cpu")])
+    """
+    init_warp()
+    by_device: dict[str, list] = {}
+    for name, device in pairs:
+        mods = by_device.setdefault(str(device), [])
+        mods.extend(m for m in _warp_modules(name) if m not in mods)
+    workers = max_workers if max_workers is not None else (os.cpu_count() or 1)
+    if len(by_device) == 1:
+        (device, mods), = by_device.items()
+        wp.force_load(device=device, modules=mods, max_workers=workers)
+        return
+    with ThreadPoolExecutor(len(by_device), thread_name_prefix="synthbos-compile") as pool:  # devices side by side
+        for fut in [pool.submit(wp.force_load, device=d, modules=m, max_workers=workers) for d, m in by_device.items()]:
+            fut.result()
