@@ -188,8 +188,9 @@ def test_bench_stages_times_every_stage_on_the_cpu(capsys):
     expected = ["render", "pair file", "noise", "correlation", "tracking", "tracking-cc", "methods in turn",
                 "score correlation", "score tracking", "score tracking-cc", "pair total"]
     assert list(stages) == expected and all(t > 0 for t in stages.values())
-    # the render is scaled from 6 to 10,000 rays per dot; the measured time is kept
-    assert stages["render"] > run["measured"]["render"] and run["render_scaled_to_rays_per_dot"] == 10_000
+    # the render is scaled from 6 to 10,000 rays per dot; the measured time is kept (on a busy machine the
+    # 2-ray render can time no faster than the 6-ray one: then the scaled time is the measured one)
+    assert stages["render"] >= run["measured"]["render"] and run["render_scaled_to_rays_per_dot"] == 10_000
     assert stages["pair total"] > stages["render"] + 4 * stages["methods in turn"]
     table = format_table([run, run])
     assert "cpu/cpu" in table and "render scaled to 10000 rays/dot" in table
