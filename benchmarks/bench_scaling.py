@@ -115,6 +115,25 @@ def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None,
     return rows
 
 
+def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) -> dict:
+    """Time the same campaign without Dask (``scheduling.run_pipeline`` in this process, ``workers``
+    processes, default every core) on one GPU, after a warm-up here: the baseline of the efficiency."""
+    from .scheduling import default_workers
+
+    spec = campaign_spec(pairs, **spec_options)
+    folder = Path(folder)
+    warm = folder / "warm-plain"
+    warm.mkdir(parents=True, exist_ok=True)
+    _warm_up(device, str(warm))
+    out = folder / f"plain-{workers or 'all'}"
+    t0 = time.perf_counter()
+    run_campaign(spec, out, device=device, workers=workers, progress=False, figures=False)
+    seconds = time.perf_counter() - t0
+    n_pairs = len(spec.pair_keys())
+    return {"workers": workers or default_workers(), "pairs": n_pairs, "campaign_s": seconds,
+            "pairs_per_s": n_pairs / seconds, "folder": out}
+
+
 def format_table(rows, unit: str) -> str:
     lines = [f"| {unit}s | workers | pairs | start-up + warm-up s | campaign s | pairs/s | pairs/s with start-up "
              f"| speed-up | efficiency | common pairs bit-identical |",
@@ -123,6 +142,28 @@ def format_table(rows, unit: str) -> str:
         lines.append(f"| {r['units']} | {r['workers']} | {r['pairs']} | {r['startup_s']:.1f} | {r['campaign_s']:.1f} "
                      f"| {r['pairs_per_s']:.3f} | {r['pairs_per_s_with_startup']:.3f} | {r['speedup']:.2f} "
                      f"| {r['efficiency']:.2f} | {'yes' if r['identical_results'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def _plain_table(rows, gpus, args) -> str:
+    """The baseline without Dask on one GPU, and each row's efficiency against N times it."""
+    from .scheduling import default_workers
+
+    first = min(rows, key=lambda r: r["units"])
+    with tempfile.TemporaryDirectory(prefix="synthbos-plain-") as tmp:
+        spec_options = {"pixels": args.pixels, "rays": args.rays, "noise": [float(v) for v in args.noise.split(",")]}
+        share = max(1, default_workers() // max(1, len(gpus)))
+        plain = [run_plain(device=args.device, pairs=first["pairs"], workers=w, folder=tmp, **spec_options)
+                 for w in (None, share)]
+    lines = [f"Without Dask on one GPU ({first['pairs']} pairs): "
+             + "; ".join(f"{p['workers']} processes {p['pairs_per_s']:.3f} pairs/s ({p['campaign_s']:.1f} s)"
+                         for p in plain),
+             "", "| GPUs | pairs/s through Dask | N x plain (every core) | efficiency vs plain |",
+             "| --- | --- | --- | --- |"]
+    for r in rows:
+        ideal = r["units"] * plain[0]["pairs_per_s"]
+        r["efficiency_vs_plain"] = r["pairs_per_s"] / ideal
+        lines.append(f"| {r['units']} | {r['pairs_per_s']:.3f} | {ideal:.3f} | {r['efficiency_vs_plain']:.2f} |")
     return "\n".join(lines)
 
 
@@ -140,6 +181,9 @@ def main(argv=None):
     parser.add_argument("--out", default=None, help="write scaling.json and scaling.md here")
     parser.add_argument("--keep", default=None, help="keep the campaign folders here (default: a temporary folder)")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--no-plain", dest="plain", action="store_false",
+                        help="skip the baseline: the same campaign on one GPU without Dask (every core, and the "
+                             "cores a Dask GPU worker gets)")
     args = parser.parse_args(argv)
     counts = [int(c) for c in args.counts.split(",")]
     on_gpu = args.device.startswith("cuda")
@@ -159,6 +203,8 @@ def main(argv=None):
                        per_gpu=args.per_gpu, folder=args.keep, progress=args.progress, pixels=args.pixels,
                        rays=args.rays, noise=noise)
     table = format_table(rows, "GPU" if on_gpu else "CPU worker")
+    if on_gpu and args.plain:
+        table += "\n\n" + _plain_table(rows, gpus, args)
     date = time.strftime("%Y-%m-%d", time.gmtime())
     print(f"\n{date}, {name}\n{table}")
     if args.out:

@@ -21,7 +21,7 @@ from synthbos.device import check_device
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .items import render_item, score_item
 from .registry import check_available, get_method
-from .scheduling import default_workers, run_items, run_pipeline
+from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, run_items, run_pipeline
 from .spec import CampaignSpec
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import summarise
@@ -29,10 +29,6 @@ from .tables import summarise
 __all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_spec", "resolve_process_device", "run_campaign",
            "write_summary"]
 
-#: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
-#: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
-#: 16.8-17.5 s with them on the GPU, which the 14 processes share by time slices (2026-11-22 03:15-03:17).
-PIPELINE_WORKER_DEVICE = "cpu"
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,

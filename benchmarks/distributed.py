@@ -8,12 +8,16 @@ CPU workers when the campaign renders on the CPU. ``--scheduler tcp://HOST:PORT`
 ``dask worker`` by hand, dask-jobqueue on SLURM or PBS, dask-cuda's ``LocalCUDACluster``); its workers
 must import this same synthbos and see the campaign folder at the same path.
 
-The unit of work is the pair: one task renders a pair (when its file is missing) and then processes
-and scores it with every method at every noise level on the same worker, reading the pair file it has
-just written, so images never travel through the scheduler; only file paths, settings and item counts
-do. Every file is written atomically by the worker that makes it, and finished files are skipped, so
-the folder layout and the resume are those of a run in one process, and since every seed comes from
-the campaign spec the results are byte-identical to it whatever the number and kind of workers.
+On CPU workers the unit of work is the pair: one task renders a pair (when its file is missing) and
+then processes and scores it with every method at every noise level on the same worker, reading the
+pair file it has just written, so images never travel through the scheduler; only file paths, settings
+and item counts do. A GPU worker instead runs the single-node pipeline (``scheduling.run_pipeline``)
+over its share of the pairs, with its own pool of host processes (its share of the host's cores), so
+that it keeps its GPU as busy as a campaign without Dask does: one task per GPU worker, each holding
+every ``len(workers)``-th pair. Every file is written atomically by the worker that makes it, and
+finished files are skipped, so the folder layout and the resume are those of a run in one process,
+and since every seed comes from the campaign spec the results are byte-identical to it whatever the
+number and kind of workers.
 
 Failures: a worker that dies loses only the item it was writing; the scheduler hands its task to
 another worker, which skips the files already there. Interrupting the client (Ctrl-C) cancels every
@@ -45,12 +49,15 @@ from synthbos import SynthbosError
 from synthbos.values import shorten
 
 from .items import render_item, score_item
-from .scheduling import default_workers, pair_tasks
+from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, pair_tasks, run_pipeline
 
-__all__ = ["DaskRunner", "check_address", "check_scheduler", "pair_task", "run_pairs", "visible_gpus"]
+__all__ = ["DaskRunner", "check_address", "check_scheduler", "pair_task", "pipeline_task", "run_pairs", "shards",
+           "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
+#: Environment variable giving a local GPU worker the size of its pool of host processes.
+HOST_WORKERS_VAR = "SYNTHBOS_HOST_WORKERS"
 
 # Worker-process state: the runs told to stop, and the runs with an item in flight (run token -> count).
 _STOPPED: set[str] = set()
@@ -182,6 +189,56 @@ def pair_task(render, scores, token: str) -> int:
     return done
 
 
+def host_workers() -> int:
+    """On a worker: the size of its pipeline's pool of host processes. A local GPU worker is told (its
+    share of the host's cores); on a joined cluster, this host's cores over its visible GPUs; 1 in a
+    daemonic worker process (Dask's default), which may not start processes of its own."""
+    import multiprocessing
+
+    if multiprocessing.current_process().daemon:
+        return 1
+    told = os.environ.get(HOST_WORKERS_VAR, "")
+    if told.isdigit() and int(told) > 0:
+        return int(told)
+    return max(1, default_workers() // max(1, len(visible_gpus())))
+
+
+def pipeline_task(renders, scores, token: str, worker_device=None) -> int:
+    """Run a share of a campaign's pairs through the single-node pipeline (``scheduling.run_pipeline``)
+    on this GPU worker, with :func:`host_workers` host processes; skips what exists and starts no further
+    pair once run ``token`` is told to stop. Returns the number of items it wrote."""
+    renders = [r for r in renders if not Path(r[1]).exists()]
+    scores = [s for s in scores if not Path(s[4]).exists()]
+    with _LOCK:
+        _IN_FLIGHT[token] += 1
+    try:
+        run_pipeline(renders, scores, workers=host_workers(), progress=False,
+                     worker_device=PIPELINE_WORKER_DEVICE if worker_device is None else worker_device,
+                     stop=lambda: token in _STOPPED)
+    finally:
+        with _LOCK:
+            _IN_FLIGHT[token] -= 1
+    return sum(Path(r[1]).exists() for r in renders) + sum(Path(s[4]).exists() for s in scores)
+
+
+def shards(tasks, n: int) -> list[tuple[list, list]]:
+    """Deal a campaign's pair tasks (``scheduling.pair_tasks``) to ``n`` workers, every ``n``-th pair to
+    each (snapshots and pair sizes spread evenly): ``[(render args, score args)]``, empty shards left out.
+
+    Examples
+    --------
+    >>> tasks = [(("cfg", f"p{i}.h5", "cuda:0"), [(f"p{i}.h5", "tracking")]) for i in range(5)]
+    >>> [[r[1] for r in renders] for renders, _ in shards(tasks, 2)]
+    [['p0.h5', 'p2.h5', 'p4.h5'], ['p1.h5', 'p3.h5']]
+    """
+    out = []
+    for i in range(max(1, n)):
+        mine = tasks[i::max(1, n)]
+        if mine:
+            out.append(([r for r, _ in mine if r is not None], [s for _, items in mine for s in items]))
+    return out
+
+
 def _stop_run(token: str) -> int:
     """On a worker: let no task of run ``token`` start another item; return how many are in flight."""
     with _LOCK:
@@ -288,11 +345,15 @@ class DaskRunner:
         Show a tqdm bar over the pair tasks.
     dashboard_address : str
         Local cluster: where its dashboard listens.
+    pipeline : bool, optional
+        Run each worker's share of the pairs through the single-node pipeline with a pool of host
+        processes (:func:`pipeline_task`) instead of one task per pair; default: on GPU workers.
     """
 
     def __init__(self, scheduler: str, *, device=None, workers=None, gpus=None, progress=True,
-                 dashboard_address=DASHBOARD_ADDRESS, process_device=None):
+                 dashboard_address=DASHBOARD_ADDRESS, process_device=None, pipeline=None):
         self.scheduler = str(scheduler)
+        self.pipeline = str(device or "").startswith("cuda") if pipeline is None else bool(pipeline)
         self.device = device
         self.process_device = process_device
         self.workers = workers
@@ -335,7 +396,9 @@ class DaskRunner:
             # and the workers, forked from a fork server that ignores SIGINT, ignore it from their start.
             _quiet_resource_tracker()
             _ignoring_sigint_forkserver()
-            with _deferred_sigint(), dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+            # Not daemonic: a GPU worker runs the pipeline, with a pool of host processes of its own.
+            with _deferred_sigint(), dask.config.set({"distributed.worker.multiprocessing-method": "forkserver",
+                                                      "distributed.worker.daemon": False}):
                 self.cluster = self._local_cluster(distributed)
                 self.client = distributed.Client(self.cluster)
                 self.client.run(_leave_sigint_to_the_client)
@@ -364,7 +427,8 @@ class DaskRunner:
             n = self.workers or len(gpus)
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
-            threads = _thread_share(max(n, len(gpus), len(host_gpus)))
+            share = max(n, len(gpus), len(host_gpus))
+            threads = {**_thread_share(share), HOST_WORKERS_VAR: str(max(1, default_workers() // share))}
             envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:
@@ -421,14 +485,10 @@ class DaskRunner:
         token = uuid.uuid4().hex
         with self._lock:
             self._tokens.add(token)
-        futures = [
-            self.client.submit(pair_task, render, items, token, pure=False, retries=0,
-                               key=f"{TASK_PREFIX}-{Path(render[1] if render else items[0][0]).stem}-{token[:8]}")
-            for render, items in tasks
-        ]
+        futures = self._submit(tasks, token)
         with self._lock:
             self._futures.update(futures)
-        bar = self._progress_bar(len(futures))
+        bar = self._progress_bar(len(tasks))
         written = 0
         try:
             for fut in distributed.as_completed(futures):
@@ -437,7 +497,7 @@ class DaskRunner:
                 except distributed.KilledWorker as err:
                     raise SynthbosError(f"a pair task took several workers down with it (out of memory?): "
                                         f"{err}") from None
-                bar.update(1)
+                bar.update(futures[fut])
         except BaseException:
             self.abort()
             raise
@@ -446,6 +506,24 @@ class DaskRunner:
                 self._futures.difference_update(futures)
         _remove_stale_temporaries([r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items])
         return written
+
+    def _submit(self, tasks, token: str) -> dict:
+        """Submit ``tasks`` (``scheduling.pair_tasks``); return ``{future: pairs it holds}``. With
+        ``pipeline`` (GPU workers), one :func:`pipeline_task` per worker, each first offered to its own
+        worker; else (CPU workers), one :func:`pair_task` per pair."""
+        if not self.pipeline:
+            return {self.client.submit(pair_task, render, items, token, pure=False, retries=0,
+                                       key=f"{TASK_PREFIX}-{Path(render[1] if render else items[0][0]).stem}"
+                                           f"-{token[:8]}"): 1
+                    for render, items in tasks}
+        workers = sorted(self.client.nthreads())
+        futures = {}
+        for i, (renders, scores) in enumerate(shards(tasks, len(workers))):
+            key = f"{TASK_PREFIX}s-{i}-of-{len(workers)}-{token[:8]}"
+            fut = self.client.submit(pipeline_task, renders, scores, token, pure=False, retries=0, key=key,
+                                     workers=[workers[i]], allow_other_workers=True)
+            futures[fut] = len({s[0] for s in scores} | {r[1] for r in renders})
+        return futures
 
     def abort(self) -> None:
         """Cancel every task; on a joined cluster, wait until no worker writes an item of ours."""

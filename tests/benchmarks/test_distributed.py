@@ -311,3 +311,29 @@ def test_bench_scaling_smoke_on_cpu_workers(slow_only, tmp_path):
     assert all(r["identical_results"] and r["pairs_per_s"] > 0 for r in rows)
     assert "efficiency" in (tmp_path / "scaling.md").read_text()
     assert json.loads((tmp_path / "scaling.json").read_text())["rows"] == rows
+
+
+def test_pipeline_tasks_on_a_local_cluster_give_the_plain_campaign(tmp_path):
+    """Workers that run their share of the pairs through the single-node pipeline (what a GPU worker does)
+    write the files of a campaign run in one process, and each task holds every second pair."""
+    from dataclasses import replace
+
+    from synthbos.benchmarks.campaign import run_campaign
+    from synthbos.benchmarks.distributed import DaskRunner, shards
+    from synthbos.benchmarks.scheduling import pair_tasks
+    from synthbos.benchmarks.spec import FULL
+
+    spec = replace(FULL, name="dask-pipeline", snapshots=(1, 4), pairs_per_snapshot=1, noise_percent=(3.0,),
+                   config={"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 20}})
+    plain, dask = tmp_path / "plain", tmp_path / "dask"
+    run_campaign(spec, plain, device="cpu", workers=1, progress=False, figures=False)
+    with DaskRunner("local", device="cpu", workers=2, progress=False, pipeline=True) as runner:
+        assert runner.pipeline
+        run_campaign(spec, dask, device="cpu", scheduler=runner, progress=False, figures=False)
+    assert (plain / "results.json").read_bytes() == (dask / "results.json").read_bytes()
+    for path in sorted((plain / "scores").glob("*.npz")):
+        with np.load(path) as a, np.load(dask / "scores" / path.name) as b:
+            assert sorted(a.files) == sorted(b.files)
+            assert all(a[k].tobytes() == b[k].tobytes() for k in a.files), path.name
+    tasks = pair_tasks([(None, f"p{i}.h5", "cpu") for i in range(3)], [])
+    assert [[r[1] for r in renders] for renders, _ in shards(tasks, 2)] == [["p0.h5", "p2.h5"], ["p1.h5"]]
