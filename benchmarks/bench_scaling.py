@@ -122,9 +122,10 @@ def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) 
 
     spec = campaign_spec(pairs, **spec_options)
     folder = Path(folder)
-    warm = folder / "warm-plain"
-    warm.mkdir(parents=True, exist_ok=True)
-    _warm_up(device, str(warm))
+    # warm-up: a tiny campaign the same way (kernels, imports, the worker pool's fork server)
+    tiny = campaign_spec(1, pixels=96, rays=10, noise=spec_options.get("noise", (0.0,)))
+    run_campaign(tiny, folder / f"warm-{workers or 'all'}", device=device, workers=workers, progress=False,
+                 figures=False)
     out = folder / f"plain-{workers or 'all'}"
     t0 = time.perf_counter()
     run_campaign(spec, out, device=device, workers=workers, progress=False, figures=False)
@@ -203,6 +204,7 @@ def main(argv=None):
                        per_gpu=args.per_gpu, folder=args.keep, progress=args.progress, pixels=args.pixels,
                        rays=args.rays, noise=noise)
     table = format_table(rows, "GPU" if on_gpu else "CPU worker")
+    print(table, flush=True)
     if on_gpu and args.plain:
         table += "\n\n" + _plain_table(rows, gpus, args)
     date = time.strftime("%Y-%m-%d", time.gmtime())
