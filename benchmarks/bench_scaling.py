@@ -62,6 +62,23 @@ def _warm_up(device: str, folder: str) -> float:
     return time.perf_counter() - t0
 
 
+def _warm_up_pipeline(device: str, folder: str) -> float:
+    """On a GPU worker: a tiny campaign through :func:`distributed.pipeline_task`, so the worker's own
+    pool of host processes (its fork server, imports, kernels) is started the way the baseline's is."""
+    from .distributed import pipeline_task, shards
+    from .scheduling import pair_tasks
+
+    t0 = time.perf_counter()
+    spec = campaign_spec(1, pixels=96, rays=10)
+    out = Path(folder) / f"pipeline-{time.monotonic_ns()}"
+    renders = [(spec.pair_config(s, p), str(out / f"{s}-{p}.h5"), device) for s, p in spec.pair_keys()[:1]]
+    scores = [(renders[0][1], m, 1.0, (1, 2), str(out / f"{m}.npz"), {}, device) for m in spec.methods]
+    out.mkdir(parents=True)
+    for shard in shards(pair_tasks(renders, scores), 1):
+        pipeline_task(*shard, f"warm-{out.name}")
+    return time.perf_counter() - t0
+
+
 def _same_scores(first: Path, other: Path) -> bool:
     """Whether every score file of ``first`` has bit-identical arrays in ``other``."""
     for path in sorted((first / "scores").glob("*.npz")):
@@ -91,9 +108,10 @@ def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None,
                 warm = Path(tmp) / f"warm-{n}"
                 warm.mkdir()
                 # By reference, even when this file runs as __main__: the workers import it.
-                from synthbos.benchmarks.bench_scaling import _warm_up
+                from synthbos.benchmarks.bench_scaling import _warm_up, _warm_up_pipeline
 
-                client.gather([client.submit(_warm_up, device, str(warm), workers=[a], pure=False)
+                warm_up = _warm_up_pipeline if runner.pipeline else _warm_up
+                client.gather([client.submit(warm_up, device, str(warm), workers=[a], pure=False)
                                for a in client.nthreads()])
                 t1 = time.perf_counter()
                 out = base / f"{n}-{'gpu' if on_gpu else 'cpu'}"
