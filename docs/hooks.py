@@ -153,8 +153,14 @@ def _range(bounds: dict | None) -> str:
     return f"{kind}{lo}, {hi}"
 
 
+def _cell(text) -> str:
+    """A table cell: pipes escaped outside code spans (inside them the table parser leaves them alone)."""
+    parts = str(text).split("`")
+    return "`".join(part if i % 2 else part.replace("|", "\\|") for i, part in enumerate(parts))
+
+
 def _row(*cells) -> str:
-    return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
+    return "| " + " | ".join(_cell(c) for c in cells) + " |"
 
 
 def _vector_ranges(config) -> dict:
