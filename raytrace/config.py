@@ -43,7 +43,7 @@ Keys
   one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
   or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
   Defaults: field "float32_vec", dot_order "morton", rays_per_group 8, block_dim 256, max_registers 64
-  (the fastest exact choice on an H200: see the README's renderer section; the CPU ignores max_registers).
+  (the fastest exact choice on an H200: see docs/benchmarks.md, renderer speed; the CPU ignores max_registers).
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).

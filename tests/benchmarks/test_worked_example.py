@@ -1,9 +1,9 @@
-"""The README's worked example, run on a laboratory-like set-up drawn here.
+"""The worked example of docs/own-images.md, run on a laboratory-like set-up drawn here.
 
 A calibration grid photographed with the camera, a printed random-dot target known in mm (dark dots
 on white, 16-bit LZW TIFFs), a model masked out of the picture: ``calibrate --grid``, then
 ``calibrate --mapping --target`` gives the tracking prior, ``process`` with a configuration file
-tracks every visible dot, and ``show-result`` draws it. The commands are those of the README.
+tracks every visible dot, and ``show-result`` draws it. The commands are those of that page.
 """
 
 import csv
