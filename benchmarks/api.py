@@ -283,7 +283,6 @@ def integrate(result, setup, *, method=None, solver="lsq", spacing_px=None, refe
     _integrate.check_integrate_options(spacing_px=spacing_px, reference_density=reference_density)
     res = _as_result(result, method)
     geometry = _geometry(setup)
-    _integrate.check_belongs({}, res, geometry, what="set-up")
     _integrate.check_displacements(res, geometry)
     dmap = _integrate.density_from_result(res, geometry, solver=solver, spacing_px=spacing_px,
                                           reference_value=reference_density)
