@@ -51,6 +51,7 @@ def test_import_loads_no_subpackage():
 def test_names_are_listed_and_found_in_their_homes():
     assert set(HOMES) == set(API_NAMES)
     assert set(API_NAMES) <= set(synthbos.__all__)
+    assert set(synthbos.__all__) - set(API_NAMES) <= set(vars(synthbos))  # the rest is defined at import
     assert set(API_NAMES) <= set(dir(synthbos))
     for name, home in HOMES.items():
         obj = getattr(synthbos, name)
@@ -118,6 +119,13 @@ def test_is_valid_takes_a_table(table):
         synthbos.is_valid(np.array([4.0, 0.0]))
 
 
+def _without_dot_id(table):
+    """The table without a dot_id field (tracking tables may carry one)."""
+    if "dot_id" in table.dtype.names:
+        return recfunctions.drop_fields(table, "dot_id", usemask=False)
+    return table
+
+
 def _error_p90(pair, table, columns=("u", "v")):
     ok = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     uv = np.stack([table[columns[0]], table[columns[1]]], axis=1)[ok]
@@ -149,7 +157,8 @@ def test_score_refuses_what_does_not_fit(pair, table):
         synthbos.score(pair, table, method="correlation")
     with pytest.raises(SynthbosError, match="expected a tracking table"):
         synthbos.score(pair, np.zeros((3, 2)))
-    shuffled = recfunctions.append_fields(table, "dot_id", np.arange(len(table))[::-1], usemask=False)
+    shuffled = recfunctions.append_fields(_without_dot_id(table), "dot_id", np.arange(len(table))[::-1],
+                                          usemask=False)
     with pytest.raises(SynthbosError, match="dot_id"):
         synthbos.score(pair, shuffled)
 
@@ -189,17 +198,18 @@ def test_integrate_against_the_truth(pair, table, noisy):
 
 
 def test_to_dataframe(pair, table, noisy):
-    df = synthbos.to_dataframe(table)
-    assert list(df.columns) == ["dot_id", *table.dtype.names, "valid"]
+    plain = _without_dot_id(table)
+    df = synthbos.to_dataframe(plain)
+    assert list(df.columns) == ["dot_id", *plain.dtype.names, "valid"]
     assert len(df) == len(table) == pair.n_dots
-    assert_array_equal(df["dot_id"], np.arange(len(table)))
+    assert_array_equal(df["dot_id"], np.arange(len(table)))  # the prior's row: pair dot i
     assert_array_equal(df["valid"], synthbos.is_valid(table))
     assert_array_equal(df["u"], table["u"])
     # a table with its own dot_id (tracking files and tables that carry one) keeps it
     ids = np.arange(len(table)) * 3 + 1
-    with_ids = recfunctions.append_fields(table, "dot_id", ids, usemask=False)
+    with_ids = recfunctions.append_fields(plain, "dot_id", ids, usemask=False)
     df_ids = synthbos.to_dataframe(with_ids)
-    assert list(df_ids.columns) == ["dot_id", *table.dtype.names, "valid"]
+    assert list(df_ids.columns) == ["dot_id", *plain.dtype.names, "valid"]
     assert_array_equal(df_ids["dot_id"], ids)
     res = synthbos.correlate_pair(*noisy)
     dfc = synthbos.to_dataframe(res)
