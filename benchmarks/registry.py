@@ -33,14 +33,19 @@ from .optical_flow import OpticalFlowSettings, run_optical_flow
 from .plugins import load_plugins
 
 __all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "Method", "MethodResult", "check_available",
-           "default_methods", "forget_plugins", "forget_shared_results", "get_method", "method_names",
-           "methods_table", "missing_modules", "settings_dict"]
+           "correlation_result", "default_methods", "forget_plugins", "forget_shared_results", "get_method",
+           "method_names", "methods_table", "missing_modules", "settings_dict", "tracking_result"]
 
 
 def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
     if device is not None:  # the processing device travels in the correlation settings
         settings = replace(settings or CorrelationSettings(), device=str(device))
-    res = correlate_pair(reference, gradient, settings=settings, mask=mask)
+    return correlation_result(correlate_pair(reference, gradient, settings=settings, mask=mask))
+
+
+def correlation_result(res) -> MethodResult:
+    """A :func:`synthbos.correlation.correlate_pair` result as the ``correlation`` method's ``MethodResult``:
+    valid where the vector is finite and its flags are 0."""
     xy = np.stack([res.x.ravel(), res.y.ravel()], axis=1).astype(np.float64)
     uv = np.stack([res.u.ravel(), res.v.ravel()], axis=1).astype(np.float64)
     table = {"x": res.x, "y": res.y, "u": res.u, "v": res.v, "flags": res.flags, "peak_ratio": res.peak_ratio,
@@ -96,25 +101,31 @@ def forget_shared_results() -> None:
     _track_pair.forget()
 
 
+def tracking_result(tab, *, name="tracking", columns=("u", "v"), settings=None) -> MethodResult:
+    """A :func:`synthbos.tracking.track_pair` table as the ``MethodResult`` of the tracking method ``name``,
+    whose displacement is the table's ``columns``; rows flagged MASKED are NaN and not valid."""
+    xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
+    uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
+    table = {c: tab[c] for c in tab.dtype.names}
+    # dots that touch the mask's excluded pixels (track_pair's MASKED bit) are not measured: NaN,
+    # and marked in the column "masked"
+    masked = (tab["status"] & DotStatus.MASKED) != 0
+    uv[masked] = np.nan
+    table["masked"] = masked
+    valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1) & ~masked
+    counts = {"measured": int(valid.sum()), "replaced": 0, "failed": int((~valid & ~masked).sum()),
+              "masked": int(masked.sum()), "total": len(valid)}
+    return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid, counts=counts)
+
+
 def _tracker(columns: tuple[str, str], name: str):
     def run(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
         tab = _track_pair(reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
-        xy = np.stack([tab["x"], tab["y"]], axis=1).astype(np.float64)
-        uv = np.stack([tab[columns[0]], tab[columns[1]]], axis=1).astype(np.float64)
-        table = {c: tab[c] for c in tab.dtype.names}
-        # dots that touch the mask's excluded pixels (track_pair's MASKED bit) are not measured: NaN,
-        # and marked in the column "masked"
-        masked = (tab["status"] & DotStatus.MASKED) != 0
-        uv[masked] = np.nan
-        table["masked"] = masked
-        valid = is_valid(tab["status"]) & np.all(np.isfinite(uv), axis=1) & ~masked
-        counts = {"measured": int(valid.sum()), "replaced": 0, "failed": int((~valid & ~masked).sum()),
-                  "masked": int(masked.sum()), "total": len(valid)}
-        return MethodResult(name, xy, uv, None, table, settings_dict(settings), valid,
-                            counts=counts)
+        return tracking_result(tab, name=name, columns=columns, settings=settings)
 
     run.__name__ = f"_run_{name.replace('-', '_')}"
     run.__doc__ = f"Dot tracking; the displacement is the table's ({columns[0]}, {columns[1]})."
+    run.columns = columns  # what tracking_result reads from a table for this method
     return run
 
 

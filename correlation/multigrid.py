@@ -231,6 +231,13 @@ class CorrelationSettings:
         vectors come back once; power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA
         devices when the window sizes allow it, else ``numpy``. Both give the same vectors and flags
         to float32 rounding (1e-4 px).
+
+    Examples
+    --------
+    >>> from synthbos import CorrelationSettings
+    >>> settings = CorrelationSettings(window_sizes=(64, 32, 16), overlaps=0.5)
+    >>> settings.overlaps, settings.iterations  # one entry per pass
+    ((0.5, 0.5, 0.5), (2, 2, 2))
     """
 
     window_sizes: tuple = (32, 16)
@@ -621,6 +628,20 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
     iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors get the median of
     their valid neighbours. The images are first brought to zero mean and unit variance.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy import ndimage
+    >>> import synthbos
+    >>> rng = np.random.default_rng(0)
+    >>> reference = ndimage.gaussian_filter(rng.random((64, 64)), 1.0)
+    >>> gradient = ndimage.shift(reference, (0.0, 1.5), order=3, mode="wrap")  # 1.5 px along x
+    >>> res = synthbos.correlate_pair(reference, gradient)  # 32 px, then 16 px windows
+    >>> res.u.shape
+    (4, 4)
+    >>> bool(np.allclose(res.u, 1.5, atol=0.02)), bool(np.allclose(res.v, 0.0, atol=0.02))
+    (True, True)
     """
     if settings is None:
         settings = CorrelationSettings()

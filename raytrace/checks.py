@@ -215,8 +215,9 @@ def check_ray_steps(plan, device=None):
     if limit is None:
         import warp as wp
 
-        wp.config.quiet = True
-        wp.init()
+        from synthbos.device import init_warp
+
+        init_warp()  # quietly: no missing-driver warning on a machine without a GPU
         limit = RAY_STEPS_CUDA if wp.get_device(device).is_cuda else RAY_STEPS_CPU
     steps = plan.steps_per_ray
     total = 2.0 * plan.n_dots * plan.rays_per_dot * steps * (1 + plan.aim_iterations)

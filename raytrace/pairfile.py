@@ -176,7 +176,22 @@ def describe_datasets(h5file, schema: dict) -> None:
 
 
 def write_pair(path, pair: Pair) -> Path:
-    """Write a pair file atomically (built in memory, see ``synthbos.atomic_hdf5``)."""
+    """Write a pair file atomically (built in memory, see ``synthbos.atomic_hdf5``); return its path.
+
+    Every dataset carries ``units`` and ``description`` attributes (``PAIR_DATASETS``); the pair's
+    attributes (its configuration, the set-up's numbers) become the file's root attributes.
+
+    Examples
+    --------
+    >>> import pathlib
+    >>> import tempfile
+    >>> import synthbos
+    >>> pair = synthbos.render_pair({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 50}})
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = synthbos.write_pair(pathlib.Path(folder) / "pair.h5", pair)
+    ...     print(path.name, path.stat().st_size > 0)
+    pair.h5 True
+    """
     path = Path(path)
     with atomic_hdf5(path) as f:
         img = f.create_group("images")
@@ -195,7 +210,20 @@ def write_pair(path, pair: Pair) -> Path:
 
 
 def read_pair(path) -> Pair:
-    """Read a pair file written by ``write_pair``; a missing or malformed file raises SynthbosError."""
+    """Read a pair file written by ``write_pair``; a missing or malformed file raises SynthbosError.
+
+    Examples
+    --------
+    >>> import pathlib
+    >>> import tempfile
+    >>> import numpy as np
+    >>> import synthbos
+    >>> pair = synthbos.render_pair({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 50}})
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     back = synthbos.read_pair(synthbos.write_pair(pathlib.Path(folder) / "pair.h5", pair))
+    >>> bool(np.array_equal(back.gradient, pair.gradient)), back.n_dots == pair.n_dots
+    (True, True)
+    """
     path = Path(path)
     if not path.is_file():
         raise SynthbosError(f"pair file {path} does not exist")

@@ -437,6 +437,17 @@ def render_pair(config=None, *, device=None, progress=False) -> Pair:
     -------
     Pair
         Images (noise-free float32), dot positions and displacements (see ``raytrace.pairfile``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import synthbos
+    >>> pair = synthbos.render_pair({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 50}})
+    >>> pair.reference.shape, pair.n_dots  # a 64 x 64 px camera, 80 dots
+    ((64, 64), 80)
+    >>> shift = pair.gradient_px - pair.reference_px  # each dot's ray-traced displacement, px
+    >>> bool(np.array_equal(shift, pair.displacement_px)), bool(np.abs(shift[pair.valid]).max() < 1.0)
+    (True, True)
     """
     device = check_device(device)
     plan = config if isinstance(config, RenderPlan) else plan_render(config)

@@ -1,7 +1,15 @@
 """synthbos: synthetic Background Oriented Schlieren ray tracing and benchmarks.
 
 This small package holds what every part of the project shares: the version, the one
-exception type raised for input a user can get wrong, atomic output and the embedded data.
+exception type raised for input a user can get wrong, atomic output and the embedded data; and the
+Python API, the everyday path of a user, loaded on first use::
+
+    import synthbos
+    pair = synthbos.render_pair({"camera": {"pixels": [128, 128]}})
+    reference, gradient = synthbos.add_noise(pair, noise_percent=1.0, seed=0)
+    table = synthbos.track_pair(reference, gradient, prior_xy=synthbos.nominal_prior(pair))
+    synthbos.score(pair, table)  # error percentiles against the ray-traced truth
+
 The algorithms live in the subpackages ``synthbos.raytrace``, ``synthbos.correlation``,
 ``synthbos.tracking`` and ``synthbos.integration``; the harness and the command line in
 ``synthbos.benchmarks``. In the repository those folders sit at the root and install under
@@ -52,14 +60,71 @@ def data_file(*parts):
     return Path(str(_resources.files("synthbos.data").joinpath(*parts)))
 
 
+# The Python API: ``synthbos.render_pair``, ``synthbos.track_pair``, ... Each name maps to its home module
+# and is imported from there on first use (PEP 562's module ``__getattr__``, the pattern of scientific
+# Python's lazy_loader). Importing them here instead would make an import circle, since every subpackage
+# imports this module for SynthbosError before its own names exist, and would make ``import synthbos``
+# (which the command line and every worker process run first) pay for Warp, SciPy and h5py.
+_API = {
+    "render_pair": "synthbos.raytrace",
+    "read_pair": "synthbos.raytrace",
+    "write_pair": "synthbos.raytrace",
+    "add_noise": "synthbos.benchmarks.api",
+    "nominal_prior": "synthbos.benchmarks.api",
+    "track_pair": "synthbos.tracking",
+    "TrackingSettings": "synthbos.tracking",
+    "DotStatus": "synthbos.tracking",
+    "is_valid": "synthbos.tracking",
+    "correlate_pair": "synthbos.correlation",
+    "CorrelationSettings": "synthbos.correlation",
+    "score": "synthbos.benchmarks.api",
+    "displacement_errors": "synthbos.benchmarks.api",
+    "integrate": "synthbos.benchmarks.api",
+    "density_truth": "synthbos.benchmarks.api",
+    "to_dataframe": "synthbos.benchmarks.api",
+}
+
+
+def __getattr__(name):
+    home = _API.get(name)
+    if home is None:
+        raise AttributeError(f"module 'synthbos' has no attribute {name!r}")
+    from importlib import import_module
+
+    value = getattr(import_module(home), name)
+    globals()[name] = value  # found directly from now on
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))
+
+
+# With the API's names (_API): tests/test_api.py checks that both list the same ones.
 __all__ = [
+    "CorrelationSettings",
+    "DotStatus",
     "SynthbosError",
+    "TrackingSettings",
     "__version__",
+    "add_noise",
     "atomic_hdf5",
     "atomic_output",
     "check_output_file",
     "check_output_folder",
+    "correlate_pair",
     "data_file",
+    "density_truth",
+    "displacement_errors",
     "folder_lock",
+    "integrate",
+    "is_valid",
     "make_folder",
+    "nominal_prior",
+    "read_pair",
+    "render_pair",
+    "score",
+    "to_dataframe",
+    "track_pair",
+    "write_pair",
 ]

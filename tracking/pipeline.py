@@ -106,6 +106,13 @@ class DotStatus(enum.IntFlag):
         camera's light cone): both its positions are the first moments of its share of the light (the
         mean landing positions of its rays), not the symmetric model's centres
         (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts_numpy`).
+
+    Examples
+    --------
+    >>> from synthbos import DotStatus
+    >>> status = DotStatus.FOUND_REFERENCE | DotStatus.FOUND_GRADIENT | DotStatus.MATCHED
+    >>> int(status), bool(status & DotStatus.MATCHED), bool(status & DotStatus.OUTLIER)
+    (7, True, False)
     """
 
     FOUND_REFERENCE = 1
@@ -149,9 +156,40 @@ TRACK_DTYPE = np.dtype(
 )
 
 
-def is_valid(status):
-    """True where a row's displacement is valid (the MATCHED bit)."""
-    return (np.asarray(status) & DotStatus.MATCHED) != 0
+def is_valid(table_or_status):
+    """True where a row's displacement is valid (the MATCHED bit).
+
+    Parameters
+    ----------
+    table_or_status : structured array or array of int
+        A :func:`track_pair` table (any structured array with a ``status`` field) or its ``status``
+        column.
+
+    Returns
+    -------
+    bool array
+        One entry per row.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from synthbos.tracking import TRACK_DTYPE, DotStatus, is_valid
+    >>> table = np.zeros(3, dtype=TRACK_DTYPE)
+    >>> table["status"] = [DotStatus.MATCHED | DotStatus.CC_VALID, DotStatus.FOUND_REFERENCE, DotStatus.MATCHED]
+    >>> is_valid(table)
+    array([ True, False,  True])
+    >>> is_valid(table["status"])
+    array([ True, False,  True])
+    """
+    status = np.asarray(table_or_status)
+    if status.dtype.names is not None:
+        if "status" not in status.dtype.names:
+            raise SynthbosError(f"is_valid needs a tracking table with a status field; got fields "
+                                f"{', '.join(status.dtype.names)}")
+        status = status["status"]
+    if status.dtype.kind not in "iu":
+        raise SynthbosError(f"is_valid needs integer status flags; got dtype {status.dtype}")
+    return (status & DotStatus.MATCHED) != 0
 
 
 # Allowed range of every number of TrackingSettings (``synthbos.values.check_ranges``): finite, with bounds
@@ -311,6 +349,14 @@ class TrackingSettings:
         Neighbours of the median test.
     backend : {"warp", "numpy"}
         The per-dot window step as a Warp kernel or as the NumPy reference (same results).
+
+    Examples
+    --------
+    >>> from synthbos import TrackingSettings
+    >>> TrackingSettings().centroid, TrackingSettings.paper(max_displacement=4.0).centroid
+    ('model', 'gaussian3')
+    >>> TrackingSettings(max_displacement=4.0).max_displacement  # px, for larger displacements
+    4.0
     """
 
     centroid: str = "model"
@@ -931,6 +977,19 @@ def track_pair(
     -----
     The result does not depend on a constant added to either image (every background is estimated), so
     dark dots on a bright background are tracked by giving ``max - image`` for both images.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import synthbos
+    >>> pair = synthbos.render_pair({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 50}})
+    >>> table = synthbos.track_pair(pair.reference, pair.gradient, prior_xy=synthbos.nominal_prior(pair))
+    >>> len(table) == pair.n_dots  # one row per prior dot
+    True
+    >>> ok = synthbos.is_valid(table) & pair.valid
+    >>> error = np.hypot(table["u"][ok] - pair.displacement_px[ok, 0], table["v"][ok] - pair.displacement_px[ok, 1])
+    >>> bool(np.percentile(error, 90) < 0.05)  # px
+    True
     """
     settings = TrackingSettings() if settings is None else settings
     ref, top_r = _check_image("reference", reference)
