@@ -26,7 +26,7 @@ import math
 from pathlib import Path
 
 from synthbos import SynthbosError
-from synthbos.values import number, numbers, shorten
+from synthbos.values import cut, number, numbers
 
 from .integrate import Geometry
 
@@ -150,6 +150,6 @@ def read_setup_file(path) -> dict:
         raise SynthbosError(f"set-up file {path} has no [setup] table (z_d_mm, depth_mm, ...; see docs/own-images.md)")
     other = sorted(set(raw) - {"setup", *process_tables()})
     if other:
-        raise SynthbosError(f"set-up file {path}: unknown table(s) {', '.join(shorten(t) for t in other)}; "
-                            "it holds [setup] (and may be a process configuration)")
+        raise SynthbosError(f"set-up file {path}: unknown table(s) {cut(', '.join(other))}; it holds "
+                            "[setup] and may hold the tables of a process configuration")
     return check_setup_table(raw["setup"], f"set-up file {path}")
