@@ -6,9 +6,11 @@ against the renderer's two truths.
 
 Steps
 -----
-1. Displacements (px) to density gradients (kg/m^4), Eq. 4 inverted with the set-up's numbers (the
-   pair file's attributes with ``--pair``, otherwise a render configuration: ``--config`` or the
-   embedded default): ``grad rho_avg = -n0 dX pitch / (M Z_D K L)``.
+1. Displacements (px) to density gradients (kg/m^4), Eq. 4 inverted with the set-up's numbers:
+   ``grad rho_avg = -n0 dX pitch / (M Z_D K L)``. The set-up: the pair file's attributes with ``--pair``,
+   a render configuration with ``--config``, a camera pair's ``[setup]`` with ``--setup-file``
+   (:mod:`.setup_file`), else the set-up the result recorded (its ``setup`` attribute, written by
+   ``process`` from its pair file or its ``--setup-file``); a result that records none is refused.
 2. The grid. A correlation result keeps its own grid of window centres. Tracked dots are interpolated
    linearly on the Delaunay triangulation of the valid dots (``integration.scattered_to_grid``) onto a
    square grid whose spacing is the mean dot spacing (``--spacing`` px to change it); nodes outside the
@@ -40,7 +42,9 @@ HDF5 dimension scales, so xarray shows the maps with named dimensions ``(y_mm, x
 ``/truth_cone_kg_m3`` and ``/truth_chief_kg_m3`` on the same grid (the per-dot truths of the pair file,
 interpolated like the dots) and the error summary as root attributes (``cone_rms_kg_m3``,
 ``cone_p90_kg_m3``, ``cone_rms_rel``, ... relative to the truth's range; ``cone_offset_kg_m3`` is the
-mean error over the reference region, the part due to the constant of integration).
+mean error over the reference region, the part due to the constant of integration). Root attributes
+also: ``geometry`` (JSON of the set-up used), ``setup_source`` (where it came from), ``negative_nodes``
+(nodes of negative density, which no fluid has: the command warns in one line), ``method``, ``input``.
 """
 
 from __future__ import annotations
