@@ -515,10 +515,10 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
 
 def _result_dimensions(f, kind) -> None:
     """Named dimensions (HDF5 dimension scales): ``(grid_y, grid_x)`` of a grid or dense result, ``(dot,)``
-    of a dots result's columns."""
+    of a dots result's columns (none where a plugin's table already holds a column of a scale's name)."""
     if kind in (GRID, DENSE):
         x, y = np.asarray(f["x"][()], np.float64), np.asarray(f["y"][()], np.float64)
-        if x.ndim != 2:
+        if x.ndim != 2 or "grid_x" in f or "grid_y" in f:
             return
         ny, nx = x.shape
         dims = {name: ("grid_y", "grid_x") for name, ds in f.items()
@@ -529,6 +529,8 @@ def _result_dimensions(f, kind) -> None:
     else:
         g = f["dots"]
         n = len(g["x"])
+        if "dot" in g:
+            return
         dims = {name: ("dot",) for name, ds in g.items() if isinstance(ds, h5py.Dataset) and ds.shape == (n,)}
         name_dimensions(g, {"dot": (np.arange(n, dtype=np.int64), *RESULT_DATASETS["dots/dot"])}, dims)
 
