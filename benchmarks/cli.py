@@ -29,7 +29,7 @@ from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
 from .plugins import PluginWarning
-from .process import load_image, process_pair, process_settings, read_dots_csv, write_result
+from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
 from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, methods_table
 from .regress import BASELINE, run_regress
 from .show_density import plot_snapshots
@@ -67,7 +67,7 @@ def _render(args):
 
 
 def _process(args):
-    inputs = [args.pair, args.reference, args.gradient, args.dots, args.config, args.mask]
+    inputs = [args.pair, args.reference, args.gradient, args.dots, args.config, args.mask, args.setup_file]
     out = check_output_file(args.output, inputs=inputs, what="-o")
     method = get_method(args.method)  # an unknown or skipped method is the only line
     device = _device(args.device)  # the method's processing device
@@ -100,6 +100,10 @@ def _process(args):
             prior = read_dots_csv(args.dots)
         attrs["input"] = f"{args.reference} {args.gradient}"
     attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
+    setup = result_setup(ref.shape, pair=pair if args.pair else None, pair_path=args.pair,
+                         setup_file=args.setup_file, config=args.config)
+    if setup is not None:
+        attrs["setup"] = setup
     t0 = time.perf_counter()
     res, image_used = process_pair(args.method, ref, grad, settings=settings, options=options, prior_xy=prior,
                                    notes=notes, device=device)
@@ -172,18 +176,20 @@ def _floats(text, n, what):
 def _integrate(args):
     from .integrate import integrate_file
 
-    out = check_output_file(args.output, inputs=[args.result, args.pair, args.config], what="-o")
+    out = check_output_file(args.output, inputs=[args.result, args.pair, args.config, args.setup_file], what="-o")
     region = _floats(args.reference_region, 4, "--reference-region") if args.reference_region else None
     mask = _floats(args.mask_region, 4, "--mask-region") if args.mask_region else None
-    if args.pair and args.config:
-        raise SynthbosError("give either --pair or --config (the pair file holds its own set-up)")
-    res = integrate_file(args.result, out, pair_path=args.pair, config=args.config, solver=args.solver,
-                         spacing_px=args.spacing, reference_density=args.reference_density,
+    res = integrate_file(args.result, out, pair_path=args.pair, config=args.config, setup_file=args.setup_file,
+                         solver=args.solver, spacing_px=args.spacing, reference_density=args.reference_density,
                          reference_region_mm=region, dirichlet=args.dirichlet, mask_region_mm=mask)
     d = res["density"]
     rho = d.density[np.isfinite(d.density)]
     print(f"wrote {out}: {args.solver}, {rho.size} nodes ({d.grid.gx.shape[1]} x {d.grid.gx.shape[0]}), "
-          f"density {rho.min():.5g} .. {rho.max():.5g} kg/m^3; constant from {d.reference}")
+          f"density {rho.min():.5g} .. {rho.max():.5g} kg/m^3; constant from {d.reference}; "
+          f"set-up: {res['setup_source']}")
+    if res["negative"]:
+        print(f"synthbos: warning: the density is negative (unphysical) at {res['negative']} of {rho.size} nodes, "
+              f"down to {rho.min():.4g} kg/m^3: check the reference density and the set-up", file=sys.stderr)
     s = res["summary"]
     if s:
         print(f"{'truth':<7} {'rms kg/m3':>10} {'p90 kg/m3':>10} {'rms/range':>10} {'p90/range':>10} {'offset':>10}")
@@ -381,7 +387,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
     p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
     p.add_argument("--config", help="process configuration (TOML) with [correlation], [tracking] and [image] "
-                   "tables; the flags below override it")
+                   "tables (and an optional [setup]); the flags below override it")
+    p.add_argument("--setup-file", metavar="CAMERA.toml", default=None,
+                   help="the camera pair's set-up ([setup]: z_d_mm, depth_mm, magnification, ...; "
+                        "docs/own-images.md), recorded in the result for 'synthbos integrate'")
     p.add_argument("--mask", help="mask image of the camera images' size; see --mask-excludes")
     p.add_argument("--mask-excludes", choices=("dark", "bright"), default=None,
                    help="which mask pixels are left out: dark (default: white marks the region to measure) "
@@ -400,8 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result", help="result file from 'synthbos process', or a pair file from 'synthbos render' alone: "
                                   "its exact displacements, the floor set by the dot spacing and the solver")
     p.add_argument("--pair", help="the pair file the result came from: its set-up, and the truths to score against")
-    p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file "
-                                    "(default: the embedded default)")
+    p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file")
+    p.add_argument("--setup-file", metavar="CAMERA.toml", default=None,
+                   help="the camera pair's set-up ([setup]: z_d_mm, depth_mm, magnification, ...; docs/own-images.md)"
+                        "; default: the set-up the result recorded (its pair file's, or process --setup-file)")
     p.add_argument("--solver", default="lsq", choices=("dct", "lsq", "wlsq"),
                    help="dct: Poisson by DCT (full rectangle); lsq: sparse least squares; wlsq: uncertainty-weighted")
     p.add_argument("--spacing", type=float, default=None,

@@ -6,9 +6,11 @@ against the renderer's two truths.
 
 Steps
 -----
-1. Displacements (px) to density gradients (kg/m^4), Eq. 4 inverted with the set-up's numbers (the
-   pair file's attributes with ``--pair``, otherwise a render configuration: ``--config`` or the
-   embedded default): ``grad rho_avg = -n0 dX pitch / (M Z_D K L)``.
+1. Displacements (px) to density gradients (kg/m^4), Eq. 4 inverted with the set-up's numbers:
+   ``grad rho_avg = -n0 dX pitch / (M Z_D K L)``. The set-up: the pair file's attributes with ``--pair``,
+   a render configuration with ``--config``, a camera pair's ``[setup]`` with ``--setup-file``
+   (:mod:`.setup_file`), else the set-up the result recorded (its ``setup`` attribute, written by
+   ``process`` from its pair file or its ``--setup-file``); a result that records none is refused.
 2. The grid. A correlation result keeps its own grid of window centres. Tracked dots are interpolated
    linearly on the Delaunay triangulation of the valid dots (``integration.scattered_to_grid``) onto a
    square grid whose spacing is the mean dot spacing (``--spacing`` px to change it); nodes outside the
@@ -35,11 +37,14 @@ content (:func:`input_kind`).
 Output file (HDF5)
 ------------------
 ``/density_kg_m3`` (ny, nx), ``/x_mm`` (nx), ``/y_mm`` (ny), ``/measured`` (ny, nx) bool, ``/x_px``,
-``/y_px`` (the grid in image pixels), each with ``units`` and ``description``; with ``--pair`` also
+``/y_px`` (the grid in image pixels), each with ``units`` and ``description``; ``/x_mm`` and ``/y_mm`` are
+HDF5 dimension scales, so xarray shows the maps with named dimensions ``(y_mm, x_mm)``; with ``--pair`` also
 ``/truth_cone_kg_m3`` and ``/truth_chief_kg_m3`` on the same grid (the per-dot truths of the pair file,
 interpolated like the dots) and the error summary as root attributes (``cone_rms_kg_m3``,
 ``cone_p90_kg_m3``, ``cone_rms_rel``, ... relative to the truth's range; ``cone_offset_kg_m3`` is the
-mean error over the reference region, the part due to the constant of integration).
+mean error over the reference region, the part due to the constant of integration). Root attributes
+also: ``geometry`` (JSON of the set-up used), ``setup_source`` (where it came from), ``negative_nodes``
+(nodes of negative density, which no fluid has: the command warns in one line), ``method``, ``input``.
 """
 
 from __future__ import annotations
@@ -65,6 +70,7 @@ from synthbos.integration import (
     set_reference,
     weighted_lsq,
 )
+from synthbos.raytrace.pairfile import name_dimensions
 
 from synthbos import SynthbosError, atomic_output
 from synthbos.values import numbers, optional_number
@@ -159,6 +165,30 @@ def geometry_from_pair(pair) -> Geometry:
         volume_centre_m=(float(a["volume_centre_x_m"]), float(a["volume_centre_y_m"])),
         ambient_density_kg_m3=float(a["ambient_density_kg_m3"]), image_shape=tuple(pair.reference.shape),
     )
+
+
+def setup_attr(geometry: Geometry, source: str) -> str:
+    """The result file's ``setup`` attribute: the set-up's numbers and where they came from, as JSON."""
+    return json.dumps({**asdict(geometry), "source": source})
+
+
+def geometry_from_attr(text, *, path="the result") -> Geometry:
+    """The :class:`Geometry` a result file recorded in its ``setup`` attribute (:func:`setup_attr`)."""
+    try:
+        values = json.loads(text)
+        values.pop("source", None)
+        values["principal_point_px"] = tuple(float(v) for v in values["principal_point_px"])
+        values["volume_centre_m"] = tuple(float(v) for v in values["volume_centre_m"])
+        values["image_shape"] = tuple(int(v) for v in values["image_shape"])
+        geometry = Geometry(**values)
+    except (json.JSONDecodeError, TypeError, KeyError, ValueError, AttributeError):
+        raise SynthbosError(f"{path}: its setup attribute is not the JSON of a set-up; give --pair, --setup-file "
+                            "or --config") from None
+    for name, value in asdict(geometry).items():
+        if isinstance(value, float) and not (np.isfinite(value) and value > 0):
+            raise SynthbosError(f"{path}: its recorded set-up has {name} = {value!r}; give --pair, --setup-file "
+                                "or --config")
+    return geometry
 
 
 def uncertainty_px(result: MethodResult) -> np.ndarray:
@@ -427,9 +457,23 @@ def score_density_grid(pair, grid: GradientGrid, *, solver=DENSITY_SOLVER) -> di
     }
 
 
+#: Smallest reach (px) of a measured point past the image's edge accepted by :func:`check_belongs`:
+#: a dot is fitted from the part of its image inside the frame, so its centre may lie outside.
+EDGE_REACH_PX = 2.0
+
+
+def edge_reach_px(result: MethodResult) -> float:
+    """How far past the image's edge (px) a result's points may lie: the larger of ``EDGE_REACH_PX`` and
+    the radius of the result's largest dot (its table's ``diameter``, e^-2 diameter of the fitted Gaussian)."""
+    d = np.asarray(result.table.get("diameter", ()), dtype=np.float64).ravel()
+    d = d[np.isfinite(d)]
+    return max(EDGE_REACH_PX, 0.5 * float(d.max())) if d.size else EDGE_REACH_PX
+
+
 def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry, *, what="pair") -> None:
     """Refuse a result and a pair (or set-up) that do not belong together: image size, magnification,
-    points beyond the image."""
+    points beyond the image (by more than a dot's reach, :func:`edge_reach_px`: dots at the edge are
+    fitted with their centres up to a radius outside)."""
     shape = result_attrs.get("image_shape")
     if shape is not None and tuple(int(s) for s in shape) != tuple(geometry.image_shape):
         H, W = geometry.image_shape
@@ -442,8 +486,11 @@ def check_belongs(result_attrs: dict, result: MethodResult, geometry: Geometry, 
     xy = np.asarray(result.xy, float)
     xy = xy[np.all(np.isfinite(xy), axis=1)]
     H, W = geometry.image_shape
-    if len(xy) and (xy.min() < -0.5 or xy[:, 0].max() > W - 0.5 or xy[:, 1].max() > H - 0.5):
-        raise SynthbosError(f"the result's points reach beyond the {what}'s {W} x {H} px image: "
+    reach = edge_reach_px(result)
+    if len(xy) and (xy.min() < -0.5 - reach or xy[:, 0].max() > W - 0.5 + reach or xy[:, 1].max() > H - 0.5 + reach):
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        raise SynthbosError(f"the result's points (x {lo[0]:.5g} .. {hi[0]:.5g}, y {lo[1]:.5g} .. {hi[1]:.5g} px) "
+                            f"reach more than {reach:.3g} px beyond the {what}'s {W} x {H} px image: "
                             "they do not belong together")
 
 
@@ -471,6 +518,11 @@ def write_density(path, dmap: DensityMap, *, truths=None, summary=None, attrs=No
                 "true depth-averaged density averaged over each dot's cone of rays, interpolated from the dots")
             put("truth_chief_kg_m3", chief, "kg/m^3",
                 "true depth-averaged density along each dot's chief ray, interpolated from the dots")
+        ny, nx = dmap.density.shape
+        dims = {name: ("y_mm", "x_mm") for name, ds in f.items() if ds.shape == (ny, nx)}
+        name_dimensions(f, {"x_mm": (None, "mm", f["x_mm"].attrs["description"]),
+                            "y_mm": (None, "mm", f["y_mm"].attrs["description"])},
+                        {**dims, "x_px": ("x_mm",), "y_px": ("y_mm",)})
         f.attrs["solver"] = dmap.solver
         f.attrs["reference"] = dmap.reference
         for key, value in (summary or {}).items():
@@ -531,49 +583,82 @@ def input_kind(path) -> str:
                         "file of 'synthbos render' (no /images/reference and /dots/displacement_px)")
 
 
-def _input_grid(input_path, *, pair_path, config, spacing_px):
+def _input_grid(input_path, *, pair_path, config, spacing_px, setup_file=None):
     """The gradient grid, the pair (or None) and the file attributes of ``synthbos integrate``'s input: a
-    result (with its pair file, or a set-up) or a pair file alone (its exact displacements)."""
+    result (with its pair file, a set-up, or the set-up it recorded) or a pair file alone (its exact
+    displacements)."""
     from synthbos.raytrace import read_pair
 
     from .process import read_result
 
+    given = [name for name, v in (("--pair", pair_path), ("--config", config), ("--setup-file", setup_file)) if v]
+    if len(given) > 1:
+        raise SynthbosError(f"give one of --pair, --config and --setup-file (each gives the set-up), not "
+                            f"{' and '.join(given)}")
     if input_kind(input_path) == "pair":
-        if pair_path is not None or config is not None:
+        if given:
             raise SynthbosError(f"{input_path} is a pair file: it integrates alone (its exact displacements and "
-                                "its own set-up); leave out --pair and --config")
+                                f"its own set-up); leave out --pair and --config (and --setup-file)")
         pair = read_pair(input_path)
         geometry = geometry_from_pair(pair)
         attrs = {"method": "exact", "input": str(input_path), "pair": str(input_path),
+                 "setup_source": f"pair file {input_path}",
                  "note": "the pair's exact per-dot displacements: the floor set by the dot spacing and the solver"}
         return exact_grid(pair, geometry, spacing_px=spacing_px), geometry, pair, attrs
     result, rattrs = read_result(input_path)
     pair = None
     if pair_path is not None:
         pair = read_pair(pair_path)
-        geometry = geometry_from_pair(pair)
+        geometry, source = geometry_from_pair(pair), f"pair file {pair_path}"
         check_belongs(rattrs, result, geometry)
     else:
-        geometry = geometry_from_config(config)
+        geometry, source = _result_geometry(input_path, rattrs, config=config, setup_file=setup_file)
         check_belongs({k: v for k, v in rattrs.items() if k == "image_shape"}, result, geometry, what="set-up")
     check_displacements(result, geometry)
-    attrs = {"method": result.method, "input": str(input_path)}
+    attrs = {"method": result.method, "input": str(input_path), "setup_source": source}
     if pair_path is not None:
         attrs["pair"] = str(pair_path)
     return gradient_grid(result, geometry, spacing_px=spacing_px), geometry, pair, attrs
 
 
-def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq", spacing_px=None,
-                   reference_density=None, reference_region_mm=None, dirichlet=False, mask_region_mm=None) -> dict:
+def _result_geometry(path, rattrs, *, config=None, setup_file=None) -> tuple[Geometry, str]:
+    """The set-up of a result integrated without its pair file, and where it came from: a render
+    configuration (``--config``), a set-up file (``--setup-file``), else the set-up the result recorded;
+    refused when none is known."""
+    from .setup_file import geometry_from_setup, read_setup_file
+
+    if config is not None:
+        return geometry_from_config(config), f"render configuration {config}"
+    if setup_file is not None:
+        table = read_setup_file(setup_file)
+        if rattrs.get("image_shape") is None:
+            raise SynthbosError(f"{path} does not record its images' size; integrate it with --pair or --config")
+        where = f"set-up file {setup_file}"
+        return geometry_from_setup(table, rattrs["image_shape"], where=where), where
+    if "setup" in rattrs:
+        try:
+            source = json.loads(rattrs["setup"]).get("source", "unknown")
+        except (json.JSONDecodeError, AttributeError, TypeError):
+            source = "unknown"
+        return geometry_from_attr(rattrs["setup"], path=path), f"the set-up {path} recorded ({source})"
+    raise SynthbosError(f"{path} records no set-up (processed from camera images without --setup-file): give "
+                        "--setup-file CAMERA.toml, --pair PAIR.h5 or --config RENDER.toml")
+
+
+def integrate_file(result_path, out, *, pair_path=None, config=None, setup_file=None, solver="lsq",
+                   spacing_px=None, reference_density=None, reference_region_mm=None, dirichlet=False,
+                   mask_region_mm=None) -> dict:
     """The work of ``synthbos integrate``: read, integrate, (score,) write; return the summary.
 
     ``result_path``: a result file (scored when ``pair_path`` is given), or a pair file alone, whose exact
-    displacements are integrated and scored against its own truths (the floor).
+    displacements are integrated and scored against its own truths (the floor). The set-up: the pair
+    file's, a render configuration (``config``), a set-up file (``setup_file``, :mod:`.setup_file`), or
+    the one the result recorded. The summary's ``negative`` counts the nodes of negative density.
     """
     check_integrate_options(spacing_px=spacing_px, reference_density=reference_density,
                             regions={"--reference-region": reference_region_mm, "--mask-region": mask_region_mm})
     grid, geometry, pair, attrs = _input_grid(result_path, pair_path=pair_path, config=config,
-                                              spacing_px=spacing_px)
+                                              setup_file=setup_file, spacing_px=spacing_px)
     if mask_region_mm is not None:
         grid = mask_grid(grid, _region_mm(grid, mask_region_mm))
     region = None
@@ -584,12 +669,13 @@ def integrate_file(result_path, out, *, pair_path=None, config=None, solver="lsq
             raise SynthbosError(f"the reference region x {x0:g}..{x1:g} mm, y {y0:g}..{y1:g} mm holds no measured node")
     dmap = solve_density(grid, solver=solver, reference_value=reference_density, reference_region=region,
                          dirichlet=dirichlet, ambient=geometry.ambient_density_kg_m3)
-    check_density_range(dmap)
+    negative = check_density_range(dmap)
     truths = truth_on_grid(pair, grid) if pair is not None else None
     summary = density_summary(dmap, truths) if truths is not None else {}
     attrs["geometry"] = json.dumps(asdict(geometry))
+    attrs["negative_nodes"] = negative
     write_density(out, dmap, truths=truths, summary=summary, attrs=attrs)
-    return {"density": dmap, "summary": summary}
+    return {"density": dmap, "summary": summary, "negative": negative, "setup_source": attrs["setup_source"]}
 
 
 # Bounds of the integrate options (px, kg/m^3): a grid finer than a pixel only interpolates.
@@ -620,13 +706,15 @@ def check_displacements(result: MethodResult, geometry: Geometry) -> None:
                             "image's diagonal: it is no measurement to integrate")
 
 
-def check_density_range(dmap: DensityMap) -> None:
-    """Refuse a reconstructed density that is no fluid: negative, or above ``MAX_DENSITY_KG_M3`` (the
-    set-up, the reference density or the displacements are in the wrong units)."""
+def check_density_range(dmap: DensityMap) -> int:
+    """Refuse a reconstructed density that is no fluid's: above ``MAX_DENSITY_KG_M3``, or negative
+    everywhere (the set-up, the reference density or the displacements are in the wrong units). Return
+    the number of nodes where it is negative (unphysical: the caller warns)."""
     from synthbos.raytrace.checks import MAX_DENSITY_KG_M3
 
     rho = dmap.density[np.isfinite(dmap.density)]
-    if rho.size and (rho.min() < 0 or rho.max() > MAX_DENSITY_KG_M3):
+    if rho.size and (rho.max() < 0 or rho.max() > MAX_DENSITY_KG_M3):
         raise SynthbosError(f"the integrated density spans {rho.min():.4g} .. {rho.max():.4g} kg/m^3, which no "
                             f"fluid has (0 .. {MAX_DENSITY_KG_M3:g}): check the reference density, the set-up "
-                            "(--pair or --config) and the result's units")
+                            "(--pair, --setup-file or --config) and the result's units")
+    return int(np.count_nonzero(rho < 0))

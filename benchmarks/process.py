@@ -18,6 +18,10 @@ keys are refused, values checked by the class), and an ``[image]`` table::
     diameter = 4.0
     max_displacement = 6.0
 
+    [setup]                    # optional: the camera pair's set-up (benchmarks.setup_file), recorded in
+    z_d_mm = 250.0             # the result so that `synthbos integrate` needs no other
+    ...
+
     [image]
     mask = "mask.png"          # relative to the configuration file
     mask_excludes = "dark"     # "dark": black mask pixels are left out (white = measured);
@@ -35,11 +39,18 @@ centres, all of the image's shape).
 A dots method (``tracking`` / ``tracking-cc``): ``/dots/x``, ``/dots/y`` (reference positions), ``/dots/u``,
 ``/dots/v`` (by centroid difference for ``tracking``, with correlation correction for ``tracking-cc``),
 ``/dots/status``, ``/dots/masked``, plus every other column of the tracking table under ``/dots/`` (the
-centroid-difference displacement as ``u_centroid``, ``v_centroid``).
+centroid-difference displacement as ``u_centroid``, ``v_centroid``), among them ``/dots/dot_id``: the
+prior's row each dot belongs to (the pair file's dot index for a pair prior, the ``--dots`` CSV's data row,
+0-based; -1 without a prior).
+Named dimensions (HDF5 dimension scales, for xarray and netCDF readers): ``/grid_y``, ``/grid_x`` (the
+window centres of each grid row and column, px) on the 2-D datasets of a grid or dense result;
+``/dots/dot`` (the row index) on every ``/dots`` column.
 Root attributes: ``method``, ``kind``, ``settings`` (JSON of the settings used), ``image`` (JSON of the
 image options used: mask, its polarity, whether the images were inverted and why), ``counts`` (JSON:
 measured, replaced, failed, masked, total), ``config`` (the configuration file's text, when one was
-given), ``input``, ``seconds``, ``device`` (the Warp device that processed, from the command line).
+given), ``input``, ``seconds``, ``device`` (the Warp device that processed, from the command line),
+``setup`` (JSON: the set-up the images were taken with, ``integrate.Geometry``'s fields and ``source``;
+from the pair file, or from ``--setup-file`` / the configuration's ``[setup]``; absent when unknown).
 Both: ``valid`` (``/valid`` or ``/dots/valid``), the vectors the method counts as measured and unflagged;
 from the command line also ``image_shape`` (H, W) and, for a pair file, its ``magnification``.
 ``read_result`` reads a result file back.
@@ -65,7 +76,7 @@ import imageio.v3 as iio
 import numpy as np
 import tifffile
 from synthbos.correlation import multigrid
-from synthbos.raytrace.pairfile import describe_datasets
+from synthbos.raytrace.pairfile import describe_datasets, is_scale, name_dimensions
 from synthbos.tracking import DotStatus
 
 from synthbos import SynthbosError, atomic_hdf5
@@ -88,9 +99,11 @@ __all__ = [
     "load_mask",
     "process_pair",
     "process_settings",
+    "process_tables",
     "read_dots_csv",
     "read_process_config",
     "read_result",
+    "result_setup",
     "run_method",
     "write_result",
 ]
@@ -184,6 +197,15 @@ RESULT_DATASETS = {
     "dots/iteration_gradient": ("1", "identification iteration that found the dot in the gradient image"),
     "dots/valid": ("1", "true where the dot was matched in both images and its displacement is finite"),
     "dots/masked": ("1", "1 where the dot's reference position lies in the mask (its u, v are NaN)"),
+    "dots/u_pred": ("px", "x displacement predicted for the dot by the correlation predictor (NaN without it)"),
+    "dots/v_pred": ("px", "y displacement predicted for the dot by the correlation predictor (NaN without it)"),
+    "dots/pred_correlation": ("1", "normalised correlation of the predictor's windows at the dot: about 1 for a "
+                                   "good prediction, about 0 for an unrelated gradient image (NaN without it)"),
+    "dots/dot_id": ("1", "the prior's row the dot belongs to: the pair file's dot index (/dots/dot) for a pair "
+                         "prior, the data row of the --dots CSV (0 = the line after the header), -1 without a prior"),
+    "dots/dot": ("1", "row index of the /dots datasets (the dimension 'dot')"),
+    "grid_x": ("px", "x (column) of each grid column's window centres, the dimension 'grid_x' of the 2-D datasets"),
+    "grid_y": ("px", "y (row) of each grid row's window centres, the dimension 'grid_y' of the 2-D datasets"),
 }
 
 
@@ -354,6 +376,11 @@ def _table_key(method):
     return method.settings_key or method.name
 
 
+def process_tables() -> tuple[str, ...]:
+    """The tables a process configuration may hold: ``image``, ``setup`` and every settings table."""
+    return ("image", "setup", *_settings_tables())
+
+
 def _settings_tables():
     """Table name -> a registered method that reads it (the first one in the registry)."""
     tables = {}
@@ -370,14 +397,15 @@ def read_process_config(path) -> dict:
     dict
         ``{"image": ImageOptions, <settings table>: {field: value}, ...}``: every settings table is
         checked by building its settings class, so unknown keys and bad values fail here; a mask
-        path is made relative to the configuration file's folder.
+        path is made relative to the configuration file's folder. A ``[setup]`` table (the camera
+        pair's set-up, :mod:`synthbos.benchmarks.setup_file`) is checked and returned as ``"setup"``.
     """
     from synthbos.raytrace.config import read_toml
 
     path = Path(path)
     raw = read_toml(path)
     tables = _settings_tables()
-    known = ["image", *tables]
+    known = list(process_tables())
     unknown = sorted(set(raw) - set(known))
     if unknown:
         raise SynthbosError(f"process configuration {path}: unknown table(s) {', '.join(unknown)}; "
@@ -402,6 +430,10 @@ def read_process_config(path) -> dict:
     if isinstance(image.get("mask"), str):
         image["mask"] = str(path.parent / image["mask"])
     out["image"] = ImageOptions(**image)
+    if "setup" in raw:  # the camera pair's set-up (benchmarks.setup_file), checked now, used by the caller
+        from .setup_file import check_setup_table
+
+        out["setup"] = check_setup_table(raw["setup"], f"process configuration {path}")
     return out
 
 
@@ -477,7 +509,30 @@ def write_result(path, result: MethodResult, *, extra_attrs=None) -> Path:
         if method.kind == DENSE:
             for axis, words in (("x", "column"), ("y", "row")):
                 f[axis].attrs["description"] = f"pixel centre {axis} ({words}) of the reference image"
+        _result_dimensions(f, method.kind)
     return path
+
+
+def _result_dimensions(f, kind) -> None:
+    """Named dimensions (HDF5 dimension scales): ``(grid_y, grid_x)`` of a grid or dense result, ``(dot,)``
+    of a dots result's columns (none where a plugin's table already holds a column of a scale's name)."""
+    if kind in (GRID, DENSE):
+        x, y = np.asarray(f["x"][()], np.float64), np.asarray(f["y"][()], np.float64)
+        if x.ndim != 2 or "grid_x" in f or "grid_y" in f:
+            return
+        ny, nx = x.shape
+        dims = {name: ("grid_y", "grid_x") for name, ds in f.items()
+                if isinstance(ds, h5py.Dataset) and ds.shape == (ny, nx)}
+        scales = {"grid_x": (np.nanmean(x, axis=0), *RESULT_DATASETS["grid_x"]),
+                  "grid_y": (np.nanmean(y, axis=1), *RESULT_DATASETS["grid_y"])}
+        name_dimensions(f, scales, dims)
+    else:
+        g = f["dots"]
+        n = len(g["x"])
+        if "dot" in g:
+            return
+        dims = {name: ("dot",) for name, ds in g.items() if isinstance(ds, h5py.Dataset) and ds.shape == (n,)}
+        name_dimensions(g, {"dot": (np.arange(n, dtype=np.int64), *RESULT_DATASETS["dots/dot"])}, dims)
 
 
 # Datasets every result file of a kind holds.
@@ -544,7 +599,8 @@ def read_result(path):
                 missing = [f"/{n}" for n in need if n not in f]
                 if missing:
                     raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
-                table = {n: f[n][()] for n in f if isinstance(f[n], h5py.Dataset) and n not in ("valid", "correlation")}
+                table = {n: f[n][()] for n in f if isinstance(f[n], h5py.Dataset) and not is_scale(f[n])
+                         and n not in ("valid", "correlation")}
                 shape = tuple(np.shape(table["u"]))
                 valid = f["valid"][()].ravel().astype(bool) if "valid" in f else None
                 xy = np.stack([np.ravel(table["x"]), np.ravel(table["y"])], axis=1).astype(np.float64)
@@ -556,7 +612,7 @@ def read_result(path):
                 if missing:
                     raise SynthbosError(f"{path} is not a {method.name} result file: missing {', '.join(missing)}")
                 g = f["dots"]
-                table = {n: g[n][()] for n in g if n != "valid"}
+                table = {n: g[n][()] for n in g if n != "valid" and not is_scale(g[n])}
                 table["u_cc"] = table.get("u_cc", table["u"])
                 table["v_cc"] = table.get("v_cc", table["v"])
                 shape = None
@@ -580,8 +636,8 @@ def _describe(f) -> None:
         column = name.rpartition("/")[2]
         if column in FLAG_BITS:
             obj.attrs["flag_bits"] = flag_bits(FLAG_BITS[column])
-        if "units" not in obj.attrs:
-            obj.attrs["units"] = ""
+        if "units" not in obj.attrs:  # a plugin's own column: its units are not known here
+            obj.attrs["units"] = "unknown"
             obj.attrs["description"] = f"column {column!r} of the {f.attrs['method']} table (see its documentation)"
 
 
@@ -693,7 +749,43 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
         if notes is not None:
             notes.append(f"images inverted ({reason})")
     res = run_method(method, reference, gradient, prior_xy=prior_xy, settings=settings, device=device, mask=mask)
+    if get_method(method).kind == DOTS and "dot_id" not in res.table:  # a plugin's dots table: the prior's rows
+        with_prior = prior_xy is not None and get_method(method).uses_prior
+        res.table["dot_id"] = np.arange(len(res.xy)) if with_prior else np.full(len(res.xy), -1)
     return res, image_options_dict(options, inverted, reason)
+
+
+def result_setup(image_shape, *, pair=None, pair_path=None, setup_file=None, config=None) -> str | None:
+    """The ``setup`` attribute of a result file (JSON, ``integrate.setup_attr``), or None when unknown.
+
+    Parameters
+    ----------
+    image_shape : (H, W)
+        The processed images' shape.
+    pair : Pair, optional
+        The pair file processed (``pair_path`` its path): its render set-up.
+    setup_file : str or Path, optional
+        A set-up file (``--setup-file``, :mod:`synthbos.benchmarks.setup_file`).
+    config : str or Path, optional
+        The process configuration, whose ``[setup]`` table counts when there is no set-up file.
+
+    A pair file with a set-up file or a ``[setup]`` table is refused: the pair holds its own.
+    """
+    from .integrate import geometry_from_pair, setup_attr
+    from .setup_file import geometry_from_setup, read_setup_file
+
+    table, where = None, None
+    if setup_file is not None:
+        table, where = read_setup_file(setup_file), f"set-up file {setup_file}"
+    elif config is not None:
+        table, where = read_process_config(config).get("setup"), f"process configuration {config}"
+    if pair is not None:
+        if table is not None:
+            raise SynthbosError(f"the pair file {pair_path} holds its own set-up: leave out the [setup] of the {where}")
+        return setup_attr(geometry_from_pair(pair), f"pair file {pair_path}")
+    if table is None:
+        return None
+    return setup_attr(geometry_from_setup(table, image_shape, where=where), where)
 
 
 def check_prior(prior_xy, shape) -> None:

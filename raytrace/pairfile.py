@@ -37,6 +37,11 @@ root attributes
     ``volume_centre_x_m``, ``volume_centre_y_m`` (the volume's lateral offset off the optical axis),
     ``gladstone_dale_m3_per_kg``, ``ambient_density_kg_m3`` (all scalars).
 
+``/images/y``, ``/images/x``, ``/dots/dot``, ``/dots/component``, ``/dots/covariance``, ``/dots/moment``
+    HDF5 dimension scales (the pixel centres, the dot index, the column labels), attached to the datasets
+    above, so that ``xarray.open_dataset(path, engine="h5netcdf", group="dots")`` (or ``group="images"``)
+    shows named dimensions ``(dot, component)``, ``(y, x)``.
+
 Every dataset carries ``units`` and ``description`` attributes, from ``PAIR_DATASETS``. Files written
 before the cone truth existed read with ``theory_cone_px`` and the two densities set to None; files
 written before the ray moments existed read with the three moment fields set to None.
@@ -58,7 +63,8 @@ import numpy as np
 from synthbos import SynthbosError, atomic_hdf5
 
 __all__ = [
-    "PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "in_cone_spread_px", "read_pair", "write_pair",
+    "PAIR_DATASETS", "SIGN_CONVENTION", "Pair", "describe_datasets", "in_cone_spread_px", "is_scale", "name_dimensions",
+    "read_pair", "write_pair",
 ]
 
 SIGN_CONVENTION = (
@@ -175,6 +181,68 @@ def describe_datasets(h5file, schema: dict) -> None:
             h5file[name].attrs["description"] = description
 
 
+def name_dimensions(group, scales: dict, dims: dict) -> None:
+    """Name the dimensions of a group's datasets with HDF5 dimension scales, so that netCDF readers
+    (h5netcdf, xarray) see named dimensions with coordinates instead of phony ones.
+
+    Parameters
+    ----------
+    group : h5py.Group
+        The group (or file) that holds the datasets; each scale is written in it.
+    scales : dict
+        Dimension name -> ``(values, units, description)``: a 1-D dataset of that name is written (or,
+        when ``values`` is None, the group's existing 1-D dataset of that name is used) and made a scale.
+    dims : dict
+        Dataset name (relative to ``group``) -> the names of its dimensions, one per axis; a dataset
+        that is absent, or whose axis lengths differ from its scales', is left unnamed.
+    """
+    for name, (values, units, description) in scales.items():
+        ds = group[name] if values is None else group.create_dataset(name, data=values)
+        ds.attrs["units"] = units
+        ds.attrs["description"] = description
+        ds.make_scale(name)
+    for name, names in dims.items():
+        ds = group.get(name)
+        if not isinstance(ds, h5py.Dataset) or ds.ndim != len(names):
+            continue
+        if any(ds.shape[axis] != len(group[d]) for axis, d in enumerate(names)):
+            continue
+        for axis, d in enumerate(names):
+            ds.dims[axis].attach_scale(group[d])
+
+
+def is_scale(ds) -> bool:
+    """True for a dimension scale written by :func:`name_dimensions` (a coordinate, not data)."""
+    return isinstance(ds, h5py.Dataset) and h5py.h5ds.is_scale(ds.id)
+
+
+#: Labels of the pair file's small dimensions (the columns of the (N, k) dot sets).
+PAIR_LABELS = {
+    "component": (("x", "y"), "the (x, y) components of the (N, 2) dot sets: x = column, y = row"),
+    "covariance": (("var_x", "var_y", "cov_xy"), "the entries [var_x, var_y, cov_xy] of the ray covariances"),
+    "moment": (("m30", "m21", "m12", "m03"), "the central third moments [m30, m21, m12, m03] = E[dx^a dy^b]"),
+}
+
+
+def _pair_dimensions(f) -> None:
+    """The pair file's named dimensions: (y, x) of the images, (dot, component|covariance|moment) of the dots."""
+    h, w = f["images/reference"].shape
+    name_dimensions(f["images"], {
+        "y": (np.arange(h, dtype=np.float64), "px", "row coordinate y of the image's pixel centres"),
+        "x": (np.arange(w, dtype=np.float64), "px", "column coordinate x of the image's pixel centres"),
+    }, {"reference": ("y", "x"), "gradient": ("y", "x")})
+    dots = f["dots"]
+    n = len(dots["valid"])
+    scales = {"dot": (np.arange(n, dtype=np.int64), "1", "dot index, the row of every /dots dataset (the "
+                                                         "dot_id of a result tracked with this pair's prior)")}
+    scales.update({name: (np.array(labels, dtype=h5py.string_dtype()), "1", description)
+                   for name, (labels, description) in PAIR_LABELS.items()})
+    dims = {name: ("dot", "component") for name in (*_DOT_SETS, "theory_cone_px")}
+    dims.update({name: ("dot",) for name in ("density_cone_kg_m3", "density_chief_kg_m3", "valid")})
+    dims.update({name: ("dot", "covariance" if columns == 3 else "moment") for name, columns in _MOMENT_SETS.items()})
+    name_dimensions(dots, scales, dims)
+
+
 def write_pair(path, pair: Pair) -> Path:
     """Write a pair file atomically (built in memory, see ``synthbos.atomic_hdf5``); return its path.
 
@@ -206,6 +274,7 @@ def write_pair(path, pair: Pair) -> Path:
             f.attrs[key] = value
         f.attrs["sign_convention"] = SIGN_CONVENTION
         describe_datasets(f, PAIR_DATASETS)
+        _pair_dimensions(f)
     return path
 
 

@@ -590,7 +590,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         M,
         [
             r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
-            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, table,
+            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, N, table,
         ],
     )  # fmt: skip
     if host_table is not None:

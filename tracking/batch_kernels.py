@@ -672,6 +672,7 @@ class TrackRow:
     u_pred: wp.float64
     v_pred: wp.float64
     pred_correlation: wp.float64
+    dot_id: wp.int64
 
 
 @wp.kernel
@@ -876,6 +877,7 @@ def write_table(
     use_pred: int,
     cc_threshold: wp.float64,
     status: wp.array(dtype=wp.int32),
+    n_dots: int,
     table: wp.array(dtype=TrackRow),
 ):
     """The table's row i: the outlier test's verdict, MATCHED, the displacements and the model
@@ -933,6 +935,7 @@ def write_table(
         row.u_pred = uv_pred[i][0]
         row.v_pred = uv_pred[i][1]
         row.pred_correlation = quality[i]
+    row.dot_id = wp.int64(i % n_dots)
     table[i] = row
 
 

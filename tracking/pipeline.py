@@ -152,6 +152,7 @@ TRACK_DTYPE = np.dtype(
         ("u_pred", "f8"),
         ("v_pred", "f8"),
         ("pred_correlation", "f8"),
+        ("dot_id", "i8"),
     ]
 )
 
@@ -962,6 +963,9 @@ def track_pair(
     ``pred_correlation`` (f8)
         The predictor's local normalised correlation at the dot (its significance, about 1 for a good
         prediction, about 0 for an unrelated gradient image; NaN with ``predictor="none"``).
+    ``dot_id`` (i8)
+        The prior's row the dot belongs to (row i of ``prior_xy``: i), or -1 without a prior (the dots
+        identified in the reference image carry no identity).
 
     Values that could not be measured are NaN, and the status says why; a MATCHED row has finite
     ``x, y, u, v, u_cc, v_cc, x_gradient, y_gradient, diameter, peak``.
@@ -1192,4 +1196,5 @@ def track_pair(
         st[off] |= DotStatus.CC_FLAGGED
         status[m] = st
     out["status"] = status
+    out["dot_id"] = np.arange(n) if prior_xy is not None else -1
     return out

@@ -56,6 +56,8 @@ def test_track_pairs_equals_track_pair(device, settings):
     refs, grads, prior = _batch()
     tables = track_pairs(refs, grads, prior_xy=prior, settings=settings, device=device)
     assert tables.shape == prior.shape[:2]
+    # each row names its prior row, in the batch as in track_pair (compared field by field below)
+    assert_array_equal(tables["dot_id"], np.broadcast_to(np.arange(prior.shape[1]), prior.shape[:2]))
     for b in range(len(refs)):
         single = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
         _assert_same(tables[b], single)
