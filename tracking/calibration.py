@@ -14,9 +14,9 @@ from synthbos import SynthbosError
 
 __all__ = [
     "MAPPING_FORMAT",
+    "POLARITIES",
     "GridCalibration",
     "SoloffMapping",
-    "POLARITIES",
     "calibrate_grid",
     "detect_dots",
     "dot_polarity",
@@ -177,8 +177,15 @@ POLARITIES = ("auto", "bright", "dark")
 WINDOW_PITCHES = 4.0
 #: Fewest dots a grid calibration accepts on one lattice.
 MIN_LATTICE_DOTS = 16
+#: Dots nearest the origin whose neighbour vectors give the first lattice vectors (:func:`index_lattice`).
+CENTRAL_DOTS = 1000
 #: Smallest share of the detected blobs (away from the image edge) that the lattice must hold.
 MIN_LATTICE_SHARE = 0.3
+
+
+def _sample(a, n=512):
+    """Every k-th row and column of an image, so that about ``n`` x ``n`` pixels are left (for statistics)."""
+    return a[:: max(1, a.shape[0] // n), :: max(1, a.shape[1] // n)]
 
 
 def local_contrast(image, window):
@@ -210,11 +217,11 @@ def local_contrast(image, window):
     a = np.asarray(image, dtype=np.float64)
     if a.size == 0 or a.min() == a.max():
         return None
-    a = a - np.median(a)
+    a = a - np.median(_sample(a))
     mean = ndimage.uniform_filter(a, window, mode="reflect")
     var = ndimage.uniform_filter(a * a, window, mode="reflect")
     var -= mean * mean
-    floor = 0.01 * float(np.median(var[:: max(1, a.shape[0] // 256), :: max(1, a.shape[1] // 256)]))
+    floor = 0.01 * float(np.median(_sample(var)))
     np.maximum(var, max(floor, 1e-300), out=var)
     a -= mean
     del mean
@@ -245,7 +252,7 @@ def _blobs(z, threshold, min_area):
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     index = np.arange(1, n + 1)
     area = np.bincount(labels.ravel(), minlength=n + 1)[1:]
-    base = float(np.median(z[~above])) if not above.all() else float(z.min())
+    base = float(np.median(_sample(z)[~_sample(above)])) if not above.all() else float(z.min())
     del above
     # each blob grown by two pixels (the dot's tails) where no other blob is nearer; weights are the
     # contrast above the background's, which takes out pixel locking of thresholded centroids
@@ -318,7 +325,7 @@ def detect_dots(image, *, dark=False, window=None, threshold=None, min_area=3):
             break
         if dark:
             np.negative(z, out=z)
-        level = _otsu(z[:: max(1, z.shape[0] // 512), :: max(1, z.shape[1] // 512)]) if threshold is None else threshold
+        level = _otsu(_sample(z)) if threshold is None else threshold
         xy, edge = _blobs(z, level, min_area)
         del z
         if window is not None:
@@ -358,7 +365,8 @@ def dot_polarity(image, *, window=None):
     z = local_contrast(a, window or _first_window(a.shape))
     if z is None:
         return False, 0.0
-    skew = float(np.mean(z**3))
+    z = _sample(z)
+    skew = float(np.mean(z * z * z))
     return skew < 0, skew
 
 
@@ -530,11 +538,13 @@ def index_lattice(xy, *, origin_xy=None, tolerance=0.3, max_seeds=8, seed=0):
 
     Notes
     -----
-    Each growth proceeds in waves: from each dot indexed in the last wave, the dots one and two lattice
-    steps away are predicted with the lattice vectors at that dot (measured from its indexed neighbours,
-    else inherited from the dot it was reached from), so lens distortion and perspective are followed
-    and single missing dots are stepped over; a blob claimed as two nodes, or a node claimed by two
-    blobs, is left out. Memory and time are linear in the number of dots.
+    The lattice vectors are first measured (:func:`lattice_vectors`) on the ``CENTRAL_DOTS`` dots nearest
+    ``origin_xy``, where a lens distorts least, else on all. Each growth proceeds in waves: from each dot
+    indexed in the last wave, the dots one and two lattice steps away are predicted with the lattice
+    vectors at that dot (measured from its indexed neighbours, else inherited from the dot it was reached
+    from), so lens distortion and perspective are followed and single missing dots are stepped over; a
+    blob claimed as two nodes, or a node claimed by two blobs, is left out. Memory and time are linear in
+    the number of dots.
 
     Examples
     --------
@@ -546,11 +556,16 @@ def index_lattice(xy, *, origin_xy=None, tolerance=0.3, max_seeds=8, seed=0):
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     n = len(xy)
     best = _Lattice(xy, None, np.zeros(2), np.zeros(2), 1)
-    a, b = lattice_vectors(xy)
-    if a is None:
+    if n < 5:
         return best.ij, best.indexed
     tree = cKDTree(xy)
     origin = xy.mean(axis=0) if origin_xy is None else np.asarray(origin_xy, dtype=np.float64)
+    # the lattice vectors where distortion has changed them least: near the origin, then over all dots
+    a, b = lattice_vectors(xy[tree.query(origin, k=min(n, CENTRAL_DOTS))[1]])
+    if a is None and n > CENTRAL_DOTS:
+        a, b = lattice_vectors(xy)
+    if a is None:
+        return best.ij, best.indexed
     spacing = min(np.hypot(*a), np.hypot(*b))
     r = int(np.ptp(xy, axis=0).max() / spacing * 1.5) + 4
     seeds, n_good = _seeds(xy, tree, a, b, tolerance, origin, np.random.default_rng(seed))
@@ -628,10 +643,12 @@ def _find_lattice(image, polarity, threshold, origin, n_min, seed):
         use = xy[~edge]
         ij, ok = index_lattice(use, origin_xy=origin, seed=seed)
         n_ok = int(ok.sum())
-        tried.append(f"{'dark' if dark else 'bright'} dots: {len(xy)} blobs, {n_ok} on one lattice")
+        tried.append(f"{'dark' if dark else 'bright'} dots: {len(xy)} blob{'s' * (len(xy) != 1)}, {n_ok} on "
+                     "one lattice")
         if n_ok >= n_min and n_ok >= MIN_LATTICE_SHARE * len(use):
             return dark, use, ij[ok], use[ok], len(xy)
-    raise SynthbosError(f"no regular dot grid found in the calibration image ({'; '.join(tried)})")
+    raise SynthbosError(f"no regular dot grid found in the calibration image ({'; '.join(tried)}; a grid needs "
+                        f"{n_min} dots on one lattice, and {MIN_LATTICE_SHARE:.0%} of the blobs)")
 
 
 def _assign(mapping, use, ij, spacing, shape, margin):
@@ -712,8 +729,8 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     if not (np.isfinite(spacing) and spacing > 0):
         raise SynthbosError(f"grid spacing must be a positive number, got {spacing!r}")
     if a.size == 0 or a.min() == a.max():
-        raise SynthbosError(f"no regular dot grid found in the calibration image: it is blank (every pixel "
-                            f"{a.flat[0]:g})" if a.size else "no regular dot grid found: the calibration image is empty")
+        what = f"blank (every pixel {a.flat[0]:g})" if a.size else "empty"
+        raise SynthbosError(f"no regular dot grid found in the calibration image: it is {what}")
     h, w = a.shape
     spacing = float(spacing)
     n_terms = len(_terms(order))

@@ -8,7 +8,7 @@ from synthbos.raytrace.dots import draw_dots
 
 
 def real_like_grid(shape=(1024, 1024), pitch=9.0, *, seed=0, diameter=4.0, angle_deg=1.5, barrel_px=6.0,
-                   centre_level=0.25, n_missing=60, n_spurious=40, dark=False, full_scale=3000.0):
+                   centre_level=0.25, n_missing=60, n_spurious=40, dark=False, full_scale=3000.0, tilt=0.0):
     """A grid image and its truth.
 
     Parameters
@@ -32,6 +32,8 @@ def real_like_grid(shape=(1024, 1024), pitch=9.0, *, seed=0, diameter=4.0, angle
         Dark dots on a bright background (a printed grid in reflected light).
     full_scale : float
         Counts of a dot (or the background when ``dark``) at full illumination.
+    tilt : float
+        Perspective: the grid's scale changes by this fraction from the image centre to its right edge.
 
     Returns
     -------
@@ -54,7 +56,8 @@ def real_like_grid(shape=(1024, 1024), pitch=9.0, *, seed=0, diameter=4.0, angle
     r_corner = np.hypot(w / 2, h / 2)
     k = barrel_px / r_corner**3
     shrink = 1.0 - k * (u**2 + v**2)
-    xy = np.stack([cx + u * shrink, cy + v * shrink], axis=1)
+    persp = 1.0 / (1.0 - tilt * u / (w / 2))
+    xy = np.stack([cx + u * shrink * persp, cy + v * shrink * persp], axis=1)
     near = (xy[:, 0] > -5) & (xy[:, 0] < w + 4) & (xy[:, 1] > -5) & (xy[:, 1] < h + 4)
     xy, ij = xy[near], ij[near]
     inside = (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
