@@ -205,8 +205,9 @@ def local_contrast(image, window):
     -----
     Both moments come from box filters (:func:`scipy.ndimage.uniform_filter`), so illumination that
     changes over more than a window (a dim centre, vignetting) and a contrast that changes with it are
-    taken out. The standard deviation is floored at a tenth of its median, so that flat parts of the
-    image (no dots) are not blown up to unit contrast.
+    taken out. The standard deviation is floored at a tenth of its median (of a tenth of its root mean
+    square where most of the image is flat), so that flat parts of the image are not blown up to unit
+    contrast.
 
     Examples
     --------
@@ -221,8 +222,9 @@ def local_contrast(image, window):
     mean = ndimage.uniform_filter(a, window, mode="reflect")
     var = ndimage.uniform_filter(a * a, window, mode="reflect")
     var -= mean * mean
-    floor = 0.01 * float(np.median(_sample(var)))
-    np.maximum(var, max(floor, 1e-300), out=var)
+    typical = _sample(var)
+    floor = 0.01 * max(float(np.median(typical)), 0.01 * float(typical.mean()), 1e-12 * float(np.ptp(a)) ** 2)
+    np.maximum(var, floor, out=var)
     a -= mean
     del mean
     a /= np.sqrt(var, out=var)
