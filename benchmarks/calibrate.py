@@ -139,9 +139,8 @@ def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source
     except SynthbosError as err:
         if not str(err).startswith("no regular dot grid"):
             raise
-        hint = {"auto": "dark dots on a bright background can be forced with --invert",
-                "dark": "--invert was given: leave it out if the dots are bright",
-                "bright": "dots taken as bright"}[polarity]
+        hint = {"auto": "--invert forces dark dots", "dark": "--invert was given: leave it out for bright dots",
+                "bright": "the dots were taken as bright"}[polarity]
         raise SynthbosError(f"{err}; {hint}") from None
     if mapping_out is not None:
         write_mapping(

@@ -645,12 +645,11 @@ def _find_lattice(image, polarity, threshold, origin, n_min, seed):
         use = xy[~edge]
         ij, ok = index_lattice(use, origin_xy=origin, seed=seed)
         n_ok = int(ok.sum())
-        tried.append(f"{'dark' if dark else 'bright'} dots: {len(xy)} blob{'s' * (len(xy) != 1)}, {n_ok} on "
-                     "one lattice")
+        tried.append(f"{len(xy)} {'dark' if dark else 'bright'} blob{'s' * (len(xy) != 1)}, {n_ok} on one lattice")
         if n_ok >= n_min and n_ok >= MIN_LATTICE_SHARE * len(use):
             return dark, use, ij[ok], use[ok], len(xy)
-    raise SynthbosError(f"no regular dot grid found in the calibration image ({'; '.join(tried)}; a grid needs "
-                        f"{n_min} dots on one lattice, and {MIN_LATTICE_SHARE:.0%} of the blobs)")
+    raise SynthbosError(f"no regular dot grid found in the calibration image ({'; '.join(tried)}; "
+                        f"{n_min}+ needed)")
 
 
 def _assign(mapping, use, ij, spacing, shape, margin):
@@ -711,8 +710,9 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     Raises
     ------
     synthbos.SynthbosError
-        A blank image, or no lattice found (too few dots, or too few of them on one regular grid); the
-        message says how many blobs of each polarity tried were found and how many sat on one lattice.
+        A blank image, or no lattice found (fewer than ``MIN_LATTICE_DOTS`` dots, or fewer than
+        ``MIN_LATTICE_SHARE`` of the blobs, on one regular grid); the message says how many blobs of each
+        polarity tried were found and how many sat on one lattice.
 
     Notes
     -----

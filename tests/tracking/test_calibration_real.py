@@ -83,7 +83,7 @@ def test_dark_dots_found_without_being_told():
     assert cal.dark and right >= 0.99 and wrong == 0
     # told: the same; told the wrong way: a clear error
     assert_allclose(calibrate_grid(img, 1.0, polarity="dark").image_xy, cal.image_xy)
-    with pytest.raises(SynthbosError, match=r"no regular dot grid .*bright dots: \d+ blobs?, \d+ on one lattice"):
+    with pytest.raises(SynthbosError, match=r"no regular dot grid .*\d+ bright blobs?, \d+ on one lattice"):
         calibrate_grid(img, 1.0, polarity="bright")
 
 
@@ -112,10 +112,10 @@ def test_no_grid_one_clear_error():
     rng = np.random.default_rng(5)
     random_dots = 100 + 3000 * draw_dots((384, 384), rng.uniform(0, 384, (1500, 2)), 4.0)
     cases = [
-        (random_dots + rng.normal(0, 5, random_dots.shape), r"bright dots: \d{3,} blobs, \d on one lattice"),
+        (random_dots + rng.normal(0, 5, random_dots.shape), r"\d{3,} bright blobs, \d on one lattice"),
         (np.full((200, 200), 300.0), "blank"),
         (rng.normal(300, 5, (200, 200)), r"blobs, \d on one lattice"),
-        (draw_dots((128, 128), [[40.0, 40], [50, 40], [40, 50], [50, 50], [90, 90]], 4.0), "needs 16 dots"),
+        (draw_dots((128, 128), [[40.0, 40], [50, 40], [40, 50], [50, 50], [90, 90]], 4.0), "16\\+ needed"),
     ]
     for image, message in cases:
         with pytest.raises(SynthbosError, match=f"no regular dot grid.*{message}"):
