@@ -175,6 +175,8 @@ def mapping_from_dict(data):
 POLARITIES = ("auto", "bright", "dark")
 #: Side of the local contrast window, in grid pitches: each window holds dots and background.
 WINDOW_PITCHES = 4.0
+#: Floor of the local standard deviation, in units of the pixel noise (:func:`local_contrast`).
+NOISE_FLOOR = 2.0
 #: Fewest dots a grid calibration accepts on one lattice.
 MIN_LATTICE_DOTS = 16
 #: Dots nearest the origin whose neighbour vectors give the first lattice vectors (:func:`index_lattice`).
@@ -188,7 +190,15 @@ def _sample(a, n=512):
     return a[:: max(1, a.shape[0] // n), :: max(1, a.shape[1] // n)]
 
 
-def local_contrast(image, window):
+def _noise(a):
+    """Standard deviation of the pixel noise, from the lower quartile of the differences of horizontal and
+    vertical neighbours (dots' slopes sit in the upper quantiles)."""
+    d = np.concatenate([np.abs(np.diff(_sample(a, 1024), axis=k)).ravel() for k in (0, 1)])
+    # |difference| of two N(0, s^2) pixels: its quartile is 0.3186 sqrt(2) s
+    return float(np.percentile(d, 25)) / (0.3186 * np.sqrt(2.0))
+
+
+def local_contrast(image, window, *, with_texture=False):
     """The image in units of its local contrast: ``(a - local mean) / local standard deviation``.
 
     Parameters
@@ -196,18 +206,21 @@ def local_contrast(image, window):
     image : (H, W) array
     window : int
         Side (px) of the square window of the local mean and standard deviation: a few dot pitches.
+    with_texture : bool, keyword-only
+        Also return where the local standard deviation is above its floor (the textured part).
 
     Returns
     -------
     (H, W) float array, or None for an image without contrast (every pixel alike)
+        With ``with_texture``, a pair: that array and an (H, W) bool array.
 
     Notes
     -----
     Both moments come from box filters (:func:`scipy.ndimage.uniform_filter`), so illumination that
     changes over more than a window (a dim centre, vignetting) and a contrast that changes with it are
-    taken out. The standard deviation is floored at a tenth of its median (of a tenth of its root mean
-    square where most of the image is flat), so that flat parts of the image are not blown up to unit
-    contrast.
+    taken out. The standard deviation is floored at ``NOISE_FLOOR`` times the pixel noise (from the
+    differences of neighbouring pixels), so that flat parts of the image, beyond the grid, keep their
+    noise well below the dots' contrast.
 
     Examples
     --------
@@ -222,13 +235,14 @@ def local_contrast(image, window):
     mean = ndimage.uniform_filter(a, window, mode="reflect")
     var = ndimage.uniform_filter(a * a, window, mode="reflect")
     var -= mean * mean
-    typical = _sample(var)
-    floor = 0.01 * max(float(np.median(typical)), 0.01 * float(typical.mean()), 1e-12 * float(np.ptp(a)) ** 2)
-    np.maximum(var, floor, out=var)
+    # a flat part of the image (beyond the grid) stays flat: its noise is not blown up to unit contrast
+    floor = max(NOISE_FLOOR * _noise(a), 0.01 * float(np.sqrt(np.percentile(_sample(var), 90))), 1e-6 * np.ptp(a))
+    textured = var > floor**2
+    np.maximum(var, floor**2, out=var)
     a -= mean
     del mean
     a /= np.sqrt(var, out=var)
-    return a
+    return (a, textured) if with_texture else a
 
 
 def _otsu(values, bins=256):
@@ -298,7 +312,8 @@ def detect_dots(image, *, dark=False, window=None, threshold=None, min_area=3):
         measuring the dots' nearest-neighbour distance (repeated until the window settles).
     threshold : float, optional
         Level in local contrast units (standard deviations above the local mean) above which a pixel
-        belongs to a dot; by default Otsu's level of the contrast image.
+        belongs to a dot; by default Otsu's level of the contrast image where it is textured (its local
+        standard deviation above the floor of :func:`local_contrast`).
     min_area : int, keyword-only
         Smaller blobs (noise) are dropped.
 
@@ -322,12 +337,16 @@ def detect_dots(image, *, dark=False, window=None, threshold=None, min_area=3):
     windows = [window] if window is not None else [_first_window(a.shape)]
     xy, edge = np.zeros((0, 2)), np.zeros(0, dtype=bool)
     while len(windows) <= 3:
-        z = local_contrast(a, windows[-1])
-        if z is None:
+        if a.min() == a.max():
             break
+        z, textured = local_contrast(a, windows[-1], with_texture=True)
         if dark:
             np.negative(z, out=z)
-        level = _otsu(_sample(z)) if threshold is None else threshold
+        if threshold is None:  # Otsu's level of the textured part: the flat part holds only noise
+            level = _otsu(_sample(z)[_sample(textured)]) if _sample(textured).any() else np.inf
+        else:
+            level = threshold
+        del textured
         xy, edge = _blobs(z, level, min_area)
         del z
         if window is not None:

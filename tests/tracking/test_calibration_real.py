@@ -96,6 +96,24 @@ def test_distorted_rotated_grid_with_perspective():
     assert right >= 0.99 and wrong == 0 and cal.residual_rms < 0.1
 
 
+@pytest.mark.parametrize("dark", [False, True])
+def test_grid_in_part_of_the_picture(dark):
+    # the grid covers the central quarter of the width and height; beyond it, a flat noisy background
+    img, xy, ij = real_like_grid((512, 512), 9.0, seed=8, dark=dark, n_missing=5, n_spurious=5)
+    img = img.astype(np.float64)
+    beyond = np.ones(img.shape, dtype=bool)
+    beyond[192:320, 192:320] = False
+    img[beyond] = np.median(img) + np.random.default_rng(9).normal(0.0, 8.0, beyond.sum())
+    keep = (np.abs(xy - 255.5) < 60).all(axis=1)
+    drawn = (np.abs(xy - 255.5) < 64.5).all(axis=1).sum()  # with those the edge of the grid cuts
+    cal = calibrate_grid(img, 1.0)
+    right, wrong, _ = _scores(cal, xy[keep], ij[keep], img.shape)
+    print(f"grid in part of the picture: {cal.n_detected} blobs, {len(cal.dots_xy)} used, {drawn} drawn; "
+          f"{right:.2%} with their indices")
+    assert right >= 0.99 and wrong == 0 and cal.dark == dark
+    assert len(cal.dots_xy) <= drawn and cal.n_detected < 1.2 * drawn  # the flat noise gave few blobs
+
+
 def test_growth_tries_other_seeds():
     # two halves of a grid, the one at the origin small: the growth from it is not the one kept
     gi, gj = np.meshgrid(np.arange(30), np.arange(20), indexing="ij")
