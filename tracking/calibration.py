@@ -177,6 +177,10 @@ POLARITIES = ("auto", "bright", "dark")
 WINDOW_PITCHES = 4.0
 #: Floor of the local standard deviation, in units of the pixel noise (:func:`local_contrast`).
 NOISE_FLOOR = 2.0
+#: Largest |cosine| of the angle between the grid's two directions in the image (72.5 to 107.5 degrees).
+SQUARE_COS = 0.3
+#: Largest ratio of the image steps along the grid's two directions.
+SQUARE_RATIO = 2.0
 #: Fewest dots a grid calibration accepts on one lattice.
 MIN_LATTICE_DOTS = 16
 #: Dots nearest the origin whose neighbour vectors give the first lattice vectors (:func:`index_lattice`).
@@ -696,6 +700,19 @@ def _assign(mapping, use, ij, spacing, shape, margin):
     return nodes[k[near]], use[near]
 
 
+def _check_square(mapping, spacing):
+    """Refuse a lattice that is no square grid seen by a camera (a hexagonal or a rectangular one): the
+    image steps of the two grid directions at node (0, 0) must be within ``SQUARE_COS`` of square and
+    within a factor ``SQUARE_RATIO`` of each other in length (a camera tilted by up to 60 degrees)."""
+    o, x, y = mapping(np.array([[0.0, 0.0], [spacing, 0.0], [0.0, spacing]]))
+    va, vb = x - o, y - o
+    la, lb = float(np.hypot(*va)), float(np.hypot(*vb))
+    cos = float(va @ vb) / (la * lb)
+    if abs(cos) > SQUARE_COS or not 1.0 / SQUARE_RATIO < la / lb < SQUARE_RATIO:
+        raise SynthbosError(f"the dots lie on a lattice of {la:.3g} and {lb:.3g} px steps at "
+                            f"{np.degrees(np.arccos(cos)):.0f} degrees: not a square grid")
+
+
 def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, extrapolate=1, polarity="auto",
                    seed=0):
     """Calibrate from an image of a regular square dot grid: find the lattice, fit the mapping, predict
@@ -731,7 +748,8 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     synthbos.SynthbosError
         A blank image, or no lattice found (fewer than ``MIN_LATTICE_DOTS`` dots, or fewer than
         ``MIN_LATTICE_SHARE`` of the blobs, on one regular grid); the message says how many blobs of each
-        polarity tried were found and how many sat on one lattice.
+        polarity tried were found and how many sat on one lattice. A lattice that is not square (a
+        hexagonal grid: its directions 60 degrees apart) is refused too.
 
     Notes
     -----
@@ -776,6 +794,7 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     zero = nodes[np.argmin(np.hypot(*(pred - origin).T))]
     ij, nodes = ij - zero, nodes - zero
     mapping = fit_soloff(ij * spacing, pts, order=order)
+    _check_square(mapping, spacing)
     res = np.hypot(*(mapping(ij * spacing) - pts).T)
     pred = mapping(nodes * spacing)
     inside = (pred[:, 0] >= 0) & (pred[:, 0] <= w - 1) & (pred[:, 1] >= 0) & (pred[:, 1] <= h - 1)

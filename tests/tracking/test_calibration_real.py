@@ -126,17 +126,24 @@ def test_growth_tries_other_seeds():
     assert (got[ok] - ij[~cut][ok] == (got[ok] - ij[~cut][ok])[0]).all()
 
 
+NG = "no regular dot grid found in the calibration image.*"
+
+
 def test_no_grid_one_clear_error():
     rng = np.random.default_rng(5)
     random_dots = 100 + 3000 * draw_dots((384, 384), rng.uniform(0, 384, (1500, 2)), 4.0)
     cases = [
-        (random_dots + rng.normal(0, 5, random_dots.shape), r"\d{3,} bright blobs, \d on one lattice"),
-        (np.full((200, 200), 300.0), "blank"),
-        (rng.normal(300, 5, (200, 200)), r"blobs, \d on one lattice"),
-        (draw_dots((128, 128), [[40.0, 40], [50, 40], [40, 50], [50, 50], [90, 90]], 4.0), "16\\+ needed"),
+        (random_dots + rng.normal(0, 5, random_dots.shape), NG + r"\d{3,} bright blobs, \d on one lattice"),
+        (np.full((200, 200), 300.0), NG + "blank"),
+        (rng.normal(300, 5, (200, 200)), NG + r"blobs, \d on one lattice"),
+        (draw_dots((128, 128), [[40.0, 40], [50, 40], [40, 50], [50, 50], [90, 90]], 4.0), NG + "16\\+ needed"),
     ]
+    # a hexagonal grid is a lattice, but mapping it as a square one would be wrong
+    ij = np.stack(np.meshgrid(np.arange(-30, 31), np.arange(-30, 31), indexing="ij"), -1).reshape(-1, 2)
+    hexa = 192 + ij[:, :1] * [9.0, 0.0] + ij[:, 1:] * [4.5, 9.0 * np.sqrt(0.75)]
+    cases.append((draw_dots((384, 384), hexa, 3.5), "not a square grid"))
     for image, message in cases:
-        with pytest.raises(SynthbosError, match=f"no regular dot grid.*{message}"):
+        with pytest.raises(SynthbosError, match=message):
             calibrate_grid(image, 1.0)
 
 
