@@ -181,6 +181,8 @@ NOISE_FLOOR = 2.0
 SQUARE_COS = 0.3
 #: Largest ratio of the image steps along the grid's two directions.
 SQUARE_RATIO = 2.0
+#: Most rounds of fitting the mapping and re-assigning the blobs (:func:`calibrate_grid`).
+MAX_REFITS = 60
 #: Fewest dots a grid calibration accepts on one lattice.
 MIN_LATTICE_DOTS = 16
 #: Dots nearest the origin whose neighbour vectors give the first lattice vectors (:func:`index_lattice`).
@@ -700,6 +702,23 @@ def _assign(mapping, use, ij, spacing, shape, margin):
     return nodes[k[near]], use[near]
 
 
+def _refit(use, ij, pts, spacing, order, shape):
+    """Fit, re-assign every blob (:func:`_assign`) and fit again until the set settles; where it settles,
+    nodes four rows beyond are tried once, to join parts of the grid beyond a gap."""
+    margin = 2
+    for _ in range(MAX_REFITS):
+        mapping = fit_soloff(ij * spacing, pts, order=order)
+        new_ij, new_pts = _assign(mapping, use, ij, spacing, shape, margin)
+        if len(new_pts) < len(_terms(order)):
+            raise SynthbosError("no regular dot grid found in the calibration image (the mapping fit failed)")
+        same = len(new_ij) == len(ij) and (new_ij == ij).all() and (new_pts == pts).all()
+        ij, pts = new_ij, new_pts
+        if same and margin == 4:
+            break
+        margin = 4 if same else 2
+    return ij, pts
+
+
 def _check_square(mapping, spacing):
     """Refuse a lattice that is no square grid seen by a camera (a hexagonal or a rectangular one): the
     image steps of the two grid directions at node (0, 0) must be within ``SQUARE_COS`` of square and
@@ -758,8 +777,9 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     several seeds (:func:`index_lattice`); then the mapping is fitted by least squares (Soloff, Adrian
     and Liu 1997), every detected dot is re-assigned to its nearest node of the fitted grid, grown two
     nodes past the indexed ones, dots further than a quarter spacing from it or more than 4 robust
-    standard deviations off the fit are dropped, and the fit is repeated until the set settles, which
-    also joins parts of the grid the growth did not reach. Blobs touching the image's outer pixels are
+    standard deviations off the fit are dropped, and the fit is repeated until the set settles (then
+    once more with nodes four rows past the indexed ones), which also joins parts of the grid that the
+    growth did not reach, across gaps of up to three missing rows. Blobs touching the image's outer pixels are
     not used (their centroids are biased).
     """
     a = np.asarray(image, dtype=np.float64)
@@ -776,15 +796,7 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
     origin = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) if origin_xy is None else np.asarray(origin_xy, float)
     dark, use, ij, pts, n_det = _find_lattice(a, polarity, threshold, origin, max(n_terms + 4, MIN_LATTICE_DOTS),
                                               seed)
-    for _ in range(12):
-        mapping = fit_soloff(ij * spacing, pts, order=order)
-        new_ij, new_pts = _assign(mapping, use, ij, spacing, a.shape, 2)
-        if len(new_pts) < n_terms:
-            raise SynthbosError("no regular dot grid found in the calibration image (the mapping fit failed)")
-        same = len(new_ij) == len(ij) and (new_ij == ij).all() and (new_pts == pts).all()
-        ij, pts = new_ij, new_pts
-        if same:
-            break
+    ij, pts = _refit(use, ij, pts, spacing, order, a.shape)
     mapping = fit_soloff(ij * spacing, pts, order=order)
     lo, hi = ij.min(axis=0) - extrapolate, ij.max(axis=0) + extrapolate
     gi, gj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")

@@ -114,6 +114,20 @@ def test_grid_in_part_of_the_picture(dark):
     assert len(cal.dots_xy) <= drawn and cal.n_detected < 1.2 * drawn  # the flat noise gave few blobs
 
 
+def test_parts_of_the_grid_joined_across_a_gap():
+    # three grid columns hidden (a strut in front of the grid): the growth cannot cross them, the refits do
+    img, xy, ij = real_like_grid((512, 512), 9.0, seed=10, angle_deg=0.5, n_missing=5, n_spurious=5)
+    img = img.astype(np.float64)
+    x0 = int(xy[ij[:, 0] == 3, 0].mean() - 4.5)
+    img[:, x0 : x0 + 27] = np.median(img[:, x0 : x0 + 27], axis=0)
+    hidden = (xy[:, 0] > x0 - 3) & (xy[:, 0] < x0 + 30)
+    cal = calibrate_grid(img, 1.0)
+    right, wrong, _ = _scores(cal, xy[~hidden], ij[~hidden], img.shape)
+    print(f"grid behind a strut: {right:.2%} of the visible dots with their indices, {wrong} wrong")
+    assert right >= 0.99 and wrong == 0
+    assert (cal.dots_ij[:, 0] < 3).any() and (cal.dots_ij[:, 0] > 5).any()
+
+
 def test_growth_tries_other_seeds():
     # two halves of a grid, the one at the origin small: the growth from it is not the one kept
     gi, gj = np.meshgrid(np.arange(30), np.arange(20), indexing="ij")
