@@ -144,7 +144,7 @@ def _calibrate(args):
         for note in notes:
             print(f"note: {note}")
         s = calibrate_from_grid(image, args.grid, out, mapping_out=args.mapping_out, source=args.reference,
-                                order=args.order, polarity="dark" if args.invert else "auto")
+                                order=args.order, polarity=_grid_polarity(args.invert))
         print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected "
               f"{'dark' if s.dark else 'bright'} blobs on the grid fitted); mapping residual rms "
               f"{s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
@@ -158,6 +158,11 @@ def _calibrate(args):
     print(f"wrote {out}: {s.n_dots} dots ({s.n_inside} inside the calibrated image) through {args.mapping} "
           f"(fit residual {s.residual_rms:.4f} px)")
     return 0
+
+
+def _grid_polarity(invert):
+    """The grid's dot polarity from ``--invert`` (a flag, or a choice auto/true/false)."""
+    return {True: "dark", "true": "dark", "false": "bright"}.get(invert, "auto")
 
 
 def _floats(text, n, what):
