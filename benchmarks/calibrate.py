@@ -12,7 +12,8 @@ line, as ``synthbos process --dots`` reads it):
 Mapping file (JSON, UTF-8): the fields of :func:`synthbos.tracking.calibration.mapping_to_dict` -
 ``format`` ("synthbos-soloff-mapping"), ``version`` (1), ``order``, ``terms`` ([i, j] exponents),
 ``coef_x``, ``coef_y``, ``centre``, ``scale``, ``rms_px`` - plus ``target_unit`` ("mm"), ``spacing_mm``,
-``image_shape`` ([rows, columns]), ``residual_rms_px``, ``residual_max_px``, ``n_dots_used``, ``source``
+``image_shape`` ([rows, columns]), ``residual_rms_px``, ``residual_max_px``, ``n_dots_used``, ``dots``
+("bright on dark" or "dark on bright"), ``source``
 (the grid image) and ``frame``, which states the target frame: origin at the grid dot nearest the image
 centre, x along the grid direction nearest the image's +x (columns), y along the one nearest +y (rows,
 downwards). A target file must use that frame.
@@ -58,6 +59,7 @@ class CalibrationSummary:
     n_used: int | None = None
     residual_rms: float | None = None
     residual_max: float | None = None
+    dark: bool | None = None
 
 
 def _read_text(path, what):
@@ -116,8 +118,12 @@ def write_mapping(path, mapping, **extra) -> Path:
     return path
 
 
-def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source="", order=3):
+def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source="", order=3, polarity="auto"):
     """Find the grid in ``image``, fit the mapping, write the dots file (and the mapping file).
+
+    ``polarity`` ("auto", "bright" or "dark") is the dots' (:func:`~synthbos.tracking.calibration.calibrate_grid`);
+    the CLI's ``--invert`` asks for "dark". When no grid is found, nothing is written and the error says
+    what was found, and how to force the other polarity.
 
     Returns
     -------
@@ -128,7 +134,14 @@ def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source
     for out in (dots_out, mapping_out):
         if out is not None and not Path(out).parent.is_dir():
             raise SynthbosError(f"output folder {Path(out).parent} does not exist")
-    cal = calibrate_grid(image, float(spacing_mm), order=order)
+    try:
+        cal = calibrate_grid(image, float(spacing_mm), order=order, polarity=polarity)
+    except SynthbosError as err:
+        if not str(err).startswith("no regular dot grid"):
+            raise
+        hint = {"auto": "--invert forces dark dots", "dark": "--invert was given: leave it out for bright dots",
+                "bright": "the dots were taken as bright"}[polarity]
+        raise SynthbosError(f"{err}; {hint}") from None
     if mapping_out is not None:
         write_mapping(
             mapping_out,
@@ -139,6 +152,7 @@ def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source
             residual_rms_px=cal.residual_rms,
             residual_max_px=cal.residual_max,
             n_dots_used=int(cal.detected.sum()),
+            dots="dark on bright" if cal.dark else "bright on dark",
             source=str(source),
             frame=FRAME,
         )
@@ -150,6 +164,7 @@ def calibrate_from_grid(image, spacing_mm, dots_out, *, mapping_out=None, source
         n_used=int(cal.detected.sum()),
         residual_rms=cal.residual_rms,
         residual_max=cal.residual_max,
+        dark=cal.dark,
     )
 
 

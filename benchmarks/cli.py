@@ -143,14 +143,15 @@ def _calibrate(args):
             raise SynthbosError("give either --reference with --grid, or --mapping with --target, not both")
         if not args.reference:
             raise SynthbosError("--grid needs the grid image: --reference GRID.tif")
-        image = load_image(args.reference)
-        if args.invert:
-            image = image.max() - image
-        s = calibrate_from_grid(
-            image, args.grid, out, mapping_out=args.mapping_out, source=args.reference, order=args.order
-        )
-        print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected blobs on the grid "
-              f"fitted); mapping residual rms {s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
+        notes = []
+        image = load_image(args.reference, notes=notes)
+        for note in notes:
+            print(f"note: {note}")
+        s = calibrate_from_grid(image, args.grid, out, mapping_out=args.mapping_out, source=args.reference,
+                                order=args.order, polarity=_grid_polarity(args.invert))
+        print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected "
+              f"{'dark' if s.dark else 'bright'} blobs on the grid fitted); mapping residual rms "
+              f"{s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
               + (f"; mapping {args.mapping_out}" if args.mapping_out else ""))
         return 0
     if not (args.mapping and args.target):
@@ -161,6 +162,11 @@ def _calibrate(args):
     print(f"wrote {out}: {s.n_dots} dots ({s.n_inside} inside the calibrated image) through {args.mapping} "
           f"(fit residual {s.residual_rms:.4f} px)")
     return 0
+
+
+def _grid_polarity(invert):
+    """The grid's dot polarity from ``--invert`` (a flag, or a choice auto/true/false)."""
+    return {True: "dark", "true": "dark", "false": "bright"}.get(invert, "auto")
 
 
 def _floats(text, n, what):
@@ -432,7 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=float, metavar="SPACING_MM", help="grid spacing in mm")
     p.add_argument("--mapping-out", help="also write the fitted mapping (JSON) here")
     p.add_argument("--order", type=int, default=3, help="Soloff polynomial degree (default 3)")
-    p.add_argument("--invert", action="store_true", help="the grid has dark dots on a bright background")
+    p.add_argument("--invert", action="store_true",
+                   help="the grid has dark dots on a bright background (default: found from the image)")
     p.add_argument("--mapping", help="mapping file (JSON) from an earlier 'calibrate --grid --mapping-out'")
     p.add_argument("--target", help="CSV (header x_mm,y_mm) of the pattern's dot positions in the grid's frame")
     p.add_argument("-o", "--output", required=True, help="dots file to write (CSV, header x,y, px)")

@@ -270,6 +270,27 @@ def _to_2d(img, path, notes):
     return img
 
 
+def _read_tiff(path, notes):
+    """A TIFF's first series, with white high: WhiteIsZero (MINISWHITE) pixels are inverted."""
+    with tifffile.TiffFile(path) as tif:
+        img = tif.asarray()
+        page = tif.pages[0]
+        if page.photometric != tifffile.PHOTOMETRIC.MINISWHITE:
+            return img
+        bits = int(page.bitspersample)
+    if img.dtype == bool:
+        img = ~img
+    elif img.dtype.kind == "u":
+        img = (2 ** min(bits, 8 * img.dtype.itemsize) - 1) - img.astype(np.float64)
+    elif img.dtype.kind == "i":
+        img = -img.astype(np.float64)
+    else:
+        img = 1.0 - img.astype(np.float64)
+    if notes is not None:
+        notes.append(f"{path}: TIFF stored WhiteIsZero (0 = white), read inverted so that white is high")
+    return img
+
+
 def load_image(path, *, notes=None) -> np.ndarray:
     """Read one camera image as a float64 array.
 
@@ -279,13 +300,16 @@ def load_image(path, *, notes=None) -> np.ndarray:
         TIFF (every compression tifffile reads, LZW and Deflate through imagecodecs; 8-, 12-, 16-,
         32-bit integer or floating-point pixels) or PNG, BMP, JPEG through imageio.
     notes : list, optional
-        Messages for the user are appended here (a colour image converted to luminance).
+        Messages for the user are appended here (a colour image converted to luminance, a TIFF stored
+        WhiteIsZero read inverted).
 
     Returns
     -------
     (H, W) float64 array
-        The pixel values as stored (no rescaling: a 12-bit image keeps 0 to 4095). Colour images
-        become their luminance.
+        The pixel values as stored (no rescaling: a 12-bit image keeps 0 to 4095), except that a TIFF
+        whose PhotometricInterpretation is WhiteIsZero (0 = white) is inverted so that white is high, as
+        in every other image: ``2**BitsPerSample - 1 - value`` (``1 - value`` for floating point,
+        ``not value`` for bilevel). Colour images become their luminance.
 
     Raises
     ------
@@ -301,7 +325,7 @@ def load_image(path, *, notes=None) -> np.ndarray:
         raise SynthbosError(f"image {path} does not exist")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
-            img = tifffile.imread(path)
+            img = _read_tiff(path, notes)
         else:
             img = iio.imread(path)
     except Exception as err:  # the readers raise many types for unreadable files
@@ -310,7 +334,7 @@ def load_image(path, *, notes=None) -> np.ndarray:
     return _to_2d(img, path, notes)
 
 
-def load_mask(path, shape, *, excludes="dark") -> np.ndarray:
+def load_mask(path, shape, *, excludes="dark", notes=None) -> np.ndarray:
     """Read a mask image as a boolean array, True on the pixels to leave out.
 
     Parameters
@@ -322,6 +346,9 @@ def load_mask(path, shape, *, excludes="dark") -> np.ndarray:
     excludes : {"dark", "bright"}
         Which side of the midpoint of the mask's range is left out (see :class:`ImageOptions`).
         A constant mask leaves out everything or nothing: 0 counts as dark, anything else as bright.
+        A TIFF stored WhiteIsZero is read with white high (:func:`load_image`).
+    notes : list, optional
+        What was read is appended: how many pixels are left out, and a WhiteIsZero TIFF's inversion.
 
     Returns
     -------
@@ -329,7 +356,7 @@ def load_mask(path, shape, *, excludes="dark") -> np.ndarray:
     """
     if excludes not in MASK_POLARITIES:
         raise SynthbosError(f"mask polarity must be one of {', '.join(MASK_POLARITIES)}, got {excludes!r}")
-    m = load_image(path)
+    m = load_image(path, notes=notes)
     if m.shape != tuple(shape):
         raise SynthbosError(f"mask {path} has shape {m.shape} but the images are {tuple(shape)}")
     lo, hi = m.min(), m.max()
@@ -338,6 +365,9 @@ def load_mask(path, shape, *, excludes="dark") -> np.ndarray:
     if excluded.all():
         raise SynthbosError(f"mask {path} leaves out every pixel (mask_excludes = {excludes!r}); "
                             "is its polarity the other way round?")
+    if notes is not None:
+        notes.append(f"mask {path}: {int(excluded.sum())} of {excluded.size} pixels ({excluded.mean():.1%}) left "
+                     f"out, the {excludes} ones")
     return excluded
 
 
@@ -724,7 +754,7 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
         Predicted reference-image dot positions (methods that use a prior).
     device : str, optional
     notes : list, optional
-        One-line messages for the user are appended (the inversion decision).
+        One-line messages for the user are appended (the inversion decision, what the mask left out).
 
     Returns
     -------
@@ -742,7 +772,7 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
         check_prior(prior_xy, np.shape(reference))
     mask = None
     if options.mask is not None:
-        mask = load_mask(options.mask, np.shape(reference), excludes=options.mask_excludes)
+        mask = load_mask(options.mask, np.shape(reference), excludes=options.mask_excludes, notes=notes)
     inverted, reason = decide_invert(reference, invert=options.invert)
     if inverted:
         reference, gradient = apply_invert(np.asarray(reference, float), np.asarray(gradient, float))
