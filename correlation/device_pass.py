@@ -7,10 +7,11 @@ spline weights of the predictor, buffers) is prepared once per image shape and s
 :class:`_Plan` and kept for the next pair; on CUDA devices the plan's launches are recorded into a
 CUDA graph at the second pair and replayed after that.
 
-The validation's replacement of rejected vectors (``validation.replace_outliers``) runs a fixed
-number of parallel sweeps (:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider
-than that many vectors) is finished by a single-thread kernel that carries on exactly as the NumPy
-loop does, so both give the same field.
+The filling of rejected vectors (``validation.fill_by_interpolation``) starts as
+``validation.replace_outliers`` does, with a fixed number of parallel median sweeps
+(:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider than that many vectors)
+is finished by a single-thread kernel that carries on exactly as the NumPy loop does, so both give the
+same start; then ``validation.FILL_SWEEPS`` Jacobi sweeps of the Laplace equation, as on the host.
 
 The NumPy path in :mod:`correlation.multigrid` is the reference; the two agree to float32 rounding
 (3e-5 px on the tests' and the benchmark's pairs, identical flags).
@@ -28,9 +29,16 @@ from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
 from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
+from .validation import FILL_SWEEPS
 from .xcorr import rpc_spectral_filter
 
-__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports", "replace_outliers_on_device"]
+__all__ = [
+    "PARALLEL_SWEEPS",
+    "correlate_on_device",
+    "device_supports",
+    "fill_by_interpolation_on_device",
+    "replace_outliers_on_device",
+]
 
 #: Parallel replacement sweeps per iteration (each fills one ring of a hole).
 PARALLEL_SWEEPS = 4
@@ -317,7 +325,7 @@ class _Plan:
                 ],
             )
             self._launch(k.isolated_test, (ny, nx), [f1, f2])
-            it.rep_u, it.rep_v = _launch_replacement(
+            it.rep_u, it.rep_v = _launch_fill(
                 wp, k, self.device, it.u, it.v, f2, it.rep, it.todo, it.left, it.scratch
             )
             prev = it
@@ -412,6 +420,18 @@ def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
     return src[0], src[1]
 
 
+def _launch_fill(wp, k, device, u, v, flags, rep, todo, left, scratch, sweeps=FILL_SWEEPS):
+    """Launches of ``validation.fill_by_interpolation(u, v, flags != 0)`` (arguments of
+    :func:`_launch_replacement`); returns the arrays holding the result."""
+    ru, _ = _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch)
+    (ua, va), (ub, vb) = rep
+    src, dst = ((ua, va), (ub, vb)) if ru is ua else ((ub, vb), (ua, va))
+    for _ in range(sweeps):
+        wp.launch(k.laplace_sweep, dim=u.shape, inputs=[*src, flags, *dst], device=device)
+        src, dst = dst, src
+    return src
+
+
 def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     """``validation.replace_outliers(u, v, invalid)`` with the kernels of the Warp path.
 
@@ -426,6 +446,28 @@ def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     -------
     u, v : (ny, nx) float64 arrays
     """
+    return _on_device(_launch_replacement, u, v, invalid, device)
+
+
+def fill_by_interpolation_on_device(u, v, invalid, *, device="cpu"):
+    """``validation.fill_by_interpolation(u, v, invalid)`` with the kernels of the Warp path.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    invalid : (ny, nx) bool array
+    device : str
+        Warp device.
+
+    Returns
+    -------
+    u, v : (ny, nx) float64 arrays
+    """
+    return _on_device(_launch_fill, u, v, invalid, device)
+
+
+def _on_device(launch, u, v, invalid, device):
+    """``launch`` (:func:`_launch_replacement` or :func:`_launch_fill`) on arrays copied to ``device``."""
     wp, k = _warp()
     shape = np.shape(u)
 
@@ -438,7 +480,7 @@ def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     flags = arr(np.asarray(invalid, dtype=np.int32), wp.int32)
     rep = [[zeros(shape, wp.float64) for _ in range(2)] for _ in range(2)]
     todo = [zeros(shape, wp.int32) for _ in range(2)]
-    ru, rv = _launch_replacement(
+    ru, rv = launch(
         wp,
         k,
         device,

@@ -5,8 +5,9 @@ sequence of passes with decreasing window size, each made of one or more iterati
 after the first carries the current displacement estimate (the predictor) to every pixel, deforms both
 images symmetrically by half of it, correlates the deformed windows in one batched real FFT, adds the
 residual found by the three-point Gaussian fit to the predictor, validates the field (significance of
-the correlation peak, agreement with the coarser pass, the normalised median test), and replaces the
-rejected vectors by the local median before the next iteration. Every vector ends up measured,
+the correlation peak, agreement with the coarser pass, the normalised median test), and fills the
+rejected vectors by interpolation from the valid ones around them (``validation.fill_by_interpolation``)
+before the next iteration. Every vector ends up measured,
 replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
 """
 
@@ -23,7 +24,7 @@ from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
-from .validation import neighbour_median, normalized_median_test, replace_outliers
+from .validation import fill_by_interpolation, neighbour_median, normalized_median_test
 from .windows import checked_mask, extract_windows, window_starts, window_step
 from .xcorr import cross_correlate, robust_phase_correlate
 
@@ -47,12 +48,13 @@ class VectorFlag(enum.IntFlag):
 
     A vector is *replaced* when its window gave a significant correlation peak that the normalised
     median test rejected (``MEDIAN`` alone); it *failed* when its window gave no usable measurement
-    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry the median of their valid
-    neighbours in ``u``, ``v``, so that the field stays continuous for integration (NaN where nothing
+    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry in ``u``, ``v`` a value
+    interpolated from the valid vectors around them (harmonic interpolation,
+    ``validation.fill_by_interpolation``), so that the field stays continuous for integration (NaN where nothing
     was measured anywhere). ``MASKED`` windows are NaN. :func:`count_vectors` counts them.
 
     MEDIAN
-        Replaced by the median of its valid neighbours: failed the normalised median test.
+        Replaced by interpolation from the valid vectors around it: failed the normalised median test.
     PEAK
         Failed: correlation peak not significant (peak ratio below peak_ratio_min, or peak correlation
         coefficient below min_correlation).
@@ -619,8 +621,10 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     border, differs from the previous pass's field by more than ``max_disagreement`` times the window
     size, or has fewer than two measured neighbours; the others go through the normalised median test
     (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
-    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors get the median of
-    their valid neighbours. The images are first brought to zero mean and unit variance.
+    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors are filled by harmonic
+    interpolation from the valid ones (``validation.fill_by_interpolation``: the discrete Laplace
+    equation with the valid vectors as boundary values), and the next iteration deforms the images
+    with that field. The images are first brought to zero mean and unit variance.
     """
     if settings is None:
         settings = CorrelationSettings()
@@ -711,7 +715,7 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             flags |= np.where(outliers, FLAG_MEDIAN, 0).astype(np.int32)
             flags |= np.where(_isolated(flags == 0, ~masked), FLAG_ISOLATED, 0).astype(np.int32)
             raw = (u, v)
-            u, v = replace_outliers(u, v, flags != 0)
+            u, v = fill_by_interpolation(u, v, flags != 0)
             prev = (node_y, node_x, u, v)
 
     if not np.any(flags == 0):  # nothing measured anywhere: there is nothing to fill from

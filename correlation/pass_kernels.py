@@ -865,3 +865,33 @@ def finish_replacement(
                         u[i, j] = med
                     else:
                         v[i, j] = med
+
+
+# ---------------------------------------------------------------- interpolation (validation.fill_by_interpolation)
+
+
+@wp.kernel
+def laplace_sweep(
+    u: wp.array2d(dtype=wp.float64),
+    v: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    u_out: wp.array2d(dtype=wp.float64),
+    v_out: wp.array2d(dtype=wp.float64),
+):
+    """One Jacobi sweep of the Laplace equation on the flagged vectors: each becomes the mean of its
+    four neighbours (the edge node standing in beyond the grid); the others are copied."""
+    i, j = wp.tid()
+    uu = u[i, j]
+    vv = v[i, j]
+    if flags[i, j] != 0:
+        ny = u.shape[0]
+        nx = u.shape[1]
+        up = wp.max(i - 1, 0)
+        down = wp.min(i + 1, ny - 1)
+        left = wp.max(j - 1, 0)
+        right = wp.min(j + 1, nx - 1)
+        q = wp.float64(0.25)
+        uu = q * (u[up, j] + u[down, j] + u[i, left] + u[i, right])
+        vv = q * (v[up, j] + v[down, j] + v[i, left] + v[i, right])
+    u_out[i, j] = uu
+    v_out[i, j] = vv
