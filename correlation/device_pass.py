@@ -28,7 +28,7 @@ from synthbos import SynthbosError
 from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
-from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
+from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation, window_grid
 from .validation import FILL_SWEEPS
 from .xcorr import rpc_spectral_filter
 
@@ -172,6 +172,7 @@ class _Plan:
                 it.pass_ = ps
                 it.size, it.step = size, g.step
                 it.first_of_pass = iteration == 0
+                it.judges_correlation = judges_correlation(settings, pass_index, iteration)
                 it.use_coarse = pass_index > 0
                 it.confirm = iteration > 0 and settings.confirm_tolerance > 0
                 it.deform = prev is not None
@@ -291,7 +292,7 @@ class _Plan:
                     _METHOD_CODES[s.subpixel],
                     int(not s.rpc),
                     float(s.peak_ratio_min),
-                    float(s.min_correlation),
+                    float(s.min_correlation) if it.judges_correlation else -np.inf,
                     *it.coarse,
                     int(it.use_coarse),
                     float(s.max_disagreement * n),

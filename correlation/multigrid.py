@@ -212,7 +212,8 @@ class CorrelationSettings:
         is below this failed (flag ``PEAK``): 0.5. Unrelated 16 px windows of 3 px dots reach 0.4
         in the median and pure noise 0.2; matched windows of the same images 0.9 and more, 0.6 at
         5 % noise. 0 disables the check; not applied with ``rpc`` (its planes are not
-        coefficients).
+        coefficients). Applied to the plain correlation of the first iteration and to the final
+        iteration, not to the deformed iterations in between (:func:`judges_correlation`).
     max_disagreement : float
         In every pass after the first, vectors that differ from the previous pass's field by more
         than this fraction of the window size failed (flag ``DISAGREE``): 0.25, the one-quarter rule
@@ -458,6 +459,23 @@ def _correlate_windows(wa, wb, valid, settings):
     return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers), _energies(wa, wb)
 
 
+def judges_correlation(settings, pass_index, iteration):
+    """Whether iteration ``iteration`` of pass ``pass_index`` applies ``min_correlation``.
+
+    The plain correlation (the first iteration of the first pass: nothing deformed, the windows as
+    they are, where chance peaks of unrelated windows reach 0.4 and more) and the final iteration (the
+    vectors returned) do. The deformed iterations in between do not: a window over a strong
+    gradient (a shear layer, a front in turbulence) correlates poorly until the deformation follows
+    the field, and failing it there replaces it by its neighbours' values, so that the next
+    deformation cannot follow the field either. It still has to pass the peak ratio, the agreement
+    with the coarser pass and the normalised median test. On the SQG pairs of
+    ``benchmarks/bench_openpiv.py`` this lowers the RMS error over all vectors by 4-18 % (SQG 00001
+    1.13 -> 1.09 px, 00003 1.14 -> 1.03, 00004 0.85 -> 0.75).
+    """
+    last = pass_index == len(settings.window_sizes) - 1 and iteration == settings.iterations[-1] - 1
+    return (pass_index == 0 and iteration == 0) or last
+
+
 def _peak_coefficient(planes, norm):
     """Plane maximum as a correlation coefficient; NaN where the norm is None (RPC) or zero."""
     if norm is None:
@@ -700,7 +718,7 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             v = pv + (prow - size // 2).reshape(ny, nx)
             flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
             weak = ratio < settings.peak_ratio_min
-            if norm is not None:
+            if norm is not None and judges_correlation(settings, pass_index, iteration):
                 weak |= coef < settings.min_correlation
             flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
             if coarse is not None:
