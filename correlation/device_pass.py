@@ -161,6 +161,10 @@ class _Plan:
             code = int(k.PLANE_CODE)
             positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
             ps["positions"] = wp.array(positions, dtype=wp.int32, device=device)
+            # the peak search's weights (``CorrelationSettings.peak_selection``), unshifted like the planes
+            select = settings.peak_selection(size)
+            select = np.ones((size, size)) if select is None else select[np.ix_(shifted, shifted)]
+            ps["select"] = wp.array(select.astype(np.float32), dtype=f32, device=device)
             ps["peak_at"] = zeros(ny * nx, i32)
             ps["peak_values"] = zeros((ny * nx, 3), f32)
             if prev is not None or n_iter > 1:
@@ -270,6 +274,7 @@ class _Plan:
                     nx,
                     ps["spectral"],
                     ps["positions"],
+                    ps["select"],
                     ps["planes"],
                     ps["norm"],
                     ps["peak_at"],
@@ -291,7 +296,7 @@ class _Plan:
                     *it.p,
                     _METHOD_CODES[s.subpixel],
                     int(not s.rpc),
-                    float(s.peak_ratio_min),
+                    s.peak_ratio_threshold(),
                     float(s.min_correlation) if it.judges_correlation else -np.inf,
                     *it.coarse,
                     int(it.use_coarse),

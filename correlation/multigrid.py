@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import enum
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from synthbos import SynthbosError
 from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
+from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
 from .validation import fill_by_interpolation, neighbour_median, normalized_median_test
 from .windows import checked_mask, extract_windows, window_starts, window_step
@@ -132,6 +133,9 @@ CONFIRM_CORRELATION = 0.7
 #: Values of :attr:`CorrelationSettings.backend`.
 BACKENDS = ("auto", "numpy", "warp")
 
+#: Values of :attr:`CorrelationSettings.pattern`.
+PATTERNS = ("auto", "random", "periodic")
+
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0
 
@@ -206,7 +210,21 @@ class CorrelationSettings:
         of their replacements'). 0 replaces every vector that fails the test.
     peak_ratio_min : float
         Vectors whose peak ratio (:func:`correlation.peak.peak_ratio`) is below this failed (flag
-        ``PEAK``); 1 disables the check.
+        ``PEAK``); 1 disables the check. Not applied to periodic patterns (``pattern``).
+    pattern : {"auto", "random", "periodic"}
+        The background pattern. ``random`` (dots, speckle, particles): the integer correlation peak
+        is the plane's highest sample, and ``peak_ratio_min`` judges its significance. ``periodic``
+        (a regular dot grid, a grating): every plane has peaks of equal height at the lattice vectors
+        (the FFT correlation is circular), so the peak ratio says nothing and the highest peak may be
+        a lattice vector off; the peak taken is the highest of the plane times the window overlap
+        (:func:`correlation.peak.overlap_weights`), the one nearest to the predictor (zero
+        displacement in the first iteration), and the peak ratio is not tested (``min_correlation``,
+        the disagreement with the coarser pass and the median test are). Displacements must then
+        stay below half the lattice pitch in the first pass, and the predictor within half a pitch
+        in the others. ``auto`` (default): ``periodic`` when the reference image's mean window
+        autocorrelation has a secondary peak of at least ``pattern.PERIODIC_PEAK`` within the first
+        pass's windows (:func:`correlation.pattern.is_periodic`), else ``random``; the result's
+        ``settings.pattern`` says which.
     min_correlation : float
         Vectors whose correlation peak, as a correlation coefficient of the two (deformed) windows,
         is below this failed (flag ``PEAK``): 0.5. Unrelated 16 px windows of 3 px dots reach 0.4
@@ -245,6 +263,7 @@ class CorrelationSettings:
     median_threshold: float = 2.0
     confirm_tolerance: float = 1.0
     peak_ratio_min: float = 1.05
+    pattern: str = "auto"
     min_correlation: float = 0.5
     max_disagreement: float = 0.25
     rpc: bool = False
@@ -298,6 +317,8 @@ class CorrelationSettings:
             raise SynthbosError(
                 f"correlation setting min_correlation is a correlation coefficient <= 1, got {self.min_correlation!r}"
             )
+        if self.pattern not in PATTERNS:
+            raise SynthbosError(f"correlation pattern {self.pattern!r} is not one of {', '.join(PATTERNS)}")
         if self.backend not in BACKENDS:
             raise SynthbosError(f"correlation backend {self.backend!r} is not one of {', '.join(BACKENDS)}")
         if not isinstance(self.workers, numbers.Integral) or self.workers == 0:
@@ -322,6 +343,7 @@ class CorrelationSettings:
             "median_threshold": float(self.median_threshold),
             "confirm_tolerance": float(self.confirm_tolerance),
             "peak_ratio_min": float(self.peak_ratio_min),
+            "pattern": str(self.pattern),
             "min_correlation": float(self.min_correlation),
             "max_disagreement": float(self.max_disagreement),
             "rpc": bool(self.rpc),
@@ -330,6 +352,19 @@ class CorrelationSettings:
             "device": str(self.device),
             "backend": str(self.backend),
         }
+
+    def is_periodic(self):
+        """True for ``pattern="periodic"`` (``auto`` is resolved by :func:`correlate_pair`)."""
+        return self.pattern == "periodic"
+
+    def peak_selection(self, size):
+        """The ``select`` weights of the peak search for ``size`` px windows (None: the plane maximum)."""
+        return overlap_weights((size, size)) if self.is_periodic() else None
+
+    def peak_ratio_threshold(self):
+        """``peak_ratio_min``, or 0 (no test) for periodic patterns (whose chosen peak, the one nearest
+        to the predictor, may be a little lower than another: a ratio below 1)."""
+        return 0.0 if self.is_periodic() else float(self.peak_ratio_min)
 
     def uses_warp(self):
         """True when :func:`correlate_pair` runs these settings on the Warp path (see ``backend``)."""
@@ -360,6 +395,7 @@ class CorrelationResult:
         :class:`VectorFlag` bits: 0 measured, ``MEDIAN`` replaced, ``PEAK``, ``BORDER``,
         ``DISAGREE`` failed, ``MASKED``; :func:`count_vectors` counts them.
     settings : CorrelationSettings
+        As used: ``pattern`` is "random" or "periodic" (``auto`` resolved).
     """
 
     x: np.ndarray
@@ -659,6 +695,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
         raise SynthbosError(f"window size {biggest} px does not fit in the {shape[0]}x{shape[1]} px image")
     excluded = checked_mask(mask, shape)
     valid_px = None if excluded is None else (~excluded).astype(np.float32)
+    if settings.pattern == "auto":
+        periodic = is_periodic(a if excluded is None else np.where(excluded, np.mean(a), a), settings.window_sizes[0])
+        settings = replace(settings, pattern="periodic" if periodic else "random")
     if settings.uses_warp():
         return _correlate_pair_warp(a, b, valid_px, settings)
 
@@ -709,15 +748,16 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
             wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
             planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
+            select = settings.peak_selection(size)
             prow, pcol, border = subpixel_peak(
-                planes, method=settings.subpixel, weights=overlap_weights((size, size))
+                planes, method=settings.subpixel, weights=overlap_weights((size, size)), select=select
             )
-            ratio = peak_ratio(planes).reshape(ny, nx)
+            ratio = peak_ratio(planes, select=select).reshape(ny, nx)
             coef = _peak_coefficient(planes, norm).reshape(ny, nx)
             u = pu + (pcol - size // 2).reshape(ny, nx)
             v = pv + (prow - size // 2).reshape(ny, nx)
             flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
-            weak = ratio < settings.peak_ratio_min
+            weak = ratio < settings.peak_ratio_threshold()
             if norm is not None and judges_correlation(settings, pass_index, iteration):
                 weak |= coef < settings.min_correlation
             flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
