@@ -57,8 +57,8 @@ class VectorFlag(enum.IntFlag):
     MEDIAN
         Replaced by interpolation from the valid vectors around it: failed the normalised median test.
     PEAK
-        Failed: correlation peak not significant (peak ratio below peak_ratio_min, or peak correlation
-        coefficient below min_correlation).
+        Failed: correlation peak not significant (peak ratio below peak_ratio_min, random patterns
+        only, or peak correlation coefficient below min_correlation in the iterations that judge it).
     BORDER
         Failed: the correlation peak lay on the border of the correlation plane.
     MASKED
@@ -675,7 +675,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     border, differs from the previous pass's field by more than ``max_disagreement`` times the window
     size, or has fewer than two measured neighbours; the others go through the normalised median test
     (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
-    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors are filled by harmonic
+    iteration confirmed them (``confirm_tolerance``). On a periodic pattern (``pattern``, found from
+    the reference image with ``auto``) the peak taken is the one nearest to the predictor and the
+    peak ratio is not tested. Failed and replaced vectors are filled by harmonic
     interpolation from the valid ones (``validation.fill_by_interpolation``: the discrete Laplace
     equation with the valid vectors as boundary values), and the next iteration deforms the images
     with that field. The images are first brought to zero mean and unit variance.
