@@ -123,14 +123,32 @@ def _process(args):
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
     if not ok.any():
-        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
-              file=sys.stderr)
+        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}; "
+              f"{_failure_advice(res)}", file=sys.stderr)
         return 1
     if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
-        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); displacements "
-              "beyond a quarter of the first correlation window need larger windows (--windows 64,32,16), "
-              "tracking may need --max-displacement or --diameter")
+        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); {_failure_advice(res)}")
     return 0
+
+
+def _failure_advice(res):
+    """What to try when most points failed, from the result's flags where it has them (correlation)."""
+    windows = ("displacements beyond a quarter of the first correlation window need larger windows "
+               "(--windows 64,32,16)")
+    flags = res.table.get("flags") if res.table else None
+    pattern = (res.settings or {}).get("pattern")
+    if flags is None or pattern is None:
+        return f"{windows}, tracking may need --max-displacement or --diameter"
+    from synthbos.correlation import VectorFlag
+
+    f = np.asarray(flags)
+    open_ = (f & int(VectorFlag.MASKED)) == 0
+    weak = int(np.sum(open_ & ((f & int(VectorFlag.PEAK)) != 0)))
+    if pattern == "periodic":
+        return f"{windows}; on a periodic pattern they must stay below half its pitch"
+    return (f"{weak} windows had no significant peak: on a regular (periodic) pattern set pattern = \"periodic\" "
+            "in the [correlation] table of --config (the peak nearest the predictor, no peak-ratio test); "
+            f"{windows}; on noisy or blurred images lower min_correlation")
 
 
 def _calibrate(args):

@@ -7,10 +7,11 @@ spline weights of the predictor, buffers) is prepared once per image shape and s
 :class:`_Plan` and kept for the next pair; on CUDA devices the plan's launches are recorded into a
 CUDA graph at the second pair and replayed after that.
 
-The validation's replacement of rejected vectors (``validation.replace_outliers``) runs a fixed
-number of parallel sweeps (:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider
-than that many vectors) is finished by a single-thread kernel that carries on exactly as the NumPy
-loop does, so both give the same field.
+The filling of rejected vectors (``validation.fill_by_interpolation``) starts as
+``validation.replace_outliers`` does, with a fixed number of parallel median sweeps
+(:data:`PARALLEL_SWEEPS`); a vector still unfilled after them (a hole wider than that many vectors)
+is finished by a single-thread kernel that carries on exactly as the NumPy loop does, so both give the
+same start; then ``validation.FILL_SWEEPS`` Jacobi sweeps of the Laplace equation, as on the host.
 
 The NumPy path in :mod:`correlation.multigrid` is the reference; the two agree to float32 rounding
 (3e-5 px on the tests' and the benchmark's pairs, identical flags).
@@ -27,10 +28,17 @@ from synthbos import SynthbosError
 from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
-from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, window_grid
+from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation, window_grid
+from .validation import FILL_SWEEPS
 from .xcorr import rpc_spectral_filter
 
-__all__ = ["PARALLEL_SWEEPS", "correlate_on_device", "device_supports", "replace_outliers_on_device"]
+__all__ = [
+    "PARALLEL_SWEEPS",
+    "correlate_on_device",
+    "device_supports",
+    "fill_by_interpolation_on_device",
+    "replace_outliers_on_device",
+]
 
 #: Parallel replacement sweeps per iteration (each fills one ring of a hole).
 PARALLEL_SWEEPS = 4
@@ -153,6 +161,10 @@ class _Plan:
             code = int(k.PLANE_CODE)
             positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
             ps["positions"] = wp.array(positions, dtype=wp.int32, device=device)
+            # the peak search's weights (``CorrelationSettings.peak_selection``), unshifted like the planes
+            select = settings.peak_selection(size)
+            select = np.ones((size, size)) if select is None else select[np.ix_(shifted, shifted)]
+            ps["select"] = wp.array(select.astype(np.float32), dtype=f32, device=device)
             ps["peak_at"] = zeros(ny * nx, i32)
             ps["peak_values"] = zeros((ny * nx, 3), f32)
             if prev is not None or n_iter > 1:
@@ -164,6 +176,7 @@ class _Plan:
                 it.pass_ = ps
                 it.size, it.step = size, g.step
                 it.first_of_pass = iteration == 0
+                it.judges_correlation = judges_correlation(settings, pass_index, iteration)
                 it.use_coarse = pass_index > 0
                 it.confirm = iteration > 0 and settings.confirm_tolerance > 0
                 it.deform = prev is not None
@@ -261,6 +274,7 @@ class _Plan:
                     nx,
                     ps["spectral"],
                     ps["positions"],
+                    ps["select"],
                     ps["planes"],
                     ps["norm"],
                     ps["peak_at"],
@@ -282,8 +296,8 @@ class _Plan:
                     *it.p,
                     _METHOD_CODES[s.subpixel],
                     int(not s.rpc),
-                    float(s.peak_ratio_min),
-                    float(s.min_correlation),
+                    s.peak_ratio_threshold(),
+                    float(s.min_correlation) if it.judges_correlation else -np.inf,
                     *it.coarse,
                     int(it.use_coarse),
                     float(s.max_disagreement * n),
@@ -317,7 +331,7 @@ class _Plan:
                 ],
             )
             self._launch(k.isolated_test, (ny, nx), [f1, f2])
-            it.rep_u, it.rep_v = _launch_replacement(
+            it.rep_u, it.rep_v = _launch_fill(
                 wp, k, self.device, it.u, it.v, f2, it.rep, it.todo, it.left, it.scratch
             )
             prev = it
@@ -412,6 +426,18 @@ def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
     return src[0], src[1]
 
 
+def _launch_fill(wp, k, device, u, v, flags, rep, todo, left, scratch, sweeps=FILL_SWEEPS):
+    """Launches of ``validation.fill_by_interpolation(u, v, flags != 0)`` (arguments of
+    :func:`_launch_replacement`); returns the arrays holding the result."""
+    ru, _ = _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch)
+    (ua, va), (ub, vb) = rep
+    src, dst = ((ua, va), (ub, vb)) if ru is ua else ((ub, vb), (ua, va))
+    for _ in range(sweeps):
+        wp.launch(k.laplace_sweep, dim=u.shape, inputs=[*src, flags, *dst], device=device)
+        src, dst = dst, src
+    return src
+
+
 def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     """``validation.replace_outliers(u, v, invalid)`` with the kernels of the Warp path.
 
@@ -426,6 +452,28 @@ def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     -------
     u, v : (ny, nx) float64 arrays
     """
+    return _on_device(_launch_replacement, u, v, invalid, device)
+
+
+def fill_by_interpolation_on_device(u, v, invalid, *, device="cpu"):
+    """``validation.fill_by_interpolation(u, v, invalid)`` with the kernels of the Warp path.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    invalid : (ny, nx) bool array
+    device : str
+        Warp device.
+
+    Returns
+    -------
+    u, v : (ny, nx) float64 arrays
+    """
+    return _on_device(_launch_fill, u, v, invalid, device)
+
+
+def _on_device(launch, u, v, invalid, device):
+    """``launch`` (:func:`_launch_replacement` or :func:`_launch_fill`) on arrays copied to ``device``."""
     wp, k = _warp()
     shape = np.shape(u)
 
@@ -438,7 +486,7 @@ def replace_outliers_on_device(u, v, invalid, *, device="cpu"):
     flags = arr(np.asarray(invalid, dtype=np.int32), wp.int32)
     rep = [[zeros(shape, wp.float64) for _ in range(2)] for _ in range(2)]
     todo = [zeros(shape, wp.int32) for _ in range(2)]
-    ru, rv = _launch_replacement(
+    ru, rv = launch(
         wp,
         k,
         device,

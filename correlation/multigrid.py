@@ -5,8 +5,9 @@ sequence of passes with decreasing window size, each made of one or more iterati
 after the first carries the current displacement estimate (the predictor) to every pixel, deforms both
 images symmetrically by half of it, correlates the deformed windows in one batched real FFT, adds the
 residual found by the three-point Gaussian fit to the predictor, validates the field (significance of
-the correlation peak, agreement with the coarser pass, the normalised median test), and replaces the
-rejected vectors by the local median before the next iteration. Every vector ends up measured,
+the correlation peak, agreement with the coarser pass, the normalised median test), and fills the
+rejected vectors by interpolation from the valid ones around them (``validation.fill_by_interpolation``)
+before the next iteration. Every vector ends up measured,
 replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
 """
 
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import enum
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -22,8 +23,9 @@ from synthbos import SynthbosError
 from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
+from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
-from .validation import neighbour_median, normalized_median_test, replace_outliers
+from .validation import fill_by_interpolation, neighbour_median, normalized_median_test
 from .windows import checked_mask, extract_windows, window_starts, window_step
 from .xcorr import cross_correlate, robust_phase_correlate
 
@@ -47,15 +49,16 @@ class VectorFlag(enum.IntFlag):
 
     A vector is *replaced* when its window gave a significant correlation peak that the normalised
     median test rejected (``MEDIAN`` alone); it *failed* when its window gave no usable measurement
-    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry the median of their valid
-    neighbours in ``u``, ``v``, so that the field stays continuous for integration (NaN where nothing
+    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry in ``u``, ``v`` a value
+    interpolated from the valid vectors around them (harmonic interpolation,
+    ``validation.fill_by_interpolation``), so that the field stays continuous for integration (NaN where nothing
     was measured anywhere). ``MASKED`` windows are NaN. :func:`count_vectors` counts them.
 
     MEDIAN
-        Replaced by the median of its valid neighbours: failed the normalised median test.
+        Replaced by interpolation from the valid vectors around it: failed the normalised median test.
     PEAK
-        Failed: correlation peak not significant (peak ratio below peak_ratio_min, or peak correlation
-        coefficient below min_correlation).
+        Failed: correlation peak not significant (peak ratio below peak_ratio_min, random patterns
+        only, or peak correlation coefficient below min_correlation in the iterations that judge it).
     BORDER
         Failed: the correlation peak lay on the border of the correlation plane.
     MASKED
@@ -129,6 +132,9 @@ CONFIRM_CORRELATION = 0.7
 
 #: Values of :attr:`CorrelationSettings.backend`.
 BACKENDS = ("auto", "numpy", "warp")
+
+#: Values of :attr:`CorrelationSettings.pattern`.
+PATTERNS = ("auto", "random", "periodic")
 
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0
@@ -204,13 +210,28 @@ class CorrelationSettings:
         of their replacements'). 0 replaces every vector that fails the test.
     peak_ratio_min : float
         Vectors whose peak ratio (:func:`correlation.peak.peak_ratio`) is below this failed (flag
-        ``PEAK``); 1 disables the check.
+        ``PEAK``); 1 disables the check. Not applied to periodic patterns (``pattern``).
+    pattern : {"auto", "random", "periodic"}
+        The background pattern. ``random`` (dots, speckle, particles): the integer correlation peak
+        is the plane's highest sample, and ``peak_ratio_min`` judges its significance. ``periodic``
+        (a regular dot grid, a grating): every plane has peaks of equal height at the lattice vectors
+        (the FFT correlation is circular), so the peak ratio says nothing and the highest peak may be
+        a lattice vector off; the peak taken is the highest of the plane times the window overlap
+        (:func:`correlation.peak.overlap_weights`), the one nearest to the predictor (zero
+        displacement in the first iteration), and the peak ratio is not tested (``min_correlation``,
+        the disagreement with the coarser pass and the median test are). Displacements must then
+        stay below half the lattice pitch in the first pass, and the predictor within half a pitch
+        in the others. ``auto`` (default): ``periodic`` when the reference image's mean window
+        autocorrelation has a secondary peak of at least ``pattern.PERIODIC_PEAK`` within the first
+        pass's windows (:func:`correlation.pattern.is_periodic`), else ``random``; the result's
+        ``settings.pattern`` says which.
     min_correlation : float
         Vectors whose correlation peak, as a correlation coefficient of the two (deformed) windows,
         is below this failed (flag ``PEAK``): 0.5. Unrelated 16 px windows of 3 px dots reach 0.4
         in the median and pure noise 0.2; matched windows of the same images 0.9 and more, 0.6 at
         5 % noise. 0 disables the check; not applied with ``rpc`` (its planes are not
-        coefficients).
+        coefficients). Applied to the plain correlation of the first iteration and to the final
+        iteration, not to the deformed iterations in between (:func:`judges_correlation`).
     max_disagreement : float
         In every pass after the first, vectors that differ from the previous pass's field by more
         than this fraction of the window size failed (flag ``DISAGREE``): 0.25, the one-quarter rule
@@ -249,6 +270,7 @@ class CorrelationSettings:
     median_threshold: float = 2.0
     confirm_tolerance: float = 1.0
     peak_ratio_min: float = 1.05
+    pattern: str = "auto"
     min_correlation: float = 0.5
     max_disagreement: float = 0.25
     rpc: bool = False
@@ -302,6 +324,8 @@ class CorrelationSettings:
             raise SynthbosError(
                 f"correlation setting min_correlation is a correlation coefficient <= 1, got {self.min_correlation!r}"
             )
+        if self.pattern not in PATTERNS:
+            raise SynthbosError(f"correlation pattern {self.pattern!r} is not one of {', '.join(PATTERNS)}")
         if self.backend not in BACKENDS:
             raise SynthbosError(f"correlation backend {self.backend!r} is not one of {', '.join(BACKENDS)}")
         if not isinstance(self.workers, numbers.Integral) or self.workers == 0:
@@ -326,6 +350,7 @@ class CorrelationSettings:
             "median_threshold": float(self.median_threshold),
             "confirm_tolerance": float(self.confirm_tolerance),
             "peak_ratio_min": float(self.peak_ratio_min),
+            "pattern": str(self.pattern),
             "min_correlation": float(self.min_correlation),
             "max_disagreement": float(self.max_disagreement),
             "rpc": bool(self.rpc),
@@ -334,6 +359,19 @@ class CorrelationSettings:
             "device": str(self.device),
             "backend": str(self.backend),
         }
+
+    def is_periodic(self):
+        """True for ``pattern="periodic"`` (``auto`` is resolved by :func:`correlate_pair`)."""
+        return self.pattern == "periodic"
+
+    def peak_selection(self, size):
+        """The ``select`` weights of the peak search for ``size`` px windows (None: the plane maximum)."""
+        return overlap_weights((size, size)) if self.is_periodic() else None
+
+    def peak_ratio_threshold(self):
+        """``peak_ratio_min``, or 0 (no test) for periodic patterns (whose chosen peak, the one nearest
+        to the predictor, may be a little lower than another: a ratio below 1)."""
+        return 0.0 if self.is_periodic() else float(self.peak_ratio_min)
 
     def uses_warp(self):
         """True when :func:`correlate_pair` runs these settings on the Warp path (see ``backend``)."""
@@ -364,6 +402,7 @@ class CorrelationResult:
         :class:`VectorFlag` bits: 0 measured, ``MEDIAN`` replaced, ``PEAK``, ``BORDER``,
         ``DISAGREE`` failed, ``MASKED``; :func:`count_vectors` counts them.
     settings : CorrelationSettings
+        As used: ``pattern`` is "random" or "periodic" (``auto`` resolved).
     """
 
     x: np.ndarray
@@ -461,6 +500,23 @@ def _correlate_windows(wa, wb, valid, settings):
             wa, wb, diameter=settings.rpc_diameter, subtract_mean=False, workers=settings.workers
         ), None
     return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers), _energies(wa, wb)
+
+
+def judges_correlation(settings, pass_index, iteration):
+    """Whether iteration ``iteration`` of pass ``pass_index`` applies ``min_correlation``.
+
+    The plain correlation (the first iteration of the first pass: nothing deformed, the windows as
+    they are, where chance peaks of unrelated windows reach 0.4 and more) and the final iteration (the
+    vectors returned) do. The deformed iterations in between do not: a window over a strong
+    gradient (a shear layer, a front in turbulence) correlates poorly until the deformation follows
+    the field, and failing it there replaces it by its neighbours' values, so that the next
+    deformation cannot follow the field either. It still has to pass the peak ratio, the agreement
+    with the coarser pass and the normalised median test. On the SQG pairs of
+    ``benchmarks/bench_openpiv.py`` this lowers the RMS error over all vectors by 4-18 % (SQG 00001
+    1.13 -> 1.09 px, 00003 1.14 -> 1.03, 00004 0.85 -> 0.75).
+    """
+    last = pass_index == len(settings.window_sizes) - 1 and iteration == settings.iterations[-1] - 1
+    return (pass_index == 0 and iteration == 0) or last
 
 
 def _peak_coefficient(planes, norm):
@@ -626,8 +682,12 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     border, differs from the previous pass's field by more than ``max_disagreement`` times the window
     size, or has fewer than two measured neighbours; the others go through the normalised median test
     (Westerweel and Scarano 2005, eq. 2), whose rejections are *replaced* unless the previous
-    iteration confirmed them (``confirm_tolerance``). Failed and replaced vectors get the median of
-    their valid neighbours. The images are first brought to zero mean and unit variance.
+    iteration confirmed them (``confirm_tolerance``). On a periodic pattern (``pattern``, found from
+    the reference image with ``auto``) the peak taken is the one nearest to the predictor and the
+    peak ratio is not tested. Failed and replaced vectors are filled by harmonic
+    interpolation from the valid ones (``validation.fill_by_interpolation``: the discrete Laplace
+    equation with the valid vectors as boundary values), and the next iteration deforms the images
+    with that field. The images are first brought to zero mean and unit variance.
 
     Examples
     --------
@@ -658,6 +718,9 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
         raise SynthbosError(f"window size {biggest} px does not fit in the {shape[0]}x{shape[1]} px image")
     excluded = checked_mask(mask, shape)
     valid_px = None if excluded is None else (~excluded).astype(np.float32)
+    if settings.pattern == "auto":
+        periodic = is_periodic(a if excluded is None else np.where(excluded, np.mean(a), a), settings.window_sizes[0])
+        settings = replace(settings, pattern="periodic" if periodic else "random")
     if settings.uses_warp():
         return _correlate_pair_warp(a, b, valid_px, settings)
 
@@ -708,16 +771,17 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
             wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
             planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
+            select = settings.peak_selection(size)
             prow, pcol, border = subpixel_peak(
-                planes, method=settings.subpixel, weights=overlap_weights((size, size))
+                planes, method=settings.subpixel, weights=overlap_weights((size, size)), select=select
             )
-            ratio = peak_ratio(planes).reshape(ny, nx)
+            ratio = peak_ratio(planes, select=select).reshape(ny, nx)
             coef = _peak_coefficient(planes, norm).reshape(ny, nx)
             u = pu + (pcol - size // 2).reshape(ny, nx)
             v = pv + (prow - size // 2).reshape(ny, nx)
             flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
-            weak = ratio < settings.peak_ratio_min
-            if norm is not None:
+            weak = ratio < settings.peak_ratio_threshold()
+            if norm is not None and judges_correlation(settings, pass_index, iteration):
                 weak |= coef < settings.min_correlation
             flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
             if coarse is not None:
@@ -732,7 +796,7 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
             flags |= np.where(outliers, FLAG_MEDIAN, 0).astype(np.int32)
             flags |= np.where(_isolated(flags == 0, ~masked), FLAG_ISOLATED, 0).astype(np.int32)
             raw = (u, v)
-            u, v = replace_outliers(u, v, flags != 0)
+            u, v = fill_by_interpolation(u, v, flags != 0)
             prev = (node_y, node_x, u, v)
 
     if not np.any(flags == 0):  # nothing measured anywhere: there is nothing to fill from

@@ -365,6 +365,7 @@ def make_correlate_windows(n: int, rpc: bool):
         nx: int,
         spectral: wp.array2d(dtype=wp.float32),
         positions: wp.array2d(dtype=wp.int32),
+        select: wp.array2d(dtype=wp.float32),
         planes: wp.array2d(dtype=wp.float32),
         norm: wp.array(dtype=wp.float64),
         peak_at: wp.array(dtype=wp.int32),
@@ -374,7 +375,9 @@ def make_correlate_windows(n: int, rpc: bool):
         ``spectral`` (1/n^2, and the RPC filter), inverse; plane k (unshifted) in rows k n ... k n + n - 1.
 
         ``norm[k]`` = sqrt(sum a'^2 sum b'^2) of the mean-subtracted windows; ``peak_at[k]`` the shifted
-        position of the plane's maximum (``PLANE_CODE``; (0, 0) for a constant plane, as np.argmax);
+        position of the maximum of the plane times ``select`` (all 1, or the overlap weights for
+        periodic patterns: ``correlation.peak.subpixel_peak``) (``PLANE_CODE``; (0, 0) for a constant
+        plane, as np.argmax);
         ``peak_values[k]`` its maximum, minimum and the maximum outside the 5 x 5 square around the
         peak (``correlation.peak.peak_ratio``; the minimum if there is nothing outside).
         ``positions`` holds the shifted position of every unshifted sample."""
@@ -413,7 +416,8 @@ def make_correlate_windows(n: int, rpc: bool):
         at = wp.tile_load(positions, shape=(n, n))
         top = wp.tile_extract(wp.tile_max(plane), 0)
         low = wp.tile_extract(wp.tile_min(plane), 0)
-        i = wp.tile_extract(wp.tile_argmax(plane), 0)  # cooperative: every thread, outside branches
+        sel = wp.tile_load(select, shape=(n, n))
+        i = wp.tile_extract(wp.tile_argmax(wp.tile_map(weighted, plane, sel)), 0)  # cooperative: every thread
         peak = positions[i // n, i % n]
         if top <= low:
             peak = wp.int32(0)
@@ -504,7 +508,8 @@ def fit_peaks(
     coef: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
 ):
-    """One thread per window, from the peak found by the correlation kernel: three-point fit on
+    """One thread per window, from the peak found by the correlation kernel (its value read from the
+    plane, the plane's maximum unless the search was weighted): three-point fit on
     overlap-weighted samples, peak ratio (exclusion 2), correlation coefficient, vector = predictor +
     peak offset, and the flags ``BORDER``, ``PEAK``, ``DISAGREE``, ``MASKED`` (``subpixel_peak``,
     ``peak_ratio``, ``correlate_pair``)."""
@@ -512,7 +517,7 @@ def fit_peaks(
     k = i * u.shape[1] + j
     r0 = peak_at[k] // PLANE_CODE
     c0 = peak_at[k] % PLANE_CODE
-    c1 = wp.float64(peak_values[k, 0])
+    c1 = shifted(planes, k, n, r0, c0)
     cmin = wp.float64(peak_values[k, 1])
     c2 = wp.float64(peak_values[k, 2])
     num = c1 - cmin
@@ -865,3 +870,33 @@ def finish_replacement(
                         u[i, j] = med
                     else:
                         v[i, j] = med
+
+
+# ---------------------------------------------------------------- interpolation (validation.fill_by_interpolation)
+
+
+@wp.kernel
+def laplace_sweep(
+    u: wp.array2d(dtype=wp.float64),
+    v: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    u_out: wp.array2d(dtype=wp.float64),
+    v_out: wp.array2d(dtype=wp.float64),
+):
+    """One Jacobi sweep of the Laplace equation on the flagged vectors: each becomes the mean of its
+    four neighbours (the edge node standing in beyond the grid); the others are copied."""
+    i, j = wp.tid()
+    uu = u[i, j]
+    vv = v[i, j]
+    if flags[i, j] != 0:
+        ny = u.shape[0]
+        nx = u.shape[1]
+        up = wp.max(i - 1, 0)
+        down = wp.min(i + 1, ny - 1)
+        left = wp.max(j - 1, 0)
+        right = wp.min(j + 1, nx - 1)
+        q = wp.float64(0.25)
+        uu = q * (u[up, j] + u[down, j] + u[i, left] + u[i, right])
+        vv = q * (v[up, j] + v[down, j] + v[i, left] + v[i, right])
+    u_out[i, j] = uu
+    v_out[i, j] = vv

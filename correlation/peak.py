@@ -55,7 +55,14 @@ def three_point_offset(left, centre, right, *, method="gaussian"):
     return np.clip(np.where(ok, gauss, parabolic), -0.5, 0.5)
 
 
-def subpixel_peak(planes, *, method="gaussian", weights=None):
+def _peak_index(flat, select):
+    """Flat index of each plane's highest sample, of ``plane * select`` where ``select`` is given."""
+    if select is None:
+        return np.argmax(flat, axis=1)
+    return np.argmax(flat * np.asarray(select, dtype=flat.dtype).ravel()[None, :], axis=1)
+
+
+def subpixel_peak(planes, *, method="gaussian", weights=None, select=None):
     """Locate the highest peak of each plane in a stack to sub-pixel accuracy.
 
     Parameters
@@ -68,6 +75,10 @@ def subpixel_peak(planes, *, method="gaussian", weights=None):
         Known smooth factor of the planes that the fit should not see, such as the fraction of the
         window pairs that overlaps at each displacement (:func:`overlap_weights`): the five samples
         of each fit are divided by it (the integer peak is found on the planes as given).
+    select : (h, w) array of positive numbers, optional
+        The integer peak is the highest sample of ``plane * select`` instead of ``plane``: with
+        :func:`overlap_weights`, the peak of a periodic pattern's equal peaks that lies nearest to
+        zero displacement (the predictor).
 
     Returns
     -------
@@ -82,7 +93,7 @@ def subpixel_peak(planes, *, method="gaussian", weights=None):
         planes = planes.astype(np.float64)
     h, w = planes.shape[-2:]
     flat = planes.reshape(-1, h, w)
-    idx = np.argmax(flat.reshape(len(flat), -1), axis=1)
+    idx = _peak_index(flat.reshape(len(flat), -1), select)
     r, c = np.divmod(idx, w)
     k = np.arange(len(flat))
     on_border = (r == 0) | (r == h - 1) | (c == 0) | (c == w - 1)
@@ -132,7 +143,7 @@ def overlap_weights(shape):
     return wy[:, None] * wx[None, :]
 
 
-def peak_ratio(planes, *, exclusion=2):
+def peak_ratio(planes, *, exclusion=2, select=None):
     """Ratio of the highest correlation peak to the second highest, per plane.
 
     Parameters
@@ -141,11 +152,13 @@ def peak_ratio(planes, *, exclusion=2):
         Correlation planes.
     exclusion : int
         Half-width of the square around the highest sample that belongs to the first peak.
+    select : (h, w) array, optional
+        The first peak is the one :func:`subpixel_peak` picks with the same ``select``.
 
     Returns
     -------
     (...) float64 array
-        ``(C1 - Cmin) / (C2 - Cmin)`` with ``C1`` the plane maximum, ``C2`` the maximum outside the
+        ``(C1 - Cmin) / (C2 - Cmin)`` with ``C1`` the first peak (the plane maximum), ``C2`` the maximum outside the
         ``(2 exclusion + 1)^2`` square around it and ``Cmin`` the plane minimum: at least 1, finite
         (a flat plane gives 1). Shifting by the minimum keeps the ratio meaningful for mean-subtracted
         planes whose second peak may be negative (Keane and Adrian's detectability, Raffel et al. 2018,
@@ -155,7 +168,7 @@ def peak_ratio(planes, *, exclusion=2):
     h, w = planes.shape[-2:]
     flat = planes.reshape(-1, h * w)
     k = np.arange(len(flat))
-    idx = np.argmax(flat, axis=1)
+    idx = _peak_index(flat, select)
     r, c = np.divmod(idx, w)
     c1 = flat[k, idx].astype(np.float64)
     cmin = flat.min(axis=1).astype(np.float64)

@@ -1,10 +1,15 @@
-"""Vector validation: the normalised median test and outlier replacement on a vector grid."""
+"""Vector validation: the normalised median test, and the filling of rejected vectors on a vector grid."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["neighbour_median", "normalized_median_test", "replace_outliers"]
+__all__ = ["FILL_SWEEPS", "fill_by_interpolation", "neighbour_median", "normalized_median_test", "replace_outliers"]
+
+#: Jacobi sweeps of :func:`fill_by_interpolation` after its start from the neighbours' median. The
+#: filled values of the turbulent PIV pairs of ``benchmarks/bench_openpiv.py`` change by less than
+#: 0.01 px RMS between 10 and 200 sweeps: the start is close, and most holes are a few vectors wide.
+FILL_SWEEPS = 30
 
 
 def _extrapolated_pad(field):
@@ -157,3 +162,78 @@ def replace_outliers(u, v, invalid, *, max_sweeps=100):
         u[todo] = np.median(u[good]) if good.any() else 0.0
         v[todo] = np.median(v[good]) if good.any() else 0.0
     return u, v
+
+
+def laplace_neighbours(invalid):
+    """Flat indices of the invalid nodes and of their four neighbours (the node itself beyond the grid).
+
+    Parameters
+    ----------
+    invalid : (ny, nx) bool array
+
+    Returns
+    -------
+    nodes : (n,) int array
+        Flat indices of the invalid nodes, in raster order.
+    neighbours : (4, n) int array
+        Flat indices of the node above, below, left and right of each, clamped to the grid: beyond
+        the grid's edge the edge node stands in for the missing one (a zero normal derivative there).
+    """
+    invalid = np.asarray(invalid, dtype=bool)
+    ny, nx = invalid.shape
+    r, c = np.nonzero(invalid)
+    up, down = np.maximum(r - 1, 0), np.minimum(r + 1, ny - 1)
+    left, right = np.maximum(c - 1, 0), np.minimum(c + 1, nx - 1)
+    return r * nx + c, np.stack([up * nx + c, down * nx + c, r * nx + left, r * nx + right])
+
+
+def fill_by_interpolation(u, v, invalid, *, sweeps=FILL_SWEEPS):
+    """Fill invalid vectors by harmonic (Laplace) interpolation from the valid ones around them.
+
+    Parameters
+    ----------
+    u, v : (ny, nx) arrays
+    invalid : (ny, nx) bool array
+        Vectors to fill (non-finite ones are filled too).
+    sweeps : int
+        Jacobi sweeps after the start.
+
+    Returns
+    -------
+    u, v : (ny, nx) float64 arrays
+        New arrays; valid vectors unchanged.
+
+    Notes
+    -----
+    The filled nodes solve the discrete Laplace equation (each is the mean of its four neighbours)
+    with the valid vectors as boundary values and a zero normal derivative at the grid's edge: a
+    field that is linear across a hole inside the grid is filled exactly, and a hole's values vary
+    smoothly between its rims instead of taking one neighbour's value as the median does. (At the
+    grid's edge the zero normal derivative lets the interior inform the edge; the linear continuation
+    of the grid, exact for linear fields, gave 5-10 % larger errors on the turbulent PIV pairs of
+    ``benchmarks/bench_openpiv.py``, whose rejected vectors often lie there.) The iteration starts
+    from :func:`replace_outliers` (the median of the valid neighbours, ring by ring), which is already
+    close, and runs ``sweeps`` Jacobi sweeps (all nodes updated from the previous sweep's values, the
+    arithmetic of the Warp kernel ``pass_kernels.laplace_sweep``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> y, x = np.mgrid[0:6, 0:7].astype(float)
+    >>> hole = np.zeros((6, 7), bool); hole[1:4, 2:5] = True
+    >>> fu, fv = fill_by_interpolation(np.where(hole, 9.0, x - y), y, hole, sweeps=300)
+    >>> bool(np.allclose(fu, x - y, atol=1e-6))
+    True
+    """
+    todo = np.asarray(invalid, dtype=bool) | ~np.isfinite(np.asarray(u)) | ~np.isfinite(np.asarray(v))
+    u, v = replace_outliers(u, v, todo)
+    if not todo.any() or todo.all():
+        return u, v
+    nodes, (up, down, left, right) = laplace_neighbours(todo)
+    out = []
+    for f in (u, v):
+        flat = f.ravel()
+        for _ in range(sweeps):
+            flat[nodes] = 0.25 * (flat[up] + flat[down] + flat[left] + flat[right])
+        out.append(flat.reshape(f.shape))
+    return out[0], out[1]

@@ -241,6 +241,27 @@ def test_nothing_measured_exits_1_and_says_so(tmp_path, capsys):
         assert json.loads(f.attrs["counts"])["failed"] == 64
 
 
+def test_regular_grid_judged_random_names_the_pattern_setting(tmp_path, capsys):
+    """A regular dot grid (pitch 8 px) forced to pattern = "random" fails everywhere; the warning names
+    the setting that measures it, and that setting (the default, auto, finds it too) does."""
+    import tifffile
+    from synthbos.raytrace.dots import draw_dots
+
+    g = np.arange(-8.0, 80.0, 8.0) + 0.3
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    for name, shift in (("a", 0.0), ("b", 1.3)):
+        tifffile.imwrite(tmp_path / f"{name}.tif", (draw_dots((64, 64), xy + shift, 3.0) * 4000).astype(np.uint16))
+    cfg = tmp_path / "random.toml"
+    cfg.write_text('[correlation]\npattern = "random"\n')
+    images = (tmp_path / "a.tif", tmp_path / "b.tif")
+    assert _run(images, tmp_path / "r.h5", "--config", str(cfg)) == 1
+    assert 'pattern = "periodic"' in capsys.readouterr().err
+    assert _run(images, tmp_path / "d.h5") == 0
+    with h5py.File(tmp_path / "d.h5") as f:
+        assert np.all(f["flags"][()] == 0)
+        assert_allclose(f["u"][()], 1.3, atol=0.02)
+
+
 def test_mostly_failed_gives_a_hint(tmp_path, capsys):
     import tifffile
 

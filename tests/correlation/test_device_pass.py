@@ -13,8 +13,12 @@ from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.benchmarks.bench_correlation import bump_field, random_phase_field, synthetic_pair
 from synthbos.correlation import CorrelationSettings, correlate_pair, count_vectors, device_pass
 from synthbos.correlation.deform import bspline3_coefficients
-from synthbos.correlation.device_pass import PARALLEL_SWEEPS, replace_outliers_on_device
-from synthbos.correlation.validation import replace_outliers
+from synthbos.correlation.device_pass import (
+    PARALLEL_SWEEPS,
+    fill_by_interpolation_on_device,
+    replace_outliers_on_device,
+)
+from synthbos.correlation.validation import fill_by_interpolation, replace_outliers
 
 from synthbos import SynthbosError
 
@@ -111,7 +115,7 @@ def test_warp_path_replays_its_graph_for_the_next_pairs(device, monkeypatch):
         assert_allclose(np.median(r.u), shift[0], atol=0.02)
         assert_allclose(np.median(r.v), shift[1], atol=0.02)
         assert_same_field(correlate_pair(a, b, settings=replace(s, backend="numpy")), r)
-    plans = [p for p in device_pass._plans.values() if p.settings == s]
+    plans = [p for p in device_pass._plans.values() if p.settings == replace(s, pattern="random")]  # as resolved
     assert len(plans) == 1 and plans[0].graph is not None and plans[0].runs == 3
 
 
@@ -146,6 +150,22 @@ def test_replacement_matches_numpy(hole, device):
     # nothing valid: zero everywhere
     zu, zv = replace_outliers_on_device(u, v, np.ones_like(invalid), device=device)
     assert np.all(zu == 0) and np.all(zv == 0)
+
+
+@pytest.mark.parametrize("hole", [1, 2 * PARALLEL_SWEEPS + 3])
+def test_fill_by_interpolation_matches_numpy(hole, device):
+    """The median start and the Jacobi sweeps of the Laplace fill, on holes inside and at the grid's edge."""
+    rng = np.random.default_rng(10 + hole)
+    u, v = rng.normal(size=(2, 21, 17))
+    invalid = rng.random((21, 17)) < 0.15
+    invalid[2 : 2 + hole, 4 : 4 + hole] = True
+    invalid[-3:, -2:] = True  # a corner hole
+    ru, rv = fill_by_interpolation(u, v, invalid)
+    du, dv = fill_by_interpolation_on_device(u, v, invalid, device=device)
+    assert np.abs(ru - replace_outliers(u, v, invalid)[0]).max() > 0.01  # the sweeps did something
+    assert_allclose(du, ru, rtol=0, atol=1e-12)
+    assert_allclose(dv, rv, rtol=0, atol=1e-12)
+    assert_array_equal(du[~invalid], u[~invalid])
 
 
 def test_backend_selection():

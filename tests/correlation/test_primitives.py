@@ -7,7 +7,7 @@ from numpy.testing import assert_allclose
 from scipy import ndimage
 from synthbos.correlation.deform import bspline3_coefficients, deform_pair, grid_to_pixels, spline_weights
 from synthbos.correlation.peak import peak_ratio, subpixel_peak
-from synthbos.correlation.validation import normalized_median_test, replace_outliers
+from synthbos.correlation.validation import fill_by_interpolation, normalized_median_test, replace_outliers
 from synthbos.correlation.windows import extract_windows, window_starts
 from synthbos.correlation.xcorr import cross_correlate, robust_phase_correlate
 from synthbos.raytrace.dots import draw_dots
@@ -127,3 +127,33 @@ def test_median_test_flags_planted_outliers_and_replacement_restores():
     assert_allclose(ur[~bad], u[~bad])
     assert_allclose(ur[bad], u[bad], atol=0.08)  # median of the valid neighbours of a linear field
     assert_allclose(vr[bad], v[bad], atol=0.09)
+
+
+def test_fill_by_interpolation_beats_the_median_on_a_smooth_field_with_holes():
+    """A drawn smooth field (wavelengths of 36-47 nodes) with a 6 x 6 hole, a hole on the grid's edge and
+    8 % of single vectors rejected: harmonic interpolation is 2.3 times closer to the truth than the
+    neighbours' median, 2.8 times in the hole; accepted vectors stay as they are."""
+    y, x = np.mgrid[0:32, 0:40].astype(float)
+    u = 1.5 * np.sin(2 * np.pi * x / 36) * np.cos(2 * np.pi * y / 43.2) + 0.05 * x
+    v = np.cos(2 * np.pi * (x + y) / 46.8)
+    rejected = np.random.default_rng(3).random(u.shape) < 0.08
+    rejected[10:16, 12:18] = True
+    rejected[0:3, 30:36] = True
+    bad_u, bad_v = np.where(rejected, np.nan, u), np.where(rejected, 99.0, v)  # NaN or wild: no matter
+
+    def rms(fu, fv, where):
+        return np.sqrt(np.mean((fu - u)[where] ** 2 + (fv - v)[where] ** 2))
+
+    hole = np.zeros(u.shape, bool)
+    hole[10:16, 12:18] = True
+    mu, mv = replace_outliers(bad_u, bad_v, rejected)
+    fu, fv = fill_by_interpolation(bad_u, bad_v, rejected)
+    assert_allclose([rms(mu, mv, rejected), rms(mu, mv, hole)], [0.172, 0.218], atol=0.002)
+    assert_allclose([rms(fu, fv, rejected), rms(fu, fv, hole)], [0.075, 0.079], atol=0.002)
+    assert_allclose(fu[~rejected], u[~rejected], rtol=0, atol=0)
+    assert_allclose(fv[~rejected], v[~rejected], rtol=0, atol=0)
+    # a linear field is filled exactly (converged) in a hole inside the grid
+    lin_u, lin_v = 0.3 * x - 0.1 * y, 0.2 * y
+    eu, ev = fill_by_interpolation(np.where(hole, 0.0, lin_u), lin_v, hole, sweeps=2000)
+    assert_allclose(eu, lin_u, atol=1e-6)
+    assert_allclose(ev, lin_v, atol=1e-6)
