@@ -1,0 +1,157 @@
+"""Warp kernel of the registration check: the window around a dot, moved by its displacement, refined by
+Lucas-Kanade steps (Lucas and Kanade 1981) on the gradient image.
+
+The host code and the NumPy reference (``registration_offsets_numpy``, which defines the result) live in
+:mod:`tracking.register`.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+#: Gauss-Newton (Lucas-Kanade) steps of the registration; each step is clipped to this many pixels per
+#: axis.
+REGISTRATION_STEPS = 3
+MAX_STEP_PX = 1.0
+#: A window needs at least this many usable pixels (inside the image with the spline's taps and the
+#: reference's central differences) to be registered.
+MIN_PIXELS = 9
+STEPS = wp.constant(REGISTRATION_STEPS)
+MAX_STEP = wp.constant(wp.float64(MAX_STEP_PX))
+MIN_COUNT = wp.constant(wp.float64(MIN_PIXELS))
+
+
+@wp.func
+def bspline3(t: wp.float64, k: int) -> wp.float64:
+    """Weight of tap ``k`` (0..3, at offsets -1, 0, 1, 2 from ``floor``) of the cubic B-spline at fraction ``t``."""
+    one = wp.float64(1.0)
+    s = one - t
+    if k == 0:
+        return s * s * s / wp.float64(6.0)
+    if k == 1:
+        return (wp.float64(3.0) * t * t * t - wp.float64(6.0) * t * t + wp.float64(4.0)) / wp.float64(6.0)
+    if k == 2:
+        return (-wp.float64(3.0) * t * t * t + wp.float64(3.0) * t * t + wp.float64(3.0) * t + one) / wp.float64(6.0)
+    return t * t * t / wp.float64(6.0)
+
+
+@wp.func
+def bspline3_slope(t: wp.float64, k: int) -> wp.float64:
+    """Derivative of :func:`bspline3` with respect to the sample position."""
+    s = wp.float64(1.0) - t
+    if k == 0:
+        return -s * s / wp.float64(2.0)
+    if k == 1:
+        return wp.float64(1.5) * t * t - wp.float64(2.0) * t
+    if k == 2:
+        return -wp.float64(1.5) * t * t + t + wp.float64(0.5)
+    return t * t / wp.float64(2.0)
+
+
+@wp.func
+def registration_sums(
+    ref: wp.array2d(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    bx: int,
+    by: int,
+    half: int,
+    tx: wp.float64,
+    ty: wp.float64,
+):
+    """The window's sums for one step at the trial displacement (tx, ty): count, Jx, Jy, r, JxJx, JxJy,
+    JyJy, Jx r, Jy r (see ``registration_offsets_numpy``)."""
+    h = ref.shape[0]
+    w = ref.shape[1]
+    zero = wp.float64(0.0)
+    half_f = wp.float64(0.5)
+    n = zero
+    sx = zero
+    sy = zero
+    sr = zero
+    sxx = zero
+    sxy = zero
+    syy = zero
+    sxr = zero
+    syr = zero
+    for j in range(-half, half + 1):
+        py = by + j
+        qy = wp.float64(py) + ty
+        iy = int(wp.floor(qy))
+        fy = qy - wp.float64(iy)
+        for i in range(-half, half + 1):
+            px = bx + i
+            qx = wp.float64(px) + tx
+            ix = int(wp.floor(qx))
+            if px < 1 or py < 1 or px > w - 2 or py > h - 2 or ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3:
+                continue
+            fx = qx - wp.float64(ix)
+            g = zero
+            gx = zero
+            gy = zero
+            for ky in range(4):
+                wy = bspline3(fy, ky)
+                dy = bspline3_slope(fy, ky)
+                row = zero
+                drow = zero
+                for kx in range(4):
+                    c = coef[iy - 1 + ky, ix - 1 + kx]
+                    row += bspline3(fx, kx) * c
+                    drow += bspline3_slope(fx, kx) * c
+                g += wy * row
+                gx += wy * drow
+                gy += dy * row
+            r0 = ref[py, px]
+            jx = half_f * (half_f * (ref[py, px + 1] - ref[py, px - 1]) + gx)
+            jy = half_f * (half_f * (ref[py + 1, px] - ref[py - 1, px]) + gy)
+            res = g - r0
+            n += wp.float64(1.0)
+            sx += jx
+            sy += jy
+            sr += res
+            sxx += jx * jx
+            sxy += jx * jy
+            syy += jy * jy
+            sxr += jx * res
+            syr += jy * res
+    return n, sx, sy, sr, sxx, sxy, syy, sxr, syr
+
+
+@wp.kernel
+def registration_kernel(
+    ref: wp.array2d(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    xy: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    half: int,
+    out: wp.array(dtype=wp.vec2d),
+    ok: wp.array(dtype=wp.int32),
+):
+    """One thread per dot: ``out`` the correction to ``uv`` after ``REGISTRATION_STEPS`` steps, ``ok`` 1
+    where every step could be solved (see ``registration_offsets_numpy``)."""
+    d = wp.tid()
+    bx = int(wp.rint(xy[d][0]))
+    by = int(wp.rint(xy[d][1]))
+    cx = wp.float64(0.0)
+    cy = wp.float64(0.0)
+    good = wp.int32(1)
+    lim = MAX_STEP
+    for _ in range(STEPS):
+        tx = uv[d][0] + cx
+        ty = uv[d][1] + cy
+        n, sx, sy, sr, sxx, sxy, syy, sxr, syr = registration_sums(ref, coef, bx, by, half, tx, ty)
+        if n < MIN_COUNT:
+            good = wp.int32(0)
+            break
+        axx = sxx - sx * sx / n
+        axy = sxy - sx * sy / n
+        ayy = syy - sy * sy / n
+        bxr = sxr - sx * sr / n
+        byr = syr - sy * sr / n
+        det = axx * ayy - axy * axy
+        if not (det > wp.float64(0.0)):
+            good = wp.int32(0)
+            break
+        cx += wp.clamp(-(ayy * bxr - axy * byr) / det, -lim, lim)
+        cy += wp.clamp(-(axx * byr - axy * bxr) / det, -lim, lim)
+    out[d] = wp.vec2d(cx, cy)
+    ok[d] = good
