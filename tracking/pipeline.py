@@ -47,7 +47,7 @@ from .identify import (
 from .match import MATCH_METHODS, match_multiparametric, match_nearest
 from .neighbours import neighbour_fit, neighbour_fit_numpy
 from .predict import predict_displacement
-from .register import registration_offsets, registration_offsets_numpy, spline_coefficients
+from .register import local_gradients, registration_offsets, registration_offsets_numpy, spline_coefficients
 from .residual import subtract_gaussians
 from .windows import measure_windows, measure_windows_numpy
 
@@ -859,10 +859,11 @@ def _misregistered(images, out, m, uv_cc, half, settings, device):
     xy = np.stack([out["x"][m], out["y"][m]], axis=1)
     uv = np.stack(uv_cc, axis=1)
     coef = spline_coefficients(images[1])
+    grads = local_gradients(xy, uv, k=settings.outlier_neighbours)
     if settings.backend == "warp":
-        c, ok = registration_offsets(images[0], coef, xy, uv, half=half, device=device)
+        c, ok = registration_offsets(images[0], coef, xy, uv, half=half, gradients=grads, device=device)
     else:
-        c, ok = registration_offsets_numpy(images[0], coef, xy, uv, half=half)
+        c, ok = registration_offsets_numpy(images[0], coef, xy, uv, half=half, gradients=grads)
     centroid = np.stack([out["x_gradient"][m], out["y_gradient"][m]], axis=1) - xy
     far = np.hypot(c[:, 0], c[:, 1]) > settings.registration_tolerance
     far |= np.hypot(*(uv + c - centroid).T) > settings.registration_tolerance

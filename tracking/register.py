@@ -16,10 +16,11 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .register_kernels import MAX_STEP_PX, MIN_PIXELS, REGISTRATION_STEPS, registration_kernel
 
-__all__ = ["registration_offsets", "registration_offsets_numpy", "spline_coefficients"]
+__all__ = ["local_gradients", "registration_offsets", "registration_offsets_numpy", "spline_coefficients"]
 
 _CHUNK = 1024
 
@@ -28,6 +29,42 @@ def spline_coefficients(image):
     """Cubic B-spline coefficients of an image (mirror boundary): the gradient image as the registration
     samples it between pixels."""
     return ndimage.spline_filter(np.asarray(image, dtype=np.float64), order=3, mode="mirror")
+
+
+def local_gradients(xy, uv, *, k=12):
+    """Gradient of a scattered displacement field at each of its points: the least-squares plane through
+    the vectors of the point's ``k`` nearest other points.
+
+    Parameters
+    ----------
+    xy, uv : (N, 2) arrays
+        Points (x = column) and their displacements, px.
+    k : int, keyword-only
+        Neighbours per plane (with fewer than ``k + 1`` points every gradient is zero).
+
+    Returns
+    -------
+    (N, 2, 2) array
+        ``[[du/dx, du/dy], [dv/dx, dv/dy]]``; a ridge of ``1e-6 (k + trace)`` keeps collinear
+        neighbourhoods finite.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros((len(xy), 2, 2))
+    if len(xy) <= k:
+        return out
+    _, idx = cKDTree(xy).query(xy, k=k + 1)
+    nb = idx[:, 1:]  # the point itself comes first (distance 0)
+    d = xy[nb] - xy[nb].mean(axis=1, keepdims=True)  # (N, k, 2)
+    f = uv[nb] - uv[nb].mean(axis=1, keepdims=True)
+    sxx, syy, sxy = (d[..., 0] ** 2).sum(1), (d[..., 1] ** 2).sum(1), (d[..., 0] * d[..., 1]).sum(1)
+    ridge = 1e-6 * (k + sxx + syy)
+    sxx, syy = sxx + ridge, syy + ridge
+    det = sxx * syy - sxy * sxy
+    bx, by = (d[..., 0:1] * f).sum(1), (d[..., 1:2] * f).sum(1)  # (N, 2): one column per component
+    out[:, :, 0] = (syy[:, None] * bx - sxy[:, None] * by) / det[:, None]
+    out[:, :, 1] = (sxx[:, None] * by - sxy[:, None] * bx) / det[:, None]
+    return out
 
 
 def _bspline3(t):
@@ -39,19 +76,22 @@ def _bspline3(t):
     return w, dw
 
 
-def _sums(ref, coef, bx, by, half, tx, ty):
+def _sums(ref, coef, xy, half, t, a):
     """Per dot: usable pixel count and the centred normal equations (axx, axy, ayy, bxr, byr)."""
     h, w = ref.shape
     off = np.arange(-half, half + 1)
-    px = (bx[:, None] + off)[:, None, :]  # (N, 1, n): column of each window pixel
-    py = (by[:, None] + off)[:, :, None]  # (N, n, 1)
-    qx, qy = px + tx[:, None, None], py + ty[:, None, None]
+    bx, by = np.rint(xy[:, 0]).astype(np.int64), np.rint(xy[:, 1]).astype(np.int64)
+    px = np.broadcast_to((bx[:, None] + off)[:, None, :], (len(xy), off.size, off.size))  # column of each pixel
+    py = np.broadcast_to((by[:, None] + off)[:, :, None], px.shape)
+    dx0, dy0 = px - xy[:, 0, None, None], py - xy[:, 1, None, None]
+    qx = px + t[:, 0, None, None] + (a[:, 0, 0, None, None] * dx0 + a[:, 0, 1, None, None] * dy0)
+    qy = py + t[:, 1, None, None] + (a[:, 1, 0, None, None] * dx0 + a[:, 1, 1, None, None] * dy0)
     ix, iy = np.floor(qx).astype(np.int64), np.floor(qy).astype(np.int64)
     use = (px >= 1) & (py >= 1) & (px <= w - 2) & (py <= h - 2) & (ix >= 1) & (iy >= 1) & (ix <= w - 3) & (iy <= h - 3)
-    wx, dwx = _bspline3(qx - ix)  # (N, 1, n, 4)
-    wy, dwy = _bspline3(qy - iy)  # (N, n, 1, 4)
-    rows = np.clip(iy[..., None] - 1 + np.arange(4), 0, h - 1)  # (N, n, 1, 4)
-    cols = np.clip(ix[..., None] - 1 + np.arange(4), 0, w - 1)  # (N, 1, n, 4)
+    wx, dwx = _bspline3(qx - ix)  # (N, n, n, 4)
+    wy, dwy = _bspline3(qy - iy)
+    rows = np.clip(iy[..., None] - 1 + np.arange(4), 0, h - 1)  # (N, n, n, 4)
+    cols = np.clip(ix[..., None] - 1 + np.arange(4), 0, w - 1)
     taps = coef[rows[..., :, None], cols[..., None, :]]  # (N, n, n, 4 rows, 4 cols)
     row = (taps * wx[..., None, :]).sum(-1)
     drow = (taps * dwx[..., None, :]).sum(-1)
@@ -73,7 +113,7 @@ def _sums(ref, coef, bx, by, half, tx, ty):
     return n, axx, axy, ayy, bxr, byr
 
 
-def registration_offsets_numpy(reference, coefficients, xy, uv, *, half):
+def registration_offsets_numpy(reference, coefficients, xy, uv, *, half, gradients=None):
     """Lucas-Kanade correction of each displacement, registering the reference window onto the gradient image.
 
     Parameters
@@ -88,18 +128,22 @@ def registration_offsets_numpy(reference, coefficients, xy, uv, *, half):
         Their measured displacements, px.
     half : int, keyword-only
         Half-width of the window.
+    gradients : (N, 2, 2) array, optional, keyword-only
+        The displacement's gradient at each dot, ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (e.g.
+        :func:`local_gradients`): the window is deformed by it about the dot's position. Zero by default
+        (the window only moves).
 
     Returns
     -------
     correction : (N, 2) array
-        ``c`` such that the gradient image at ``p + uv + c`` matches the reference at ``p`` over the window
-        (least squares, up to a constant offset), px.
+        ``c`` such that the gradient image at ``p + uv + c + A (p - xy)`` matches the reference at ``p``
+        over the window (least squares, up to a constant offset; ``A`` the gradient), px.
     ok : (N,) bool array
         Every step was solved: at least ``MIN_PIXELS`` usable pixels and a positive determinant.
 
     Notes
     -----
-    ``REGISTRATION_STEPS`` Gauss-Newton steps on ``sum_p (G(p + uv + c) - R(p) - b)^2`` over the window
+    ``REGISTRATION_STEPS`` Gauss-Newton steps on ``sum_p (G(p + uv + c + A (p - xy)) - R(p) - b)^2`` over the window
     pixels ``p`` (those whose reference central differences and spline taps lie inside the image), the
     offset ``b`` eliminated by centring the sums; the Jacobian is the mean of the two images' gradients
     (the reference's central differences and the spline's exact slope), as in the symmetric
@@ -110,22 +154,29 @@ def registration_offsets_numpy(reference, coefficients, xy, uv, *, half):
     coef = np.asarray(coefficients, dtype=np.float64)
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    grads = _gradients(gradients, len(xy))
     c = np.zeros_like(uv)
     ok = np.ones(len(xy), dtype=bool)
     for a in range(0, len(xy), _CHUNK):  # bounded memory: 16 taps per window pixel per dot
-        c[a : a + _CHUNK], ok[a : a + _CHUNK] = _register(ref, coef, xy[a : a + _CHUNK], uv[a : a + _CHUNK], half)
+        part = slice(a, a + _CHUNK)
+        c[part], ok[part] = _register(ref, coef, xy[part], uv[part], grads[part], half)
     return c, ok
 
 
-def _register(ref, coef, xy, uv, half):
-    bx, by = np.rint(xy[:, 0]).astype(np.int64), np.rint(xy[:, 1]).astype(np.int64)
+def _gradients(gradients, n):
+    if gradients is None:
+        return np.zeros((n, 2, 2))
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(gradients, dtype=np.float64), (n, 2, 2)))
+
+
+def _register(ref, coef, xy, uv, grads, half):
     c = np.zeros_like(uv)
     ok = np.ones(len(xy), dtype=bool)
     for _ in range(REGISTRATION_STEPS):
         act = np.flatnonzero(ok)
         if act.size == 0:
             break
-        n, axx, axy, ayy, bxr, byr = _sums(ref, coef, bx[act], by[act], half, *(uv[act] + c[act]).T)
+        n, axx, axy, ayy, bxr, byr = _sums(ref, coef, xy[act], half, uv[act] + c[act], grads[act])
         det = axx * ayy - axy * axy
         solved = (n >= MIN_PIXELS) & (det > 0)
         ok[act[~solved]] = False
@@ -135,7 +186,7 @@ def _register(ref, coef, xy, uv, half):
     return c, ok
 
 
-def registration_offsets(reference, coefficients, xy, uv, *, half, device=None):
+def registration_offsets(reference, coefficients, xy, uv, *, half, gradients=None, device=None):
     """Same as :func:`registration_offsets_numpy`, with a Warp kernel (one thread per dot).
 
     Parameters
@@ -160,7 +211,7 @@ def registration_offsets(reference, coefficients, xy, uv, *, half, device=None):
         registration_kernel,
         dim=n,
         inputs=[up(reference, wp.float64), up(coefficients, wp.float64), up(xy, wp.vec2d), up(uv, wp.vec2d),
-                int(half), out, ok],
+                up(_gradients(gradients, n), wp.mat22d), int(half), out, ok],
         device=device,
     )  # fmt: skip
     return out.numpy(), ok.numpy().astype(bool)

@@ -55,11 +55,15 @@ def registration_sums(
     bx: int,
     by: int,
     half: int,
+    x0: wp.float64,
+    y0: wp.float64,
     tx: wp.float64,
     ty: wp.float64,
+    a: wp.mat22d,
 ):
-    """The window's sums for one step at the trial displacement (tx, ty): count, Jx, Jy, r, JxJx, JxJy,
-    JyJy, Jx r, Jy r (see ``registration_offsets_numpy``)."""
+    """The window's sums for one step at the trial displacement (tx, ty) at the dot (x0, y0), with the
+    displacement gradient ``a``: count, Jx, Jy, r, JxJx, JxJy, JyJy, Jx r, Jy r (see
+    ``registration_offsets_numpy``)."""
     h = ref.shape[0]
     w = ref.shape[1]
     zero = wp.float64(0.0)
@@ -75,16 +79,18 @@ def registration_sums(
     syr = zero
     for j in range(-half, half + 1):
         py = by + j
-        qy = wp.float64(py) + ty
-        iy = int(wp.floor(qy))
-        fy = qy - wp.float64(iy)
+        dy0 = wp.float64(py) - y0
         for i in range(-half, half + 1):
             px = bx + i
-            qx = wp.float64(px) + tx
+            dx0 = wp.float64(px) - x0
+            qx = wp.float64(px) + tx + (a[0, 0] * dx0 + a[0, 1] * dy0)
+            qy = wp.float64(py) + ty + (a[1, 0] * dx0 + a[1, 1] * dy0)
             ix = int(wp.floor(qx))
+            iy = int(wp.floor(qy))
             if px < 1 or py < 1 or px > w - 2 or py > h - 2 or ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3:
                 continue
             fx = qx - wp.float64(ix)
+            fy = qy - wp.float64(iy)
             g = zero
             gx = zero
             gy = zero
@@ -122,6 +128,7 @@ def registration_kernel(
     coef: wp.array2d(dtype=wp.float64),
     xy: wp.array(dtype=wp.vec2d),
     uv: wp.array(dtype=wp.vec2d),
+    gradients: wp.array(dtype=wp.mat22d),
     half: int,
     out: wp.array(dtype=wp.vec2d),
     ok: wp.array(dtype=wp.int32),
@@ -129,8 +136,11 @@ def registration_kernel(
     """One thread per dot: ``out`` the correction to ``uv`` after ``REGISTRATION_STEPS`` steps, ``ok`` 1
     where every step could be solved (see ``registration_offsets_numpy``)."""
     d = wp.tid()
-    bx = int(wp.rint(xy[d][0]))
-    by = int(wp.rint(xy[d][1]))
+    x0 = xy[d][0]
+    y0 = xy[d][1]
+    bx = int(wp.rint(x0))
+    by = int(wp.rint(y0))
+    a = gradients[d]
     cx = wp.float64(0.0)
     cy = wp.float64(0.0)
     good = wp.int32(1)
@@ -138,7 +148,7 @@ def registration_kernel(
     for _ in range(STEPS):
         tx = uv[d][0] + cx
         ty = uv[d][1] + cy
-        n, sx, sy, sr, sxx, sxy, syy, sxr, syr = registration_sums(ref, coef, bx, by, half, tx, ty)
+        n, sx, sy, sr, sxx, sxy, syy, sxr, syr = registration_sums(ref, coef, bx, by, half, x0, y0, tx, ty, a)
         if n < MIN_COUNT:
             good = wp.int32(0)
             break
