@@ -13,7 +13,12 @@ from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.benchmarks.bench_noprior import field, score, speckle_pair, squares_pair
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.register import registration_offsets, registration_offsets_numpy, spline_coefficients
+from synthbos.tracking.register import (
+    local_gradients,
+    registration_offsets,
+    registration_offsets_numpy,
+    spline_coefficients,
+)
 
 from synthbos import SynthbosError
 
@@ -91,13 +96,46 @@ def test_registration_finds_a_known_error():
     assert np.abs(c0).max() < 0.03
 
 
+def test_local_gradients_of_a_linear_field():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 100, (200, 2))
+    a = np.array([[0.05, -0.02], [0.03, 0.01]])
+    uv = np.array([1.0, -2.0]) + xy @ a.T
+    assert_allclose(local_gradients(xy, uv), np.broadcast_to(a, (200, 2, 2)), atol=1e-5)  # the ridge
+    assert_array_equal(local_gradients(xy[:5], uv[:5]), np.zeros((5, 2, 2)))
+
+
+def test_registration_follows_a_strong_gradient():
+    """A speckle pattern stretched by 8 % along x about its centre: with the gradient the window registers
+    to the field at each point; moved only, it misses by up to about the stretch across the window."""
+    from scipy import ndimage
+
+    ref, _ = speckle_pair((128, 128), seed=1, amplitude=0.0, grain=3.0, noise=0.0)
+    a = np.array([[0.08, 0.0], [0.0, 0.0]])
+    centre = 63.5
+    # gradient(x) = ref(x - u(x)), u = a (x - centre): sample ref at centre + (x - centre) / 1.08
+    rows, cols = np.mgrid[0:128, 0:128].astype(float)
+    grad = ndimage.map_coordinates(ref, [rows, centre + (cols - centre) / 1.08], order=5, mode="nearest")
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(30, 98, (40, 2))
+    truth = (xy - centre) @ a.T
+    coef = spline_coefficients(grad)
+    grads = np.broadcast_to(a, (40, 2, 2))
+    c, ok = registration_offsets_numpy(ref, coef, xy, truth + 0.2, half=4, gradients=grads)
+    assert ok.all()
+    assert_allclose(truth + 0.2 + c, truth, atol=0.03)
+    c_moved, _ = registration_offsets_numpy(ref, coef, xy, truth, half=4)
+    assert np.abs(c_moved).max() > 0.05
+
+
 def test_registration_kernel_matches_numpy_reference(device):
     ref, grad, xy, truth = _speckle_case()
     xy = np.vstack([xy, [[0.2, 50.0], [127.0, 127.0], [-30.0, 10.0]]])  # at the edge, and outside: not solved
     truth = np.vstack([truth, np.zeros((3, 2))])
     coef = spline_coefficients(grad)
-    c_np, ok_np = registration_offsets_numpy(ref, coef, xy, truth + 0.2, half=4)
-    c_wp, ok_wp = registration_offsets(ref, coef, xy, truth + 0.2, half=4, device=device)
+    grads = local_gradients(xy, truth)
+    c_np, ok_np = registration_offsets_numpy(ref, coef, xy, truth + 0.2, half=4, gradients=grads)
+    c_wp, ok_wp = registration_offsets(ref, coef, xy, truth + 0.2, half=4, gradients=grads, device=device)
     assert_array_equal(ok_wp, ok_np)
     assert not ok_np[-1]
     assert_allclose(c_wp, c_np, atol=1e-10)
