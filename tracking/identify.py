@@ -136,18 +136,18 @@ def dynamic_threshold_identification(image, *, threshold, n_levels=8, top=None):
             continue
         seed_of = np.zeros(m + 1, dtype=np.int64)
         seed_of[1:][splits] = np.arange(1, splits.sum() + 1)
-        seeds = seed_of[comp]
-        in_split = counts[labels] >= 2
-        in_split &= labels > 0
-        ri, ci = ndimage.distance_transform_edt(seeds == 0, return_distances=False, return_indices=True)
-        nearest = seeds[ri, ci]
-        new = np.where(in_split, n + nearest, labels)
+        lab = labels.ravel()
+        pix = np.flatnonzero((counts[lab] >= 2) & (lab > 0))  # the pixels of the regions that split
+        not_seed = ~np.r_[False, splits][comp]
+        ri, ci = ndimage.distance_transform_edt(not_seed, return_distances=False, return_indices=True)
+        nearest = seed_of[comp.ravel()[ri.ravel()[pix].astype(np.int64) * comp.shape[1] + ci.ravel()[pix]]]
         # A nearest seed from a neighbouring region (rare) cannot steal pixels: keep them in their region.
         seed_parent = np.zeros(splits.sum() + 1, dtype=np.int64)
         seed_parent[1:] = parent[splits]
-        wrong = in_split & (seed_parent[nearest] != labels)
-        new[wrong] = labels[wrong]
-        labels = _ranks(new)
+        own = seed_parent[nearest] == lab[pix]
+        new = lab.copy()
+        new[pix[own]] = n + nearest[own]
+        labels = _ranks(new).reshape(image.shape)
         if new.min() > 0:  # no background pixel: the rank 0 is a blob
             labels += 1
         n = int(labels.max())
