@@ -141,6 +141,16 @@ def test_registration_kernel_matches_numpy_reference(device):
     assert_allclose(c_wp, c_np, atol=1e-10)
 
 
+def test_numpy_and_warp_backends_agree_without_a_prior():
+    ref, grad = squares_pair((128, 128), seed=5, amplitude=1.0)
+    a = track_pair(ref, grad, settings=TrackingSettings(backend="numpy"))
+    b = track_pair(ref, grad, settings=TrackingSettings(backend="warp"))
+    assert ((a["status"] & DotStatus.MISREGISTERED) != 0).sum() >= 5
+    assert_array_equal(b["status"], a["status"])
+    for name in ("x", "y", "u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
+        assert_allclose(b[name], a[name], atol=1e-9, equal_nan=True, err_msg=name)
+
+
 def test_registration_tolerance_is_checked():
     with pytest.raises(SynthbosError, match="registration_tolerance"):
         TrackingSettings(registration_tolerance=0.0)
