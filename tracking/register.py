@@ -70,9 +70,14 @@ def local_gradients(xy, uv, *, k=12):
 def _bspline3(t):
     """(..., 4) weights and slopes of the cubic B-spline taps at offsets -1, 0, 1, 2 for fractions ``t``."""
     t = np.asarray(t)[..., None]
+    sixth = 1.0 / 6.0
     s = 1.0 - t
-    w = np.concatenate([s**3 / 6, (3 * t**3 - 6 * t**2 + 4) / 6, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6, t**3 / 6], -1)
-    dw = np.concatenate([-(s**2) / 2, 1.5 * t**2 - 2 * t, -1.5 * t**2 + t + 0.5, t**2 / 2], -1)
+    t2 = t * t
+    t3 = t2 * t
+    w1 = (3.0 * t3 - 6.0 * t2 + 4.0) * sixth
+    w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) * sixth
+    w = np.concatenate([s * s * s * sixth, w1, w2, t3 * sixth], -1)
+    dw = np.concatenate([-s * s * 0.5, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, t2 * 0.5], -1)
     return w, dw
 
 

@@ -19,33 +19,31 @@ MIN_PIXELS = 9
 STEPS = wp.constant(REGISTRATION_STEPS)
 MAX_STEP = wp.constant(wp.float64(MAX_STEP_PX))
 MIN_COUNT = wp.constant(wp.float64(MIN_PIXELS))
+SIXTH = wp.constant(wp.float64(1.0 / 6.0))  # a float64 constant: a literal quotient in a kernel is float32
 
 
 @wp.func
-def bspline3(t: wp.float64, k: int) -> wp.float64:
-    """Weight of tap ``k`` (0..3, at offsets -1, 0, 1, 2 from ``floor``) of the cubic B-spline at fraction ``t``."""
+def bspline3(t: wp.float64):
+    """Weights and slopes of the cubic B-spline's four taps (offsets -1, 0, 1, 2 from ``floor``) at
+    fraction ``t``."""
     one = wp.float64(1.0)
+    sixth = SIXTH
     s = one - t
-    if k == 0:
-        return s * s * s / wp.float64(6.0)
-    if k == 1:
-        return (wp.float64(3.0) * t * t * t - wp.float64(6.0) * t * t + wp.float64(4.0)) / wp.float64(6.0)
-    if k == 2:
-        return (-wp.float64(3.0) * t * t * t + wp.float64(3.0) * t * t + wp.float64(3.0) * t + one) / wp.float64(6.0)
-    return t * t * t / wp.float64(6.0)
-
-
-@wp.func
-def bspline3_slope(t: wp.float64, k: int) -> wp.float64:
-    """Derivative of :func:`bspline3` with respect to the sample position."""
-    s = wp.float64(1.0) - t
-    if k == 0:
-        return -s * s / wp.float64(2.0)
-    if k == 1:
-        return wp.float64(1.5) * t * t - wp.float64(2.0) * t
-    if k == 2:
-        return -wp.float64(1.5) * t * t + t + wp.float64(0.5)
-    return t * t / wp.float64(2.0)
+    t2 = t * t
+    t3 = t2 * t
+    w = wp.vec4d(
+        s * s * s * sixth,
+        (wp.float64(3.0) * t3 - wp.float64(6.0) * t2 + wp.float64(4.0)) * sixth,
+        (-wp.float64(3.0) * t3 + wp.float64(3.0) * t2 + wp.float64(3.0) * t + one) * sixth,
+        t3 * sixth,
+    )
+    dw = wp.vec4d(
+        -s * s * wp.float64(0.5),
+        wp.float64(1.5) * t2 - wp.float64(2.0) * t,
+        -wp.float64(1.5) * t2 + t + wp.float64(0.5),
+        t2 * wp.float64(0.5),
+    )
+    return w, dw
 
 
 @wp.func
@@ -89,23 +87,23 @@ def registration_sums(
             iy = int(wp.floor(qy))
             if px < 1 or py < 1 or px > w - 2 or py > h - 2 or ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3:
                 continue
-            fx = qx - wp.float64(ix)
-            fy = qy - wp.float64(iy)
+            wx, dwx = bspline3(qx - wp.float64(ix))
+            wy, dwy = bspline3(qy - wp.float64(iy))
             g = zero
             gx = zero
             gy = zero
             for ky in range(4):
-                wy = bspline3(fy, ky)
-                dy = bspline3_slope(fy, ky)
-                row = zero
-                drow = zero
-                for kx in range(4):
-                    c = coef[iy - 1 + ky, ix - 1 + kx]
-                    row += bspline3(fx, kx) * c
-                    drow += bspline3_slope(fx, kx) * c
-                g += wy * row
-                gx += wy * drow
-                gy += dy * row
+                taps = wp.vec4d(
+                    coef[iy - 1 + ky, ix - 1],
+                    coef[iy - 1 + ky, ix],
+                    coef[iy - 1 + ky, ix + 1],
+                    coef[iy - 1 + ky, ix + 2],
+                )
+                row = wp.dot(wx, taps)
+                drow = wp.dot(dwx, taps)
+                g += wy[ky] * row
+                gx += wy[ky] * drow
+                gy += dwy[ky] * row
             r0 = ref[py, px]
             jx = half_f * (half_f * (ref[py, px + 1] - ref[py, px - 1]) + gx)
             jy = half_f * (half_f * (ref[py + 1, px] - ref[py - 1, px]) + gy)
