@@ -16,7 +16,9 @@ so displacements far beyond the window margin are tracked, with and without a pr
 reported (MATCHED) only where it agrees with that prediction and the prediction is significant
 (otherwise PREDICTOR_MISMATCH, PREDICTOR_WEAK); in every mode a dot cut by the image edge (EDGE_CUT) or
 failing a median test against its neighbours (OUTLIER) is not MATCHED, and a mask excludes pixels
-(MASKED).
+(MASKED). Without a prior, where nothing says the pattern is dots, a matched dot whose window does not
+register onto the gradient image at its displacement is not MATCHED either (MISREGISTERED,
+:mod:`tracking.register`; docs/tracking-patterns.md).
 """
 
 from __future__ import annotations

@@ -47,6 +47,14 @@ def local_gradients(xy, uv, *, k=12):
     (N, 2, 2) array
         ``[[du/dx, du/dy], [dv/dx, dv/dy]]``; a ridge of ``1e-6 (k + trace)`` keeps collinear
         neighbourhoods finite.
+
+    Examples
+    --------
+    A shear ``u = 0.01 y, v = 0.01 x`` seen from the centre of a square of points:
+
+    >>> xy = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0], [5.0, 5.0]])
+    >>> np.round(local_gradients(xy, 0.01 * xy[:, ::-1], k=3)[4], 4).tolist()
+    [[-0.0, 0.01], [0.01, -0.0]]
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
@@ -154,6 +162,17 @@ def registration_offsets_numpy(reference, coefficients, xy, uv, *, half, gradien
     (the reference's central differences and the spline's exact slope), as in the symmetric
     (efficient second-order) variant of the method. Each step is clipped to ``MAX_STEP_PX`` per axis; a
     dot whose step cannot be solved keeps the correction it had.
+
+    Examples
+    --------
+    A 4 px dot moved by (0.5, -0.2) px, measured as (0.3, 0): the correction finds the rest.
+
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> ref = draw_dots((15, 15), [[7.0, 7.0]], 4.0)
+    >>> grad = draw_dots((15, 15), [[7.5, 6.8]], 4.0)
+    >>> c, ok = registration_offsets_numpy(ref, spline_coefficients(grad), [[7.0, 7.0]], [[0.3, 0.0]], half=4)
+    >>> np.round(c, 2).tolist(), ok.tolist()
+    ([[0.2, -0.2]], [True])
     """
     ref = np.asarray(reference, dtype=np.float64)
     coef = np.asarray(coefficients, dtype=np.float64)
