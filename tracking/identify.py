@@ -129,32 +129,52 @@ def dynamic_threshold_identification(image, *, threshold, n_levels=8, top=None):
         comp, m = ndimage.label(image > level, structure=_EIGHT)
         if m < 2:
             continue
-        first = ndimage.minimum_position(comp, comp, np.arange(1, m + 1))
-        parent = labels[tuple(np.array(first).T)]  # region of each component (sets nest)
+        parent = labels.ravel()[_first_pixels(comp, m)]  # region of each component (sets nest)
         counts = np.bincount(parent, minlength=n + 1)
         splits = counts[parent] >= 2  # components whose region breaks apart
         if not splits.any():
             continue
-        seeds = np.zeros_like(comp)
         seed_of = np.zeros(m + 1, dtype=np.int64)
         seed_of[1:][splits] = np.arange(1, splits.sum() + 1)
-        seeds = seed_of[comp]
-        in_split = counts[labels] >= 2
-        in_split &= labels > 0
-        _, (ri, ci) = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
-        nearest = seeds[ri, ci]
-        new = np.where(in_split, n + nearest, labels)
+        lab = labels.ravel()
+        pix = np.flatnonzero((counts[lab] >= 2) & (lab > 0))  # the pixels of the regions that split
+        not_seed = ~np.r_[False, splits][comp]
+        ri, ci = ndimage.distance_transform_edt(not_seed, return_distances=False, return_indices=True)
+        nearest = seed_of[comp.ravel()[ri.ravel()[pix].astype(np.int64) * comp.shape[1] + ci.ravel()[pix]]]
         # A nearest seed from a neighbouring region (rare) cannot steal pixels: keep them in their region.
         seed_parent = np.zeros(splits.sum() + 1, dtype=np.int64)
         seed_parent[1:] = parent[splits]
-        wrong = in_split & (seed_parent[nearest] != labels)
-        new[wrong] = labels[wrong]
-        _, labels = np.unique(new, return_inverse=True)
-        labels = labels.reshape(image.shape)
-        if new.min() > 0:  # no background pixel: unique's 0 is a blob
+        own = seed_parent[nearest] == lab[pix]
+        new = lab.copy()
+        new[pix[own]] = n + nearest[own]
+        labels = _ranks(new).reshape(image.shape)
+        if new.min() > 0:  # no background pixel: the rank 0 is a blob
             labels += 1
         n = int(labels.max())
     return labels, n
+
+
+def _first_pixels(comp, m):
+    """Flat index of the first pixel (in raster order) of each of the components 1..m of ``comp``.
+
+    ``ndimage.minimum_position(comp, comp, range(1, m + 1))`` without its sort of the whole image: an
+    assignment through repeated indices keeps the last value written, so writing the pixels backwards
+    leaves each component's first one.
+    """
+    flat = comp.ravel()
+    pix = np.flatnonzero(flat)[::-1]
+    first = np.zeros(m + 1, dtype=np.int64)
+    first[flat[pix]] = pix
+    return first[1:]
+
+
+def _ranks(values):
+    """Rank of each value among the distinct values of a non-negative int array (its shape kept):
+    ``np.unique(values, return_inverse=True)[1]`` by a table of the values present instead of a sort."""
+    present = np.zeros(int(values.max()) + 1, dtype=np.int64)
+    present[values.ravel()] = 1
+    rank = np.cumsum(present) - 1
+    return rank[values]
 
 
 def blob_properties(image, labels):
@@ -168,7 +188,8 @@ def blob_properties(image, labels):
 
     Returns
     -------
-    structured array, one row per blob, fields ``x, y`` (the blob's brightest pixel, x = column),
+    structured array, one row per blob, fields ``x, y`` (the blob's brightest pixel, x = column; of
+    equal brightest pixels the last in raster order, the one :func:`segment_windows` makes the peak),
     ``area`` (pixels) and ``peak`` (its intensity).
     """
     image = np.asarray(image, dtype=np.float64)
@@ -176,11 +197,18 @@ def blob_properties(image, labels):
     out = np.zeros(n, dtype=BLOB_DTYPE)
     if n == 0:
         return out
-    index = np.arange(1, n + 1)
-    pos = np.array(ndimage.maximum_position(image, labels, index), dtype=np.float64).reshape(-1, 2)
-    out["y"], out["x"] = pos[:, 0], pos[:, 1]
-    out["area"] = np.bincount(labels.ravel(), minlength=n + 1)[1:]
-    out["peak"] = image[pos[:, 0].astype(int), pos[:, 1].astype(int)]
+    flat = labels.ravel()
+    pix = np.flatnonzero(flat)
+    lab, val = flat[pix], image.ravel()[pix]
+    top = np.full(n + 1, -np.inf)
+    np.maximum.at(top, lab, val)
+    at_top = val == top[lab]
+    peak_pixel = np.zeros(n + 1, dtype=np.int64)
+    peak_pixel[lab[at_top]] = pix[at_top]  # repeated indices keep the last value: ties go to the last pixel
+    rows, cols = np.divmod(peak_pixel[1:], image.shape[1])
+    out["y"], out["x"] = rows, cols
+    out["area"] = np.bincount(flat, minlength=n + 1)[1:]
+    out["peak"] = top[1:]
     return out
 
 

@@ -54,6 +54,70 @@ def test_dynamic_threshold_splits_overlapping_dots_static_does_not():
     assert_allclose(np.sort(props["x"]), [18, 21], atol=1)
 
 
+def _dynamic_by_sorting(image, threshold, n_levels):
+    """The dynamic threshold segmentation as first written, with scipy's sorting measurements
+    (``minimum_position`` for each component's first pixel, ``np.unique`` to number the blobs)."""
+    from scipy import ndimage
+
+    eight = np.ones((3, 3), dtype=bool)
+    labels, n = ndimage.label(image > threshold, structure=eight)
+    for level in np.linspace(threshold, np.percentile(image, 99.9), n_levels + 1)[1:]:
+        comp, m = ndimage.label(image > level, structure=eight)
+        if m < 2:
+            continue
+        parent = labels[tuple(np.array(ndimage.minimum_position(comp, comp, np.arange(1, m + 1))).T)]
+        counts = np.bincount(parent, minlength=n + 1)
+        splits = counts[parent] >= 2
+        if not splits.any():
+            continue
+        seed_of = np.zeros(m + 1, dtype=np.int64)
+        seed_of[1:][splits] = np.arange(1, splits.sum() + 1)
+        seeds = seed_of[comp]
+        in_split = (counts[labels] >= 2) & (labels > 0)
+        _, (ri, ci) = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
+        nearest = seeds[ri, ci]
+        new = np.where(in_split, n + nearest, labels)
+        seed_parent = np.r_[0, parent[splits]]
+        wrong = in_split & (seed_parent[nearest] != labels)
+        new[wrong] = labels[wrong]
+        labels = np.unique(new, return_inverse=True)[1].reshape(image.shape) + (new.min() > 0)
+        n = int(labels.max())
+    return labels, n
+
+
+def test_dynamic_threshold_and_blob_peaks_match_the_sorting_definition():
+    """The sort-free segmentation (first pixels by a backwards assignment, blob numbers by a table) and
+    blob peaks (a per-blob maximum) are those of scipy's sorting measurements, on a dense noisy pattern."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(7)
+    shape = (160, 192)
+    img = draw_dots(shape, dot_pattern(rng, shape, per_32x32=25, min_distance=2.0), 3.0)
+    img += 0.03 * rng.standard_normal(shape)
+    labels, n = dynamic_threshold_identification(img, threshold=0.12, n_levels=8)
+    want, n_want = _dynamic_by_sorting(img, 0.12, 8)
+    assert n > 1.2 * ndimage.label(img > 0.12, structure=np.ones((3, 3)))[1]  # it split many blobs
+    assert n == n_want
+    np.testing.assert_array_equal(labels, want)
+    props = blob_properties(img, labels)
+    peak_rc = np.array(ndimage.maximum_position(img, labels, np.arange(1, n + 1)))
+    np.testing.assert_array_equal(props["y"], peak_rc[:, 0])
+    np.testing.assert_array_equal(props["x"], peak_rc[:, 1])
+    assert_allclose(props["peak"], img[peak_rc[:, 0], peak_rc[:, 1]], rtol=0, atol=0)
+    assert_allclose(props["area"], np.bincount(labels.ravel())[1:])
+
+
+def test_blob_peak_ties_go_to_the_last_pixel():
+    img = np.zeros((6, 6))
+    img[2, 1:4] = [5.0, 5.0, 3.0]
+    img[4, 4] = 1.0
+    labels = (img > 0).astype(int) + (img == 1.0)
+    props = blob_properties(img, labels)
+    assert_allclose(props["x"], [2, 4])
+    assert_allclose(props["y"], [2, 4])
+    assert_allclose(props["peak"], [5.0, 1.0])
+
+
 def test_segment_windows_splits_overlap_and_labels_by_peak():
     img = draw_dots((9, 9), [[3.0, 4.0], [5.6, 4.2]], 3.0)
     lab = segment_windows(img[None], np.array([0.05]))[0].reshape(9, 9)
