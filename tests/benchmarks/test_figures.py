@@ -2,10 +2,12 @@
 stated, sweep axes in words."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from PIL import Image
 from synthbos.benchmarks import figures
 from synthbos.benchmarks.campaign import run_campaign
@@ -23,35 +25,44 @@ TINY = replace(
 
 
 def _assert_png_and_pdf(stem):
-    png, pdf = stem.with_suffix(".png"), stem.with_suffix(".pdf")
+    png, pdf, svg = stem.with_suffix(".png"), stem.with_suffix(".pdf"), stem.with_suffix(".svg")
     assert pdf.read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in svg.read_bytes()[:2000]
     with Image.open(png) as im:
         assert im.mode in ("RGB", "RGBA")  # no palette reduction
         assert round(im.info["dpi"][0]) == 300
 
 
-@pytest.fixture
-def captured(monkeypatch):
-    """The figures a function saves, kept open for inspection (and still written)."""
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """The TINY campaign, run once, and the figures it saved (stem, figure, its texts), kept open."""
+    folder = tmp_path_factory.mktemp("tiny-fig")
     figs = []
     save = figures.save_figure
 
     def keep(fig, path, **kwargs):
-        figs.append((fig, [t.get_text() for t in fig.findobj(plt.Text)]))
+        figs.append((Path(path).with_suffix("").name, fig, [t.get_text() for t in fig.findobj(plt.Text)]))
         return save(fig, path, **kwargs)
 
-    monkeypatch.setattr(figures, "save_figure", keep)
-    return figs
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(figures, "save_figure", keep)
+        run_campaign(TINY, folder, device="cpu", workers=1, progress=False)
+    return folder, figs
 
 
-def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
-    run_campaign(TINY, tmp_path, device="cpu", workers=1, progress=False)
+def test_campaign_figures_state_threshold_and_counts(campaign):
+    folder, captured = campaign
     for stem in ("fig4", "fig5", "fig_density", "fig_budget"):
-        _assert_png_and_pdf(tmp_path / stem)
+        _assert_png_and_pdf(folder / stem)
+    texts = {}
+    for stem, _, t in captured:
+        texts.setdefault(stem, []).append(t)
     # fig4 is drawn once; fig5, fig_density and (the pairs record their ray covariance) fig_budget once for
-    # each format (PNG, then PDF), alike
-    (_, texts4), (_, texts5), (_, texts5_pdf), (_, texts_d), (_, texts_d_pdf), (_, texts_b), (_, texts_b_pdf) = captured
-    assert texts5 == texts5_pdf and texts_d == texts_d_pdf and texts_b == texts_b_pdf
+    # each format (PNG, PDF, SVG), alike
+    assert len(texts["fig4"]) == 1
+    for stem in ("fig5", "fig_density", "fig_budget"):
+        assert len(texts[stem]) == len(figures.FORMATS) and all(t == texts[stem][0] for t in texts[stem])
+    texts4, texts5, texts_d = texts["fig4"][0], texts["fig5"][0], texts["fig_density"][0]
     assert any("ray-traced" in t for t in texts4)
     assert any("over the ray cone" in t for t in texts4)
     assert any("cone" in t and "chief" in t for t in texts_d)
@@ -61,6 +72,118 @@ def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
     assert "Threshold" in title5 and " px" in title5
     assert sum(t.startswith("n = ") for t in texts5) == 4 * len(TINY.noise_percent) * len(TINY.methods)
     assert all(METHODS[name].label in texts5 for name in TINY.methods)
+
+
+def _boxes_overlap(a, b, tol=1.0) -> bool:
+    return min(a.x1, b.x1) - max(a.x0, b.x0) > tol and min(a.y1, b.y1) - max(a.y0, b.y0) > tol
+
+
+def _unused_tick_labels(fig) -> set:
+    """The ids of the tick labels that an axis holds but does not draw (ticks outside its view)."""
+    held, drawn = set(), set()
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            for tick in [*axis.majorTicks, *axis.minorTicks]:
+                held |= {id(tick.label1), id(tick.label2)}
+            for tick in axis._update_ticks():
+                drawn |= {id(tick.label1), id(tick.label2)}
+    return held - drawn
+
+
+def assert_journal_figure(fig):
+    """What a journal asks of a figure, measured on the figure as saved: one or two columns wide, no text
+    under 7 pt or beyond the figure's edge, no legend over an axes' data area, the title clear of every
+    panel and of every other text."""
+    assert round(fig.get_figwidth(), 3) in (figures.ONE_COLUMN_IN, figures.TWO_COLUMNS_IN)
+    canvas = FigureCanvasAgg(fig)  # a saved figure is closed: draw it again on a canvas of its own
+    canvas.draw()
+    r = canvas.get_renderer()
+    page = fig.bbox
+    unused = _unused_tick_labels(fig)
+    texts = [t for t in fig.findobj(plt.Text) if t.get_text().strip() and t.get_visible() and id(t) not in unused]
+    for t in texts:
+        assert t.get_fontsize() >= 7.0, (t.get_text(), t.get_fontsize())
+        box = t.get_window_extent(r)
+        assert box.x0 >= page.x0 - 1 and box.x1 <= page.x1 + 1 and box.y0 >= page.y0 - 1 and box.y1 <= page.y1 + 1, (
+            t.get_text(), box, page)
+    data_axes = [ax for ax in fig.axes if getattr(ax, "_colorbar", None) is None]
+    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    for leg in legends:
+        box = leg.get_window_extent(r)
+        for ax in data_axes:
+            assert not _boxes_overlap(box, ax.bbox), ("legend over the data of", ax.get_title())
+    title = fig._suptitle
+    if title is not None:
+        tbox = title.get_window_extent(r)
+        for ax in fig.axes:
+            assert not _boxes_overlap(tbox, ax.get_tightbbox(r)), ("title over", ax.get_title(), ax.get_label())
+
+
+def _drawn(monkeypatch, draw):
+    """The figures ``draw()`` saves, each checked as saved."""
+    figs = []
+    save = figures.save_figure
+
+    def keep(fig, path, **kwargs):
+        written = save(fig, path, **kwargs)
+        figs.append((fig, written))
+        return written
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    draw()
+    monkeypatch.setattr(figures, "save_figure", save)
+    return figs
+
+
+def _clims(axes):
+    return {tuple(np.round(im.get_clim(), 12)) for ax in axes for im in ax.get_images()}
+
+
+def test_campaign_figures_fit_a_journal(campaign, tmp_path, monkeypatch):
+    folder, _ = campaign
+    for stem, draw in figures.CAMPAIGN_FIGURES.items():
+        figs = _drawn(monkeypatch, lambda draw=draw, stem=stem: draw(TINY, folder, tmp_path / stem))
+        assert len(figs) == 1
+        fig, written = figs[0]
+        assert sorted(p.suffix for p in written) == [".pdf", ".png", ".svg"]
+        assert all(p.stat().st_size > 5_000 for p in written)
+        assert_journal_figure(fig)
+        grid = np.array(fig.axes[: len(fig.axes) - sum(getattr(a, "_colorbar", None) is not None for a in fig.axes)])
+        if stem == "fig5":  # the CDFs: one probability axis for every row
+            assert len({ax.get_ylim() for ax in grid}) == 1
+        if stem == "fig_density":  # one density scale, one error scale, one CDF axis in every row
+            rows = grid.reshape(len(TINY.methods), 5)
+            assert len(_clims(rows[:, :2].ravel())) == 1 and len(_clims(rows[:, 2])) == 1
+            assert len({(ax.get_xlim(), ax.get_ylim()) for ax in rows[:, 3:].ravel()}) == 1
+            styles = {ln.get_linestyle() for ln in rows[0, 3].get_lines()}
+            assert len(styles) == len(TINY.noise_percent)  # noise levels told apart by line style
+        if stem == "fig4":  # the rows of a column share its scale
+            rows = grid.reshape(len(TINY.snapshots), 5)
+            assert all(len(_clims(rows[:, c])) == 1 for c in range(5))
+
+
+def test_sweep_figure_fits_a_journal_and_keeps_the_yield_axis_readable(tmp_path, monkeypatch):
+    rows = []
+    for method in ("correlation", "tracking"):
+        for noise in (0.0, 3.0):
+            for k, value in enumerate((11.0, 16.0, 22.0)):
+                base = {"method": method, "noise_percent": noise, "param_value": value, "param2_value": None,
+                        "split": "all"}
+                rows.append({**base, "quantity": "displacement", "p50": 0.01 * (k + 1), "p90": 0.03 * (k + 1),
+                             "yield": 1.0 - 0.0004 * k})
+                rows.append({**base, "quantity": "density_cone_rel", "rms": 0.002 * (k + 1), "yield": 1.0})
+    figs = _drawn(monkeypatch, lambda: figures.sweep_figure(rows, tmp_path / "sweep.png", param="camera.f_number",
+                                                            param_label="f-number"))
+    (fig, written), = figs
+    assert sorted(p.name for p in written) == ["sweep.pdf", "sweep.png", "sweep.svg"]
+    assert_journal_figure(fig)
+    yield_axes = [ax for ax in fig.axes if ax.get_ylabel() == "fraction measured"]
+    assert len(yield_axes) == 2
+    for ax in yield_axes:
+        lo, hi = ax.get_ylim()
+        assert lo == pytest.approx(0.95) and 1.0 < hi <= 1.01  # not stretched over 0.9992 to 1
+    assert figures.yield_limits([np.array([0.2, 0.9])]) == pytest.approx((0.15, 1.0425))
+    assert figures.yield_limits([np.array([0.01, 1.0])]) == pytest.approx((0.0, 1.05))
 
 
 def test_log_limits_fit_the_data():
