@@ -311,10 +311,33 @@ def _lay_out(fig, *, dpi):
     saved = fig.dpi
     fig.dpi = dpi
     try:
-        engine.execute(fig)
+        for _ in range(8):
+            engine.execute(fig)
+            if _title_clear(fig):
+                break
+            fig.set_figheight(fig.get_figheight() * 1.06)
     finally:
         fig.dpi = saved
     fig.set_layout_engine(None)  # not "none": savefig still draws once before each file with a placeholder
+
+
+def _title_clear(fig) -> bool:
+    """Whether the figure's title (suptitle) clears every axes with its labels and title.
+
+    Constrained layout gives the title its room, but panels of a fixed aspect (images) in a figure too short
+    for them can still end up under it; ``_lay_out`` then makes the figure taller, a step at a time.
+    """
+    title = fig._suptitle
+    if title is None or not title.get_text() or not hasattr(fig.canvas, "get_renderer"):
+        return True
+    renderer = fig.canvas.get_renderer()
+    box = title.get_window_extent(renderer)
+    for ax in fig.axes:
+        other = ax.get_tightbbox(renderer)
+        if other is not None and min(box.x1, other.x1) > max(box.x0, other.x0) and min(box.y1, other.y1) > max(
+                box.y0, other.y0):
+            return False
+    return True
 
 
 def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
