@@ -222,7 +222,7 @@ def _paper(args):
     print(format_summary(rows))
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf) "
+          f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf, .svg) "
           f"({time.perf_counter() - t0:.0f} s: {phases})")
     _budget_note(out / "fig_budget.png")
     return 0
@@ -279,7 +279,7 @@ def _sweep(args):
                      workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
-          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf)")
+          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf, .svg)")
     _budget_note(Path(args.out) / "sweep_budget.png")
     return 0
 

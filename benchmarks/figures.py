@@ -87,9 +87,6 @@ _SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}}
 #: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
 #: 300 dpi panel, however many errors a campaign scored.
 _CDF_POINTS = 4096
-#: The part of a CDF panel's (log) error axis that its curves span, from the left: the rest, at the right
-#: where every curve has reached 1, holds the counts of points, clear of the curves.
-_CDF_DATA_SPAN = 0.6
 
 
 def _count(n: int, noun: str) -> str:
@@ -488,17 +485,36 @@ def _log_limits(arrays, *, low_quantile=0.005, margin=1.25):
 
 
 def _log_axis(axis, lo, hi):
-    """A log axis whose labelled ticks suit its span: decades over two decades or more, else 1, 2, 5 x 10^k,
-    and every integer multiple below one decade (so a narrow axis still has numbers)."""
+    """A log axis whose labelled ticks suit its span: decades over two decades or more, 1 and 3 x 10^k over more
+    than a factor 15, else 1, 2, 5 x 10^k, and 1, 2, 3, 5 x 10^k below a factor 4 (a narrow axis still has
+    numbers, a panel of a two-column figure room for them)."""
     axis.axes.set_xscale("log") if axis.axis_name == "x" else axis.axes.set_yscale("log")
     span = hi / lo if lo > 0 else np.inf
     if span >= 100:
         axis.set_major_locator(LogLocator(base=10, subs=(1.0,)))
     else:
-        subs = (1.0, 2.0, 5.0) if span >= 4 else (1.0, 2.0, 3.0, 5.0)
+        subs = (1.0, 3.0) if span >= 15 else (1.0, 2.0, 5.0) if span >= 4 else (1.0, 2.0, 3.0, 5.0)
         axis.set_major_locator(LogLocator(base=10, subs=subs))
         axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     axis.set_minor_formatter(NullFormatter())
+
+
+def _counts_width(fig, ncols, curves) -> float:
+    """The width of a CDF panel's column of counts (``n = 12,345`` at 7 pt), as a fraction of the panel's."""
+    chars = max((len(f"n = {int(np.isfinite(e).sum()):,}") for _, e in curves), default=8)
+    panel_pt = fig.get_figwidth() * 72.0 * 0.88 / ncols
+    return min(0.9, (chars * 0.6 * MIN_FONT_PT + 4.0) / panel_pt)
+
+
+def _room_for_counts(curves, lo, hi, *, top, left):
+    """The right end of a CDF panel's log error axis from ``lo``: ``hi``, or farther where a curve would still be
+    below ``top`` (the counts' top, axes fraction) right of ``left`` (their left edge): as a CDF rises, a
+    curve that has reached ``top`` before ``left`` stays clear of the counts in the panel's lower right."""
+    finite = [np.asarray(e, dtype=np.float64)[np.isfinite(e)] for e in curves]
+    q = max((float(np.quantile(e, min(top, 1.0))) for e in finite if len(e)), default=lo)
+    if q <= lo or left <= 0.0:
+        return hi
+    return max(hi, lo * (q / lo) ** (1.0 / left))
 
 
 @_journal
@@ -533,7 +549,9 @@ def figure5(spec, folder, path, *, formats=None):
             crb = scoring.cramer_rao_displacement(noise) if quantity == "displacement" and noise > 0 else None
             if crb is not None:
                 lo, hi = min(lo, crb / 1.25), max(hi, crb * 1.25)
-            hi = lo * (hi / lo) ** (1.0 / _CDF_DATA_SPAN)  # the right of the panel free for the counts
+            step = min(0.1, 0.6 / max(len(curves[c]), 1))
+            hi = _room_for_counts([e for _, e in curves[c]], lo, hi, top=0.04 + step * len(curves[c]) + 0.04,
+                                  left=1.0 - _counts_width(fig, len(cols), curves[c]))
             counts = []
             for method, e in curves[c]:
                 x, y = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
@@ -547,7 +565,6 @@ def figure5(spec, folder, path, *, formats=None):
             ax.set_xlim(lo, hi)
             ax.set_ylim(0, 1.02)
             ax.grid(True, which="major", alpha=0.3)
-            step = min(0.1, 0.6 / max(len(counts), 1))
             for k, (method, n) in enumerate(reversed(counts)):  # listed top to bottom as in the legend
                 ax.text(0.98, 0.04 + step * k, f"n = {n:,}", transform=ax.transAxes, ha="right", va="bottom",
                         fontsize=MIN_FONT_PT, color=method_style(method).get("color", "k"))
@@ -666,7 +683,7 @@ def _density_cdfs(axes, spec, folder, method, noises, *, last_row):
         a.grid(True, which="major", alpha=0.3)
         a.tick_params(labelleft=c == 0, labelbottom=last_row)
         if last_row:
-            a.set_xlabel("|Δρ| / density range")
+            a.set_xlabel("|Δρ| / true range")
     axes[0].set_ylabel("CDF")
     axes[1].legend(loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False, handlelength=2.4,
                    title=textwrap.fill(style["label"], 18))

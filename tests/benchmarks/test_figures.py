@@ -1,6 +1,7 @@
 """Figures a reviewer accepts: full-colour 300 dpi PNG beside a vector PDF, the threshold and counts
 stated, sweep axes in words."""
 
+import itertools
 from dataclasses import replace
 from pathlib import Path
 
@@ -106,6 +107,17 @@ def assert_journal_figure(fig):
         box = t.get_window_extent(r)
         assert box.x0 >= page.x0 - 1 and box.x1 <= page.x1 + 1 and box.y0 >= page.y0 - 1 and box.y1 <= page.y1 + 1, (
             t.get_text(), box, page)
+    for ax in fig.axes:  # the tick labels of an axis apart
+        for axis in (ax.xaxis, ax.yaxis):
+            boxes = [t.label1.get_window_extent(r) for t in axis._update_ticks()
+                     if t.label1.get_visible() and t.label1.get_text()]
+            for a, b in itertools.pairwise(boxes):
+                assert not _boxes_overlap(a, b, tol=0.0), ("tick labels overlap", ax.get_title(), ax.get_xlabel())
+    labels = [t for ax in fig.axes for t in (ax.xaxis.label, ax.yaxis.label, ax.title, ax._left_title,
+                                              ax._right_title) if t.get_visible() and t.get_text()]
+    boxes = [(t.get_text(), t.get_window_extent(r)) for t in labels]
+    for (ta, a), (tb, b) in itertools.combinations(boxes, 2):  # axis labels and titles apart
+        assert not _boxes_overlap(a, b), ("labels overlap", ta, tb)
     data_axes = [ax for ax in fig.axes if getattr(ax, "_colorbar", None) is None]
     legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
     for leg in legends:
@@ -228,3 +240,23 @@ def test_save_figure_draws_what_savefig_draws(tmp_path):
     _assert_png_and_pdf(tmp_path / "fast")
     with Image.open(tmp_path / "plain.png") as a, Image.open(tmp_path / "fast.png") as b:
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_docs_figures_are_made_by_one_script(campaign, tmp_path, capsys):
+    """docs/make_figures.py draws the docs' campaign figures from a campaign folder and says what it wrote."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[2] / "docs" / "make_figures.py"
+    spec = importlib.util.spec_from_file_location("make_figures", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    folder, _ = campaign
+    assert module.main(["--campaign", str(folder), "-o", str(tmp_path), "--work", str(tmp_path / "work"),
+                        "--width", "720"]) == 0
+    printed = capsys.readouterr().out
+    for stem in ("fig4", "fig5", "fig_density", "fig_budget"):
+        path = tmp_path / f"quick_{stem}.png"
+        with Image.open(path) as im:
+            assert im.size[0] == 720
+        assert f"wrote {path}: 720 x " in printed
+    assert f"left {tmp_path / 'fig5_default.png'} as it is (no --fig5)" in printed
