@@ -156,10 +156,13 @@ def _pair_file(res, pair):
     if pair is not None:
         return Path(pair)
     src = str(res["attrs"].get("input", ""))
-    if src and Path(src).is_file() and h5py.is_hdf5(src):
-        with h5py.File(src, "r") as f:
-            if "images/reference" in f and "dots/displacement_px" in f:
-                return Path(src)
+    try:
+        if src and Path(src).is_file() and h5py.is_hdf5(src):
+            with h5py.File(src, "r") as f:
+                if "images/reference" in f and "dots/displacement_px" in f:
+                    return Path(src)
+    except OSError:  # a name the system refuses, a file it cannot read: no pair
+        pass
     return None
 
 
@@ -198,9 +201,16 @@ def plot_result(path, out, *, pair=None, max_arrows=16) -> str:
 
         return plot_density_file(path, out)
     res = read_result(path)
-    pair_path = _pair_file(res, pair)
-    errors = result_truth(res, read_pair(pair_path))[1] if pair_path is not None else None
-    summary = summary_line(res, errors)
+    pair_path, note = _pair_file(res, pair), ""
+    errors = None
+    if pair_path is not None:
+        try:
+            errors = result_truth(res, read_pair(pair_path))[1]
+        except SynthbosError as err:
+            if pair is not None:  # the pair asked for: refused
+                raise
+            note = f" (no error panel: the pair file it was processed from, {pair_path}, no longer fits: {err})"
+    summary = summary_line(res, errors) + note
     with journal_style():
         fig = _result_figure(res, errors, name=Path(path).name, max_arrows=max_arrows)
         save_figure(fig, Path(out).with_suffix(""), formats=(fmt,))
