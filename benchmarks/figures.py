@@ -733,7 +733,7 @@ def _budget_axes(ax, lo, hi, xmax):
     ax.grid(True, which="major", alpha=0.3)
 
 
-def _budget_legend(fig, methods, *, crlb=True, ncol=4):
+def _budget_legend(fig, methods, *, crlb=True, ncol=3):
     handles = [plt.Line2D([], [], marker=METHODS[m].marker if m in METHODS else "o", ms=3, **method_style(m))
                for m in methods]
     labels = [method_style(m)["label"] for m in methods]

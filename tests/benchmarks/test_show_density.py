@@ -27,7 +27,7 @@ def test_main_prints_table(tmp_path, capsys):
 
 
 def test_show_density_command_names_its_file_and_draws_axes_with_units(tmp_path, capsys, monkeypatch):
-    import matplotlib.pyplot as plt
+    from figure_checks import assert_journal_figure
     from synthbos.benchmarks import show_density
     from synthbos.benchmarks.cli import main as cli_main
 
@@ -40,8 +40,7 @@ def test_show_density_command_names_its_file_and_draws_axes_with_units(tmp_path,
     assert out.read_bytes()[:3] == b"\xff\xd8\xff" and sorted(p.name for p in tmp_path.iterdir()) == [out.name]
     assert f"wrote {out}" in captured.out and "show-density" in captured.err  # the progress bar
     (fig,) = figs
-    assert fig.get_figwidth() == 7.2
-    assert min(t.get_fontsize() for t in fig.findobj(plt.Text) if t.get_text()) >= 7
+    assert_journal_figure(fig)
     labels = {a.get_xlabel() for a in fig.axes} | {a.get_ylabel() for a in fig.axes}
     assert {"x / L", "ρ / ⟨ρ⟩", "|∇ρ| (⟨ρ⟩ / L)"} <= labels
     assert cli_main(["show-density", "-o", str(tmp_path / "s.png"), "-q"]) == 0

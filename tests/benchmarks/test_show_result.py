@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from figure_checks import assert_journal_figure
 from synthbos.benchmarks.cli import main
 from synthbos.benchmarks.show_result import read_result
 
@@ -104,6 +105,7 @@ def test_show_result_draws_the_error_against_the_pair(rendered, tmp_path, capsys
     np.testing.assert_allclose(median, np.median(err), rtol=0.05, atol=2e-4)
     fig = drawn[-1]
     assert fig.get_figwidth() == pytest.approx(7.2) and len([a for a in fig.axes if a.get_label() != "<colorbar>"]) == 2
+    assert_journal_figure(fig)
     (key,) = _quiver_key(fig)
     assert key.U > 0 and key.text.get_text() == f"{key.U:g} px"
     assert any(a.get_title(loc="left").startswith("error: median") for a in fig.axes)
@@ -133,6 +135,7 @@ def test_show_result_and_show_density_draw_a_density_file(rendered, tmp_path, ca
     np.testing.assert_allclose(float(printed.split("RMS ")[1].split(" kg")[0]), rms, rtol=2e-3)
     assert main(["show-density", str(rendered / "density.h5"), "-o", str(tmp_path / "d.png"), "-q"]) == 0
     for fig in drawn:
+        assert_journal_figure(fig)
         images = [a for a in fig.axes if a.get_images()]
         assert [a.get_xlabel() for a in images] == ["x (mm)"] * 3 and images[0].get_ylabel() == "y (mm)"
         labels = {a.get_xlabel() for a in fig.axes if a.get_label() == "<colorbar>"}
@@ -161,6 +164,7 @@ def test_show_result_draws_the_density_of_many_failures(tmp_path, capsys, drawn)
     assert main(["show-result", str(path), "-o", str(tmp_path / "many.png")]) == 0
     assert f"{int(failed.sum())} failed" in capsys.readouterr().out
     fig = drawn[-1]
+    assert_journal_figure(fig)
     markers = [c for a in fig.axes for c in a.collections if len(c.get_offsets()) > FAILED_MARKERS_MAX]
     assert not markers  # neither the dots nor the failures one by one
     (panel,) = [a for a in fig.axes if "failed" in a.get_title(loc="left")]
