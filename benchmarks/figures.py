@@ -855,7 +855,7 @@ def sweep_budget_figure(points, path, *, param_label, formats=None):
     for ax in axes.ravel():
         _budget_axes(ax, lo, hi, xmax)
     for c, m in enumerate(methods):
-        axes[0, c].set_title(method_style(m)["label"].replace(" + ", "\n+ "))
+        axes[0, c].set_title(textwrap.fill(method_style(m)["label"], max(12, int(62 / len(methods)))))
         axes[-1, c].set_xlabel("in-cone spread (px)")
     fig.legend([plt.Line2D([], [], color=colors[k], lw=1.1) for k in range(len(points))],
                [label for label, _, _ in points], title=param_label.replace(" (", "\n("),
@@ -951,7 +951,9 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
         axes[r, yc].set_ylim(*yield_limits([ln.get_ydata() for ln in axes[r, yc].get_lines()]))
         axes[r, yc].set_ylabel("fraction measured")
         if has_density:
-            axes[r, -1].set_yscale("log")
+            lo, hi = _log_limits([ln.get_ydata() for ln in axes[r, -1].get_lines()], low_quantile=0.0, margin=1.1)
+            _log_axis(axes[r, -1].yaxis, lo, hi)
+            axes[r, -1].set_ylim(lo, hi)
             axes[r, -1].set_ylabel("rms error / range")
         if noise is not None:
             axes[r, 0].set_ylabel(f"noise {noise:g} %\n" + axes[r, 0].get_ylabel())

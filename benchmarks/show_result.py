@@ -324,7 +324,8 @@ def _draw_field(fig, ax, res, shape, *, max_arrows, markers):
         grey = ListedColormap([MASKED_COLOR])
         _point_map(ax, res, np.ones(len(x)), shape, where=res["masked"], cmap=grey, vmin=0, vmax=1)
         ax.plot([], [], "s", color=MASKED_COLOR, ms=4, ls="none", label=f"masked ({int(res['masked'].sum()):,})")
-    cell = max(shape) / max(max_arrows, 1)
+    # one arrow a cell, the cells no finer than the points' own spacing (a grid's, or the dots' mean)
+    cell = max(max(shape) / max(max_arrows, 1), float(np.sqrt(shape[0] * shape[1] / max(len(x), 1))))
     keep = np.zeros(len(x), bool)
     idx = np.flatnonzero(meas)
     if len(idx):
@@ -334,8 +335,8 @@ def _draw_field(fig, ax, res, shape, *, max_arrows, markers):
     key = _nice(float(np.percentile(mag[meas], 90)) if meas.any() else 0.0)
     q = ax.quiver(x[keep], y[keep], u[keep], v[keep], angles="xy", scale_units="xy", scale=key / (0.9 * cell),
                   color="white", edgecolor="black", linewidth=0.3, width=0.005, headwidth=3.5, headlength=4,
-                  headaxislength=3.5, minlength=0.2)
-    ax.quiverkey(q, X=0.99 - 0.9 * cell / shape[1], Y=1.035, U=key, label=f"{key:g} px", labelpos="W",
+                  headaxislength=3.5, minlength=0.2, pivot="middle")
+    ax.quiverkey(q, X=0.99 - 0.45 * cell / shape[1], Y=1.035, U=key, label=f"{key:g} px", labelpos="W",
                  coordinates="axes", color="black", fontproperties={"size": 7})  # its arrow ends at the right edge
     ax.set_title("displacement", loc="left")
     if markers and res["replaced"].any():
