@@ -181,6 +181,7 @@ def main(argv=None):
     ap.add_argument("-o", "--out", default=str(DOCS), help="folder to write the figures into")
     args = ap.parse_args(argv)
     docs = Path(args.out)
+    docs.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="synthbos-docs-") as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
