@@ -32,7 +32,7 @@ from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
 from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, methods_table
 from .regress import BASELINE, run_regress
-from .show_density import plot_snapshots
+from .show_density import plot_density_file, plot_snapshots, snapshot_table
 from .show_result import plot_result
 from .spec import FULL, QUICK
 from .sweep import parse_parameter, run_sweep
@@ -252,7 +252,7 @@ def _paper(args):
     print(format_summary(rows))
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
-          f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf) "
+          f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf, .svg) "
           f"({time.perf_counter() - t0:.0f} s: {phases})")
     _budget_note(out / "fig_budget.png")
     return 0
@@ -309,27 +309,29 @@ def _sweep(args):
                      workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
-          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf)")
+          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf, .svg)")
     _budget_note(Path(args.out) / "sweep_budget.png")
     return 0
 
 
 def _show_density(args):
+    if args.density is not None:  # a density file of 'synthbos integrate'
+        if args.snapshots is not None:
+            raise SynthbosError("give a density file or --snapshots, not both")
+        out = check_output_file(args.output, inputs=[args.density], what="-o")
+        summary = plot_density_file(args.density, out)
+        print(f"wrote {out}\n{summary}")
+        return 0
     out = check_output_file(args.output, inputs=[args.snapshots], what="-o")
-    from matplotlib.figure import Figure
-
-    kinds = Figure().canvas.get_supported_filetypes()
-    kind = out.suffix.lstrip(".").lower() or "png"
-    if kind not in kinds:
-        raise SynthbosError(f"-o {out}: matplotlib cannot write .{kind} images; use one of {sorted(kinds)}")
-    plot_snapshots(out, snapshots_file=args.snapshots)
-    print(f"wrote {out} (and .pdf)")
+    stats = plot_snapshots(out, snapshots_file=args.snapshots, progress=not args.quiet)
+    print(snapshot_table(stats))
+    print(f"wrote {out}")
     return 0
 
 
 def _show_result(args):
-    out = check_output_file(args.output, inputs=[args.result], what="-o")
-    summary = plot_result(args.result, out)
+    out = check_output_file(args.output, inputs=[args.result, args.pair], what="-o")
+    summary = plot_result(args.result, out, pair=args.pair)
     print(f"wrote {out}\n{summary}")
     return 0
 
@@ -522,14 +524,27 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("methods", help="list the registered methods: kind, source package and version")
     p.set_defaults(func=_methods)
 
-    p = sub.add_parser("show-density", help="figure of the embedded density snapshots and their gradients")
-    p.add_argument("-o", "--output", default="density_snapshots.png", help="PNG to write (a PDF beside it)")
+    p = sub.add_parser("show-density", help="figure of a density file of 'synthbos integrate', or of the density "
+                                            "snapshots and their gradients")
+    p.add_argument("density", nargs="?", default=None,
+                   help="density file of 'synthbos integrate' (default: draw the density snapshots instead)")
+    p.add_argument("-o", "--output", default="density_snapshots.png",
+                   help="figure to write, in the format of its suffix: .png (300 dpi), .pdf, .svg, .jpg "
+                        "(only this file; default: %(default)s)")
     p.add_argument("--snapshots", default=None, help="another snapshots file (default: the embedded one)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_show_density)
 
-    p = sub.add_parser("show-result", help="figure of a result file: displacement magnitude, vectors, flagged points")
-    p.add_argument("result", help="result file of 'synthbos process' (HDF5)")
-    p.add_argument("-o", "--output", required=True, help="figure to write: .png, .pdf, .svg (only this file)")
+    p = sub.add_parser("show-result", help="figure of any synthbos file: a result (displacement magnitude, vectors "
+                                           "with a key, flagged points, errors against the truth) or a density file")
+    p.add_argument("result", help="result file of 'synthbos process', or density file of 'synthbos integrate' (HDF5)")
+    p.add_argument("-o", "--output", required=True,
+                   help="figure to write, in the format of its suffix: .png (300 dpi), .pdf, .svg, .jpg "
+                        "(only this file)")
+    p.add_argument("--pair", default=None,
+                   help="pair file of 'synthbos render' to draw the errors against its truth (default: the pair file "
+                        "the result was processed from, when it still exists)")
+    p.add_argument("-q", "--quiet", action="store_true", help="accepted for a uniform command line: nothing to silence")
     p.set_defaults(func=_show_result)
     return parser
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import gc
+import textwrap
 import tomllib
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,6 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.backends.backend_pdf  # with this module (a worker imports it early), not at the first PDF
 import matplotlib.pyplot as plt
 import numpy as np
+from cycler import cycler
 from matplotlib.colors import BoundaryNorm
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter, NullLocator
@@ -35,20 +37,49 @@ __all__ = [
     "CAMPAIGN_FIGURES",
     "FIRST_PAIR_FIGURES",
     "FORMATS",
+    "JOURNAL_STYLE",
+    "OKABE_ITO",
+    "ONE_COLUMN_IN",
+    "TWO_COLUMNS_IN",
     "binned_errors",
     "campaign_figure",
     "figure4",
     "figure5",
     "figure_budget",
     "figure_density",
+    "journal_style",
     "method_style",
     "save_figure",
     "sweep_budget_figure",
     "sweep_figure",
+    "yield_limits",
 ]
 
-FORMATS = ("png", "pdf")  # a 300 dpi PNG to look at, a vector PDF to print
+FORMATS = ("png", "pdf", "svg")  # a 300 dpi PNG to look at, a vector PDF to print, a vector SVG to edit
 _DPI = 300
+
+#: Figure widths (in): one journal column, two columns. Every figure is drawn at one of them, so that its
+#: text keeps the size it was drawn with when the figure is printed.
+ONE_COLUMN_IN, TWO_COLUMNS_IN = 3.5, 7.2
+#: The Okabe & Ito (2008) colour-blind-safe colours (the registry styles its methods with them).
+OKABE_ITO = ("#0072B2", "#D55E00", "#009E73", "#E69F00", "#CC79A7", "#56B4E9", "#000000", "#F0E442")
+_CYCLE_STYLES = ("-", "--", "-.", ":", (0, (3, 1, 1, 1, 1, 1)), (0, (5, 2)), (0, (8, 2, 2, 2)), (0, (1, 1)))
+#: The one style of synthbos's figures (``journal_style()``): text of 7 to 8 pt at print size, thin lines,
+#: the Okabe-Ito colours each with its own line style for whatever the registry does not style, vector
+#: text in the PDF (TrueType) and SVG (text elements), 300 dpi.
+JOURNAL_STYLE = {
+    "font.size": 7.5, "axes.titlesize": 7.5, "axes.labelsize": 7.5, "xtick.labelsize": 7.0, "ytick.labelsize": 7.0,
+    "legend.fontsize": 7.0, "legend.title_fontsize": 7.0, "figure.titlesize": 8.0, "figure.labelsize": 7.5,
+    "axes.prop_cycle": cycler(color=OKABE_ITO) + cycler(linestyle=_CYCLE_STYLES),
+    "lines.linewidth": 1.0, "lines.markersize": 3.0, "axes.linewidth": 0.6, "grid.linewidth": 0.4,
+    "xtick.major.width": 0.6, "ytick.major.width": 0.6, "xtick.minor.width": 0.4, "ytick.minor.width": 0.4,
+    "xtick.major.size": 2.5, "ytick.major.size": 2.5, "xtick.minor.size": 1.5, "ytick.minor.size": 1.5,
+    "legend.handlelength": 2.6, "legend.borderaxespad": 0.3, "legend.columnspacing": 1.2,
+    "figure.constrained_layout.h_pad": 0.02, "figure.constrained_layout.w_pad": 0.02,
+    "image.cmap": "cividis", "pdf.fonttype": 42, "svg.fonttype": "none", "savefig.dpi": _DPI,
+}
+#: The smallest text of a figure, pt.
+MIN_FONT_PT = 7.0
 #: savefig's keywords per format: zlib level 3 for the PNG writes the same pixels in 0.6 of the time
 #: of the default level (6) into a file about 1/6 larger.
 _SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}}
@@ -56,6 +87,10 @@ _SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}}
 #: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
 #: 300 dpi panel, however many errors a campaign scored.
 _CDF_POINTS = 4096
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n:,} {noun}{'' if n == 1 else 's'}"
 
 
 def _collector_paused(draw):
@@ -80,6 +115,38 @@ def _collector_paused(draw):
                 gc.enable()
 
     return paused
+
+
+def journal_style():
+    """A context in which figures take synthbos's one style (``JOURNAL_STYLE``); ``with journal_style(): ...``."""
+    return plt.rc_context(JOURNAL_STYLE)
+
+
+def _journal(draw):
+    """Run the figure function ``draw`` in the journal style (``journal_style``), collector paused
+    (``_collector_paused``)."""
+    paused = _collector_paused(draw)
+
+    @functools.wraps(draw)
+    def styled(*args, **kwargs):
+        with journal_style():
+            return paused(*args, **kwargs)
+
+    return styled
+
+
+def _fitted(text: str, width_in: float, *, fontsize: float = 8.0) -> str:
+    """``text`` wrapped, paragraph by paragraph (its newlines kept), into lines that fit ``width_in`` inches
+    at ``fontsize`` pt (an average glyph of DejaVu Sans is under 0.58 em wide)."""
+    chars = max(20, int(width_in * 72.0 / (0.58 * fontsize)))
+    return "\n".join(textwrap.fill(line, chars) for line in text.split("\n"))
+
+
+def _suptitle(fig, text: str):
+    """The figure's title, wrapped to its width."""
+    size = plt.rcParams["figure.titlesize"]
+    size = float(size) if not isinstance(size, str) else 8.0
+    return fig.suptitle(_fitted(text, fig.get_figwidth() - 0.1, fontsize=size))
 
 
 def method_style(name: str) -> dict:
@@ -241,10 +308,33 @@ def _lay_out(fig, *, dpi):
     saved = fig.dpi
     fig.dpi = dpi
     try:
-        engine.execute(fig)
+        for _ in range(8):
+            engine.execute(fig)
+            if _title_clear(fig):
+                break
+            fig.set_figheight(fig.get_figheight() * 1.06)
     finally:
         fig.dpi = saved
     fig.set_layout_engine(None)  # not "none": savefig still draws once before each file with a placeholder
+
+
+def _title_clear(fig) -> bool:
+    """Whether the figure's title (suptitle) clears every axes with its labels and title.
+
+    Constrained layout gives the title its room, but panels of a fixed aspect (images) in a figure too short
+    for them can still end up under it; ``_lay_out`` then makes the figure taller, a step at a time.
+    """
+    title = fig._suptitle
+    if title is None or not title.get_text() or not hasattr(fig.canvas, "get_renderer"):
+        return True
+    renderer = fig.canvas.get_renderer()
+    box = title.get_window_extent(renderer)
+    for ax in fig.axes:
+        other = ax.get_tightbbox(renderer)
+        if other is not None and min(box.x1, other.x1) > max(box.x0, other.x0) and min(box.y1, other.y1) > max(
+                box.y0, other.y0):
+            return False
+    return True
 
 
 def _nice_levels(vmax: float, n: int = 12) -> np.ndarray:
@@ -286,74 +376,94 @@ def _level_map(ax, tri, values, shape, levels, *, cell=2.0):
     return im
 
 
-@_collector_paused
+def _figure4_row(folder, snapshot):
+    """What fig4 draws of one snapshot: its first pair's mid-plane density and gradient magnitude, the dots'
+    three displacement magnitudes (chief-ray Eq. 4, Eq. 4 over the cone, ray-traced) and the counts."""
+    pair = read_pair(pair_path(folder, snapshot, 0))
+    cfg = load_config(tomllib.loads(pair.attrs["config"]))
+    vol = {k: v for k, v in cfg["volume"].items() if k != "offset_mm"}
+    dens = density_from_config(vol)
+    rho = dens.rho[dens.rho.shape[0] // 2]
+    lx, ly = dens.size_m[0] * 1e3, dens.size_m[1] * 1e3
+    gy, gx = np.gradient(rho, ly * 1e-3 / (rho.shape[0] - 1), lx * 1e-3 / (rho.shape[1] - 1))
+    ok = pair.valid
+    cone = pair.theory_cone_px if pair.theory_cone_px is not None else np.full_like(pair.theory_px, np.nan)
+    mags = [np.hypot(*a[ok].T) for a in (pair.theory_px, cone, pair.displacement_px)]
+    return {"rho": rho, "grad": np.hypot(gx, gy), "extent": (-lx / 2, lx / 2, ly / 2, -ly / 2),
+            "xy": pair.reference_px[ok], "mags": mags, "shape": pair.reference.shape,
+            "counts": (int(ok.sum()), pair.n_dots), "rays": pair.attrs.get("rays_per_dot", "?")}
+
+
+_FIG4_TITLES = ("density ρ", "density gradient\n|∇ρ|", "|ΔX|, Eq. 4\n(chief ray)", "|ΔX|, Eq. 4\nover the ray cone",
+                "|ΔX|,\nray-traced")
+
+
+@_journal
 def figure4(spec, folder, path, *, formats=None):
     """For each snapshot: density, density-gradient magnitude, theoretical (Eq. 4 along the chief ray),
     cone-averaged theoretical (Eq. 4 averaged over the rays traced for each dot) and ray-traced
     displacement magnitude (filled contours), from the first pair of the snapshot.
 
-    Each displacement panel has its own colour scale: the ray-traced displacement is the aperture's
-    average of Eq. 4's and several times weaker, so a shared scale would leave it dark.
+    Two columns wide (7.2 in), one row per snapshot. The rows of a column share one scale (its colour bar,
+    under the column), so that the snapshots compare; each displacement column has its own: the
+    ray-traced displacement is the aperture's average of Eq. 4's and several times weaker, so a shared
+    scale would leave it dark.
     """
     folder = Path(folder)
     snaps = list(spec.snapshots)
-    fig, axes = plt.subplots(len(snaps), 5, figsize=(17.5, 2.9 * len(snaps) + 0.9), squeeze=False, layout="constrained")
-    titles = (
-        "density ρ",
-        "density gradient |∇ρ|",
-        "|ΔX|, Eq. 4 (chief ray)",
-        "|ΔX|, Eq. 4 over the ray cone",
-        "|ΔX|, ray-traced",
-    )
-    for c, title in enumerate(titles):
-        axes[0, c].set_title(title, fontsize=11)
-    counts = []
-    for row, s in enumerate(snaps):
-        pair = read_pair(pair_path(folder, s, 0))
-        cfg = load_config(tomllib.loads(pair.attrs["config"]))
-        vol = {k: v for k, v in cfg["volume"].items() if k != "offset_mm"}
-        dens = density_from_config(vol)
-        rho = dens.rho[dens.rho.shape[0] // 2]
-        lx, ly = dens.size_m[0] * 1e3, dens.size_m[1] * 1e3
-        extent = (-lx / 2, lx / 2, ly / 2, -ly / 2)
-        gy, gx = np.gradient(rho, ly * 1e-3 / (rho.shape[0] - 1), lx * 1e-3 / (rho.shape[1] - 1))
+    data = [_figure4_row(folder, s) for s in snaps]
+    fig, axes = plt.subplots(len(snaps), 5, figsize=(TWO_COLUMNS_IN, 1.3 * len(snaps) + 1.6), squeeze=False,
+                             layout="constrained")
+    for c, title in enumerate(_FIG4_TITLES):
+        axes[0, c].set_title(title)
+    top = [max(float(np.nanmax(d["mags"][k])) if np.isfinite(d["mags"][k]).any() else 0.0 for d in data)
+           for k in range(3)]
+    rho_lim = (min(float(d["rho"].min()) for d in data), max(float(d["rho"].max()) for d in data))
+    grad_max = max(float(d["grad"].max()) for d in data)
+    mappables = [None] * 5
+    for row, (s, d) in enumerate(zip(snaps, data, strict=True)):
         ax = axes[row]
-        im = ax[0].imshow(rho, extent=extent, cmap="viridis")
-        _colorbar(fig, im, ax[0], label="ρ (kg/m³)", ticks=MaxNLocator(5))
-        im = ax[1].imshow(np.hypot(gx, gy), extent=extent, cmap="magma")
-        _colorbar(fig, im, ax[1], label="|∇ρ| (kg/m⁴)", ticks=MaxNLocator(5))
-        ok = pair.valid
-        counts.append((int(ok.sum()), pair.n_dots))
-        xy = pair.reference_px[ok]
+        mappables[0] = ax[0].imshow(d["rho"], extent=d["extent"], cmap="viridis", vmin=rho_lim[0], vmax=rho_lim[1])
+        mappables[1] = ax[1].imshow(d["grad"], extent=d["extent"], cmap="magma", vmin=0.0, vmax=grad_max)
         tri = None  # the dots' triangulation, one for the row's maps
-        cone = pair.theory_cone_px if pair.theory_cone_px is not None else np.full_like(pair.theory_px, np.nan)
-        for k, vals in (
-            (2, np.hypot(*pair.theory_px[ok].T)),
-            (3, np.hypot(*cone[ok].T)),
-            (4, np.hypot(*pair.displacement_px[ok].T)),
-        ):
+        for k, vals in enumerate(d["mags"]):
+            a = ax[k + 2]
             if not np.isfinite(vals).all():  # a pair file from before the cone truth
-                ax[k].text(0.5, 0.5, "not in this pair file", ha="center", va="center", transform=ax[k].transAxes)
+                a.text(0.5, 0.5, "not in this\npair file", ha="center", va="center", transform=a.transAxes)
                 continue
-            levels = _nice_levels(vals.max())
-            tri = Triangulation(xy[:, 0], xy[:, 1]) if tri is None else tri
-            im = _level_map(ax[k], tri, vals, pair.reference.shape, levels)
-            _colorbar(fig, im, ax[k], label="|ΔX| (px)", ticks=levels[:: max(1, (len(levels) + 4) // 5)])
-            ax[k].set_xlabel("x (px)")
-            ax[k].set_ylabel("y (px)")
-        for a in ax[:2]:
-            a.set_xlabel("x (mm)")
-            a.set_ylabel("y (mm)")
+            tri = Triangulation(d["xy"][:, 0], d["xy"][:, 1]) if tri is None else tri
+            mappables[k + 2] = _level_map(a, tri, vals, d["shape"], _nice_levels(top[k]))
         ax[0].set_ylabel(f"snapshot {s}\ny (mm)")
-    used = sum(c[0] for c in counts)
-    total = sum(c[1] for c in counts)
-    fig.suptitle(
-        f"Campaign '{spec.name}', first pair of each snapshot: density at the volume's mid-plane and "
-        f"dot displacement magnitude\n({used:,} of {total:,} dots valid, "
-        f"{pair.attrs.get('rays_per_dot', '?')} rays per dot; each |ΔX| panel on its own scale)",
-        fontsize=10,
-    )
+        ax[2].set_ylabel("y (px)")
+        for c, a in enumerate(ax):
+            a.xaxis.set_major_locator(MaxNLocator(3))
+            a.yaxis.set_major_locator(MaxNLocator(3))
+            a.tick_params(labelleft=c in (0, 2), labelbottom=row == len(snaps) - 1)
+    for c, unit in enumerate(("mm", "mm", "px", "px", "px")):
+        axes[-1, c].set_xlabel(f"x ({unit})")
+    _fig4_colorbars(fig, axes, mappables)
+    used, total = (sum(d["counts"][k] for d in data) for k in range(2))
+    _suptitle(fig, f"Campaign '{spec.name}', first pair of each snapshot: density at the volume's mid-plane and dot "
+                   f"displacement magnitude ({used:,} of {total:,} dots valid, {data[-1]['rays']} rays per dot; "
+                   "the rows of a column share its scale, each |ΔX| column on its own scale)")
     save_figure(fig, path, formats=formats)
+
+
+def _fig4_colorbars(fig, axes, mappables):
+    """fig4's colour bars: one under each column, for all its rows."""
+    labels = ("ρ (kg/m³)", "|∇ρ| (kg/m⁴)", "|ΔX| (px)", "|ΔX| (px)", "|ΔX| (px)")
+    for c, (im, label) in enumerate(zip(mappables, labels, strict=True)):
+        if im is None:
+            continue
+        kw = {}
+        if isinstance(im.norm, BoundaryNorm):
+            levels = im.norm.boundaries
+            kw["ticks"] = levels[:: max(1, (len(levels) + 2) // 3)]
+        else:
+            kw["ticks"] = MaxNLocator(3)
+        cb = _colorbar(fig, im, axes[:, c], location="bottom", shrink=0.9, aspect=12, pad=0.01, label=label, **kw)
+        if c == 1:
+            cb.formatter.set_powerlimits((-2, 3))
 
 
 def _threshold_text(thresholds: np.ndarray) -> str:
@@ -375,20 +485,39 @@ def _log_limits(arrays, *, low_quantile=0.005, margin=1.25):
 
 
 def _log_axis(axis, lo, hi):
-    """A log axis whose labelled ticks suit its span: decades over two decades or more, else 1, 2, 5 x 10^k,
-    and every integer multiple below one decade (so a narrow axis still has numbers)."""
+    """A log axis whose labelled ticks suit its span: decades over two decades or more, 1 and 3 x 10^k over more
+    than a factor 15, else 1, 2, 5 x 10^k, and 1, 2, 3, 5 x 10^k below a factor 4 (a narrow axis still has
+    numbers, a panel of a two-column figure room for them)."""
     axis.axes.set_xscale("log") if axis.axis_name == "x" else axis.axes.set_yscale("log")
     span = hi / lo if lo > 0 else np.inf
     if span >= 100:
         axis.set_major_locator(LogLocator(base=10, subs=(1.0,)))
     else:
-        subs = (1.0, 2.0, 5.0) if span >= 10 else (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
+        subs = (1.0, 3.0) if span >= 15 else (1.0, 2.0, 5.0) if span >= 4 else (1.0, 2.0, 3.0, 5.0)
         axis.set_major_locator(LogLocator(base=10, subs=subs))
         axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     axis.set_minor_formatter(NullFormatter())
 
 
-@_collector_paused
+def _counts_width(fig, ncols, curves) -> float:
+    """The width of a CDF panel's column of counts (``n = 12,345`` at 7 pt), as a fraction of the panel's."""
+    chars = max((len(f"n = {int(np.isfinite(e).sum()):,}") for _, e in curves), default=8)
+    panel_pt = fig.get_figwidth() * 72.0 * 0.88 / ncols
+    return min(0.9, (chars * 0.6 * MIN_FONT_PT + 4.0) / panel_pt)
+
+
+def _room_for_counts(curves, lo, hi, *, top, left):
+    """The right end of a CDF panel's log error axis from ``lo``: ``hi``, or farther where a curve would still be
+    below ``top`` (the counts' top, axes fraction) right of ``left`` (their left edge): as a CDF rises, a
+    curve that has reached ``top`` before ``left`` stays clear of the counts in the panel's lower right."""
+    finite = [np.asarray(e, dtype=np.float64)[np.isfinite(e)] for e in curves]
+    q = max((float(np.quantile(e, min(top, 1.0))) for e in finite if len(e)), default=lo)
+    if q <= lo or left <= 0.0:
+        return hi
+    return max(hi, lo * (q / lo) ** (1.0 / left))
+
+
+@_journal
 def figure5(spec, folder, path, *, formats=None):
     """Error CDFs on a log error axis: one row per noise level; columns: displacement error below and
     above the threshold, displacement-gradient error below and above; all methods; the Cramér-Rao bound
@@ -401,7 +530,8 @@ def figure5(spec, folder, path, *, formats=None):
     noises = list(spec.noise_percent)
     cols = [("displacement", "below"), ("displacement", "above"), ("gradient", "below"), ("gradient", "above")]
     fig, axes = plt.subplots(
-        len(noises), 4, figsize=(15, 2.7 * len(noises) + 1.0), squeeze=False, sharey=True, layout="constrained"
+        len(noises), 4, figsize=(TWO_COLUMNS_IN, 1.45 * len(noises) + 1.3), squeeze=False, sharey=True,
+        layout="constrained"
     )
     thresholds = None
     for r, noise in enumerate(noises):
@@ -419,6 +549,9 @@ def figure5(spec, folder, path, *, formats=None):
             crb = scoring.cramer_rao_displacement(noise) if quantity == "displacement" and noise > 0 else None
             if crb is not None:
                 lo, hi = min(lo, crb / 1.25), max(hi, crb * 1.25)
+            step = min(0.1, 0.6 / max(len(curves[c]), 1))
+            hi = _room_for_counts([e for _, e in curves[c]], lo, hi, top=0.04 + step * len(curves[c]) + 0.04,
+                                  left=1.0 - _counts_width(fig, len(cols), curves[c]))
             counts = []
             for method, e in curves[c]:
                 x, y = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
@@ -433,37 +566,49 @@ def figure5(spec, folder, path, *, formats=None):
             ax.set_ylim(0, 1.02)
             ax.grid(True, which="major", alpha=0.3)
             for k, (method, n) in enumerate(reversed(counts)):  # listed top to bottom as in the legend
-                ax.text(
-                    0.97,
-                    0.05 + 0.1 * k,
-                    f"n = {n:,}",
-                    transform=ax.transAxes,
-                    ha="right",
-                    va="bottom",
-                    fontsize=8,
-                    color=method_style(method).get("color", "k"),
-                )
+                ax.text(0.98, 0.04 + step * k, f"n = {n:,}", transform=ax.transAxes, ha="right", va="bottom",
+                        fontsize=MIN_FONT_PT, color=method_style(method).get("color", "k"))
             unit = "px" if quantity == "displacement" else "px/px"
             ax.set_xlabel(f"{quantity} error ({unit})")
             if r == 0:
                 what = "displacement" if quantity == "displacement" else "displacement gradient"
-                ax.set_title(f"{what},\n|ΔX| {'<' if split == 'below' else '≥'} threshold", fontsize=10)
+                ax.set_title(f"{what},\n|ΔX| {'<' if split == 'below' else '≥'} threshold")
         axes[r, 0].set_ylabel(f"noise {noise:g} %\nCDF")
     handles = [plt.Line2D([], [], **method_style(m)) for m in spec.methods]
     labels = [method_style(m)["label"] for m in spec.methods]
     handles.append(plt.Line2D([], [], color="k", ls=":", lw=1.2))
     labels.append("Cramér-Rao bound (displacement)")
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), frameon=False)
-    fig.suptitle(
-        f"Error CDFs, campaign '{spec.name}' ({len(spec.pair_keys())} pairs). Threshold: half the standard "
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 3), frameon=False)
+    _suptitle(
+        fig,
+        f"Error CDFs, campaign '{spec.name}' ({_count(len(spec.pair_keys()), 'pair')}). Threshold: half the standard "
         f"deviation of Eq. 4's |ΔX| in each pair, {_threshold_text(thresholds)}; "
         "n: points scored per method",
-        fontsize=10,
     )
     save_figure(fig, path, formats=formats)
 
 
-@_collector_paused
+#: How fig_density tells its noise levels apart, besides the line width: line style and marker.
+_NOISE_STYLES = (("-", None), ("--", "o"), (":", "s"), ("-.", "^"), ((0, (5, 1, 1, 1)), "D"), ((0, (1, 2)), "v"))
+
+
+def _density_maps(folder, s0, n0, methods):
+    """fig_density's maps of each method (``storage.load_density_map``, None where there is none) and the
+    shared limits: the truth's range and the largest |reconstructed - true|, over all methods."""
+    maps = {m: load_density_map(folder, s0, 0, n0, m) for m in methods}
+    lo, hi, lim = np.inf, -np.inf, 1e-12
+    for mp in maps.values():
+        if mp is None:
+            continue
+        truth = mp["density_truth_cone"]
+        lo, hi = min(lo, float(np.nanmin(truth))), max(hi, float(np.nanmax(truth)))
+        diff = mp["density_map"] - truth
+        if np.isfinite(diff).any():
+            lim = max(lim, float(np.nanmax(np.abs(diff))))
+    return maps, (lo, hi), lim
+
+
+@_journal
 def figure_density(spec, folder, path, *, formats=None):
     """True and reconstructed depth-averaged density per method, with the error CDFs.
 
@@ -471,65 +616,77 @@ def figure_density(spec, folder, path, *, formats=None):
     cone truth, the reconstruction (integrated by ``integrate.DENSITY_SOLVER``, the constant from the
     truth over the measured domain's border) and their difference. Then the CDFs of the absolute
     density error relative to the truth's range, over all pairs, against the cone truth and against the
-    chief-ray truth, one line per noise level.
+    chief-ray truth, one line per noise level (its own line style and marker). Every row shares the same
+    scales: one density scale, one error scale, one CDF axis; each row's legend (noise level and count)
+    sits outside its axes, at the right.
     """
     folder = Path(folder)
     methods, noises = list(spec.methods), list(spec.noise_percent)
     s0, n0 = spec.snapshots[0], min(noises)
-    fig, axes = plt.subplots(
-        len(methods), 5, figsize=(19, 3.3 * len(methods) + 0.6), squeeze=False, layout="constrained"
-    )
-    widths = np.linspace(2.2, 0.8, len(noises))
+    maps, (lo, hi), lim = _density_maps(folder, s0, n0, methods)
+    fig, axes = plt.subplots(len(methods), 5, figsize=(TWO_COLUMNS_IN, 1.3 * len(methods) + 1.3), squeeze=False,
+                             layout="constrained")
+    dens_im = diff_im = None
     for r, method in enumerate(methods):
         ax = axes[r]
-        style = method_style(method)
-        maps = load_density_map(folder, s0, 0, n0, method)
-        if maps is not None:
-            x, y = maps["density_x_mm"], maps["density_y_mm"]
+        label = textwrap.fill(method_style(method)["label"], 22)
+        mp = maps[method]
+        if mp is not None:
+            x, y = mp["density_x_mm"], mp["density_y_mm"]
             ext = (x[0], x[-1], y[-1], y[0])
-            truth, rec = maps["density_truth_cone"], maps["density_map"]
-            lo, hi = np.nanmin(truth), np.nanmax(truth)
-            for k, (field, title) in enumerate(((truth, "true (cone) density"), (rec, "reconstructed"))):
-                im = ax[k].imshow(field, extent=ext, vmin=lo, vmax=hi, cmap="viridis", interpolation="nearest")
-                _colorbar(fig, im, ax[k], label="ρ (kg/m³)")
-                ax[k].set_title(f"{style['label']}: {title}", fontsize=9)
-            diff = rec - truth
-            lim = max(float(np.nanmax(np.abs(diff))) if np.isfinite(diff).any() else 0.0, 1e-12)
-            im = ax[2].imshow(diff, extent=ext, vmin=-lim, vmax=lim, cmap="RdBu_r", interpolation="nearest")
-            _colorbar(fig, im, ax[2], label="Δρ (kg/m³)")
-            ax[2].set_title(f"reconstructed − true, snapshot {s0}, noise {n0:g}%", fontsize=9)
-            for a in ax[:3]:
-                a.set_xlabel("x (mm)")
-                a.set_ylabel("y (mm)")
-        scores = [load_scores(spec, folder, method, noise) for noise in noises]  # once for both truths
-        for c, truth in enumerate(DENSITY_TRUTHS, start=3):
-            for k, (noise, sc) in enumerate(zip(noises, scores, strict=True)):
-                e = sc[f"density_{truth}_rel"]
-                xs, ys = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
-                ax[c].step(
-                    np.maximum(xs, 1e-6),
-                    ys,
-                    where="post",
-                    color=style.get("color"),
-                    ls=style.get("ls"),
-                    lw=widths[k],
-                    alpha=1.0 - 0.6 * k / max(len(noises) - 1, 1),
-                    label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})",
-                )
-            ax[c].set_xscale("log")
-            ax[c].set_xlim(1e-5, 1)
-            ax[c].grid(True, which="both", alpha=0.3)
-            ax[c].set_xlabel("|density error| / density range")
-            ax[c].set_ylabel("CDF")
-            what = "cone of rays" if truth == "cone" else "chief ray"
-            ax[c].set_title(f"{method}: error vs the {what} truth", fontsize=9)
-            ax[c].legend(fontsize=7, loc="lower right")
-    fig.suptitle(
-        f"Campaign '{spec.name}': depth-averaged density from each method's displacements "
-        "(least squares), against the cone and chief-ray truths",
-        fontsize=11,
-    )
+            truth, rec = mp["density_truth_cone"], mp["density_map"]
+            for k, field in enumerate((truth, rec)):
+                dens_im = ax[k].imshow(field, extent=ext, vmin=lo, vmax=hi, cmap="viridis", interpolation="nearest")
+            diff_im = ax[2].imshow(rec - truth, extent=ext, vmin=-lim, vmax=lim, cmap="RdBu_r",
+                                   interpolation="nearest")
+        for c, a in enumerate(ax[:3]):
+            a.xaxis.set_major_locator(MaxNLocator(3))
+            a.yaxis.set_major_locator(MaxNLocator(3))
+            a.tick_params(labelleft=c == 0, labelbottom=r == len(methods) - 1)
+        ax[0].set_ylabel(f"{label}\ny (mm)", color=method_style(method).get("color", "k"))
+        _density_cdfs(ax[3:], spec, folder, method, noises, last_row=r == len(methods) - 1)
+    titles = ("true (cone)\ndensity", "reconstructed\ndensity", "reconstructed\n− true",
+              "|error| vs the\ncone-of-rays truth", "|error| vs the\nchief-ray truth")
+    for c, title in enumerate(titles):
+        axes[0, c].set_title(title)
+    for c in range(3):
+        axes[-1, c].set_xlabel("x (mm)")
+    if dens_im is not None:
+        _colorbar(fig, dens_im, axes[:, :2], location="bottom", shrink=0.8, aspect=20, pad=0.01, label="ρ (kg/m³)",
+                  ticks=MaxNLocator(4))
+        _colorbar(fig, diff_im, axes[:, 2], location="bottom", shrink=0.9, aspect=10, pad=0.01, label="Δρ (kg/m³)",
+                  ticks=MaxNLocator(3))
+    _suptitle(fig, f"Campaign '{spec.name}': depth-averaged density from each method's displacements (least "
+                   f"squares), against the cone and chief-ray truths; maps: snapshot {s0}, first pair, noise "
+                   f"{n0:g} %, one density scale and one error scale for all rows")
     save_figure(fig, path, formats=formats)
+
+
+def _density_cdfs(axes, spec, folder, method, noises, *, last_row):
+    """One fig_density row's two CDF panels (cone truth, chief-ray truth), with the row's legend at the right."""
+    style = method_style(method)
+    widths = np.linspace(1.4, 0.8, len(noises))
+    scores = [load_scores(spec, folder, method, noise) for noise in noises]  # once for both truths
+    for c, truth in enumerate(DENSITY_TRUTHS):
+        for k, (noise, sc) in enumerate(zip(noises, scores, strict=True)):
+            e = sc[f"density_{truth}_rel"]
+            xs, ys = scoring.empirical_cdf(e, max_points=_CDF_POINTS)
+            ls, marker = _NOISE_STYLES[k % len(_NOISE_STYLES)]
+            axes[c].step(np.maximum(xs, 1e-6), ys, where="post", color=style.get("color"), ls=ls, lw=widths[k],
+                         marker=marker, ms=2.5, markevery=(0.03 * k, 0.25),
+                         label=f"noise {noise:g}% (n = {np.isfinite(e).sum()})")
+        a = axes[c]
+        a.set_xscale("log")
+        a.set_xlim(1e-5, 1)
+        a.set_ylim(0, 1.02)
+        a.xaxis.set_major_locator(LogLocator(base=10, numticks=4))
+        a.grid(True, which="major", alpha=0.3)
+        a.tick_params(labelleft=c == 0, labelbottom=last_row)
+        if last_row:
+            a.set_xlabel("|Δρ| / true range")
+    axes[0].set_ylabel("CDF")
+    axes[1].legend(loc="center left", bbox_to_anchor=(1.02, 0.5), frameon=False, handlelength=2.4,
+                   title=textwrap.fill(style["label"], 18))
 
 
 #: The in-cone spread bins (edges, px) along the budget figures' x axis; a bin is drawn where it holds at
@@ -538,9 +695,6 @@ def figure_density(spec, folder, path, *, formats=None):
 _BUDGET_EDGES = np.array([0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0, 1.5, 2.0, np.inf])
 _BUDGET_MIN_POINTS = 10
 _BUDGET_LEFT = 5e-3
-#: Text sizes of the figures drawn at journal width (7.2 in): 7 pt and more.
-_JOURNAL_TEXT = {"font.size": 7.5, "axes.titlesize": 7.5, "axes.labelsize": 7.5, "xtick.labelsize": 7.0,
-                 "ytick.labelsize": 7.0, "legend.fontsize": 7.0, "figure.titlesize": 8.0}
 
 
 def binned_errors(spread, errors, *, edges=_BUDGET_EDGES, min_points=_BUDGET_MIN_POINTS) -> np.ndarray:
@@ -579,7 +733,7 @@ def _budget_axes(ax, lo, hi, xmax):
     ax.grid(True, which="major", alpha=0.3)
 
 
-def _budget_legend(fig, methods, *, crlb=True, ncol=4):
+def _budget_legend(fig, methods, *, crlb=True, ncol=3):
     handles = [plt.Line2D([], [], marker=METHODS[m].marker if m in METHODS else "o", ms=3, **method_style(m))
                for m in methods]
     labels = [method_style(m)["label"] for m in methods]
@@ -597,7 +751,7 @@ def _bins_text() -> str:
     return f"dashed: the bins of results.csv ({names} px)"
 
 
-@_collector_paused
+@_journal
 def figure_budget(spec, folder, path, *, formats=None):
     """The error budget: displacement error against each dot's in-cone spread, per method and noise level.
 
@@ -616,38 +770,38 @@ def figure_budget(spec, folder, path, *, formats=None):
         return None
     splits = (("below", "<"), ("above", "≥"))
     thresholds = np.concatenate([sc["threshold"] for sc in scores.values()])
-    with plt.rc_context(_JOURNAL_TEXT):
-        fig, axes = plt.subplots(2, len(noises), figsize=(7.2, 4.4), squeeze=False, sharex=True, sharey=True,
-                                 layout="constrained")
-        ys, xmax = [], 2 * _BUDGET_LEFT
-        for c, noise in enumerate(noises):
-            for m in methods:
-                sc = scores[(m, noise)]
-                masks = split_masks(sc)
-                for r, (split, _) in enumerate(splits):
-                    b = binned_errors(sc["spread"][masks[split]], sc["error"][masks[split]])
-                    _draw_binned(axes[r, c], b, m)
-                    ys.append(b[:, 1:3])
-                    xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
-            if noise > 0:
-                for r in range(2):
-                    axes[r, c].axhline(_crlb_quantile(noise, 0.5), color="k", ls=":", lw=1.0)
-                    axes[r, c].axhline(_crlb_quantile(noise, 0.9), color="0.5", ls=":", lw=0.8)
-                ys.append(np.array([_crlb_quantile(noise, 0.5), _crlb_quantile(noise, 0.9)]))
-            axes[0, c].set_title(f"noise {noise:g} %")
-            axes[-1, c].set_xlabel("in-cone spread (px)")
-        lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
-        for ax in axes.ravel():
-            _budget_axes(ax, lo, hi, xmax)
-        for r, (_, sign) in enumerate(splits):
-            axes[r, 0].set_ylabel(f"|ΔX| {sign} threshold\nerror (px)")
-        _budget_legend(fig, methods, crlb=any(n > 0 for n in noises))
-        fig.suptitle(
-            f"Error budget, campaign '{spec.name}': displacement error against the in-cone spread of each dot's "
-            f"rays;\nthreshold {_threshold_text(thresholds)} (fig5's split); spread bins of ≥ {_BUDGET_MIN_POINTS} "
-            f"points drawn;\n{_bins_text()}"
-        )
-        return save_figure(fig, path, formats=formats)
+    fig, axes = plt.subplots(2, len(noises), figsize=(TWO_COLUMNS_IN, 4.4), squeeze=False, sharex=True, sharey=True,
+                             layout="constrained")
+    ys, xmax = [], 2 * _BUDGET_LEFT
+    for c, noise in enumerate(noises):
+        for m in methods:
+            sc = scores[(m, noise)]
+            masks = split_masks(sc)
+            for r, (split, _) in enumerate(splits):
+                b = binned_errors(sc["spread"][masks[split]], sc["error"][masks[split]])
+                _draw_binned(axes[r, c], b, m)
+                ys.append(b[:, 1:3])
+                xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
+        if noise > 0:
+            for r in range(2):
+                axes[r, c].axhline(_crlb_quantile(noise, 0.5), color="k", ls=":", lw=1.0)
+                axes[r, c].axhline(_crlb_quantile(noise, 0.9), color="0.5", ls=":", lw=0.8)
+            ys.append(np.array([_crlb_quantile(noise, 0.5), _crlb_quantile(noise, 0.9)]))
+        axes[0, c].set_title(f"noise {noise:g} %")
+        axes[-1, c].set_xlabel("in-cone spread (px)")
+    lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
+    for ax in axes.ravel():
+        _budget_axes(ax, lo, hi, xmax)
+    for r, (_, sign) in enumerate(splits):
+        axes[r, 0].set_ylabel(f"|ΔX| {sign} threshold\nerror (px)")
+    _budget_legend(fig, methods, crlb=any(n > 0 for n in noises))
+    _suptitle(
+        fig,
+        f"Error budget, campaign '{spec.name}': displacement error against the in-cone spread of each dot's "
+        f"rays;\nthreshold {_threshold_text(thresholds)} (fig5's split); spread bins of ≥ {_BUDGET_MIN_POINTS} "
+        f"points drawn;\n{_bins_text()}"
+    )
+    return save_figure(fig, path, formats=formats)
 
 
 def _draw_binned(ax, b, method, *, color=None, p90=True):
@@ -663,7 +817,7 @@ def _draw_binned(ax, b, method, *, color=None, p90=True):
         ax.plot(x, b[:, 2], lw=0.6, alpha=0.8, **style)
 
 
-@_collector_paused
+@_journal
 def sweep_budget_figure(points, path, *, param_label, formats=None):
     """The error budget of a sweep: median displacement error against the in-cone spread, one column per
     method (its line style), one row per noise level, one colour per sweep point (cividis, colour-blind safe).
@@ -683,33 +837,32 @@ def sweep_budget_figure(points, path, *, param_label, formats=None):
     if not _has_spread(scores.values()):
         return None
     colors = plt.get_cmap("cividis")(np.linspace(0.0, 0.9, len(points)))
-    with plt.rc_context(_JOURNAL_TEXT):
-        fig, axes = plt.subplots(len(noises), len(methods), figsize=(7.2, 1.9 * len(noises) + 1.1), squeeze=False,
-                                 sharex=True, sharey=True, layout="constrained")
-        ys, xmax = [], 2 * _BUDGET_LEFT
-        for (k, m, n), sc in scores.items():
-            b = binned_errors(sc["spread"], sc["error"])
-            _draw_binned(axes[noises.index(n), methods.index(m)], b, m, color=colors[k], p90=False)
-            ys.append(b[:, 1])
-            xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
-        for r, n in enumerate(noises):
-            if n:
-                for ax in axes[r]:
-                    ax.axhline(_crlb_quantile(n, 0.5), color="k", ls=":", lw=1.0)
-                ys.append(np.array([_crlb_quantile(n, 0.5)]))
-            axes[r, 0].set_ylabel(("" if n is None else f"noise {n:g} %\n") + "median error (px)")
-        lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
-        for ax in axes.ravel():
-            _budget_axes(ax, lo, hi, xmax)
-        for c, m in enumerate(methods):
-            axes[0, c].set_title(method_style(m)["label"].replace(" + ", "\n+ "))
-            axes[-1, c].set_xlabel("in-cone spread (px)")
-        fig.legend([plt.Line2D([], [], color=colors[k], lw=1.1) for k in range(len(points))],
-                   [label for label, _, _ in points], title=param_label.replace(" (", "\n("),
-                   loc="outside right center", frameon=False)
-        fig.suptitle(f"Error budget of the sweep: median displacement error against the in-cone spread "
-                     f"(bins of ≥ {_BUDGET_MIN_POINTS} points);\ndotted: Cramér-Rao bound, median;\n{_bins_text()}")
-        return save_figure(fig, path, formats=formats)
+    fig, axes = plt.subplots(len(noises), len(methods), figsize=(TWO_COLUMNS_IN, 1.9 * len(noises) + 1.1),
+                             squeeze=False, sharex=True, sharey=True, layout="constrained")
+    ys, xmax = [], 2 * _BUDGET_LEFT
+    for (k, m, n), sc in scores.items():
+        b = binned_errors(sc["spread"], sc["error"])
+        _draw_binned(axes[noises.index(n), methods.index(m)], b, m, color=colors[k], p90=False)
+        ys.append(b[:, 1])
+        xmax = max(xmax, float(b[:, 0].max()) * 1.3 if len(b) else xmax)
+    for r, n in enumerate(noises):
+        if n:
+            for ax in axes[r]:
+                ax.axhline(_crlb_quantile(n, 0.5), color="k", ls=":", lw=1.0)
+            ys.append(np.array([_crlb_quantile(n, 0.5)]))
+        axes[r, 0].set_ylabel(("" if n is None else f"noise {n:g} %\n") + "median error (px)")
+    lo, hi = _log_limits(ys, low_quantile=0.0, margin=1.3)
+    for ax in axes.ravel():
+        _budget_axes(ax, lo, hi, xmax)
+    for c, m in enumerate(methods):
+        axes[0, c].set_title(textwrap.fill(method_style(m)["label"], max(12, int(62 / len(methods)))))
+        axes[-1, c].set_xlabel("in-cone spread (px)")
+    fig.legend([plt.Line2D([], [], color=colors[k], lw=1.1) for k in range(len(points))],
+               [label for label, _, _ in points], title=param_label.replace(" (", "\n("),
+               loc="outside right center", frameon=False)
+    _suptitle(fig, f"Error budget of the sweep: median displacement error against the in-cone spread "
+              f"(bins of ≥ {_BUDGET_MIN_POINTS} points);\ndotted: Cramér-Rao bound, median;\n{_bins_text()}")
+    return save_figure(fig, path, formats=formats)
 
 
 #: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path, *, formats=None)``).
@@ -730,7 +883,7 @@ def campaign_figure(stem: str, spec, folder, formats=None) -> str:
     return str(path)
 
 
-@_collector_paused
+@_journal
 def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_label=None, percentiles=(50, 90)):
     """Error percentiles (displacement, all points), yield, and the RMS density error relative to the
     density range (against the cone truth, when the rows hold it) against the swept parameter.
@@ -751,7 +904,7 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
     ncols = len(percentiles) + 1 + has_density
     yc = len(percentiles)  # the yield column
     fig, axes = plt.subplots(
-        len(noises), ncols, figsize=(4.4 * ncols, 3.0 * len(noises) + 1.2), squeeze=False, layout="constrained"
+        len(noises), ncols, figsize=(TWO_COLUMNS_IN, 1.6 * len(noises) + 1.3), squeeze=False, layout="constrained"
     )
     dashes = ["-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1))]
     for r, noise in enumerate(noises):
@@ -773,7 +926,7 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
                     "color": style.get("color"),
                     "marker": METHODS[method].marker if method in METHODS else "o",
                     "ls": dashes[k % len(dashes)] if val2 is not None else style.get("ls", "-"),
-                    "ms": 5,
+                    "ms": 3,
                 }
                 for c, p in enumerate(percentiles):
                     axes[r, c].plot(xs, [x[f"p{p}"] for x in sel], **kw)
@@ -795,20 +948,23 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
             _log_axis(axes[r, c].yaxis, lo, hi)
             axes[r, c].set_ylim(lo, hi)
             axes[r, c].set_ylabel("error (px)")
-        axes[r, yc].set_ylabel("fraction of points measured")
+        axes[r, yc].set_ylim(*yield_limits([ln.get_ydata() for ln in axes[r, yc].get_lines()]))
+        axes[r, yc].set_ylabel("fraction measured")
         if has_density:
-            axes[r, -1].set_yscale("log")
-            axes[r, -1].set_ylabel("rms error / density range")
+            lo, hi = _log_limits([ln.get_ydata() for ln in axes[r, -1].get_lines()], low_quantile=0.0, margin=1.1)
+            _log_axis(axes[r, -1].yaxis, lo, hi)
+            axes[r, -1].set_ylim(lo, hi)
+            axes[r, -1].set_ylabel("rms error / range")
         if noise is not None:
             axes[r, 0].set_ylabel(f"noise {noise:g} %\n" + axes[r, 0].get_ylabel())
         for ax in axes[r]:
             ax.set_xlabel(label1)
             ax.grid(True, alpha=0.3)
     for c, p in enumerate(percentiles):
-        axes[0, c].set_title(f"displacement error, {'median' if p == 50 else f'{p}th percentile'}", fontsize=10)
-    axes[0, yc].set_title("yield", fontsize=10)
+        axes[0, c].set_title(f"displacement error,\n{'median' if p == 50 else f'{p}th percentile'}")
+    axes[0, yc].set_title("yield")
     if has_density:
-        axes[0, -1].set_title("density error vs the cone truth", fontsize=10)
+        axes[0, -1].set_title("density error\nvs the cone truth")
     marker = {m: METHODS[m].marker if m in METHODS else "o" for m in methods}
     if param2 is None:
         handles = [plt.Line2D([], [], marker=marker[m], **method_style(m)) for m in methods]
@@ -825,10 +981,20 @@ def sweep_figure(rows, path, *, param, param2=None, param_label=None, param2_lab
         handles,
         [method_style(m)["label"] for m in methods],
         loc="outside lower center",
-        ncol=len(methods),
+        ncol=min(len(methods), 3),
         frameon=False,
     )
     what = label1 if param2 is None else f"{label1} and {label2}"
     extra = "; density error after integration" if has_density else ""
-    fig.suptitle(f"Sweep of {what}: displacement error over all scored points, and yield{extra}", fontsize=11)
-    save_figure(fig, path)
+    _suptitle(fig, f"Sweep of {what}: displacement error over all scored points, and yield{extra}")
+    return save_figure(fig, path)
+
+
+def yield_limits(values) -> tuple[float, float]:
+    """Limits of a yield axis (a fraction, at most 1): from a round 0.05 step below the smallest value (at
+    least 0.01 below it) to just above 1, so that a yield of 0.9992 to 1 is not stretched over the axis."""
+    v = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in values] or [np.zeros(0)])
+    v = v[np.isfinite(v)]
+    low = float(v.min()) if len(v) else 0.0
+    lo = max(0.0, np.floor((min(low, 1.0) - 0.01) * 20.0) / 20.0)
+    return lo, 1.0 + 0.05 * (1.0 - lo)

@@ -148,7 +148,7 @@ def test_row01_full_disk_render_and_process(tmp_path, capsys, pair_file):
         assert "No space left on device" in line and "p.h5" in line
         _error_line(capsys, ["process", pair_file, "--method", "correlation", "-o", full / "r.h5"],
                     "r.h5: No space left on device")
-        _error_line(capsys, ["show-density", "-o", full / "d.png"], "d.png: No space left on device")
+        _error_line(capsys, ["show-density", "-o", full / "d.png", "-q"], "d.png: No space left on device")
         assert _listing(full) == before
     finally:
         _umount(full)
@@ -287,14 +287,14 @@ def test_row04_sigkill_while_saving_leaves_no_png(tmp_path):
     assert not (tmp_path / "x.png").exists()  # never a truncated image under the final name
     # The next run removes what the killed one left, and writes the complete image.
     assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
-    assert _listing(tmp_path) == ["x.pdf", "x.png"]
+    assert _listing(tmp_path) == ["x.png"]  # only the file named
 
 
 def test_row04_show_density_png_is_complete(tmp_path, capsys):
     assert main(["show-density", "-o", str(tmp_path / "x.png")]) == 0
     data = (tmp_path / "x.png").read_bytes()
     assert data.startswith(b"\x89PNG") and data[-8:-4] == b"IEND"
-    assert _listing(tmp_path) == ["x.pdf", "x.png"]
+    assert _listing(tmp_path) == ["x.png"]
 
 
 # ---------------------------------------------------------------- row 5: output = input
@@ -635,7 +635,7 @@ def test_more_bad_inputs_give_one_line(tmp_path, capsys, pair_file):
                 "[camera] must be a table of keys")
     _error_line(capsys, ["render", tmp_path, "-o", tmp_path / "p.h5", "-q"], "is a folder, not a TOML file")
     # An image format matplotlib cannot write.
-    _error_line(capsys, ["show-density", "-o", tmp_path / "d.xyz"], "cannot write .xyz images")
+    _error_line(capsys, ["show-density", "-o", tmp_path / "d.xyz"], "name a figure file ending in one of")
     # A dots file with three columns.
     dots = tmp_path / "dots.csv"
     dots.write_text("x,y\n1,2\n3,4,5\n")

@@ -2,10 +2,12 @@
 stated, sweep axes in words."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from figure_checks import assert_journal_figure
 from PIL import Image
 from synthbos.benchmarks import figures
 from synthbos.benchmarks.campaign import run_campaign
@@ -23,35 +25,44 @@ TINY = replace(
 
 
 def _assert_png_and_pdf(stem):
-    png, pdf = stem.with_suffix(".png"), stem.with_suffix(".pdf")
+    png, pdf, svg = stem.with_suffix(".png"), stem.with_suffix(".pdf"), stem.with_suffix(".svg")
     assert pdf.read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in svg.read_bytes()[:2000]
     with Image.open(png) as im:
         assert im.mode in ("RGB", "RGBA")  # no palette reduction
         assert round(im.info["dpi"][0]) == 300
 
 
-@pytest.fixture
-def captured(monkeypatch):
-    """The figures a function saves, kept open for inspection (and still written)."""
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """The TINY campaign, run once, and the figures it saved (stem, figure, its texts), kept open."""
+    folder = tmp_path_factory.mktemp("tiny-fig")
     figs = []
     save = figures.save_figure
 
     def keep(fig, path, **kwargs):
-        figs.append((fig, [t.get_text() for t in fig.findobj(plt.Text)]))
+        figs.append((Path(path).with_suffix("").name, fig, [t.get_text() for t in fig.findobj(plt.Text)]))
         return save(fig, path, **kwargs)
 
-    monkeypatch.setattr(figures, "save_figure", keep)
-    return figs
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(figures, "save_figure", keep)
+        run_campaign(TINY, folder, device="cpu", workers=1, progress=False)
+    return folder, figs
 
 
-def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
-    run_campaign(TINY, tmp_path, device="cpu", workers=1, progress=False)
+def test_campaign_figures_state_threshold_and_counts(campaign):
+    folder, captured = campaign
     for stem in ("fig4", "fig5", "fig_density", "fig_budget"):
-        _assert_png_and_pdf(tmp_path / stem)
+        _assert_png_and_pdf(folder / stem)
+    texts = {}
+    for stem, _, t in captured:
+        texts.setdefault(stem, []).append(t)
     # fig4 is drawn once; fig5, fig_density and (the pairs record their ray covariance) fig_budget once for
-    # each format (PNG, then PDF), alike
-    (_, texts4), (_, texts5), (_, texts5_pdf), (_, texts_d), (_, texts_d_pdf), (_, texts_b), (_, texts_b_pdf) = captured
-    assert texts5 == texts5_pdf and texts_d == texts_d_pdf and texts_b == texts_b_pdf
+    # each format (PNG, PDF, SVG), alike
+    assert len(texts["fig4"]) == 1
+    for stem in ("fig5", "fig_density", "fig_budget"):
+        assert len(texts[stem]) == len(figures.FORMATS) and all(t == texts[stem][0] for t in texts[stem])
+    texts4, texts5, texts_d = texts["fig4"][0], texts["fig5"][0], texts["fig_density"][0]
     assert any("ray-traced" in t for t in texts4)
     assert any("over the ray cone" in t for t in texts4)
     assert any("cone" in t and "chief" in t for t in texts_d)
@@ -61,6 +72,73 @@ def test_campaign_figures_state_threshold_and_counts(tmp_path, captured):
     assert "Threshold" in title5 and " px" in title5
     assert sum(t.startswith("n = ") for t in texts5) == 4 * len(TINY.noise_percent) * len(TINY.methods)
     assert all(METHODS[name].label in texts5 for name in TINY.methods)
+
+
+def _drawn(monkeypatch, draw):
+    """The figures ``draw()`` saves, each checked as saved."""
+    figs = []
+    save = figures.save_figure
+
+    def keep(fig, path, **kwargs):
+        written = save(fig, path, **kwargs)
+        figs.append((fig, written))
+        return written
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    draw()
+    monkeypatch.setattr(figures, "save_figure", save)
+    return figs
+
+
+def _clims(axes):
+    return {tuple(np.round(im.get_clim(), 12)) for ax in axes for im in ax.get_images()}
+
+
+def test_campaign_figures_fit_a_journal(campaign, tmp_path, monkeypatch):
+    folder, _ = campaign
+    for stem, draw in figures.CAMPAIGN_FIGURES.items():
+        figs = _drawn(monkeypatch, lambda draw=draw, stem=stem: draw(TINY, folder, tmp_path / stem))
+        assert len(figs) == 1
+        fig, written = figs[0]
+        assert sorted(p.suffix for p in written) == [".pdf", ".png", ".svg"]
+        assert all(p.stat().st_size > 5_000 for p in written)
+        assert_journal_figure(fig)
+        grid = np.array(fig.axes[: len(fig.axes) - sum(getattr(a, "_colorbar", None) is not None for a in fig.axes)])
+        if stem == "fig5":  # the CDFs: one probability axis for every row
+            assert len({ax.get_ylim() for ax in grid}) == 1
+        if stem == "fig_density":  # one density scale, one error scale, one CDF axis in every row
+            rows = grid.reshape(len(TINY.methods), 5)
+            assert len(_clims(rows[:, :2].ravel())) == 1 and len(_clims(rows[:, 2])) == 1
+            assert len({(ax.get_xlim(), ax.get_ylim()) for ax in rows[:, 3:].ravel()}) == 1
+            styles = {ln.get_linestyle() for ln in rows[0, 3].get_lines()}
+            assert len(styles) == len(TINY.noise_percent)  # noise levels told apart by line style
+        if stem == "fig4":  # the rows of a column share its scale
+            rows = grid.reshape(len(TINY.snapshots), 5)
+            assert all(len(_clims(rows[:, c])) == 1 for c in range(5))
+
+
+def test_sweep_figure_fits_a_journal_and_keeps_the_yield_axis_readable(tmp_path, monkeypatch):
+    rows = []
+    for method in ("correlation", "tracking"):
+        for noise in (0.0, 3.0):
+            for k, value in enumerate((11.0, 16.0, 22.0)):
+                base = {"method": method, "noise_percent": noise, "param_value": value, "param2_value": None,
+                        "split": "all"}
+                rows.append({**base, "quantity": "displacement", "p50": 0.01 * (k + 1), "p90": 0.03 * (k + 1),
+                             "yield": 1.0 - 0.0004 * k})
+                rows.append({**base, "quantity": "density_cone_rel", "rms": 0.002 * (k + 1), "yield": 1.0})
+    figs = _drawn(monkeypatch, lambda: figures.sweep_figure(rows, tmp_path / "sweep.png", param="camera.f_number",
+                                                            param_label="f-number"))
+    (fig, written), = figs
+    assert sorted(p.name for p in written) == ["sweep.pdf", "sweep.png", "sweep.svg"]
+    assert_journal_figure(fig)
+    yield_axes = [ax for ax in fig.axes if ax.get_ylabel() == "fraction measured"]
+    assert len(yield_axes) == 2
+    for ax in yield_axes:
+        lo, hi = ax.get_ylim()
+        assert lo == pytest.approx(0.95) and 1.0 < hi <= 1.01  # not stretched over 0.9992 to 1
+    assert figures.yield_limits([np.array([0.2, 0.9])]) == pytest.approx((0.15, 1.0425))
+    assert figures.yield_limits([np.array([0.01, 1.0])]) == pytest.approx((0.0, 1.05))
 
 
 def test_log_limits_fit_the_data():
@@ -105,3 +183,23 @@ def test_save_figure_draws_what_savefig_draws(tmp_path):
     _assert_png_and_pdf(tmp_path / "fast")
     with Image.open(tmp_path / "plain.png") as a, Image.open(tmp_path / "fast.png") as b:
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_docs_figures_are_made_by_one_script(campaign, tmp_path, capsys):
+    """docs/make_figures.py draws the docs' campaign figures from a campaign folder and says what it wrote."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[2] / "docs" / "make_figures.py"
+    spec = importlib.util.spec_from_file_location("make_figures", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    folder, _ = campaign
+    assert module.main(["--campaign", str(folder), "-o", str(tmp_path), "--work", str(tmp_path / "work"),
+                        "--width", "720"]) == 0
+    printed = capsys.readouterr().out
+    for stem in ("fig4", "fig5", "fig_density", "fig_budget"):
+        path = tmp_path / f"quick_{stem}.png"
+        with Image.open(path) as im:
+            assert im.size[0] == 720
+        assert f"wrote {path}: 720 x " in printed
+    assert f"left {tmp_path / 'fig5_default.png'} as it is (no --fig5)" in printed
