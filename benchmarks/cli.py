@@ -22,12 +22,14 @@ from synthbos.correlation import CorrelationSettings
 from synthbos.raytrace import SETUPS, load_config, read_pair, render_pair, setup_tables, write_pair
 from synthbos.raytrace.config import merge_tables, read_toml
 from synthbos.tracking import TrackingSettings
+from tqdm.auto import tqdm
 
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, resolve_device
 from synthbos.values import error_line
 
+from .advice import failure_advice
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
@@ -69,13 +71,18 @@ def _render(args):
     return 0
 
 
+#: Work shorter than this (s) shows no clock line (:func:`in_worker_thread`).
+CLOCK_DELAY_S = 2.0
 #: The work :func:`in_worker_thread` left running when a Ctrl-C ended its wait: one Event per thread, set when
 #: the thread ends.
 _ABANDONED: list[threading.Event] = []
 
 
-def in_worker_thread(fn, *args, **kwargs):
+def in_worker_thread(fn, *args, clock=None, **kwargs):
     """``fn(*args, **kwargs)`` in a daemon thread, waited for here, so that a Ctrl-C ends the wait at once.
+
+    ``clock`` (a few words, optional): show them with the time elapsed on a tqdm line while the work runs,
+    for work that reports no progress of its own.
 
     Python runs a signal's handler in the main thread between two bytecodes, so a Ctrl-C during one long
     Warp launch on the CPU (a render's launch takes 10-30 s there) would wait for the launch to end. Here
@@ -95,12 +102,21 @@ def in_worker_thread(fn, *args, **kwargs):
             done.set()
 
     threading.Thread(target=work, name="synthbos-work", daemon=True).start()
+    bar = tqdm(desc=clock, bar_format="{desc}: {elapsed}", disable=clock is None, file=sys.stderr, delay=1e9)
+    t0 = shown = time.monotonic()
     try:
         while not done.wait(0.05):  # an Event, not Thread.join: a join that a Ctrl-C ends marks the thread ended
-            pass
+            now = time.monotonic()
+            if now - t0 > CLOCK_DELAY_S and now - shown > 0.5:
+                bar.refresh()
+                shown = now
     except BaseException:
         _ABANDONED.append(done)
         raise
+    finally:
+        if shown > t0:  # shown: end its line
+            bar.delay = 0
+        bar.close()
     if "error" in box:
         raise box["error"]
     return box["value"]
@@ -171,10 +187,9 @@ def _process(args):
         print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
               file=sys.stderr)
         return 1
-    if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
-        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); displacements "
-              "beyond a quarter of the first correlation window need larger windows (--windows 64,32,16), "
-              "tracking may need --max-displacement or --diameter")
+    advice = failure_advice(res, kind=method.kind, where=str(out))
+    if advice and not args.quiet:
+        print(advice)
     return 0
 
 
@@ -194,8 +209,9 @@ def _calibrate(args):
             image = image.max() - image
         if not args.quiet:
             print(f"note: grid image {'inverted' if inverted else 'not inverted'} ({reason})")
-        s = calibrate_from_grid(image, args.grid, out, mapping_out=args.mapping_out, source=args.reference,
-                                order=3 if args.order is None else args.order)
+        s = in_worker_thread(calibrate_from_grid, image, args.grid, out, mapping_out=args.mapping_out,
+                             source=args.reference, order=3 if args.order is None else args.order,
+                             clock=None if args.quiet else "calibrate: finding the grid and fitting the mapping")
         print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected blobs on the grid "
               f"fitted); mapping residual rms {s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
               + (f"; mapping {args.mapping_out}" if args.mapping_out else ""))
@@ -228,9 +244,10 @@ def _integrate(args):
     mask = _floats(args.mask_region, 4, "--mask-region") if args.mask_region else None
     if args.pair and args.config:
         raise SynthbosError("give either --pair or --config (the pair file holds its own set-up)")
-    res = integrate_file(args.result, out, pair_path=args.pair, config=args.config, solver=args.solver,
-                         spacing_px=args.spacing, reference_density=args.reference_density,
-                         reference_region_mm=region, dirichlet=args.dirichlet, mask_region_mm=mask)
+    res = in_worker_thread(integrate_file, args.result, out, pair_path=args.pair, config=args.config,
+                           solver=args.solver, spacing_px=args.spacing, reference_density=args.reference_density,
+                           reference_region_mm=region, dirichlet=args.dirichlet, mask_region_mm=mask,
+                           clock=None if args.quiet else f"integrate: {args.solver} solve")
     d = res["density"]
     rho = d.density[np.isfinite(d.density)]
     print(f"wrote {out}: {args.solver}, {rho.size} nodes ({d.grid.gx.shape[1]} x {d.grid.gx.shape[0]}), "
