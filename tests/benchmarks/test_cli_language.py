@@ -234,3 +234,22 @@ def test_ctrl_c_on_render_stops_at_once_and_says_nothing_was_written(tmp_path):
     assert lines == ["synthbos: interrupted; nothing was written (the pair file is written whole at the end); "
                      "re-run to render it again"], err
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_process_prints_the_advice_and_show_result_writes_the_name_asked_for(tmp_path, capsys):
+    import tifffile
+
+    for name, shift in (("a.tif", (0, 0)), ("b.tif", (1.3, 0.4))):
+        tifffile.imwrite(tmp_path / name, (_dots_image((128, 128), 8.0, shift) * 20000 + 1000).astype(np.uint16))
+    argv = ["process", "--reference", str(tmp_path / "a.tif"), "--gradient", str(tmp_path / "b.tif"), "--method",
+            "correlation", "--device", "cpu"]
+    assert main([*argv, "-o", str(tmp_path / "r.h5")]) == 0
+    out = capsys.readouterr().out
+    assert "note: most points failed" in out and "peak_ratio_min = 1.0" in out
+    assert main([*argv, "-o", str(tmp_path / "q.h5"), "-q"]) == 0
+    assert "note:" not in capsys.readouterr().out
+    fig = tmp_path / "x.jpg"
+    assert main(["show-result", str(tmp_path / "r.h5"), "-o", str(fig), "-q"]) == 0
+    assert capsys.readouterr().out.strip() == f"wrote {fig}"
+    assert fig.read_bytes()[:2] == b"\xff\xd8"  # a JPEG, under the name asked for
+    assert not (tmp_path / "x.jpg.png").exists() and not (tmp_path / "x.png").exists()
