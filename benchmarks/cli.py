@@ -145,6 +145,9 @@ def _process(args):
         image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
     )
     check_output_file(out, inputs=[options.mask], what="-o")  # the configuration's mask is an input too
+    if args.mask_excludes is not None and options.mask is None:
+        raise SynthbosError("--mask-excludes: there is no mask to read (give --mask, or mask in the [image] table "
+                            "of --settings)")
     prior = None
     attrs = {}
     notes = []
@@ -167,7 +170,8 @@ def _process(args):
     attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
     t0 = time.perf_counter()
     res, image_used = in_worker_thread(process_pair, args.method, ref, grad, settings=settings, options=options,
-                                       prior_xy=prior, notes=notes, device=device)
+                                       prior_xy=prior, notes=notes, device=device,
+                                       clock=None if args.quiet else f"process: {args.method}")
     attrs["seconds"] = time.perf_counter() - t0
     attrs["device"] = device
     attrs["image"] = json.dumps(image_used)
@@ -274,7 +278,7 @@ def _paper(args):
     setup_tables(args.setup)  # an unknown set-up: one line, before the device line
     device = _device(args.device)
     process_device = _process_device(args, device)
-    worker_device = _worker_device(args)
+    worker_device = _worker_device(args, process_device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = paper_spec(full=full, methods=args.methods, setup=args.setup)
     out = check_output_folder(args.output or f"runs/paper-{spec.name}")
@@ -344,7 +348,8 @@ def _sweep(args):
         raise SynthbosError("sweep: name the sweep folder with -o FOLDER")
     check_output_folder(args.output)
     device = _device(args.device)
-    process_device, worker_device = _process_device(args, device), _worker_device(args)
+    process_device = _process_device(args, device)
+    worker_device = _worker_device(args, process_device)
     rows = run_sweep(base, params, args.output, size=args.size, device=device,
                      methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
@@ -414,9 +419,18 @@ def _add_process_device_option(p) -> None:
                         "than a dozen processes sharing one GPU)")
 
 
-def _worker_device(args):
-    """``--worker-device``, checked, or None."""
-    return None if args.worker_device is None else resolve_device(args.worker_device)
+def _worker_device(args, process_device: str):
+    """``--worker-device``, checked, or None; refused where the campaign would ignore it: processing on the CPU,
+    or on a Dask cluster (whose workers process where they run)."""
+    if args.worker_device is None:
+        return None
+    worker_device = resolve_device(args.worker_device)
+    if not process_device.startswith("cuda"):
+        raise SynthbosError(f"--worker-device {args.worker_device}: it applies when processing on a GPU; the "
+                            f"processing runs on {process_device}")
+    if args.scheduler is not None:
+        raise SynthbosError(f"--worker-device {args.worker_device}: a --scheduler's workers process where they run")
+    return worker_device
 
 
 _WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"

@@ -104,6 +104,25 @@ def test_dots_with_a_method_that_ignores_them_is_refused(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["process", "--reference", "a.tif", "--gradient", "b.tif", "--method", "tracking", "--mask-excludes", "dark",
+          "-o", "r.h5"], "--mask-excludes: there is no mask"),
+        (["paper", "--quick", "--device", "cpu", "--worker-device", "cpu", "-o", "camp"],
+         "--worker-device cpu: it applies when processing on a GPU"),
+        (["sweep", "--param", "noise=0", "--device", "cpu", "--worker-device", "cpu", "-o", "camp"],
+         "--worker-device cpu: it applies when processing on a GPU"),
+    ],
+)
+def test_options_the_run_would_ignore_are_refused(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_methods_quiet_lists_the_names(capsys):
     assert main(["methods", "-q"]) == 0
     names = capsys.readouterr().out.split()
