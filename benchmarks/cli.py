@@ -114,8 +114,8 @@ def in_worker_thread(fn, *args, clock=None, **kwargs):
         _ABANDONED.append(done)
         raise
     finally:
-        if shown > t0:  # shown: end its line
-            bar.delay = 0
+        if shown > t0:  # shown: end its line, or clear it before an error's line
+            bar.delay, bar.leave = 0, "error" not in box and done.is_set()
         bar.close()
     if "error" in box:
         raise box["error"]
@@ -730,6 +730,8 @@ def main(argv=None) -> int:
         print(error_line(err), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        if any(not bar.disable for bar in list(getattr(tqdm, "_instances", ()))):
+            print(file=sys.stderr)  # a progress bar that another thread left open: the message on a line of its own
         print(f"synthbos: interrupted; {args.interrupted}", file=sys.stderr)
         return 130
     finally:
