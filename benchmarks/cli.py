@@ -202,6 +202,7 @@ def _calibrate(args):
     out = check_output_file(args.output, inputs=inputs, what="-o")
     if args.mapping_out is not None:
         check_output_file(args.mapping_out, inputs=[*inputs, out], what="--mapping-out")
+        args.interrupted = "the dots file was not written (the mapping file is written first: it may be there)"
     if args.grid is not None:
         if args.mapping or args.target:
             raise SynthbosError("give either --reference with --grid, or --mapping with --target, not both")
@@ -420,16 +421,13 @@ def _add_process_device_option(p) -> None:
 
 
 def _worker_device(args, process_device: str):
-    """``--worker-device``, checked, or None; refused where the campaign would ignore it: processing on the CPU,
-    or on a Dask cluster (whose workers process where they run)."""
+    """``--worker-device``, checked, or None; refused where the campaign would ignore it: processing on the CPU."""
     if args.worker_device is None:
         return None
     worker_device = resolve_device(args.worker_device)
     if not process_device.startswith("cuda"):
         raise SynthbosError(f"--worker-device {args.worker_device}: it applies when processing on a GPU; the "
                             f"processing runs on {process_device}")
-    if args.scheduler is not None:
-        raise SynthbosError(f"--worker-device {args.worker_device}: a --scheduler's workers process where they run")
     return worker_device
 
 
