@@ -113,6 +113,8 @@ def test_dots_with_a_method_that_ignores_them_is_refused(tmp_path, capsys):
          "--worker-device cpu: it applies when processing on a GPU"),
         (["sweep", "--param", "noise=0", "--device", "cpu", "--worker-device", "cpu", "-o", "camp"],
          "--worker-device cpu: it applies when processing on a GPU"),
+        (["sweep", "--param", "window=16,32", "--methods", "tracking,tracking-cc", "--device", "cpu", "-o", "sw"],
+         "sweep parameter window sets the correlation windows; none of the methods (tracking, tracking-cc)"),
     ],
 )
 def test_options_the_run_would_ignore_are_refused(tmp_path, monkeypatch, capsys, argv, message):
