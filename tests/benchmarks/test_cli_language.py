@@ -274,3 +274,27 @@ def test_process_prints_the_advice_and_show_result_writes_the_name_asked_for(tmp
     assert capsys.readouterr().out.strip() == f"wrote {fig}"
     assert fig.read_bytes()[:2] == b"\xff\xd8"  # a JPEG, under the name asked for
     assert not (tmp_path / "x.jpg.png").exists() and not (tmp_path / "x.png").exists()
+
+
+def test_calibrate_finds_dark_dots_by_itself_and_invert_false_keeps_them_dark(tmp_path, capsys):
+    """A grid of dark dots on a bright background (paper printed with black dots): --invert auto (the default)
+    makes them bright, as process does, and finds the grid the bright image gives; --invert false leaves them
+    dark, and no grid is found."""
+    import tifffile
+    from synthbos.raytrace.dots import draw_dots
+
+    xy = np.stack(np.meshgrid(np.arange(7.5, 128, 15), np.arange(7.5, 128, 15)), axis=-1).reshape(-1, 2)
+    bright = draw_dots((128, 128), xy, 3.0) + 0.01 * np.random.default_rng(2).standard_normal((128, 128))
+    for name, img in (("bright", bright), ("dark", 1.0 - bright)):
+        tifffile.imwrite(tmp_path / f"{name}.tif", img.astype(np.float32))
+        assert main(["calibrate", "--reference", str(tmp_path / f"{name}.tif"), "--grid", "2.0", "-o",
+                     str(tmp_path / f"{name}.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "note: grid image not inverted (auto: dark background" in out
+    assert "note: grid image inverted (auto: bright background" in out
+    dark, bright = (np.loadtxt(tmp_path / f"{n}.csv", delimiter=",", skiprows=1) for n in ("dark", "bright"))
+    assert len(dark) > 50
+    np.testing.assert_allclose(dark, bright, atol=1e-6)
+    assert main(["calibrate", "--reference", str(tmp_path / "dark.tif"), "--grid", "2.0", "--invert", "false",
+                 "-o", str(tmp_path / "kept.csv")]) == 2
+    assert not (tmp_path / "kept.csv").exists()
