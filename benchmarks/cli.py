@@ -516,8 +516,9 @@ def _add_invert_option(p, what) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="synthbos", formatter_class=_HelpFormatter,
-        description="Synthetic background-oriented schlieren: render BOS image pairs with their truth, measure "
-                    "displacements (correlation, dot tracking), integrate them into density, and score it all.",
+        description="Synthetic background-oriented schlieren: render BOS image pairs with their truth,\n"
+                    "measure displacements (correlation, dot tracking), integrate them into density,\n"
+                    "and score it all.",
         epilog="synthbos COMMAND --help shows a command's options, their defaults and examples.")
     parser.add_argument("--version", action="version", version=f"synthbos {synthbos.__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
