@@ -379,7 +379,7 @@ def _show_density(args):
 def _show_result(args):
     out = check_output_file(args.output, inputs=[args.result], what="-o")
     summary = plot_result(args.result, out)
-    print(f"wrote {out}" if args.quiet else f"wrote {out}\n{summary}")
+    print(f"wrote {out}\n{summary}")
     return 0
 
 
@@ -688,7 +688,8 @@ def _finish_commands(sub) -> None:
     for name, p in sub.choices.items():
         p.formatter_class = _HelpFormatter
         p.epilog = "examples:\n" + "\n".join(f"  {line}" for line in EXAMPLES[name])
-        p.add_argument("-q", "--quiet", action="store_true", help=_QUIET_HELP)
+        if "-q" not in p._option_string_actions:  # a command's own -q says what it silences
+            p.add_argument("-q", "--quiet", action="store_true", help=_QUIET_HELP)
         if p.get_default("interrupted") is None:
             p.set_defaults(interrupted="nothing was written")
 
