@@ -5,8 +5,9 @@ The flags of the failed points tell the causes apart. For correlation (``correla
 * windows that fail the peak test with a peak correlation below ``min_correlation``: the two images do
   not correlate there (another pattern, misaligned, swapped, or regions without dots);
 * windows that fail the peak test with a good correlation but a peak ratio near 1: the second peak is as
-  high as the first, so the pattern repeats itself (a regular dot grid): ``peak_ratio_min = 1.0``, or
-  tracking with a dots prior;
+  high as the first, so the pattern repeats itself (a regular dot grid): ``pattern = "periodic"`` where the
+  correlation settings have a ``pattern`` (else ``peak_ratio_min = 1.0``), or tracking with a dots prior;
+* a pattern the correlation took as periodic: displacements beyond half its pitch;
 * windows whose peak lay on the edge of the correlation plane: displacements past a quarter of the first
   window: larger first windows;
 * windows that disagree with the coarser pass: the final windows are too small for the field.
@@ -87,6 +88,10 @@ def _grid_advice(table, settings) -> str:
     sizes = [int(w) for w in np.atleast_1d(settings.get("window_sizes", (32, 16)))]
     min_corr = float(settings.get("min_correlation", np.nan))
     ratio_min = float(settings.get("peak_ratio_min", np.nan))
+    prior = "track the dots with a prior (--method tracking-cc --dots DOTS.csv, from synthbos calibrate)"
+    if settings.get("pattern") == "periodic":
+        return ("the pattern was taken as periodic (settings.pattern), so the displacements must stay below half "
+                f"its pitch in the first pass and the windows must hold whole periods; beyond that, {prior}")
     if peak.sum() >= MOST * n:
         corr = _median(table.get("correlation", np.full(flags.size, np.nan)), peak)
         ratio = _median(table.get("peak_ratio", np.full(flags.size, np.nan)), peak)
@@ -96,11 +101,11 @@ def _grid_advice(table, settings) -> str:
                     "aligned and in the right order (--reference, then --gradient); leave regions without dots "
                     f"out with --mask; larger windows hold more dots (--windows {_windows(sizes, 2 * sizes[0])})")
         if ratio < EQUAL_PEAKS:
+            fix = ('pattern = "periodic"' if "pattern" in settings else "peak_ratio_min = 1.0")
             return (f"in {int(peak.sum())} windows the second correlation peak is as high as the first (median "
                     f"peak ratio {ratio:.4f}, peak_ratio_min {ratio_min:g}) with a good correlation ({corr:.2f}): "
                     "the pattern repeats itself, as a regular dot grid does, so every dot spacing gives a peak; "
-                    "set peak_ratio_min = 1.0 in the [correlation] table of a --settings file, or track the dots "
-                    "with a prior (--method tracking-cc --dots DOTS.csv, from synthbos calibrate)")
+                    f"set {fix} in the [correlation] table of a --settings file, or {prior}")
         return (f"{int(peak.sum())} windows had no significant correlation peak (median peak ratio {ratio:.3g}, "
                 f"peak_ratio_min {ratio_min:g}; median correlation {corr:.2f}): larger windows hold more dots "
                 f"(--windows {_windows(sizes, 2 * sizes[0])}); check the dot density and the image contrast")

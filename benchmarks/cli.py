@@ -187,13 +187,13 @@ def _process(args):
     print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
+    advice = failure_advice(res, kind=method.kind, where=str(out))
+    if advice and not args.quiet:
+        print(advice)
     if not ok.any():
         print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
               file=sys.stderr)
         return 1
-    advice = failure_advice(res, kind=method.kind, where=str(out))
-    if advice and not args.quiet:
-        print(advice)
     return 0
 
 
@@ -282,7 +282,7 @@ def _paper(args):
     worker_device = _worker_device(args, process_device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = paper_spec(full=full, methods=args.methods, setup=args.setup)
-    out = check_output_folder(args.output or f"runs/paper-{spec.name}")
+    out = check_output_folder(args.out or f"runs/paper-{spec.name}")
     check_spec(spec, device, process_device)  # before the banner: an error is the only line
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
@@ -323,11 +323,11 @@ def _budget_note(png: Path) -> None:
 
 
 def _regress(args):
-    if args.output is None:
+    if args.out is None:
         args.interrupted = "nothing was kept (the campaign ran in a temporary folder; -o FOLDER keeps it to resume)"
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     methods = _method_list(args.methods) if args.methods else None
-    rows, problems = run_regress(update=args.update, out=args.output, workers=args.workers, progress=not args.quiet,
+    rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
                                  scheduler=args.scheduler, wait=args.wait, methods=methods,
                                  baseline=args.baseline or BASELINE)
     if args.update:
@@ -345,21 +345,20 @@ def _regress(args):
 def _sweep(args):
     base = merge_tables(setup_tables(args.setup), read_toml(args.config) if args.config else {})
     params = [parse_parameter(p) for p in args.param]
-    if args.output is None:
+    if args.out is None:
         raise SynthbosError("sweep: name the sweep folder with -o FOLDER")
-    check_output_folder(args.output)
+    check_output_folder(args.out)
     device = _device(args.device)
     process_device = _process_device(args, device)
     worker_device = _worker_device(args, process_device)
-    rows = run_sweep(base, params, args.output, size=args.size, device=device,
+    rows = run_sweep(base, params, args.out, size=args.size, device=device,
                      methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
                      workers=args.workers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
-    folder = Path(args.output)
-    print(f"sweep: {len(rows)} rows -> {folder / 'sweep.csv'}, {folder / 'sweep.png'}, "
-          f"{folder / 'sweep_budget.png'} (and .pdf)")
-    _budget_note(folder / "sweep_budget.png")
+    print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
+          f"{Path(args.out) / 'sweep_budget.png'} (and .pdf)")
+    _budget_note(Path(args.out) / "sweep_budget.png")
     return 0
 
 
@@ -499,11 +498,13 @@ _INVERT = {"auto": "auto", "true": True, "false": False, None: "auto"}
 
 
 def _add_output(p, what, *, required=True, default=None, alias=False) -> None:
-    """``-o/--output`` of a command that writes (``what``: the file or folder); ``alias``: ``--out`` too."""
-    p.add_argument("-o", "--output", required=required, default=default, metavar="PATH",
+    """``-o/--output`` of a command that writes (``what``: the file or folder); ``alias``: ``--out`` too, the
+    campaign commands' older spelling, whose name (``args.out``) they keep."""
+    dest = "out" if alias else "output"
+    p.add_argument("-o", "--output", required=required, default=default, metavar="PATH", dest=dest,
                    help=what + (" (also --out)" if alias else ""))
     if alias:
-        p.add_argument("--out", dest="output", action=_Alias)
+        p.add_argument("--out", dest=dest, action=_Alias)
 
 
 def _add_invert_option(p, what) -> None:
