@@ -25,7 +25,7 @@ from synthbos.tracking import DotStatus
 
 from .registry import DOTS, GRID
 
-__all__ = ["MOST", "failure_advice"]
+__all__ = ["EQUAL_PEAKS", "MOST", "failure_advice", "failure_reason"]
 
 #: "Most points failed": more than this fraction of the unmasked points.
 MOST = 0.5
@@ -49,21 +49,24 @@ def failure_advice(result, *, kind: str, where: str = "") -> str | None:
     Returns
     -------
     str or None
+        ``note: most points failed (N of M; ...): `` and :func:`failure_reason`.
     """
     c = result.counts or {}
     unmasked = c.get("total", 0) - c.get("masked", 0)
     if not c or unmasked <= 0 or c.get("failed", 0) <= MOST * unmasked:
         return None
+    show = f"; synthbos show-result {where} -o FIG.png shows where" if where else ""
+    return f"note: most points failed ({c['failed']} of {unmasked}{show}): {failure_reason(result, kind=kind)}"
+
+
+def failure_reason(result, *, kind: str) -> str:
+    """Why the failed points of a result failed, from their flags, and what to change (one clause)."""
     table = result.table or {}
     if kind == GRID and "flags" in table:
-        why = _grid_advice(table, result.settings or {})
-    elif kind == DOTS and "status" in table:
-        why = _dots_advice(table, result.settings or {})
-    else:
-        why = "see the method's flags in the result file"
-    head = f"note: most points failed ({c['failed']} of {unmasked}"
-    show = f"; synthbos show-result {where} -o FIG.png shows where" if where else ""
-    return f"{head}{show}): {why}"
+        return _grid_advice(table, result.settings or {})
+    if kind == DOTS and "status" in table:
+        return _dots_advice(table, result.settings or {})
+    return "see the method's flags in the result file"
 
 
 def _median(values, sel):

@@ -29,7 +29,7 @@ from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, resolve_device
 from synthbos.values import error_line
 
-from .advice import failure_advice
+from .advice import failure_advice, failure_reason
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
@@ -187,13 +187,13 @@ def _process(args):
     print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
+    if not ok.any():  # the warning says why
+        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}; "
+              f"{failure_reason(res, kind=method.kind)}", file=sys.stderr)
+        return 1
     advice = failure_advice(res, kind=method.kind, where=str(out))
     if advice and not args.quiet:
         print(advice)
-    if not ok.any():
-        print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}",
-              file=sys.stderr)
-        return 1
     return 0
 
 
