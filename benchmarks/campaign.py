@@ -130,6 +130,9 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                 if not out.exists():
                     scores.append((str(pair_path(folder, s, p)), m.name, noise, seeds, str(out),
                                    spec.overrides_for(m), process_device))
+    if progress:
+        _resume_note(folder, n_pairs=len(keys), n_scores=len(keys) * len(spec.noise_percent) * len(methods),
+                     renders=len(renders), scores=len(scores))
     figure_jobs = _figure_jobs(spec, folder) if figures else []
     if pipeline and scheduler is None:
         # The device work here; scoring, the tables and the figures in worker processes. A figure that
@@ -163,6 +166,16 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                   desc="figures", progress=progress)
         timings["figures"] = time.perf_counter() - t2
     return rows
+
+
+def _resume_note(folder, *, n_pairs: int, n_scores: int, renders: int, scores: int) -> None:
+    """One line when a campaign resumes: how many of its items (pairs to render, scores to make) a former run
+    finished, and how many are left to run."""
+    total, left = n_pairs + n_scores, renders + scores
+    if left == total:
+        return
+    print(f"resumed {folder}: {total - left} of {total} items already done ({n_pairs - renders} of {n_pairs} pairs "
+          f"rendered, {n_scores - scores} of {n_scores} scores made), {left} to run")
 
 
 def campaign_order(spec: CampaignSpec) -> list:

@@ -11,26 +11,31 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from synthbos.correlation import CorrelationSettings
 from synthbos.raytrace import SETUPS, load_config, read_pair, render_pair, setup_tables, write_pair
 from synthbos.raytrace.config import merge_tables, read_toml
+from synthbos.tracking import TrackingSettings
+from tqdm.auto import tqdm
 
 import synthbos
 from synthbos import SynthbosError, check_output_file, check_output_folder
 from synthbos.device import describe_device, resolve_device
 from synthbos.values import error_line
 
+from .advice import failure_advice, failure_reason
 from .calibrate import calibrate_from_grid, dots_from_mapping
 from .campaign import check_spec, run_campaign
 from .items import nominal_positions
 from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
-from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, methods_table
+from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, method_names, methods_table
 from .regress import BASELINE, run_regress
 from .show_density import plot_density_file, plot_snapshots, snapshot_table
 from .show_result import plot_result
@@ -38,7 +43,7 @@ from .spec import FULL, QUICK
 from .sweep import parse_parameter, run_sweep
 from .tables import format_summary
 
-__all__ = ["main"]
+__all__ = ["build_parser", "in_worker_thread", "main", "work_abandoned"]
 
 
 def _device(requested) -> str:
@@ -52,7 +57,7 @@ def _render(args):
     out = check_output_file(args.output, inputs=[args.config], what="-o")
     config = load_config(args.config, setup=args.setup)  # a bad set-up, key or value: before the device line
     device = _device(args.device)
-    pair = render_pair(config, device=device, progress=not args.quiet)
+    pair = in_worker_thread(render_pair, config, device=device, progress=not args.quiet)
     write_pair(out, pair)
     v = pair.valid
     d = pair.displacement_px[v]
@@ -66,20 +71,83 @@ def _render(args):
     return 0
 
 
+#: Work shorter than this (s) shows no clock line (:func:`in_worker_thread`).
+CLOCK_DELAY_S = 2.0
+#: The work :func:`in_worker_thread` left running when a Ctrl-C ended its wait: one Event per thread, set when
+#: the thread ends.
+_ABANDONED: list[threading.Event] = []
+
+
+def in_worker_thread(fn, *args, clock=None, **kwargs):
+    """``fn(*args, **kwargs)`` in a daemon thread, waited for here, so that a Ctrl-C ends the wait at once.
+
+    ``clock`` (a few words, optional): show them with the time elapsed on a tqdm line while the work runs,
+    for work that reports no progress of its own.
+
+    Python runs a signal's handler in the main thread between two bytecodes, so a Ctrl-C during one long
+    Warp launch on the CPU (a render's launch takes 10-30 s there) would wait for the launch to end. Here
+    the main thread only waits, in short steps, and the KeyboardInterrupt ends the wait; the abandoned
+    thread's result is dropped, and the command leaves without waiting for it (:func:`work_abandoned`,
+    read by ``synthbos.__main__``). An exception of ``fn`` is raised here.
+    """
+    box = {}
+    done = threading.Event()
+
+    def work():
+        try:
+            box["value"] = fn(*args, **kwargs)
+        except BaseException as err:  # handed to the waiting thread
+            box["error"] = err
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name="synthbos-work", daemon=True).start()
+    bar = tqdm(desc=clock, bar_format="{desc}: {elapsed}", disable=clock is None, file=sys.stderr, delay=1e9)
+    t0 = shown = time.monotonic()
+    try:
+        while not done.wait(0.05):  # an Event, not Thread.join: a join that a Ctrl-C ends marks the thread ended
+            now = time.monotonic()
+            if now - t0 > CLOCK_DELAY_S and now - shown > 0.5:
+                bar.refresh()
+                shown = now
+    except BaseException:
+        _ABANDONED.append(done)
+        raise
+    finally:
+        if shown > t0:  # shown: end its line, or clear it before an error's line
+            bar.delay, bar.leave = 0, "error" not in box and done.is_set()
+        bar.close()
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+def work_abandoned() -> bool:
+    """Whether work that a Ctrl-C abandoned (:func:`in_worker_thread`) still runs in a thread of this process."""
+    return any(not done.is_set() for done in _ABANDONED)
+
+
 def _process(args):
-    inputs = [args.pair, args.reference, args.gradient, args.dots, args.config, args.mask, args.setup_file]
+    inputs = [args.pair, args.reference, args.gradient, args.dots, args.settings, args.mask, args.setup_file]
     out = check_output_file(args.output, inputs=inputs, what="-o")
     method = get_method(args.method)  # an unknown or skipped method is the only line
+    if args.dots and not method.uses_prior:
+        users = ", ".join(n for n, m in BUILT_IN.items() if m.uses_prior)
+        raise SynthbosError(f"--dots: --method {args.method} takes no dots prior and would ignore it; "
+                            f"the methods that take one: {users}")
     device = _device(args.device)  # the method's processing device
-    invert = {"auto": "auto", "true": True, "false": False, None: None}[args.invert]
+    invert = None if args.invert is None else _INVERT[args.invert]
     settings, options = process_settings(
         args.method,
-        config=args.config,
+        config=args.settings,
         flags={"windows": args.windows, "overlap": args.overlap, "diameter": args.diameter,
                "max_displacement": args.max_displacement},
         image={"mask": args.mask, "mask_excludes": args.mask_excludes, "invert": invert},
     )
     check_output_file(out, inputs=[options.mask], what="-o")  # the configuration's mask is an input too
+    if args.mask_excludes is not None and options.mask is None:
+        raise SynthbosError("--mask-excludes: there is no mask to read (give --mask, or mask in the [image] table "
+                            "of --settings)")
     prior = None
     attrs = {}
     notes = []
@@ -101,18 +169,19 @@ def _process(args):
         attrs["input"] = f"{args.reference} {args.gradient}"
     attrs["image_shape"] = np.array(ref.shape, dtype=np.int64)
     setup = result_setup(ref.shape, pair=pair if args.pair else None, pair_path=args.pair,
-                         setup_file=args.setup_file, config=args.config)
+                         setup_file=args.setup_file, config=args.settings)
     if setup is not None:
         attrs["setup"] = setup
     t0 = time.perf_counter()
-    res, image_used = process_pair(args.method, ref, grad, settings=settings, options=options, prior_xy=prior,
-                                   notes=notes, device=device)
+    res, image_used = in_worker_thread(process_pair, args.method, ref, grad, settings=settings, options=options,
+                                       prior_xy=prior, notes=notes, device=device,
+                                       clock=None if args.quiet else f"process: {args.method}")
     attrs["seconds"] = time.perf_counter() - t0
     attrs["device"] = device
     attrs["image"] = json.dumps(image_used)
-    if args.config:
-        attrs["config"] = Path(args.config).read_text()
-    for note in notes:
+    if args.settings:
+        attrs["config"] = Path(args.settings).read_text()
+    for note in [] if args.quiet else notes:
         print(f"note: {note}")
     write_result(out, res, extra_attrs=attrs)
     c = res.counts or {}
@@ -122,33 +191,14 @@ def _process(args):
     print(f"wrote {out}: {args.method}, {c.get('total', len(ok))} {noun}: {c.get('measured', int(ok.sum()))} measured, "
           f"{c.get('replaced', 0)} replaced, {c.get('failed', 0)} failed, {c.get('masked', 0)} masked; "
           f"median |displacement| of the measured {med:.4f} px; {attrs['seconds']:.2f} s")
-    if not ok.any():
+    if not ok.any():  # the warning says why
         print(f"synthbos: warning: nothing was measured in {attrs['input']}; see the flags in {out}; "
-              f"{_failure_advice(res)}", file=sys.stderr)
+              f"{failure_reason(res, kind=method.kind)}", file=sys.stderr)
         return 1
-    if c and c.get("failed", 0) > 0.5 * (c["total"] - c.get("masked", 0)):
-        print(f"note: most points failed (synthbos show-result {out} -o FIG.png shows where); {_failure_advice(res)}")
+    advice = failure_advice(res, kind=method.kind, where=str(out))
+    if advice and not args.quiet:
+        print(advice)
     return 0
-
-
-def _failure_advice(res):
-    """What to try when most points failed, from the result's flags where it has them (correlation)."""
-    windows = ("displacements beyond a quarter of the first correlation window need larger windows "
-               "(--windows 64,32,16)")
-    flags = res.table.get("flags") if res.table else None
-    pattern = (res.settings or {}).get("pattern")
-    if flags is None or pattern is None:
-        return f"{windows}, tracking may need --max-displacement or --diameter"
-    from synthbos.correlation import VectorFlag
-
-    f = np.asarray(flags)
-    open_ = (f & int(VectorFlag.MASKED)) == 0
-    weak = int(np.sum(open_ & ((f & int(VectorFlag.PEAK)) != 0)))
-    if pattern == "periodic":
-        return f"{windows}; on a periodic pattern they must stay below half its pitch"
-    return (f"{weak} windows had no significant peak: on a regular (periodic) pattern set pattern = \"periodic\" "
-            "in the [correlation] table of --config (the peak nearest the predictor, no peak-ratio test); "
-            f"{windows}; on noisy or blurred images lower min_correlation")
 
 
 def _calibrate(args):
@@ -156,6 +206,7 @@ def _calibrate(args):
     out = check_output_file(args.output, inputs=inputs, what="-o")
     if args.mapping_out is not None:
         check_output_file(args.mapping_out, inputs=[*inputs, out], what="--mapping-out")
+        args.interrupted = "the dots file was not written (the mapping file is written first: it may be there)"
     if args.grid is not None:
         if args.mapping or args.target:
             raise SynthbosError("give either --reference with --grid, or --mapping with --target, not both")
@@ -163,10 +214,12 @@ def _calibrate(args):
             raise SynthbosError("--grid needs the grid image: --reference GRID.tif")
         notes = []
         image = load_image(args.reference, notes=notes)
-        for note in notes:
+        for note in [] if args.quiet else notes:
             print(f"note: {note}")
-        s = calibrate_from_grid(image, args.grid, out, mapping_out=args.mapping_out, source=args.reference,
-                                order=args.order, polarity=_grid_polarity(args.invert))
+        s = in_worker_thread(calibrate_from_grid, image, args.grid, out, mapping_out=args.mapping_out,
+                             source=args.reference, order=3 if args.order is None else args.order,
+                             polarity=_grid_polarity(args.invert),
+                             clock=None if args.quiet else "calibrate: finding the grid and fitting the mapping")
         print(f"wrote {out}: {s.n_dots} dots predicted ({s.n_used} of {s.n_detected} detected "
               f"{'dark' if s.dark else 'bright'} blobs on the grid fitted); mapping residual rms "
               f"{s.residual_rms:.4f} px, max {s.residual_max:.4f} px"
@@ -174,8 +227,8 @@ def _calibrate(args):
         return 0
     if not (args.mapping and args.target):
         raise SynthbosError("give --reference GRID.tif --grid SPACING_MM, or --mapping MAP.json --target TARGET.csv")
-    if args.mapping_out or args.reference or args.invert:
-        raise SynthbosError("--reference, --invert and --mapping-out go with --grid, not with --mapping")
+    if args.mapping_out or args.reference or args.invert or args.order is not None:
+        raise SynthbosError("--reference, --invert, --order and --mapping-out go with --grid, not with --mapping")
     s = dots_from_mapping(args.mapping, args.target, out)
     print(f"wrote {out}: {s.n_dots} dots ({s.n_inside} inside the calibrated image) through {args.mapping} "
           f"(fit residual {s.residual_rms:.4f} px)")
@@ -203,9 +256,11 @@ def _integrate(args):
     out = check_output_file(args.output, inputs=[args.result, args.pair, args.config, args.setup_file], what="-o")
     region = _floats(args.reference_region, 4, "--reference-region") if args.reference_region else None
     mask = _floats(args.mask_region, 4, "--mask-region") if args.mask_region else None
-    res = integrate_file(args.result, out, pair_path=args.pair, config=args.config, setup_file=args.setup_file,
-                         solver=args.solver, spacing_px=args.spacing, reference_density=args.reference_density,
-                         reference_region_mm=region, dirichlet=args.dirichlet, mask_region_mm=mask)
+    res = in_worker_thread(integrate_file, args.result, out, pair_path=args.pair, config=args.config,
+                           setup_file=args.setup_file, solver=args.solver, spacing_px=args.spacing,
+                           reference_density=args.reference_density, reference_region_mm=region,
+                           dirichlet=args.dirichlet, mask_region_mm=mask,
+                           clock=None if args.quiet else f"integrate: {args.solver} solve")
     d = res["density"]
     rho = d.density[np.isfinite(d.density)]
     print(f"wrote {out}: {args.solver}, {rho.size} nodes ({d.grid.gx.shape[1]} x {d.grid.gx.shape[0]}), "
@@ -236,7 +291,7 @@ def _paper(args):
     setup_tables(args.setup)  # an unknown set-up: one line, before the device line
     device = _device(args.device)
     process_device = _process_device(args, device)
-    worker_device = _worker_device(args)
+    worker_device = _worker_device(args, process_device)
     full = args.full or (not args.quick and device.startswith("cuda"))
     spec = paper_spec(full=full, methods=args.methods, setup=args.setup)
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
@@ -280,6 +335,8 @@ def _budget_note(png: Path) -> None:
 
 
 def _regress(args):
+    if args.out is None:
+        args.interrupted = "nothing was kept (the campaign ran in a temporary folder; -o FOLDER keeps it to resume)"
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     methods = _method_list(args.methods) if args.methods else None
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
@@ -300,9 +357,12 @@ def _regress(args):
 def _sweep(args):
     base = merge_tables(setup_tables(args.setup), read_toml(args.config) if args.config else {})
     params = [parse_parameter(p) for p in args.param]
+    if args.out is None:
+        raise SynthbosError("sweep: name the sweep folder with -o FOLDER")
     check_output_folder(args.out)
     device = _device(args.device)
-    process_device, worker_device = _process_device(args, device), _worker_device(args)
+    process_device = _process_device(args, device)
+    worker_device = _worker_device(args, process_device)
     rows = run_sweep(base, params, args.out, size=args.size, device=device,
                      methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
@@ -337,7 +397,7 @@ def _show_result(args):
 
 
 def _methods(args):
-    print(methods_table())
+    print("\n".join(method_names()) if args.quiet else methods_table())
     return 0
 
 
@@ -373,9 +433,15 @@ def _add_process_device_option(p) -> None:
                         "than a dozen processes sharing one GPU)")
 
 
-def _worker_device(args):
-    """``--worker-device``, checked, or None."""
-    return None if args.worker_device is None else resolve_device(args.worker_device)
+def _worker_device(args, process_device: str):
+    """``--worker-device``, checked, or None; refused where the campaign would ignore it: processing on the CPU."""
+    if args.worker_device is None:
+        return None
+    worker_device = resolve_device(args.worker_device)
+    if not process_device.startswith("cuda"):
+        raise SynthbosError(f"--worker-device {args.worker_device}: it applies when processing on a GPU; the "
+                            f"processing runs on {process_device}")
+    return worker_device
 
 
 _WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
@@ -391,87 +457,186 @@ def _workers(text):
     return n
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Each option's default after its help, where it has one and the text does not already say it; the
+    examples epilog as written."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if default is None or default is False or default == argparse.SUPPRESS or "default" in text.lower():
+            return text
+        if not action.option_strings and action.nargs not in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class _Alias(argparse.Action):
+    """Another spelling of an option, left out of the help (the option's own help names it): it sets the
+    option's value as the option does."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, **{**kwargs, "help": argparse.SUPPRESS})
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+
+
+#: Every command's examples, shown at the end of its help.
+EXAMPLES = {
+    "render": ("synthbos render -o pair.h5                      # the paper's set-up (raytrace/default.toml)",
+               "synthbos render my.toml --setup narrow -o pair.h5 --device cpu"),
+    "process": ("synthbos process pair.h5 --method tracking-cc -o dots.h5",
+                "synthbos process --reference ref.tif --gradient grad.tif --method correlation --windows 64,32,16 "
+                "-o piv.h5",
+                "synthbos process --reference ref.tif --gradient grad.tif --method tracking --dots dots.csv "
+                "--settings process.toml -o dots.h5"),
+    "integrate": ("synthbos integrate dots.h5 --pair pair.h5 -o density.h5   # scored against the pair's truths",
+                  "synthbos integrate piv.h5 --config my.toml --solver wlsq -o density.h5",
+                  "synthbos integrate pair.h5 -o floor.h5                     # the pair's exact displacements"),
+    "calibrate": ("synthbos calibrate --reference grid.tif --grid 2.0 --mapping-out map.json -o grid_dots.csv",
+                  "synthbos calibrate --mapping map.json --target target.csv -o dots.csv"),
+    "paper": ("synthbos paper --quick -o runs/quick",
+              "synthbos paper --full --device cuda:0 --methods correlation,tracking-cc"),
+    "regress": ("synthbos regress",
+                "synthbos regress --methods my-method --baseline mine.json --update"),
+    "sweep": ("synthbos sweep --param density=6,10,14 -o runs/density",
+              "synthbos sweep my.toml --param f_number=8,16 --param noise=0,3 --size quick -o runs/f-noise"),
+    "methods": ("synthbos methods", "synthbos methods -q                               # the names only"),
+    "show-density": ("synthbos show-density -o snapshots.pdf",),
+    "show-result": ("synthbos show-result dots.h5 -o dots.png", "synthbos show-result piv.h5 -o piv.svg"),
+}
+
+_QUIET_HELP = "no progress bars and no notes; the result line, warnings and errors still print"
+_INVERT = {"auto": "auto", "true": True, "false": False, None: "auto"}
+
+
+def _add_output(p, what, *, required=True, default=None, alias=False) -> None:
+    """``-o/--output`` of a command that writes (``what``: the file or folder); ``alias``: ``--out`` too, the
+    campaign commands' older spelling, whose name (``args.out``) they keep."""
+    dest = "out" if alias else "output"
+    p.add_argument("-o", "--output", required=required, default=default, metavar="PATH", dest=dest,
+                   help=what + (" (also --out)" if alias else ""))
+    if alias:
+        p.add_argument("--out", dest=dest, action=_Alias)
+
+
+def _add_invert_option(p, what) -> None:
+    p.add_argument("--invert", nargs="?", const="true", choices=("auto", "true", "false"), default=None,
+                   help=f"make the dots bright: true (also --invert alone) for dark dots on a bright background, "
+                        f"false to leave {what} as given, auto to decide from the background level "
+                        "(default: auto)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="synthbos", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="synthbos", formatter_class=_HelpFormatter,
+        description="Synthetic background-oriented schlieren: render BOS image pairs with their truth,\n"
+                    "measure displacements (correlation, dot tracking), integrate them into density,\n"
+                    "and score it all.",
+        epilog="synthbos COMMAND --help shows a command's options, their defaults and examples.")
     parser.add_argument("--version", action="version", version=f"synthbos {synthbos.__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("render", help="ray-trace one BOS image pair into an HDF5 pair file")
-    p.add_argument("config", nargs="?", default=None, help="TOML configuration (default: the embedded default)")
-    p.add_argument("-o", "--output", required=True, help="pair file to write (HDF5)")
+    p.add_argument("config", nargs="?", default=None, metavar="CONFIG.toml",
+                   help="render configuration (TOML): the set-up, target, camera, volume and rays "
+                        "(default: the embedded raytrace/default.toml)")
+    _add_output(p, "pair file to write (HDF5)")
     _add_setup_option(p, "the configuration changes it")
     p.add_argument("--device", default=None, help="Warp device: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_render)
+    p.set_defaults(func=_render, interrupted="nothing was written (the pair file is written whole at the end); "
+                                             "re-run to render it again")
 
     p = sub.add_parser("process", help="measure displacements: correlation or dot tracking")
-    p.add_argument("pair", nargs="?", default=None, help="pair file from 'synthbos render'")
+    p.add_argument("pair", nargs="?", default=None, metavar="PAIR.h5",
+                   help="pair file from 'synthbos render' (or give --reference and --gradient)")
     p.add_argument("--method", required=True, metavar="NAME",
                    help=f"a registered method: {', '.join(BUILT_IN)} or an installed plugin's (synthbos methods)")
-    p.add_argument("--reference", help="reference (no-flow) camera image, TIFF or PNG")
-    p.add_argument("--gradient", help="gradient (with-flow) camera image, TIFF or PNG")
-    p.add_argument("--dots", help="CSV (header x,y) of predicted reference-image dot positions, the tracking prior")
-    p.add_argument("-o", "--output", required=True, help="result file to write (HDF5)")
-    p.add_argument("--config", help="process configuration (TOML) with [correlation], [tracking] and [image] "
-                   "tables (and an optional [setup]); the flags below override it")
+    p.add_argument("--reference", metavar="IMAGE", help="reference (no-flow) camera image, TIFF or PNG")
+    p.add_argument("--gradient", metavar="IMAGE", help="gradient (with-flow) camera image, TIFF or PNG")
+    p.add_argument("--dots", metavar="DOTS.csv",
+                   help="CSV (header x,y, px) of predicted reference-image dot positions: the prior of the methods "
+                        "that take one (the tracking methods; refused with the others) (default: a pair file's "
+                        "nominal positions; none for camera images)")
+    _add_output(p, "result file to write (HDF5)")
+    p.add_argument("--settings", metavar="PROCESS.toml",
+                   help="process settings (TOML) with [correlation], [tracking] and [image] tables; the options "
+                        "below override it (formerly --config, still accepted)")
+    p.add_argument("--config", dest="settings", action=_Alias)
     p.add_argument("--setup-file", metavar="CAMERA.toml", default=None,
                    help="the camera pair's set-up ([setup]: z_d_mm, depth_mm, magnification, ...; "
                         "docs/own-images.md), recorded in the result for 'synthbos integrate'")
-    p.add_argument("--mask", help="mask image of the camera images' size; see --mask-excludes")
+    p.add_argument("--mask", metavar="IMAGE", help="mask image of the camera images' size; see --mask-excludes")
     p.add_argument("--mask-excludes", choices=("dark", "bright"), default=None,
                    help="which mask pixels are left out: dark (default: white marks the region to measure) "
                         "or bright")
-    p.add_argument("--invert", choices=("auto", "true", "false"), default=None,
-                   help="invert the images so the dots are bright (default auto: from the background level)")
-    p.add_argument("--windows", help="correlation window sizes per pass, e.g. 64,32,16")
-    p.add_argument("--overlap", type=float, help="correlation window overlap fraction, e.g. 0.5")
-    p.add_argument("--diameter", type=float, help="tracking: dot diameter in pixels")
-    p.add_argument("--max-displacement", type=float, help="tracking: largest displacement in pixels")
+    _add_invert_option(p, "the images")
+    cs, ts = CorrelationSettings(), TrackingSettings()
+    p.add_argument("--windows", metavar="N,N,...",
+                   help="correlation: window sizes per pass, e.g. 64,32,16 (default: --settings' [correlation] "
+                        f"window_sizes, else {','.join(map(str, cs.window_sizes))})")
+    p.add_argument("--overlap", type=float,
+                   help="correlation: window overlap fraction, e.g. 0.5 (default: --settings' [correlation] "
+                        f"overlaps, else {np.atleast_1d(cs.overlaps)[0]:g})")
+    p.add_argument("--diameter", type=float,
+                   help="tracking: dot diameter in px (default: --settings' [tracking] diameter, else "
+                        + ("measured from the images)" if ts.diameter is None else f"{ts.diameter:g})"))
+    p.add_argument("--max-displacement", type=float,
+                   help="tracking: largest displacement in px (default: --settings' [tracking] max_displacement, "
+                        f"else {ts.max_displacement:g})")
     p.add_argument("--device", default=None,
                    help="Warp device of the processing: cpu or cuda:0 (default: cuda:0 if present, else cpu)")
-    p.set_defaults(func=_process)
+    p.set_defaults(func=_process, interrupted="nothing was written")
 
     p = sub.add_parser("integrate", help="integrate a result's displacements into the depth-averaged density")
-    p.add_argument("result", help="result file from 'synthbos process', or a pair file from 'synthbos render' alone: "
-                                  "its exact displacements, the floor set by the dot spacing and the solver")
-    p.add_argument("--pair", help="the pair file the result came from: its set-up, and the truths to score against")
-    p.add_argument("--config", help="render configuration (TOML) giving the set-up when there is no pair file")
+    p.add_argument("result", metavar="RESULT.h5",
+                   help="result file from 'synthbos process', or a pair file from 'synthbos render' alone: "
+                        "its exact displacements, the floor set by the dot spacing and the solver")
+    p.add_argument("--pair", metavar="PAIR.h5",
+                   help="the pair file the result came from: its set-up, and the truths to score against")
+    p.add_argument("--config", metavar="CONFIG.toml",
+                   help="render configuration (TOML, as for render) giving the set-up when there is no pair file "
+                        "(default: the embedded default)")
     p.add_argument("--setup-file", metavar="CAMERA.toml", default=None,
                    help="the camera pair's set-up ([setup]: z_d_mm, depth_mm, magnification, ...; docs/own-images.md)"
-                        "; default: the set-up the result recorded (its pair file's, or process --setup-file)")
+                        " (default: the set-up the result recorded: its pair file's, or process --setup-file)")
     p.add_argument("--solver", default="lsq", choices=("dct", "lsq", "wlsq"),
                    help="dct: Poisson by DCT (full rectangle); lsq: sparse least squares; wlsq: uncertainty-weighted")
     p.add_argument("--spacing", type=float, default=None,
                    help="grid spacing in px for tracked dots (default: the mean dot spacing)")
     p.add_argument("--reference-density", type=float, default=None,
                    help="density (kg/m^3) of the reference region (default: the configuration's ambient density)")
-    p.add_argument("--reference-region", default=None,
-                   help="x0,x1,y0,y1 in mm (volume frame) where the reference density holds (default: the border); "
+    p.add_argument("--reference-region", default=None, metavar="X0,X1,Y0,Y1",
+                   help="mm (volume frame) where the reference density holds (default: the border); "
                         "write --reference-region=-5,5,-5,5 when it starts with a minus")
-    p.add_argument("--dirichlet", action="store_true", help="hold the reference region fixed (lsq, wlsq)")
-    p.add_argument("--mask-region", default=None, help="x0,x1,y0,y1 in mm (volume frame): nodes left out")
-    p.add_argument("-o", "--output", required=True, help="density file to write (HDF5)")
-    p.set_defaults(func=_integrate)
+    p.add_argument("--dirichlet", action="store_true",
+                   help="hold the reference region fixed (lsq, wlsq; refused with dct) instead of matching its mean")
+    p.add_argument("--mask-region", default=None, metavar="X0,X1,Y0,Y1",
+                   help="mm (volume frame): nodes left out (default: none)")
+    _add_output(p, "density file to write (HDF5)")
+    p.set_defaults(func=_integrate, interrupted="nothing was written")
 
     p = sub.add_parser("calibrate", help="tracking prior (dots file) from a grid image, or from a mapping and a target")
-    p.add_argument("--reference", help="image of a regular square dot grid (TIFF or PNG), with --grid")
+    p.add_argument("--reference", metavar="IMAGE", help="image of a regular square dot grid (TIFF or PNG), with --grid")
     p.add_argument("--grid", type=float, metavar="SPACING_MM", help="grid spacing in mm")
-    p.add_argument("--mapping-out", help="also write the fitted mapping (JSON) here")
-    p.add_argument("--order", type=int, default=3, help="Soloff polynomial degree (default 3)")
-    p.add_argument("--invert", action="store_true",
-                   help="the grid has dark dots on a bright background (default: found from the image)")
-    p.add_argument("--mapping", help="mapping file (JSON) from an earlier 'calibrate --grid --mapping-out'")
-    p.add_argument("--target", help="CSV (header x_mm,y_mm) of the pattern's dot positions in the grid's frame")
-    p.add_argument("-o", "--output", required=True, help="dots file to write (CSV, header x,y, px)")
-    p.set_defaults(func=_calibrate)
+    p.add_argument("--mapping-out", metavar="MAP.json", help="also write the fitted mapping (JSON) here")
+    p.add_argument("--order", type=int, default=None, help="Soloff polynomial degree, with --grid (default: 3)")
+    _add_invert_option(p, "the grid image")
+    p.add_argument("--mapping", metavar="MAP.json",
+                   help="mapping file (JSON) from an earlier 'calibrate --grid --mapping-out'")
+    p.add_argument("--target", metavar="TARGET.csv",
+                   help="CSV (header x_mm,y_mm) of the pattern's dot positions in the grid's frame")
+    _add_output(p, "dots file to write (CSV, header x,y, px)")
+    p.set_defaults(func=_calibrate, interrupted="nothing was written")
 
     for name, helptext in (("paper", "the paper's error analysis: render, process, score, figures"),):
         p = sub.add_parser(name, help=helptext)
         g = p.add_mutually_exclusive_group()
         g.add_argument("--quick", action="store_true", help="reduced campaign for two CPU cores (default without GPU)")
-        g.add_argument("--full", action="store_true", help="the paper's size (for a GPU)")
+        g.add_argument("--full", action="store_true", help="the paper's size (default with a GPU)")
         _add_setup_option(p, "default folder runs/paper-quick-NAME")
-        p.add_argument("--out", help="campaign folder (default runs/paper-quick or runs/paper-full)")
+        _add_output(p, "campaign folder (default: runs/paper-quick or runs/paper-full)", required=False, alias=True)
         p.add_argument("--device", default=None,
                        help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
         _add_process_device_option(p)
@@ -483,9 +648,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"methods to run (default: {','.join(default_methods())}; also: "
                             f"{','.join(n for n in BUILT_IN if n not in default_methods())} and installed "
                             "plugins' methods: synthbos methods lists them)")
-        p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         _add_scheduler_option(p)
-        p.set_defaults(func=_paper)
+        p.set_defaults(func=_paper, interrupted=_KEPT)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
     p.add_argument("--update", action="store_true",
@@ -495,31 +659,31 @@ def build_parser() -> argparse.ArgumentParser:
                         "baseline only with --update")
     p.add_argument("--baseline", default=None, metavar="FILE.json",
                    help="baseline file (default: the one synthbos ships); e.g. your own for a plugin")
-    p.add_argument("--out", help="keep the campaign in this folder (default: a temporary one)")
-    p.add_argument("--workers", type=_workers, default=None)
+    _add_output(p, "keep the campaign in this folder (default: a temporary one, removed at the end)", required=False,
+                alias=True)
+    p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
-    p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
-    p.set_defaults(func=_regress)
+    p.set_defaults(func=_regress, interrupted=_KEPT)
 
     p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
-    p.add_argument("config", nargs="?", default=None, help="TOML configuration (as for render) to start from")
-    p.add_argument("--param", action="append", required=True,
-                   help="name=v1,v2,... (table.key, or density, diameter, noise, f_number, z_d, magnification, "
-                        "rays, window); give it once or twice")
+    p.add_argument("config", nargs="?", default=None, metavar="CONFIG.toml",
+                   help="render configuration (TOML, as for render) to start from (default: the embedded default)")
+    p.add_argument("--param", action="append", required=True, metavar="NAME=V1,V2,...",
+                   help="table.key, or density, diameter, noise, f_number, z_d, magnification, rays, window; "
+                        "give it once or twice")
     _add_setup_option(p, "the configuration changes it")
-    p.add_argument("--out", required=True, help="sweep folder")
+    _add_output(p, "sweep folder (required)", required=False, alias=True)
     p.add_argument("--size", default="regress", choices=("regress", "quick", "full"), help="campaign size per point")
     p.add_argument("--methods", default=None, metavar="A,B,...",
                    help=f"methods to run at every point (default: {','.join(default_methods())})")
     p.add_argument("--device", default=None,
                    help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
     _add_process_device_option(p)
-    p.add_argument("--workers", type=_workers, default=None)
+    p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
-    p.add_argument("-q", "--quiet", action="store_true")
     _add_scheduler_option(p)
-    p.set_defaults(func=_sweep)
+    p.set_defaults(func=_sweep, interrupted=_KEPT)
 
     p = sub.add_parser("methods", help="list the registered methods: kind, source package and version")
     p.set_defaults(func=_methods)
@@ -546,7 +710,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "the result was processed from, when it still exists)")
     p.add_argument("-q", "--quiet", action="store_true", help="accepted for a uniform command line: nothing to silence")
     p.set_defaults(func=_show_result)
+    _finish_commands(sub)
     return parser
+
+
+_KEPT = "finished items are kept, re-run to resume"
+
+
+def _finish_commands(sub) -> None:
+    """What every command has: -q/--quiet, its examples after the help, defaults shown, and a note for Ctrl-C."""
+    for name, p in sub.choices.items():
+        p.formatter_class = _HelpFormatter
+        p.epilog = "examples:\n" + "\n".join(f"  {line}" for line in EXAMPLES[name])
+        if "-q" not in p._option_string_actions:  # a command's own -q says what it silences
+            p.add_argument("-q", "--quiet", action="store_true", help=_QUIET_HELP)
+        if p.get_default("interrupted") is None:
+            p.set_defaults(interrupted="nothing was written")
 
 
 def _one_line_warnings(show):
@@ -588,7 +767,9 @@ def main(argv=None) -> int:
         print(error_line(err), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("synthbos: interrupted; finished items are kept, re-run to resume", file=sys.stderr)
+        if any(not bar.disable for bar in list(getattr(tqdm, "_instances", ()))):
+            print(file=sys.stderr)  # a progress bar that another thread left open: the message on a line of its own
+        print(f"synthbos: interrupted; {args.interrupted}", file=sys.stderr)
         return 130
     finally:
         warnings.showwarning = shown

@@ -5,8 +5,8 @@ module reads the inputs (pair files, camera images, a mask image, a CSV of predi
 process configuration), prepares the images (luminance, inversion of dark-dot images), calls the
 registered method, and writes the result file atomically.
 
-Process configuration (``--config PROCESS.toml``)
--------------------------------------------------
+Process settings (``--settings PROCESS.toml``; formerly ``--config``, still accepted)
+-----------------------------------------------------------------------------------
 One table per settings class of the method registry, whose keys are that class's fields (unknown
 keys are refused, values checked by the class), and an ``[image]`` table::
 

@@ -31,6 +31,7 @@ from synthbos import SynthbosError, atomic_output, check_output_folder, folder_l
 
 from .campaign import check_spec, resolve_process_device, run_campaign
 from .figures import sweep_budget_figure, sweep_figure
+from .registry import get_method
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
 from .storage import write_tables
 
@@ -154,6 +155,10 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     spec0 = SIZES[size].with_config(copy.deepcopy(base_config))
     if methods is not None:
         spec0 = replace(spec0, methods=tuple(methods))
+    if any(name == "window" for name, _ in params) and not any(
+            get_method(m).settings_key == "correlation" for m in spec0.methods):
+        raise SynthbosError(f"sweep parameter window sets the correlation windows; none of the methods "
+                            f"({', '.join(spec0.methods)}) reads them")
     (name1, vals1), *rest = params
     name2, vals2 = rest[0] if rest else (None, [None])
     points = []

@@ -5,7 +5,10 @@ then the error budget by in-cone spread (``scoring.SPREAD_BINS``): for each bin 
 ``mild``, ``distorted``, ``strong``) the points of the row's set in it, ``n_B``, and their error
 percentiles ``p50_B``, ``p90_B``, ``p99_B`` (missing where the bin is empty, and in density rows, which
 belong to no dot: None in the rows and results.json, an empty field in results.csv). The budget
-columns come last, so readers of the older table keep working.
+columns come last, then ``error_units``: the unit of the row's error columns (``p*``, ``rms``), which
+depends on its quantity (``ERROR_UNITS``: px, px/px, kg/m^3, or 1 for errors relative to the truth's
+range); ``n`` counts points and ``yield`` is a fraction. New columns come last, so readers of the older
+table keep working.
 """
 
 from __future__ import annotations
@@ -15,14 +18,17 @@ import numpy as np
 from . import scoring
 from .storage import DENSITY_TRUTHS, load_scores
 
-__all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "QUANTITIES", "SPLITS", "format_summary", "split_masks",
-           "summarise"]
+__all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "ERROR_UNITS", "QUANTITIES", "SPLITS", "format_summary",
+           "split_masks", "summarise"]
 
 SPLITS = ("all", "below", "above")
 QUANTITIES = ("displacement", "gradient")
 # Density errors (split "all" only): kg/m^3, and relative to the truth's range (``_rel``).
 DENSITY_QUANTITIES = tuple(q for t in DENSITY_TRUTHS for q in (f"density_{t}", f"density_{t}_rel"))
 BUDGET_PERCENTILES = (50, 90, 99)  # the error percentiles of each in-cone spread bin
+#: The unit of a row's error columns, by its quantity.
+ERROR_UNITS = {"displacement": "px", "gradient": "px/px",
+               **{q: ("1" if q.endswith("_rel") else "kg/m^3") for q in DENSITY_QUANTITIES}}
 
 
 def split_masks(scores: dict) -> dict:
@@ -69,6 +75,7 @@ def _row(method, noise, split, quantity, e, yield_, device, *, spread=None):
         row[f"n_{name}"] = int(np.isfinite(sel).sum())
         pct = scoring.error_percentiles(sel, BUDGET_PERCENTILES)
         row.update({f"p{k}_{name}": (v if row[f"n_{name}"] else None) for k, v in pct.items()})
+    row["error_units"] = ERROR_UNITS[quantity]
     return row
 
 

@@ -129,7 +129,8 @@ def test_results_table_splits_errors_by_spread(spread_campaign):
     header = (folder / "results.csv").read_text().splitlines()[0].split(",")
     assert header[: len(OLD_COLUMNS)] == OLD_COLUMNS  # old readers keep working
     names = [b[0] for b in scoring.SPREAD_BINS]
-    assert header[len(OLD_COLUMNS):] == [c for b in names for c in (f"n_{b}", f"p50_{b}", f"p90_{b}", f"p99_{b}")]
+    assert header[len(OLD_COLUMNS):] == [*(c for b in names for c in (f"n_{b}", f"p50_{b}", f"p90_{b}", f"p99_{b}")),
+                                         "error_units"]
     for method in TINY.methods:
         for noise in TINY.noise_percent:
             sc = load_scores(TINY, folder, method, noise)
@@ -190,6 +191,6 @@ def test_budget_figure_drawn_with_spread_and_skipped_without(spread_campaign, tm
     rows = write_summary(TINY, folder)
     assert all(r["n_undistorted"] == 0 and r["p90_strong"] is None for r in rows)
     line = (folder / "results.csv").read_text().splitlines()[1]
-    assert line.endswith(",0,,," * 4)  # empty bins: empty fields
+    assert line.endswith(",0,,," * 4 + ",px")  # empty bins: empty fields; then the errors' unit
     assert figures.figure_budget(TINY, folder, tmp_path / "old", formats=("png",)) is None
     assert not (tmp_path / "old.png").exists()

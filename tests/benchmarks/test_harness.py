@@ -20,7 +20,7 @@ TINY_CONFIG = {
 TINY = replace(REGRESS, name="tiny", snapshots=(2,), noise_percent=(0.0, 3.0), config=TINY_CONFIG)
 
 
-def test_campaign_is_resumable_and_deterministic(tmp_path):
+def test_campaign_is_resumable_and_deterministic(tmp_path, capsys):
     rows = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=False, figures=False)
     assert {r["method"] for r in rows} == {"correlation", "tracking", "tracking-cc"}
     # methods x noise levels x (splits x displacement/gradient + 4 density quantities)
@@ -30,14 +30,25 @@ def test_campaign_is_resumable_and_deterministic(tmp_path):
     assert len(dens) == 6 and all(0 < r["rms"] < 0.2 for r in dens)
     scores = sorted((tmp_path / "c" / "scores").iterdir())
     assert len(scores) == 3 * 2
-    # A re-run skips finished work: nothing is rewritten.
+    # results.csv names the unit of each row's errors, in a last column
+    lines = (tmp_path / "c" / "results.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    assert header[-1] == "error_units" and len(lines) == len(rows) + 1
+    units = {(f := dict(zip(header, line.split(","), strict=True)))["quantity"]: f["error_units"] for line in lines[1:]}
+    assert units == {"displacement": "px", "gradient": "px/px", "density_cone": "kg/m^3", "density_chief": "kg/m^3",
+                     "density_cone_rel": "1", "density_chief_rel": "1"}
+    # A re-run skips finished work: nothing is rewritten, and it says so.
     stamps = {p: p.stat().st_mtime_ns for p in scores}
-    again = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=False, figures=False)
+    capsys.readouterr()
+    again = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=True, figures=False)
     assert {p: p.stat().st_mtime_ns for p in scores} == stamps
     assert again == rows
+    assert (f"resumed {tmp_path / 'c'}: 7 of 7 items already done (1 of 1 pairs rendered, 6 of 6 scores made), "
+            "0 to run") in capsys.readouterr().out
     # An interrupted item (its file missing) is redone, with the same numbers.
     scores[0].unlink()
-    third = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=False, figures=False)
+    third = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=True, figures=False)
+    assert "6 of 7 items already done (1 of 1 pairs rendered, 5 of 6 scores made), 1 to run" in capsys.readouterr().out
     assert third == rows
     # A different campaign in the same folder is refused.
     with pytest.raises(ValueError, match="different campaign"):
@@ -133,5 +144,10 @@ def test_sweep_writes_table_and_figure(tmp_path, capsys):
         assert "note: sweep_budget.png not drawn" in capsys.readouterr().out
     rows = json.loads((out / "sweep.json").read_text())
     assert {r["param_value"] for r in rows} == {0.0, 4.0}
+    table = (out / "sweep.csv").read_text()  # a missing value (no second parameter, an empty bin) is an empty field
+    assert "None" not in table and "null" not in table
+    header, first = table.splitlines()[:2]
+    fields = dict(zip(header.split(","), first.split(","), strict=True))
+    assert (fields["param2"], fields["param2_value"], fields["error_units"]) == ("", "", "px")
     assert (out / "sweep.png").stat().st_size > 10_000
     assert main(["sweep", str(cfg), "--param", "bogus=1,2", "--out", str(out), "-q"]) == 2
