@@ -72,7 +72,9 @@ def assert_same_results(a: Path, b: Path) -> None:
             (da, attrs_a), (db, attrs_b) = _pair_datasets(a / rel), _pair_datasets(b / rel)
             assert attrs_a == attrs_b and sorted(da) == sorted(db)
             for k in da:
-                assert da[k].dtype == db[k].dtype and da[k].tobytes() == db[k].tobytes(), (rel, k)
+                same = (da[k].tolist() == db[k].tolist() if np.asarray(da[k]).dtype == object  # text labels
+                        else da[k].tobytes() == db[k].tobytes())
+                assert da[k].dtype == db[k].dtype and same, (rel, k)
         else:  # campaign.json, results.csv, results.json, sweep_params.json
             assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
 
