@@ -3,8 +3,7 @@
     python docs/make_figures.py                         # runs 'synthbos paper --quick' itself (about a minute
                                                         # on two CPU cores), then draws the quick_*.png
     python docs/make_figures.py --campaign runs/paper-quick
-    python docs/make_figures.py --campaign Q --fig5 FNUMBER_SWEEP SCALE_SWEEP DEFAULT_CAMPAIGN NARROW_CAMPAIGN \
-        --gpu-fnumber-sweep GPU_SWEEP
+    python docs/make_figures.py --campaign Q --fig5 FNUMBER_SWEEP SCALE_SWEEP DEFAULT_CAMPAIGN NARROW_CAMPAIGN
 
 Figures and where they come from:
 
@@ -13,7 +12,6 @@ Figures and where they come from:
 - ``fig5_sweep.png``, ``fig5_default.png``, ``fig5_narrow.png`` (``docs/fig5.md``): with ``--fig5``, from the two
   sweeps and the two campaigns that page lists (``synthbos sweep --param f_number=...`` and the density-scale
   sweep; ``synthbos paper --quick --methods ...`` of the default and the narrow set-up, every method).
-- ``gpu_sweep_fnumber.png`` (README): with ``--gpu-fnumber-sweep FOLDER``, ``sweep.png`` of that sweep redrawn.
 
 Each is drawn by ``synthbos.benchmarks.figures`` at journal size (7.2 in wide, text >= 7 pt) and stored
 as a PNG of ``--width`` pixels (1440: 200 dpi at 7.2 in) in 256 colours, small enough for the repository;
@@ -150,31 +148,12 @@ def fig5_sweep(fnumber_folder, scale_folder, out):
         return figures.save_figure(fig, out, formats=("png",))[0]
 
 
-def gpu_fnumber_sweep(folder, *, work):
-    """``sweep.png`` of a sweep folder redrawn from its ``sweep.csv`` (the current figure code)."""
-    from synthbos.benchmarks.sweep import parameter_label
-
-    rows = []
-    for r in _sweep_rows(folder):
-        row = {k: (_number(v) if k not in ("param", "param2", "method", "split", "quantity", "process_device")
-                   else v) for k, v in r.items()}
-        row["param2_value"] = _number(r.get("param2_value"))
-        rows.append(row)
-    param = rows[0]["param"]
-    param2 = rows[0].get("param2") or None
-    tmp = Path(work) / "gpu_sweep.png"
-    figures.sweep_figure(rows, tmp, param=param, param2=param2, param_label=parameter_label(param),
-                         param2_label=parameter_label(param2) if param2 else None)
-    return tmp
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python docs/make_figures.py", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("--campaign", default=None, help="quick campaign folder (default: run one into --work)")
     ap.add_argument("--fig5", nargs=4, default=None, metavar=("FNUMBER_SWEEP", "SCALE_SWEEP", "DEFAULT", "NARROW"),
                     help="the sweeps and campaigns of docs/fig5.md")
-    ap.add_argument("--gpu-fnumber-sweep", default=None, metavar="FOLDER", help="the sweep of gpu_sweep_fnumber.png")
     ap.add_argument("--work", default=None, help="folder for the quick campaign and the full-size figures "
                                                  "(default: a temporary one)")
     ap.add_argument("--width", type=int, default=1440, help="pixels across of the PNGs written into docs/")
@@ -201,11 +180,6 @@ def main(argv=None):
                 written.append(campaign_figure("fig5", folder, docs / f"fig5_{name}.png", work=work, width=args.width))
         else:
             left += [(docs / n, "no --fig5") for n in ("fig5_sweep.png", "fig5_default.png", "fig5_narrow.png")]
-        if args.gpu_fnumber_sweep:
-            src = gpu_fnumber_sweep(args.gpu_fnumber_sweep, work=work)
-            written.append(reduced(src, docs / "gpu_sweep_fnumber.png", width=args.width))
-        else:
-            left.append((docs / "gpu_sweep_fnumber.png", "no --gpu-fnumber-sweep"))
     for path in written:
         with Image.open(path) as im:
             size = im.size
