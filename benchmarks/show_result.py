@@ -256,8 +256,14 @@ def _result_figure(res, errors, *, name, max_arrows):
     return fig
 
 
-def _cell_size(shape) -> float:
-    return max(shape) / _CELLS
+#: Cells hold this many points on average at least, so that few cells are empty.
+_POINTS_PER_CELL = 6
+
+
+def _cell_size(shape, points: int = 0) -> float:
+    """Side (px) of the square cells that gather ``points`` points: ``max(shape) / _CELLS`` or larger, so
+    that a cell holds ``_POINTS_PER_CELL`` of them on average."""
+    return max(max(shape) / _CELLS, float(np.sqrt(shape[0] * shape[1] * _POINTS_PER_CELL / max(points, 1))))
 
 
 def _in_cells(x, y, values, shape, *, statistic="median"):
@@ -266,9 +272,9 @@ def _in_cells(x, y, values, shape, *, statistic="median"):
     from scipy.stats import binned_statistic_2d
 
     h, w = shape
-    cell = _cell_size(shape)
-    ex, ey = np.arange(-0.5, w - 0.5 + cell, cell), np.arange(-0.5, h - 0.5 + cell, cell)
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(values)
+    cell = _cell_size(shape, int(ok.sum()))
+    ex, ey = np.arange(-0.5, w - 0.5 + cell, cell), np.arange(-0.5, h - 0.5 + cell, cell)
     if not ok.any():
         return np.full((len(ey) - 1, len(ex) - 1), np.nan), (ex[0], ex[-1], ey[-1], ey[0])
     img = binned_statistic_2d(y[ok], x[ok], values[ok], statistic=statistic, bins=[ey, ex]).statistic
@@ -355,8 +361,9 @@ def _draw_failed(fig, ax, res, shape):
     bad[res["masked"]] = np.nan
     img, ext = _in_cells(res["x"], res["y"], bad, shape, statistic="mean")
     im = ax.imshow(img, extent=ext, interpolation="nearest", cmap="magma_r", vmin=0.0, vmax=1.0)
+    cell = _cell_size(shape, int(np.isfinite(bad).sum()))
     _colorbar(fig, im, ax, location="bottom", shrink=0.9,
-              label=f"failed or replaced: fraction\nof the points in each {_cell_size(shape):.3g} px cell")
+              label=f"failed or replaced: fraction\nof the points in each {cell:.3g} px cell")
     ax.set_title(f"{int(res['failed'].sum()):,} failed, {int(res['replaced'].sum()):,} replaced", loc="left")
 
 
