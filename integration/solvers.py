@@ -296,8 +296,8 @@ def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None, unr
     -----
     Each edge increment ``d_e = sum_k c_k h g_k`` (the quadrature of :func:`edge_increments`) is
     weighted by ``1 / var(d_e)`` with ``var(d_e) = sum_k (c_k h sigma_k)^2``, so that vectors with large
-    uncertainty pull the solution less, as in Rajendran, Bane and Vlachos (2020), Meas. Sci.
-    Technol. 31, 115301 (weighted least squares with the measurement uncertainty as weights).
+    uncertainty pull the solution less, as in Rajendran, Zhang, Bane and Vlachos (2020), Exp. Fluids
+    61, 239 (weighted least squares with the measurement uncertainty as weights).
     """
     if sigma_x is None or sigma_y is None:
         raise SynthbosError("weighted_lsq needs the uncertainties of both gradient components")
