@@ -19,7 +19,7 @@ Steps
 3. The solver: ``dct`` (Neumann Poisson by DCT on the full rectangle; unmeasured nodes are filled
    first, linearly between measured nodes and by the nearest one beyond them), ``lsq`` (sparse least
    squares on the measured nodes only) or ``wlsq`` (least squares weighted by each vector's
-   uncertainty, Rajendran, Bane and Vlachos 2020; see :func:`uncertainty_px` for the proxies used).
+   uncertainty, Rajendran, Zhang, Bane and Vlachos 2020; see :func:`uncertainty_px` for the proxies used).
 4. The constant of integration: the mean density over a reference region equals a reference density.
    Default: the configuration's ambient density over the border of the measured domain (its outermost
    ring of nodes). ``--reference-density`` sets the value, ``--reference-region x0,x1,y0,y1`` (mm, volume

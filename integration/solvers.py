@@ -14,7 +14,7 @@ gradient is sampled exactly is recovered to O(h^4) in the interior.
   Poisson equation with Neumann boundaries, solved exactly by a type-II discrete cosine transform.
 - :func:`lsq_integrate`: the same least squares as a sparse system, with a mask (irregular domains),
   nodes of known value (Dirichlet) and, optionally, weights.
-- :func:`weighted_lsq`: the weighted least squares of Rajendran, Bane and Vlachos (2020), each
+- :func:`weighted_lsq`: the weighted least squares of Rajendran, Zhang, Bane and Vlachos (2020), each
   increment weighted by the inverse of its variance propagated from the gradient's uncertainty.
 
 The constant of integration is free in the first two unless nodes are known; :func:`set_reference`
@@ -276,7 +276,7 @@ def _spsolve_uses_superlu() -> bool:
 
 
 def weighted_lsq(gx, gy, sigma_x, sigma_y, *, dx, dy, mask=None, known=None, unreferenced="mean"):
-    """Uncertainty-weighted least-squares integration (Rajendran, Bane and Vlachos 2020).
+    """Uncertainty-weighted least-squares integration (Rajendran, Zhang, Bane and Vlachos 2020).
 
     Parameters
     ----------
