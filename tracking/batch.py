@@ -32,10 +32,19 @@ from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
-from .pipeline import TRACK_DTYPE, TrackingSettings, prior_inside, residual_reach, start_width, window_sizes
 from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
-from .windows import median_network
+from .settings import (
+    DIAMETER_PER_WIDTH,
+    SMALL_WINDOW,
+    TRACK_DTYPE,
+    TrackingSettings,
+    prior_inside,
+    residual_reach,
+    start_width,
+    window_sizes,
+)
+from .sorting import median_network
 from .workspace import hold_freed_memory
 
 __all__ = ["batch_support", "pairs_per_call", "track_pairs"]
@@ -123,7 +132,7 @@ class _Batch:
         self.stats = stats
         d = np.array([g.d for g in geometry])
         self.diameter = self.arr(d, wp.float64)
-        self.eta0_host = d / 4.0
+        self.eta0_host = d / DIAMETER_PER_WIDTH
         self.eta0 = self.arr(self.eta0_host, wp.float64)
         g0 = geometry[0]
         self.geometry = g0
@@ -178,7 +187,7 @@ class _Batch:
         active = self.full(self.B, 1, wp.int32)
         won = self.zeros(self.B, wp.int32)
         rows = 1 if wp.get_device(self.device).is_cpu else n_ids
-        ww = w * w if w != 7 else 1  # the 7 x 7 window is measured in registers
+        ww = w * w if w != SMALL_WINDOW else 1  # the 7 x 7 window is measured in registers
         scratch = [
             wp.empty((rows, ww), dtype=wp.float64, device=self.device),
             wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
