@@ -36,6 +36,8 @@ from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
 from .settings import (
     DIAMETER_PER_WIDTH,
+    FIT_MAX_MOVE_PX,
+    SEARCH_MARGIN_PX,
     SMALL_WINDOW,
     TRACK_DTYPE,
     TrackingSettings,
@@ -165,7 +167,8 @@ class _Batch:
         reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
-        radius = (s.max_displacement + 1.0 if s.search_radius is None else s.search_radius) if wide else s.prior_radius
+        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
+        radius = search if wide else s.prior_radius
         w = 2 * half + 1
         st = self.stats
         out = {
@@ -319,7 +322,7 @@ class _Batch:
                 rows,
                 [
                     self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
-                    half, render_half, int(last), 1.0, prof, nxt, ok, shared,
+                    half, render_half, int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
                 ],
             )  # fmt: skip
             cur, nxt = nxt, cur

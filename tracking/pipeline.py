@@ -58,6 +58,7 @@ from .settings import (  # noqa: F401  (re-exported)
     PIXEL_EDGE_PX,
     RESIDUAL_STAMP_WIDTHS,
     RESIDUAL_WIDTH_CLIP,
+    SEARCH_MARGIN_PX,
     THREE_POINT_WIDTH_RANGE,
     TRACK_DTYPE,
     TRACKING_RANGES,
@@ -637,7 +638,7 @@ def track_pair(
 
     frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, top_r), fill_level(ref))
     frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, top_g), fill_level(grad))
-    search = settings.max_displacement + 1.0 if settings.search_radius is None else settings.search_radius
+    search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
     use_pred = settings.predictor == "correlation"
     near_mask = None
     if excluded is not None:

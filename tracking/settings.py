@@ -69,6 +69,13 @@ RESIDUAL_STAMP_WIDTHS = 4.5
 #: The model fit keeps each dot's width within ``[lo, hi] * eta0``.
 MODEL_WIDTH_RANGE = (0.25, 4.0)
 
+#: A model-fit step that takes a dot farther than this (px, along x or y) from its start is refused.
+FIT_MAX_MOVE_PX = 1.0
+
+#: Standard tracking pairs within, and the wide search looks as far as, ``max_displacement`` plus this (px)
+#: unless ``TrackingSettings.search_radius`` is set.
+SEARCH_MARGIN_PX = 1.0
+
 #: EDGE_CUT: a matched dot whose e^-2 disk reaches past the image edge by amounts that differ by more than
 #: this (px, along x or y) between the two images.
 EDGE_CUT_PX = 0.5
