@@ -20,13 +20,15 @@ import matplotlib.pyplot as plt
 import numpy as np
 from cycler import cycler
 from matplotlib.colors import BoundaryNorm
+from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter, NullLocator
 from matplotlib.tri import LinearTriInterpolator, Triangulation
 from synthbos.raytrace import load_config, read_pair
 from synthbos.raytrace.sources import density_from_config
 
-from synthbos import atomic_output
+from synthbos import SynthbosError, atomic_output
+from synthbos.values import shorten
 
 from . import scoring
 from .registry import METHODS
@@ -47,6 +49,7 @@ __all__ = [
     "figure5",
     "figure_budget",
     "figure_density",
+    "figure_format",
     "journal_style",
     "method_style",
     "save_figure",
@@ -54,6 +57,17 @@ __all__ = [
     "sweep_figure",
     "yield_limits",
 ]
+
+
+def figure_format(out) -> str:
+    """The image format of a figure path, from its suffix; refused unless matplotlib writes it."""
+    kinds = Figure().canvas.get_supported_filetypes()
+    kind = Path(out).suffix[1:]  # as written: the file gets exactly the name asked for
+    if kind.lower() not in kinds:
+        raise SynthbosError(f"-o {shorten(str(out))}: name a figure file ending in one of "
+                            f"{', '.join('.' + k for k in sorted(kinds))}")
+    return kind
+
 
 FORMATS = ("png", "pdf", "svg")  # a 300 dpi PNG to look at, a vector PDF to print, a vector SVG to edit
 _DPI = 300

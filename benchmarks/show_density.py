@@ -24,15 +24,9 @@ import numpy as np
 
 from synthbos import SynthbosError
 
-from .figures import TWO_COLUMNS_IN, journal_style, save_figure
+from .figures import TWO_COLUMNS_IN, figure_format, journal_style, save_figure
 
 __all__ = ["main", "plot_density_file", "plot_snapshots", "read_density_file"]
-
-
-def _figure_format(out) -> str:
-    from .show_result import figure_format
-
-    return figure_format(out)
 
 
 def plot_snapshots(out, *, snapshots_file=None, progress=False):
@@ -55,7 +49,7 @@ def plot_snapshots(out, *, snapshots_file=None, progress=False):
     from synthbos.raytrace.loaders import read_snapshots
     from tqdm import tqdm
 
-    fmt = _figure_format(out)
+    fmt = figure_format(out)
     dens, times, attrs = read_snapshots(snapshots_file)
     with tqdm(total=len(dens) + 1, desc="show-density", unit="step", disable=not progress) as bar, journal_style():
         fig, stats = _snapshot_figure(dens, times, attrs, bar)
@@ -172,7 +166,7 @@ def plot_density_file(path, out) -> str:
     truth, three: reconstructed and true density on one scale, and their difference (diverging, centred on 0).
     Nodes that were not reconstructed are blank.
     """
-    fmt = _figure_format(out)
+    fmt = figure_format(out)
     d = read_density_file(path)
     summary = density_summary_line(d)
     with journal_style():

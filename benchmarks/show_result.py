@@ -26,9 +26,8 @@ import h5py
 import numpy as np
 
 from synthbos import SynthbosError
-from synthbos.values import shorten
 
-from .figures import ONE_COLUMN_IN, TWO_COLUMNS_IN, _fitted, journal_style, save_figure
+from .figures import ONE_COLUMN_IN, TWO_COLUMNS_IN, _fitted, figure_format, journal_style, save_figure
 from .process import check_result_file
 from .registry import DENSE, GRID
 
@@ -382,15 +381,3 @@ def _draw_errors(fig, ax, res, errors, shape):
     _colorbar(fig, im, ax, location="bottom", shrink=0.9, label="|error| against the truth (px)")
     words = f"median {np.median(e):.3g} px, p90 {np.percentile(e, 90):.3g} px" if len(e) else "nothing scored"
     ax.set_title(f"error: {words}", loc="left")
-
-
-def figure_format(out) -> str:
-    """The image format of a figure path, from its suffix; refused unless matplotlib writes it."""
-    from matplotlib.figure import Figure
-
-    kinds = Figure().canvas.get_supported_filetypes()
-    kind = Path(out).suffix[1:]  # as written: the file gets exactly the name asked for
-    if kind.lower() not in kinds:
-        raise SynthbosError(f"-o {shorten(str(out))}: name a figure file ending in one of "
-                            f"{', '.join('.' + k for k in sorted(kinds))}")
-    return kind

@@ -28,8 +28,9 @@ from synthbos import SynthbosError
 from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
-from .multigrid import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation, window_grid
+from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation
 from .validation import FILL_SWEEPS
+from .windows import window_grid
 from .xcorr import rpc_spectral_filter
 
 __all__ = [

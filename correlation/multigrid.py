@@ -23,10 +23,12 @@ from synthbos import SynthbosError
 from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
+from .device_pass import correlate_on_device, device_supports
 from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
+from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation
 from .validation import fill_by_interpolation, neighbour_median, normalized_median_test
-from .windows import checked_mask, extract_windows, window_starts, window_step
+from .windows import WindowGrid, checked_mask, extract_windows, window_grid  # noqa: F401  (re-exported)
 from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = [
@@ -117,28 +119,11 @@ def count_vectors(flags):
         "total": int(f.size),
     }
 
-#: Deformed windows are sampled on pixel grids moved by this much (px, along x and y). The shift error
-#: of a symmetric interpolation kernel at fractional position f, b(f), is odd about 0 and about 1/2;
-#: the two images are sampled at fractions m - d/2 and m + d/2 about the midpoint m, so the
-#: residual error is b(m + d/2) - b(m - d/2). For m = 0 (pixel centres) the odd harmonics of b add
-#: up (0.01 px at d = 0.5 px for 3 px dots and cubic B-splines); for m = 1/4 they cancel,
-#: sin(2 pi k (1/4 + d/2)) = sin(2 pi k (1/4 - d/2)) for odd k, leaving the much smaller even ones.
-#: The vectors of deformed iterations are therefore located at window centre + 1/4 px.
-SAMPLING_OFFSET = 0.25
-
-#: A vector that fails the median test is confirmed (kept) only if its peak correlation coefficient is
-#: at least this fraction of its valid neighbours' median (and the previous iteration measured it alike).
-CONFIRM_CORRELATION = 0.7
-
 #: Values of :attr:`CorrelationSettings.backend`.
 BACKENDS = ("auto", "numpy", "warp")
 
 #: Values of :attr:`CorrelationSettings.pattern`.
 PATTERNS = ("auto", "random", "periodic")
-
-#: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
-EDGE_MARGIN = 2.0
-
 
 def _tuple_of(value, n, name):
     if isinstance(value, (numbers.Number, str)):
@@ -377,8 +362,6 @@ class CorrelationSettings:
         """True when :func:`correlate_pair` runs these settings on the Warp path (see ``backend``)."""
         if self.backend != "auto":
             return self.backend == "warp"
-        from .device_pass import device_supports
-
         return str(self.device).startswith("cuda") and device_supports(self) is None
 
 
@@ -502,23 +485,6 @@ def _correlate_windows(wa, wb, valid, settings):
     return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers), _energies(wa, wb)
 
 
-def judges_correlation(settings, pass_index, iteration):
-    """Whether iteration ``iteration`` of pass ``pass_index`` applies ``min_correlation``.
-
-    The plain correlation (the first iteration of the first pass: nothing deformed, the windows as
-    they are, where chance peaks of unrelated windows reach 0.4 and more) and the final iteration (the
-    vectors returned) do. The deformed iterations in between do not: a window over a strong
-    gradient (a shear layer, a front in turbulence) correlates poorly until the deformation follows
-    the field, and failing it there replaces it by its neighbours' values, so that the next
-    deformation cannot follow the field either. It still has to pass the peak ratio, the agreement
-    with the coarser pass and the normalised median test. On the SQG pairs of
-    ``benchmarks/bench_openpiv.py`` this lowers the RMS error over all vectors by 4-18 % (SQG 00001
-    1.13 -> 1.09 px, 00003 1.14 -> 1.03, 00004 0.85 -> 0.75).
-    """
-    last = pass_index == len(settings.window_sizes) - 1 and iteration == settings.iterations[-1] - 1
-    return (pass_index == 0 and iteration == 0) or last
-
-
 def _peak_coefficient(planes, norm):
     """Plane maximum as a correlation coefficient; NaN where the norm is None (RPC) or zero."""
     if norm is None:
@@ -585,8 +551,6 @@ def _edge_weights(du, dv, rows, cols, shape, margin):
 
 def _correlate_pair_warp(a, b, valid_px, settings):
     """:func:`correlate_pair` after its checks, on the Warp path (:mod:`correlation.device_pass`)."""
-    from .device_pass import correlate_on_device
-
     masked = [
         _window_validity(valid_px, window_grid(a.shape, size, overlap))[1]
         for size, overlap in zip(settings.window_sizes, settings.overlaps, strict=True)
@@ -604,32 +568,6 @@ def _correlate_pair_warp(a, b, valid_px, settings):
     x, y = np.meshgrid(out["node"][1], out["node"][0])
     return CorrelationResult(
         x=x, y=y, u=u, v=v, peak_ratio=out["peak_ratio"], flags=flags, settings=settings, correlation=coef
-    )
-
-
-@dataclass(frozen=True)
-class WindowGrid:
-    """Window grid of one pass: spacing, window centres and the pixel rows and columns the windows cover."""
-
-    size: int
-    step: int
-    yc: np.ndarray
-    xc: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
-
-
-def window_grid(shape, size, overlap):
-    """The :class:`WindowGrid` of ``size`` px windows overlapping by ``overlap`` in an image of ``shape``."""
-    step = window_step(size, overlap)
-    sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
-    return WindowGrid(
-        size=size,
-        step=step,
-        yc=sy + (size - 1) / 2.0,
-        xc=sx + (size - 1) / 2.0,
-        rows=np.arange(sy[0], sy[-1] + size),
-        cols=np.arange(sx[0], sx[-1] + size),
     )
 
 

@@ -1,13 +1,15 @@
-"""Interrogation-window grids, batched window extraction, and the check of a user's pixel mask."""
+"""Interrogation-window grids (:class:`WindowGrid`), batched window extraction, and the check of a user's pixel mask."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from synthbos import SynthbosError
 
-__all__ = ["checked_mask", "extract_windows", "window_starts", "window_step"]
+__all__ = ["WindowGrid", "checked_mask", "extract_windows", "window_grid", "window_starts", "window_step"]
 
 
 def checked_mask(mask, shape):
@@ -73,3 +75,29 @@ def extract_windows(image, size, step, row0, col0, ny, nx):
     """
     view = sliding_window_view(image, (size, size))
     return view[row0 : row0 + (ny - 1) * step + 1 : step, col0 : col0 + (nx - 1) * step + 1 : step]
+
+
+@dataclass(frozen=True)
+class WindowGrid:
+    """Window grid of one pass: spacing, window centres and the pixel rows and columns the windows cover."""
+
+    size: int
+    step: int
+    yc: np.ndarray
+    xc: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+
+
+def window_grid(shape, size, overlap):
+    """The :class:`WindowGrid` of ``size`` px windows overlapping by ``overlap`` in an image of ``shape``."""
+    step = window_step(size, overlap)
+    sy, sx = window_starts(shape[0], size, step), window_starts(shape[1], size, step)
+    return WindowGrid(
+        size=size,
+        step=step,
+        yc=sy + (size - 1) / 2.0,
+        xc=sx + (size - 1) / 2.0,
+        rows=np.arange(sy[0], sy[-1] + size),
+        cols=np.arange(sx[0], sx[-1] + size),
+    )

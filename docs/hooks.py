@@ -242,7 +242,7 @@ def settings_table(cls, ranges: dict) -> str:
 
 
 def _tracking() -> str:
-    from synthbos.tracking.pipeline import TRACKING_RANGES, TrackingSettings
+    from synthbos.tracking.settings import TRACKING_RANGES, TrackingSettings
 
     return settings_table(TrackingSettings, TRACKING_RANGES)
 
@@ -268,7 +268,7 @@ def undocumented() -> list[str]:
     from synthbos.benchmarks.process import ImageOptions
     from synthbos.correlation.multigrid import CorrelationSettings
     from synthbos.raytrace import config, sources
-    from synthbos.tracking.pipeline import TrackingSettings
+    from synthbos.tracking.settings import TrackingSettings
 
     missing = [f"{t}.{k}" for t in ("camera", "target", "volume", "rays", "sensor", "limits")
                for k in {**config.DEFAULT_CONFIG.get(t, {}), **config._OPTIONAL.get(t, {})}

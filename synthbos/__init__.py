@@ -20,6 +20,16 @@ from importlib import metadata as _metadata
 from importlib import resources as _resources
 from pathlib import Path
 
+from .errors import SynthbosError
+from .outputs import (
+    atomic_hdf5,
+    atomic_output,
+    check_output_file,
+    check_output_folder,
+    folder_lock,
+    make_folder,
+)
+
 # Running from a source checkout (the repository root holds pyproject.toml and raytrace/ beside this
 # folder): the subpackages are found in that checkout, so a worktree tests its own code. An installed
 # wheel has them inside this folder and skips this.
@@ -33,24 +43,6 @@ except _metadata.PackageNotFoundError:  # running from a source tree without ins
     __version__ = "0.0.0+unknown"
 
 
-class SynthbosError(ValueError):
-    """Bad input a user can cause: a configuration key, a missing file, a NaN in a volume.
-
-    The command line prints the message on one line and exits with status 2; bugs raise
-    other exceptions and keep their traceback.
-    """
-
-
-from .outputs import (  # noqa: E402  (needs SynthbosError above)
-    atomic_hdf5,
-    atomic_output,
-    check_output_file,
-    check_output_folder,
-    folder_lock,
-    make_folder,
-)
-
-
 def data_file(*parts):
     """Path of an embedded data file (``data/`` in the repository, ``synthbos.data`` once installed).
 
@@ -62,9 +54,8 @@ def data_file(*parts):
 
 # The Python API: ``synthbos.render_pair``, ``synthbos.track_pair``, ... Each name maps to its home module
 # and is imported from there on first use (PEP 562's module ``__getattr__``, the pattern of scientific
-# Python's lazy_loader). Importing them here instead would make an import circle, since every subpackage
-# imports this module for SynthbosError before its own names exist, and would make ``import synthbos``
-# (which the command line and every worker process run first) pay for Warp, SciPy and h5py.
+# Python's lazy_loader), so that ``import synthbos`` (which the command line and every worker process run
+# first, and every subpackage for SynthbosError) does not pay for Warp, SciPy and h5py.
 _API = {
     "render_pair": "synthbos.raytrace",
     "read_pair": "synthbos.raytrace",

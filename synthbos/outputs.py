@@ -35,7 +35,7 @@ import time
 from glob import escape as glob_escape
 from pathlib import Path
 
-from synthbos import SynthbosError
+from .errors import SynthbosError
 
 __all__ = [
     "atomic_hdf5",

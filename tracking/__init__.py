@@ -33,8 +33,9 @@ from .identify import (
     static_threshold_identification,
 )
 from .match import MATCH_METHODS, match_multiparametric, match_nearest
-from .pipeline import TRACK_DTYPE, DotStatus, TrackingSettings, is_valid, track_pair
+from .pipeline import track_pair
 from .residual import render_gaussians, subtract_gaussians
+from .settings import TRACK_DTYPE, DotStatus, TrackingSettings, is_valid
 
 __all__ = [
     "CENTROID_METHODS",

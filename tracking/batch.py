@@ -32,10 +32,21 @@ from .frame_stats import frame_statistics
 from .kernels import render_dots_kernel
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
-from .pipeline import TRACK_DTYPE, TrackingSettings, prior_inside, residual_reach, start_width, window_sizes
 from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
-from .windows import median_network
+from .settings import (
+    DIAMETER_PER_WIDTH,
+    FIT_MAX_MOVE_PX,
+    SEARCH_MARGIN_PX,
+    SMALL_WINDOW,
+    TRACK_DTYPE,
+    TrackingSettings,
+    prior_inside,
+    residual_reach,
+    start_width,
+    window_sizes,
+)
+from .sorting import median_network
 from .workspace import hold_freed_memory
 
 __all__ = ["batch_support", "pairs_per_call", "track_pairs"]
@@ -123,7 +134,7 @@ class _Batch:
         self.stats = stats
         d = np.array([g.d for g in geometry])
         self.diameter = self.arr(d, wp.float64)
-        self.eta0_host = d / 4.0
+        self.eta0_host = d / DIAMETER_PER_WIDTH
         self.eta0 = self.arr(self.eta0_host, wp.float64)
         g0 = geometry[0]
         self.geometry = g0
@@ -156,7 +167,8 @@ class _Batch:
         reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
-        radius = (s.max_displacement + 1.0 if s.search_radius is None else s.search_radius) if wide else s.prior_radius
+        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
+        radius = search if wide else s.prior_radius
         w = 2 * half + 1
         st = self.stats
         out = {
@@ -178,7 +190,7 @@ class _Batch:
         active = self.full(self.B, 1, wp.int32)
         won = self.zeros(self.B, wp.int32)
         rows = 1 if wp.get_device(self.device).is_cpu else n_ids
-        ww = w * w if w != 7 else 1  # the 7 x 7 window is measured in registers
+        ww = w * w if w != SMALL_WINDOW else 1  # the 7 x 7 window is measured in registers
         scratch = [
             wp.empty((rows, ww), dtype=wp.float64, device=self.device),
             wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
@@ -310,7 +322,7 @@ class _Batch:
                 rows,
                 [
                     self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
-                    half, render_half, int(last), 1.0, prof, nxt, ok, shared,
+                    half, render_half, int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
                 ],
             )  # fmt: skip
             cur, nxt = nxt, cur

@@ -6,7 +6,7 @@ Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.batch
 dot ``i`` of a call belongs to frame ``i // per_frame`` (pair ``b``'s ``per_frame`` prior dots, in the
 prior's order). The per-window measurement and the model-fit step are those of the single-pair tracker
 (:mod:`tracking.kernels`: ``measure_window``, ``fit_dot_step``); here they read one frame of an image
-stack. Status bits are those of ``tracking.pipeline.DotStatus``.
+stack. Status bits and rule constants come from :mod:`tracking.settings`, their one home.
 """
 
 import warp as wp
@@ -14,7 +14,16 @@ from synthbos.correlation.pass_kernels import three_point_offset
 
 from .kernels import fit_dot_step, measure_window
 from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
-from .pipeline import DotStatus
+from .settings import (
+    DIAMETER_PER_WIDTH,
+    EDGE_CUT_PX,
+    MODEL_WIDTH_RANGE,
+    PIXEL_EDGE_PX,
+    RESIDUAL_STAMP_WIDTHS,
+    RESIDUAL_WIDTH_CLIP,
+    THREE_POINT_WIDTH_RANGE,
+    DotStatus,
+)
 
 wp.config.quiet = True
 wp.set_module_options({"enable_backward": False})
@@ -36,6 +45,18 @@ PREDICTOR_MISMATCH = wp.constant(int(DotStatus.PREDICTOR_MISMATCH))
 PREDICTOR_WEAK = wp.constant(int(DotStatus.PREDICTOR_WEAK))
 EDGE_CUT = wp.constant(int(DotStatus.EDGE_CUT))
 OUTLIER = wp.constant(int(DotStatus.OUTLIER))
+
+# the rule constants, from their one home (float64 constants: a literal in a kernel may be float32)
+PIXEL_EDGE = wp.constant(wp.float64(PIXEL_EDGE_PX))
+WIDTH_LO = wp.constant(wp.float64(THREE_POINT_WIDTH_RANGE[0]))
+WIDTH_HI = wp.constant(wp.float64(THREE_POINT_WIDTH_RANGE[1]))
+CLIP_LO = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[0]))
+CLIP_HI = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[1]))
+STAMP_WIDTHS = wp.constant(wp.float64(RESIDUAL_STAMP_WIDTHS))
+MODEL_LO = wp.constant(wp.float64(MODEL_WIDTH_RANGE[0]))
+MODEL_HI = wp.constant(wp.float64(MODEL_WIDTH_RANGE[1]))
+EDGE_CUT_MAX = wp.constant(wp.float64(EDGE_CUT_PX))
+DIAMETER_WIDTHS = wp.constant(wp.float64(DIAMETER_PER_WIDTH))
 
 #: Largest int32: an unclaimed blob.
 NO_CLAIM = wp.constant(2147483647)
@@ -65,8 +86,8 @@ def start_identification(
     """Window origin, OUTSIDE_IMAGE and NEAR_BORDER of dot ``ids[t]``; it is to do where inside."""
     i = ids[wp.tid()]
     p = pred[i]
-    nan_or_out = not (p[0] > wp.float64(-0.5) and p[0] < wp.float64(width) - wp.float64(0.5))
-    nan_or_out = nan_or_out or not (p[1] > wp.float64(-0.5) and p[1] < wp.float64(height) - wp.float64(0.5))
+    nan_or_out = not (p[0] > -PIXEL_EDGE and p[0] < wp.float64(width) - PIXEL_EDGE)
+    nan_or_out = nan_or_out or not (p[1] > -PIXEL_EDGE and p[1] < wp.float64(height) - PIXEL_EDGE)
     if nan_or_out:
         flags[i] = OUTSIDE_IMAGE
         origin[i, 0] = -half
@@ -248,7 +269,7 @@ def take_blobs(
             peak = cen * wp.exp((dx * dx + dy * dy) / (wp.float64(2.0) * e2))
     # a three-point offset is within half a pixel: never wild; a failed fit keeps it (as the host)
     e0 = eta0[i // per_frame]
-    if not (e > wp.float64(0.3) * e0 and e < wp.float64(3.0) * e0):
+    if not (e > WIDTH_LO * e0 and e < WIDTH_HI * e0):
         e = e0
     if not (peak > zero and wp.isfinite(peak)):
         peak = out_float[t, 1]
@@ -332,7 +353,8 @@ def subtract_near_waiting(
     residual: wp.array3d(dtype=wp.float64),
 ):
     """Eq. 2 where it matters: a found dot within ``reach`` of a dot still to find leaves the residual
-    image (its sampled Gaussian, width clipped to [0.5, 1.5] eta0, stamp half-width ceil(4.5 eta0))."""
+    image (its sampled Gaussian, width clipped to ``RESIDUAL_WIDTH_CLIP`` eta0, stamp half-width
+    ceil(``RESIDUAL_STAMP_WIDTHS`` eta0))."""
     i = ids[wp.tid()]
     f = i // per_frame
     if active[f] == 0 or subtracted[i] != 0 or not wp.isfinite(x[i]):
@@ -352,8 +374,8 @@ def subtract_near_waiting(
         return
     subtracted[i] = 1
     e0 = eta0[f]
-    e = wp.clamp(eta[i], wp.float64(0.5) * e0, wp.float64(1.5) * e0)
-    rad = int(wp.ceil(wp.float64(4.5) * e0))
+    e = wp.clamp(eta[i], CLIP_LO * e0, CLIP_HI * e0)
+    rad = int(wp.ceil(STAMP_WIDTHS * e0))
     cx = int(wp.rint(xi))
     cy = int(wp.rint(yi))
     inv = wp.float64(1.0) / (wp.float64(2.0) * e * e)
@@ -624,7 +646,7 @@ def fit_step_batch(
     shared_xy: wp.array2d(dtype=wp.float64),
 ):
     """``fit_dot_step`` of row i; model frame ``2 b`` is pair b's reference image, ``2 b + 1`` its gradient
-    image; the width's range is [0.25, 4] eta0 of the pair."""
+    image; the width's range is ``MODEL_WIDTH_RANGE`` eta0 of the pair."""
     i = wp.tid()
     if live[i] == 0:
         for k in range(5):
@@ -634,8 +656,8 @@ def fit_step_batch(
     b = f // 2
     e0 = eta0[b]
     has_partner = int(partner[i] >= 0)
-    lo = wp.float64(0.25) * e0
-    hi = wp.float64(4.0) * e0
+    lo = MODEL_LO * e0
+    hi = MODEL_HI * e0
     if f % 2 == 0:
         fit_dot_step(
             references[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
@@ -653,7 +675,7 @@ def fit_step_batch(
 
 @wp.struct
 class TrackRow:
-    """One row of ``tracking.pipeline.TRACK_DTYPE``, field for field (the same bytes: an array of rows
+    """One row of ``tracking.settings.TRACK_DTYPE``, field for field (the same bytes: an array of rows
     comes back as the table itself)."""
 
     x: wp.float64
@@ -768,7 +790,7 @@ def take_model(
 @wp.func
 def overshoot(x: wp.float64, y: wp.float64, radius: wp.float64, height: int, width: int) -> wp.vec2d:
     """How far (px) a disk of ``radius`` at (x, y) reaches past the image, along x and y (``_overshoot``)."""
-    half = wp.float64(0.5)
+    half = PIXEL_EDGE
     zero = wp.float64(0.0)
     ox = wp.max(wp.max(-half - (x - radius), (x + radius) - (wp.float64(width) - half)), zero)
     oy = wp.max(wp.max(-half - (y - radius), (y + radius) - (wp.float64(height) - half)), zero)
@@ -839,7 +861,7 @@ def second_status(
     status: wp.array(dtype=wp.int32),
     matched: wp.array(dtype=wp.int32),
 ):
-    """A mismatch the neighbours confirm is kept; then EDGE_CUT (``_EDGE_CUT_PX``); the matched dots left
+    """A mismatch the neighbours confirm is kept; then EDGE_CUT (``EDGE_CUT_PX``); the matched dots left
     go to the outlier test."""
     i = wp.tid()
     s = status[i]
@@ -851,7 +873,7 @@ def second_status(
         r = wp.float64(0.5) * diameter[i // per_frame]
         a = overshoot(x_r[i], y_r[i], r, height, width)
         c = overshoot(x_g[i], y_g[i], r, height, width)
-        if wp.abs(a[0] - c[0]) > wp.float64(0.5) or wp.abs(a[1] - c[1]) > wp.float64(0.5):
+        if wp.abs(a[0] - c[0]) > EDGE_CUT_MAX or wp.abs(a[1] - c[1]) > EDGE_CUT_MAX:
             s = s | EDGE_CUT
             m = False
     status[i] = s
@@ -924,7 +946,7 @@ def write_table(
         row.x_gradient = x_g[i]
         row.y_gradient = y_g[i]
         row.iteration_gradient = wp.int16(it_g[i])
-    row.diameter = wp.float64(4.0) * eta_r[i]
+    row.diameter = DIAMETER_WIDTHS * eta_r[i]
     row.peak = i0_r[i]
     row.status = s
     row.iteration = wp.int16(it_r[i])

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from synthbos.correlation.peak import three_point_offset
 
+from .settings import CENTROID_METHODS
+
 __all__ = [
     "CENTROID_METHODS",
     "centroid_gaussian3",
@@ -21,8 +23,6 @@ __all__ = [
     "centroid_lsq_gaussian",
     "fit_centroids",
 ]
-
-CENTROID_METHODS = ("gaussian3", "centroid", "gaussian4", "lsq")
 
 
 def _peak_index(windows, peak_rc):

@@ -32,6 +32,7 @@ from .moment_kernels import (
     moment_moves_kernel,
     moment_shift_kernel,
 )
+from .settings import FIT_MAX_MOVE_PX
 from .workspace import scratch
 
 __all__ = [
@@ -292,7 +293,7 @@ def fit_dots_numpy(
     partner=None,
     saturation=None,
     iterations=2,
-    max_move=1.0,
+    max_move=FIT_MAX_MOVE_PX,
     sigma_range=(0.2, 10.0),
 ):
     """Fit the pixel-integrated Gaussian model to every dot of one image or a pair, jointly with its neighbours.
@@ -418,7 +419,7 @@ def fit_dots(
     partner=None,
     saturation=None,
     iterations=2,
-    max_move=1.0,
+    max_move=FIT_MAX_MOVE_PX,
     sigma_range=(0.2, 10.0),
     device=None,
 ):

@@ -38,6 +38,31 @@ def _sizes(h, w):
     return row_step, n_noise, n_fill
 
 
+def saturation_level(image, level, top=None):
+    """The given level, or the image's maximum (``top`` where known) if five or more pixels reach it."""
+    if level is not None:
+        return float(level)
+    top = image.max() if top is None else top
+    return float(top) if np.count_nonzero(image == top) >= 5 else np.inf
+
+
+def partial_median(a):
+    """``np.median`` of a 1-D float array (the mean of the middle two for even sizes), by one partial sort
+    of ``a`` in place; NaN input goes to NumPy."""
+    k = a.size // 2
+    a.partition(k)
+    if np.isnan(a[k:]).any():  # NaN sorts last, so one would be in the upper half
+        return float(np.median(a))
+    if a.size % 2:
+        return float(a[k])
+    return float((a[:k].max() + a[k]) / 2.0)
+
+
+def fill_level(image):
+    """Value of the pixels outside the image in the windows: the median of every fourth row and column."""
+    return partial_median(image[::4, ::4].flatten())  # np.median's value; flatten copies
+
+
 def frame_statistics(images, *, device=None):
     """Image statistics of every frame of a stack, as device arrays, without a host synchronisation.
 
@@ -54,8 +79,8 @@ def frame_statistics(images, *, device=None):
     dict of (F,) ``wp.array`` on the device
         ``lo``, ``hi``: each frame's minimum and maximum (NaN if a pixel is NaN);
         ``bad`` (int32): 1 if a pixel is non-finite, 2 if the frame is all zero, else 0 (the tracker's
-        ``_check_image``); ``saturation``: ``_saturation_level(image, None)``; ``fill``:
-        ``_fill_level(image)``; ``noise``: ``estimate_noise(image)``; ``diameter``:
+        ``_check_image``); ``saturation``: ``saturation_level(image, None)``; ``fill``:
+        ``fill_level(image)``; ``noise``: ``estimate_noise(image)``; ``diameter``:
         ``estimate_dot_diameter(image)``; all float64.
 
     Notes
@@ -146,8 +171,6 @@ def frame_statistics_numpy(images):
     dict of (F,) NumPy arrays
         The keys of :func:`frame_statistics`; ``bad`` int32, the others float64.
     """
-    from .pipeline import _fill_level, _saturation_level  # here: the pipeline may come to import this module
-
     stack = np.asarray(images, dtype=np.float64)
     n = len(stack)
     out = {name: np.empty(n) for name in FRAME_STATISTICS}
@@ -161,8 +184,8 @@ def frame_statistics_numpy(images):
                 out["bad"][f] = 1
             elif lo == 0 and hi == 0:
                 out["bad"][f] = 2
-            out["saturation"][f] = _saturation_level(image, None)
-            out["fill"][f] = _fill_level(image)
+            out["saturation"][f] = saturation_level(image, None)
+            out["fill"][f] = fill_level(image)
             out["noise"][f] = estimate_noise(image)
             out["diameter"][f] = estimate_dot_diameter(image)
     return out

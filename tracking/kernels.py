@@ -11,6 +11,9 @@ compute. Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // 
 
 import warp as wp
 
+from .settings import SMALL_WINDOW
+from .sorting import median_network
+
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
@@ -340,7 +343,7 @@ def cut_cross(
 
 # The common window, 7 x 7 pixels (3-pixel dots), is measured by ``measure_small_window`` in local
 # vectors with its size known to the compiler (loops unrolled, the edge median's network inlined).
-SMALL_W = wp.constant(7)
+SMALL_W = wp.constant(SMALL_WINDOW)
 vec_small_f = wp.types.vector(length=49, dtype=wp.float64)
 vec_small_i = wp.types.vector(length=49, dtype=wp.int32)
 vec_ring = wp.types.vector(length=24, dtype=wp.float64)
@@ -348,8 +351,6 @@ vec_ring = wp.types.vector(length=24, dtype=wp.float64)
 
 def _edge_network():
     """Compile-time constant: the edge-median network of the 7 x 7 window's 24 edge pixels."""
-    from .windows import median_network  # here: windows imports this module
-
     return median_network(24).tolist()
 
 
@@ -1473,7 +1474,7 @@ def neighbour_fit_kernel(
     neighbouring threads read the same points). ``near`` (the k nearest: squared distance and index),
     ``work`` (their offsets from q and vectors) and ``resid`` (the squared distances of their vectors from
     the fit) are scratch rows of length k: query q's start at ``(q % rows) * k``. ``network`` is
-    ``tracking.windows.median_network(k)``.
+    ``tracking.sorting.median_network(k)``.
     """
     q = query_order[wp.tid()]
     k = neighbours.shape[1]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["MATCH_METHODS", "match_multiparametric", "match_nearest"]
+from .settings import MATCH_METHODS
 
-MATCH_METHODS = ("nearest", "multiparametric")
+__all__ = ["MATCH_METHODS", "match_multiparametric", "match_nearest"]
 
 
 def _one_to_one(cost, ref_idx, grad_idx, n_ref):

@@ -23,9 +23,6 @@ register onto the gradient image at its displacement is not MATCHED either (MISR
 
 from __future__ import annotations
 
-import dataclasses
-import enum
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -34,432 +31,49 @@ from scipy.spatial import cKDTree
 from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
-from synthbos.values import check_ranges
 
-from .centroid import CENTROID_METHODS, fit_centroids, gaussian3_from_samples
+from .centroid import fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
 from .dotfit import fit_dots, fit_dots_numpy, fit_window_half, moment_shifts, moment_shifts_numpy
+from .frame_stats import fill_level, partial_median, saturation_level
 from .identify import (
     blob_properties,
     dynamic_threshold_identification,
     estimate_noise,
     static_threshold_identification,
 )
-from .match import MATCH_METHODS, match_multiparametric, match_nearest
+from .match import match_multiparametric, match_nearest
 from .neighbours import neighbour_fit, neighbour_fit_numpy
 from .predict import predict_displacement
 from .register import local_gradients, registration_offsets, registration_offsets_numpy, spline_coefficients
 from .residual import subtract_gaussians
+
+# The vocabulary lives in tracking.settings; TRACK_DTYPE, DotStatus, TrackingSettings, is_valid and the
+# geometry helpers are also reachable from here, where they were defined until the vocabulary moved.
+from .settings import (  # noqa: F401  (re-exported)
+    DIAMETER_PER_WIDTH,
+    EDGE_CUT_PX,
+    MODEL_WIDTH_RANGE,
+    PIXEL_EDGE_PX,
+    RESIDUAL_STAMP_WIDTHS,
+    RESIDUAL_WIDTH_CLIP,
+    SEARCH_MARGIN_PX,
+    THREE_POINT_WIDTH_RANGE,
+    TRACK_DTYPE,
+    TRACKING_RANGES,
+    WILD_FIT_PX,
+    DotStatus,
+    TrackingSettings,
+    is_valid,
+    prior_inside,
+    residual_reach,
+    start_width,
+    window_sizes,
+)
 from .windows import measure_windows, measure_windows_numpy
 
 __all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
-
-
-class DotStatus(enum.IntFlag):
-    """Bit flags of the ``status`` field of :func:`track_pair`'s table.
-
-    FOUND_REFERENCE, FOUND_GRADIENT
-        The dot was identified in that image (``x, y`` resp. ``x_gradient, y_gradient`` are finite).
-    MATCHED
-        Found in both and paired: ``u, v`` are finite. This is the "valid" bit.
-    CC_VALID
-        The correlation correction gave ``u_cc, v_cc`` (always set with MATCHED unless the correlation
-        peak fell on its plane's edge; ``u_cc, v_cc`` are finite whenever MATCHED is set).
-    CC_FLAGGED
-        The correlation correction disagrees with the centroid difference by more than
-        ``TrackingSettings.cc_threshold`` pixels.
-    OUTSIDE_IMAGE
-        The prior position lies outside the image (or is not finite); nothing was measured.
-    NEAR_BORDER
-        The dot's window reaches past the image edge.
-    SATURATED
-        Two or more of the dot's pixels sit at the saturation level; its position is less reliable.
-    OVERLAPPED
-        The dot's window held more than one blob; Eq. 1 chose among them.
-    AMBIGUOUS
-        A closer prior dot claimed the same blob in every iteration (only with NOT found).
-    FIT_FALLBACK
-        The centroid fit fell back to a simpler estimate (e.g. a non-positive neighbour sample).
-    MASKED
-        The dot (its e^-2 disk, in either image) touches the excluded area of ``track_pair``'s ``mask``;
-        it is not measured (never MATCHED).
-    PREDICTOR_MISMATCH
-        The measured displacement differs from the correlation predictor's by more than
-        ``TrackingSettings.predictor_tolerance`` pixels, and from the local linear fit of its matched
-        neighbours' displacements too (which would overrule a poor prediction): the blob found is
-        probably another dot. ``u, v`` stay NaN (never MATCHED); ``x_gradient, y_gradient`` show what was
-        found.
-    PREDICTOR_WEAK
-        The correlation predictor is not significant at the dot: the normalised correlation of the pair
-        around it at the predicted displacement (:func:`tracking.predict.predict_displacement`) is below
-        ``TrackingSettings.predictor_min_correlation`` (an unrelated or decorrelated gradient image).
-        Never MATCHED.
-    EDGE_CUT
-        The dot's e^-2 disk (diameter ``d``) reaches past the image edge by amounts that differ by more
-        than half a pixel between the two images (a dot entering or leaving the field of view): its
-        two positions are pulled inwards by different amounts. Never MATCHED. (A dot cut alike in both
-        images keeps NEAR_BORDER only: its biases largely cancel, below 0.1 px with the model fit.)
-    OUTLIER
-        The displacement fails the normalised median test against the local linear fit of its nearest
-        matched neighbours (``TrackingSettings.outlier_threshold``): probably paired with the wrong blob.
-        Never MATCHED.
-    DISTORTED
-        The dot's light in either image was measurably asymmetric (a dot distorted by the flow inside the
-        camera's light cone): both its positions are the first moments of its share of the light (the
-        mean landing positions of its rays), not the symmetric model's centres
-        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts_numpy`).
-    MISREGISTERED
-        Standard tracking only (no prior, where nothing says the pattern is dots): the reference image
-        around the dot, moved by the measured displacement, does not land on the gradient image. Lucas-Kanade
-        steps that register the dot's identification window (half-width ``ceil(d / 2 +
-        window_margin)``) onto the gradient image, starting from ``u_cc, v_cc``, end further than
-        ``TrackingSettings.registration_tolerance`` from ``u_cc, v_cc`` or from ``u, v``, or cannot be
-        solved (:func:`tracking.register.registration_offsets_numpy`). On dots this is rare (noise only);
-        on speckle, squares or blobs that merge or part between the images it marks the blobs that the dot
-        model measured wrongly. Never MATCHED; ``x_gradient, y_gradient`` show what was found.
-
-    Examples
-    --------
-    >>> from synthbos import DotStatus
-    >>> status = DotStatus.FOUND_REFERENCE | DotStatus.FOUND_GRADIENT | DotStatus.MATCHED
-    >>> int(status), bool(status & DotStatus.MATCHED), bool(status & DotStatus.OUTLIER)
-    (7, True, False)
-    """
-
-    FOUND_REFERENCE = 1
-    FOUND_GRADIENT = 2
-    MATCHED = 4
-    CC_VALID = 8
-    CC_FLAGGED = 16
-    OUTSIDE_IMAGE = 32
-    NEAR_BORDER = 64
-    SATURATED = 128
-    OVERLAPPED = 256
-    AMBIGUOUS = 512
-    FIT_FALLBACK = 1024
-    MASKED = 2048
-    PREDICTOR_MISMATCH = 4096
-    PREDICTOR_WEAK = 8192
-    EDGE_CUT = 16384
-    OUTLIER = 32768
-    DISTORTED = 65536
-    MISREGISTERED = 131072
-
-
-TRACK_DTYPE = np.dtype(
-    [
-        ("x", "f8"),
-        ("y", "f8"),
-        ("u", "f8"),
-        ("v", "f8"),
-        ("u_cc", "f8"),
-        ("v_cc", "f8"),
-        ("x_gradient", "f8"),
-        ("y_gradient", "f8"),
-        ("diameter", "f8"),
-        ("peak", "f8"),
-        ("status", "i4"),
-        ("iteration", "i2"),
-        ("iteration_gradient", "i2"),
-        ("u_pred", "f8"),
-        ("v_pred", "f8"),
-        ("pred_correlation", "f8"),
-        ("dot_id", "i8"),
-    ]
-)
-
-
-def is_valid(table_or_status):
-    """True where a row's displacement is valid (the MATCHED bit).
-
-    Parameters
-    ----------
-    table_or_status : structured array or array of int
-        A :func:`track_pair` table (any structured array with a ``status`` field) or its ``status``
-        column.
-
-    Returns
-    -------
-    bool array
-        One entry per row.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from synthbos.tracking import TRACK_DTYPE, DotStatus, is_valid
-    >>> table = np.zeros(3, dtype=TRACK_DTYPE)
-    >>> table["status"] = [DotStatus.MATCHED | DotStatus.CC_VALID, DotStatus.FOUND_REFERENCE, DotStatus.MATCHED]
-    >>> is_valid(table)
-    array([ True, False,  True])
-    >>> is_valid(table["status"])
-    array([ True, False,  True])
-    """
-    status = np.asarray(table_or_status)
-    if status.dtype.names is not None:
-        if "status" not in status.dtype.names:
-            raise SynthbosError(f"is_valid needs a tracking table with a status field; got fields "
-                                f"{', '.join(status.dtype.names)}")
-        status = status["status"]
-    if status.dtype.kind not in "iu":
-        raise SynthbosError(f"is_valid needs integer status flags; got dtype {status.dtype}")
-    return (status & DotStatus.MATCHED) != 0
-
-
-# Allowed range of every number of TrackingSettings (``synthbos.values.check_ranges``): finite, with bounds
-# past which a run only allocates or iterates without end (a dot window is ~(d + 2 max_displacement)^2 px).
-TRACKING_RANGES = {
-    "fit_iterations": {"integer": True, "minimum": 1, "maximum": 20},
-    "distortion_chi2": {"above": 0.0, "maximum": 1e4},
-    "weights": {"list": {"sizes": (3,)}, "minimum": 0.0, "maximum": 1e3},
-    "diameter": {"optional": True, "above": 0.0, "maximum": 64.0},
-    "window_margin": {"minimum": 0.0, "maximum": 16.0},
-    "max_iterations": {"integer": True, "minimum": 1, "maximum": 20},
-    "max_displacement": {"above": 0.0, "maximum": 100.0},
-    "prior_radius": {"above": 0.0, "maximum": 64.0},
-    "cc_threshold": {"above": 0.0, "maximum": 100.0},
-    "threshold_fraction": {"minimum": 0.0, "below": 1.0},
-    "noise_threshold": {"minimum": 0.0, "maximum": 100.0},
-    "detection_snr": {"minimum": 0.0, "maximum": 1e3},
-    "min_relative_peak": {"minimum": 0.0, "maximum": 1.0},
-    "match_weights": {"list": {"sizes": (3,)}, "minimum": 0.0, "maximum": 1e3},
-    "search_radius": {"optional": True, "above": 0.0, "maximum": 128.0},
-    "threshold": {"optional": True},
-    "n_levels": {"integer": True, "minimum": 1, "maximum": 64},
-    "saturation_level": {"optional": True},
-    "predictor_windows": {"list": {"max_size": 8}, "integer": True, "minimum": 8, "maximum": 1024},
-    "predictor_tolerance": {"above": 0.0, "maximum": 100.0},
-    "predictor_min_correlation": {"minimum": -1.0, "maximum": 1.0},
-    "outlier_threshold": {"above": 0.0, "infinite": True},
-    "outlier_epsilon": {"minimum": 0.0, "maximum": 100.0},
-    "outlier_neighbours": {"integer": True, "minimum": 3, "maximum": 64},
-    "registration_tolerance": {"above": 0.0, "infinite": True},
-}
-
-
-@dataclass(frozen=True)
-class TrackingSettings:
-    """Settings of the whole tracking pipeline.
-
-    The defaults are the most accurate estimators (``centroid="model"``, ``correction="model"``);
-    :meth:`paper` gives the procedure of Rajendran, Bane and Vlachos (2019) as published
-    (``centroid="gaussian3"``, ``correction="paper"``).
-
-    Attributes
-    ----------
-    centroid : {"model", "gaussian3", "centroid", "gaussian4", "lsq"}
-        Sub-pixel estimator. "model" (default): least-squares fit of the pixel-integrated Gaussian dot
-        model with peak, width and background free, every dot jointly with its neighbours
-        (:func:`tracking.dotfit.fit_dots`): no bias (below 1e-3 px p95 without noise at 20 dots per
-        32x32 px) and at the Cramer-Rao bound under white noise. The others are the estimators of
-        Brady, Raben and Vlachos (2009) on the dot's segmented map (:func:`tracking.centroid.fit_centroids`).
-        On isolated pixel-integrated 3 px dots "gaussian3" (the paper's) and "lsq" are biased by less
-        than 1e-3 px, "gaussian4" by 2e-3 px and "centroid" by up to 0.01 px; in a dense pattern the
-        neighbours' tails inside the map bias all four (p95 ~0.01 px for "gaussian3" at 20 dots per
-        32x32 px), and "gaussian3", using five pixels, has ~1.35x the bound's noise.
-    correction : {"model", "paper"}
-        How ``u_cc, v_cc`` are measured. "model" (default): the last step of the model fit taken again
-        with each pair's common peak and width, for position and background only (the shift that best
-        maps the reference dot onto the gradient dot under the dot model, its neighbours at their
-        common shapes too); at or below the bound, and never noisier than ``u, v``. "paper": the
-        correlation of the two dots' segmented maps with a three-point Gaussian peak fit (Rajendran,
-        Bane and Vlachos 2019, section 2.3); the maps' cut and the peak fit bias it (p95 ~0.04 px
-        without noise in a dense pattern), so it wins over "gaussian3" only from ~3 % noise.
-    fit_iterations : int
-        Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
-        Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
-        ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
-    distortion : {"moment", "none"}
-        What the model fit's positions are taken to measure on a dot whose image the flow has distorted
-        (rays through different parts of the aperture crossing different density spread and skew it).
-        "moment" (default): the mean of its light, the mean landing position of its rays that the
-        renderer's truth and BOS define: after the fit, each dot moves from the symmetric model's centre
-        to the first moment of its share of the light (:func:`tracking.dotfit.moment_shifts`) where that
-        shift is significant against the image noise, and is flagged DISTORTED. "none": the symmetric
-        model's centre. Only the model estimators (``centroid`` or ``correction`` "model") use it.
-    distortion_chi2 : float
-        Significance of that shift: it is applied where ``|d|^2`` exceeds this many times half its
-        variance under the image's white noise (a false alarm on an undistorted dot has probability
-        ``exp(-distortion_chi2 / 2)``: 3.7e-6 at the default 25, so the fit stays at the Cramer-Rao bound).
-    weights : (W_A, W_I, W_dx)
-        Blob score weights of Eq. 1 (area, peak intensity, distance from the prediction).
-    diameter : float or None
-        Dot e^-2 diameter in pixels; None estimates it from the reference image's auto-correlation,
-        ``d_p = d_cc / sqrt(2)``.
-    window_margin : float
-        Pixels added to the dot radius for the identification window (half-width
-        ``ceil(d / 2 + window_margin)``).
-    max_iterations : int
-        Iterations on the residual image (Eq. 2); identification stops earlier when every dot is found or
-        an iteration finds no new one.
-    max_displacement : float
-        Largest expected distance in pixels of a dot's gradient-image position from its prediction (the
-        reference position with ``predictor="none"``, so then the largest displacement): the window of a
-        second search for dots the first one missed grows by it, and it bounds that search.
-    prior_radius : float
-        Largest distance in pixels between a dot's peak pixel and its prior position.
-    cc_threshold : float
-        A correlation correction differing from the centroid difference by more than this (pixels) is
-        flagged CC_FLAGGED.
-    background : {"ring-median", "minimum"}
-        Background of a window, subtracted before fitting and correlating: the median of the window's edge
-        pixels (robust to noise and to neighbouring dots) or the window minimum.
-    threshold_fraction : float
-        Segmentation threshold above the background, as a fraction of the window's peak.
-    noise_threshold : float
-        The segmentation threshold is at least this many noise standard deviations.
-    detection_snr : float
-        A blob is a dot only if its peak exceeds the background by this many noise standard deviations ...
-    min_relative_peak : float
-        ... and by this fraction of the median dot peak of the image.
-    matching : {"nearest", "multiparametric"}
-        Pairing of standard tracking (no prior).
-    match_weights : (w_distance, w_intensity, w_diameter)
-        Weights of the multi-parametric match.
-    search_radius : float or None
-        Pairing radius of standard tracking (around the predicted position); ``max_displacement + 1`` by
-        default.
-    identification : {"dynamic", "static"}
-        Whole-image identification of standard tracking.
-    threshold : float or None
-        Intensity threshold of standard identification; None: median + ``threshold_fraction`` times the
-        range to the 99.9th percentile (at least ``noise_threshold`` sigmas).
-    n_levels : int
-        Threshold levels of the dynamic segmentation.
-    saturation_level : float or None
-        Intensity at which pixels saturate; None: the image maximum when five or more pixels share it.
-    predictor : {"correlation", "none"}
-        Prediction of the gradient-image positions, with and without a prior. "none" is the paper's: the
-        reference position, with the window widened by ``max_displacement`` (displacements up to about
-        ``max_displacement``). "correlation" (default, an addition) adds the displacement of a
-        coarse-to-fine pyramid of window-offset correlations of the pair
-        (:func:`tracking.predict.predict_displacement`; shifts up to about a quarter of the first
-        window), so the gradient window stays as small as the reference one; dots it misses are looked
-        for again in a window widened by ``max_displacement`` around the prediction. Every match is
-        checked against the prediction (PREDICTOR_MISMATCH, PREDICTOR_WEAK).
-    predictor_windows : tuple of int
-        Tile sizes of the predictor's correlation passes, coarse first (a size may repeat: another
-        pass at that size); the first should be at least four times the largest displacement. The
-        pyramid ends early once a pass changes the field by no more than 0.25 px, so a gentle field
-        costs two passes and a strongly varying one goes on to the 16 px tiles. (Until h9b the
-        default was (64, 32, 16) window-deformation passes with 50 % overlap.)
-    predictor_tolerance : float
-        A measured displacement further than this (pixels) from the predicted one is flagged
-        PREDICTOR_MISMATCH and not MATCHED.
-    predictor_min_correlation : float
-        Dots where the predictor's normalised correlation coefficient (its finest tiles at their
-        neighbours' displacement, pooled over about 20 dots) is below this are flagged
-        PREDICTOR_WEAK and not MATCHED. An unrelated frame gives 0 +- 0.1 (by chance up to ~0.45 in a
-        512x512 px image); a right prediction gives 0.9 to 1 at 1 % noise (of the dot peak) and about
-        0.8 at 5 %, but only about 0.5 for sparse patterns (6 dots per 32x32 px) at 10 %: lower it for
-        such images. -1 disables the test.
-    outlier_threshold : float
-        Normalised median test of each matched dot's displacement against the local linear fit of its
-        ``outlier_neighbours`` nearest matched dots (Westerweel and Scarano 2005 on scattered data, Duncan
-        et al. 2010): a dot further from the fit than this times (the neighbours' median distance from
-        it + ``outlier_epsilon``) is flagged OUTLIER and not MATCHED; ``inf`` disables the test.
-    outlier_epsilon : float
-        Measurement noise (px) of the test's normalisation.
-    outlier_neighbours : int
-        Neighbours of the median test.
-    registration_tolerance : float
-        Standard tracking (no prior) only: a matched dot whose window, registered onto the gradient image
-        by Lucas-Kanade steps from the measured displacement, ends further than this (px) from ``u_cc,
-        v_cc`` or ``u, v`` is flagged MISREGISTERED and not MATCHED (the pattern is not dots there);
-        ``inf`` disables the check. The registration's own error is ~0.03 px on 3 px dots without noise
-        and ~0.09 px at 5 % noise, so 0.25 px flags almost no true dot and keeps every dot measured within
-        about 0.5 px.
-    backend : {"warp", "numpy"}
-        The per-dot window step as a Warp kernel or as the NumPy reference (same results).
-
-    Examples
-    --------
-    >>> from synthbos import TrackingSettings
-    >>> TrackingSettings().centroid, TrackingSettings.paper(max_displacement=4.0).centroid
-    ('model', 'gaussian3')
-    >>> TrackingSettings(max_displacement=4.0).max_displacement  # px, for larger displacements
-    4.0
-    """
-
-    centroid: str = "model"
-    correction: str = "model"
-    fit_iterations: int = 3
-    distortion: str = "moment"
-    distortion_chi2: float = 25.0
-    weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
-    diameter: float | None = None
-    window_margin: float = 1.0
-    max_iterations: int = 5
-    max_displacement: float = 2.0
-    prior_radius: float = 1.5
-    cc_threshold: float = 0.5
-    background: str = "ring-median"
-    threshold_fraction: float = 0.1
-    noise_threshold: float = 2.0
-    detection_snr: float = 6.0
-    min_relative_peak: float = 0.3
-    matching: str = "nearest"
-    match_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    search_radius: float | None = None
-    identification: str = "dynamic"
-    threshold: float | None = None
-    n_levels: int = 8
-    saturation_level: float | None = None
-    predictor: str = "correlation"
-    predictor_windows: tuple[int, ...] = (64, 32, 16, 16)
-    predictor_tolerance: float = 1.5
-    predictor_min_correlation: float = 0.5
-    outlier_threshold: float = 3.0
-    outlier_epsilon: float = 0.2
-    outlier_neighbours: int = 12
-    registration_tolerance: float = 0.25
-    backend: str = "warp"
-
-    def __post_init__(self):
-        check_ranges(self, TRACKING_RANGES, "")
-        if self.centroid not in ("model", *CENTROID_METHODS):
-            raise SynthbosError(
-                f"unknown centroid method {self.centroid!r}; choose one of {('model', *CENTROID_METHODS)}"
-            )
-        if self.correction not in ("model", "paper"):
-            raise SynthbosError(f"unknown correction {self.correction!r}; choose 'model' or 'paper'")
-        if self.fit_iterations < 1:
-            raise SynthbosError(f"fit_iterations must be at least 1, got {self.fit_iterations}")
-        if self.distortion not in ("moment", "none"):
-            raise SynthbosError(f"unknown distortion {self.distortion!r}; choose 'moment' or 'none'")
-        if self.matching not in MATCH_METHODS:
-            raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
-        if self.background not in ("ring-median", "minimum"):
-            raise SynthbosError(f"unknown background {self.background!r}; choose 'ring-median' or 'minimum'")
-        if self.identification not in ("dynamic", "static"):
-            raise SynthbosError(f"unknown identification {self.identification!r}; choose 'dynamic' or 'static'")
-        if self.diameter is not None and not (np.isfinite(self.diameter) and self.diameter > 0):
-            raise SynthbosError(f"dot diameter must be a positive number, got {self.diameter!r}")
-        if self.predictor not in ("correlation", "none"):
-            raise SynthbosError(f"unknown predictor {self.predictor!r}; choose 'correlation' or 'none'")
-        if self.backend not in ("warp", "numpy"):
-            raise SynthbosError(f"unknown backend {self.backend!r}; choose 'warp' or 'numpy'")
-        if not (np.isfinite(self.predictor_tolerance) and self.predictor_tolerance > 0):
-            raise SynthbosError(f"predictor_tolerance must be a positive number, got {self.predictor_tolerance!r}")
-        if not (len(self.predictor_windows) and all(int(s) >= 8 for s in self.predictor_windows)):
-            raise SynthbosError(
-                f"predictor_windows must be window sizes of at least 8 px, got {self.predictor_windows!r}"
-            )
-        if self.max_iterations < 1:
-            raise SynthbosError(f"max_iterations must be at least 1, got {self.max_iterations}")
-
-    @classmethod
-    def paper(cls, **overrides):
-        """The procedure of Rajendran, Bane and Vlachos (2019): three-point Gaussian, map correlation."""
-        return cls(**{"centroid": "gaussian3", "correction": "paper", "distortion": "none", **overrides})
-
-    def as_dict(self):
-        """Plain ``{name: value}`` (tuples as lists, None as the string "auto") for file attributes."""
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = "auto" if v is None else (list(v) if isinstance(v, tuple) else v)
-        return out
 
 
 def _check_image(name, image):
@@ -479,25 +93,19 @@ def _check_image(name, image):
     return a, hi
 
 
-def _saturation_level(image, level, top=None):
-    """The given level, or the image's maximum (``top`` where known) if five or more pixels reach it."""
-    if level is not None:
-        return float(level)
-    top = image.max() if top is None else top
-    return float(top) if np.count_nonzero(image == top) >= 5 else np.inf
-
-
 def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, fill, device):
     """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
 
-    ``fill`` is the value of the pixels outside the image (the median background, :func:`_fill_level`).
-    Returns a dict of per-dot arrays: x, y, eta, i0, iteration, flags, root (N, 2) = (col, row) of the
-    dot's peak pixel, and, for the paper's correction (the only user), dotmap (N, c, c): its
-    background-free pixels centred on the peak, others zero.
+    ``fill`` is the value of the pixels outside the image (the median background,
+    :func:`tracking.frame_stats.fill_level`). Returns a dict of per-dot arrays: x, y, eta, i0, iteration,
+    flags, root (N, 2) = (col, row) of the dot's peak pixel, and, for the paper's correction (the only
+    user), dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
     """
     h_img, w_img = image.shape
     n = len(pred)
     c = 2 * map_half + 1
+    width_lo, width_hi = THREE_POINT_WIDTH_RANGE
+    clip_lo, clip_hi = RESIDUAL_WIDTH_CLIP
     out = {
         "x": np.full(n, np.nan),
         "y": np.full(n, np.nan),
@@ -555,7 +163,7 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         has = m["chosen"] >= 0
         cpeak = m["peak"]
         if ref_peak is None:
-            ref_peak = _median(cpeak[has]) if has.any() else 0.0
+            ref_peak = partial_median(cpeak[has]) if has.any() else 0.0
         ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
         ok &= cpeak > 0
         w = 2 * half + 1
@@ -592,11 +200,12 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             hc = np.full(len(win_idx), map_half)
             xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
         # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = ~(np.isfinite(xw) & np.isfinite(yw)) | (np.abs(xw - map_half) > 1.0) | (np.abs(yw - map_half) > 1.0)
+        wild = ~(np.isfinite(xw) & np.isfinite(yw))
+        wild |= (np.abs(xw - map_half) > WILD_FIT_PX) | (np.abs(yw - map_half) > WILD_FIT_PX)
         xw = np.where(wild, map_half, xw)
         yw = np.where(wild, map_half, yw)
         fit_ok &= ~wild
-        eta_ok = np.isfinite(eta) & (eta > 0.3 * eta0) & (eta < 3.0 * eta0)
+        eta_ok = np.isfinite(eta) & (eta > width_lo * eta0) & (eta < width_hi * eta0)
         eta = np.where(eta_ok, eta, eta0)
         i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
         g = win_idx if every else sel[win_idx]
@@ -629,23 +238,11 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
                         residual,
                         fxy[near],
                         out["i0"][idx],
-                        np.clip(out["eta"][idx], 0.5 * eta0, 1.5 * eta0),
-                        radius=int(np.ceil(4.5 * eta0)),
+                        np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
+                        radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
                     )
                     subtracted[idx] = True
     return out
-
-
-def _median(a):
-    """``np.median`` of a 1-D float array (the mean of the middle two for even sizes), by one partial sort
-    of ``a`` in place; NaN input goes to NumPy."""
-    k = a.size // 2
-    a.partition(k)
-    if np.isnan(a[k:]).any():  # NaN sorts last, so one would be in the upper half
-        return float(np.median(a))
-    if a.size % 2:
-        return float(a[k])
-    return float((a[:k].max() + a[k]) / 2.0)
 
 
 class _Frame(NamedTuple):
@@ -653,11 +250,6 @@ class _Frame(NamedTuple):
     noise: float
     saturation: float
     fill: float
-
-
-def _fill_level(image):
-    """Value of the pixels outside the image in the windows: the median of every fourth row and column."""
-    return _median(image[::4, ::4].flatten())  # np.median's value; flatten copies
 
 
 def _model_start(found, sigma0):
@@ -673,44 +265,6 @@ def _start_sigma(founds, eta0):
     """Common starting width of the model fit, from the widths of the dots found (:func:`start_width`)."""
     eta = np.concatenate([f["eta"][np.isfinite(f["x"])] for f in founds])
     return float(start_width(np.median(eta) if eta.size else np.nan, eta0))
-
-
-def start_width(median_eta, eta0):
-    """The model fit's common starting width: the median three-point width ``median_eta`` less the pixel's
-    own (variance 1/12), at least ``eta0 / 2``; ``eta0`` where the median is NaN (no dot found).
-    Scalars or arrays (one pair each)."""
-    med = np.asarray(median_eta, dtype=np.float64)
-    eta0 = np.asarray(eta0, dtype=np.float64)
-    width = np.sqrt(np.maximum(np.nan_to_num(med) ** 2 - 1.0 / 12.0, 0.25 * eta0**2))
-    return np.where(np.isfinite(med), width, eta0)
-
-
-def window_sizes(d, settings):
-    """``(eta0, half_r, half_g, map_half)`` for dots of e^-2 diameter ``d``: the nominal Gaussian width
-    ``d / 4``, the half-widths of the identification windows in the reference image and (widened by
-    ``max_displacement``) of the wide search, and the dot map's half-width."""
-    return (
-        d / 4.0,
-        int(np.ceil(d / 2.0 + settings.window_margin)),
-        int(np.ceil(d / 2.0 + settings.window_margin + settings.max_displacement)),
-        int(np.ceil(d / 2.0 + 0.5)),
-    )
-
-
-def residual_reach(half, eta0):
-    """Distance (px) from a dot still missing within which a found dot leaves the residual image (Eq. 2):
-    the window's half-diagonal, the subtracted stamp (4.5 eta0) and a pixel."""
-    return half * np.sqrt(2.0) + 4.5 * eta0 + 1.0
-
-
-def prior_inside(prior, shape):
-    """True where a prior position (``(..., 2)``, x = column) is finite and within half a pixel beyond the
-    outer pixel centres of an image of ``shape``."""
-    h, w = shape
-    prior = np.asarray(prior, dtype=np.float64)
-    fin = np.isfinite(prior).all(axis=-1)
-    p = np.where(fin[..., None], prior, -1e9)
-    return fin & (p[..., 0] > -0.5) & (p[..., 0] < w - 0.5) & (p[..., 1] > -0.5) & (p[..., 1] < h - 0.5)
 
 
 def _fit_models(images, founds, partner, eta0, saturation, noise, settings, device):
@@ -748,7 +302,7 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
         partner=pair,
         saturation=saturation,
         iterations=settings.fit_iterations,
-        sigma_range=(0.25 * eta0, 4.0 * eta0),
+        sigma_range=(MODEL_WIDTH_RANGE[0] * eta0, MODEL_WIDTH_RANGE[1] * eta0),
         **extra,
     )
     moved = np.zeros(len(params), dtype=bool)
@@ -922,14 +476,12 @@ def _misregistered(images, out, m, uv_cc, half, settings, device):
 #: A dot whose e^-2 disk reaches past the image edge by amounts that differ by more than this (px) between
 #: the two images is flagged EDGE_CUT: the truncation biases of its two centroids no longer cancel (the
 #: measured overshoots understate the difference, as both centroids are pulled inwards).
-_EDGE_CUT_PX = 0.5
-
-
 def _overshoot(x, y, radius, shape):
     """(N, 2): how far (px) a disk of ``radius`` at (x, y) reaches past the image area, along x and y."""
     h, w = shape
-    ox = np.maximum(np.maximum(-0.5 - (x - radius), (x + radius) - (w - 0.5)), 0.0)
-    oy = np.maximum(np.maximum(-0.5 - (y - radius), (y + radius) - (h - 0.5)), 0.0)
+    e = PIXEL_EDGE_PX
+    ox = np.maximum(np.maximum(-e - (x - radius), (x + radius) - (w - e)), 0.0)
+    oy = np.maximum(np.maximum(-e - (y - radius), (y + radius) - (h - e)), 0.0)
     return np.stack([ox, oy], axis=1)
 
 
@@ -1084,9 +636,9 @@ def track_pair(
     eta0, half_r, half_g, map_half = window_sizes(d, settings)
     noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
 
-    frame_r = _Frame(ref, noise_r, _saturation_level(ref, settings.saturation_level, top_r), _fill_level(ref))
-    frame_g = _Frame(grad, noise_g, _saturation_level(grad, settings.saturation_level, top_g), _fill_level(grad))
-    search = settings.max_displacement + 1.0 if settings.search_radius is None else settings.search_radius
+    frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, top_r), fill_level(ref))
+    frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, top_g), fill_level(grad))
+    search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
     use_pred = settings.predictor == "correlation"
     near_mask = None
     if excluded is not None:
@@ -1177,7 +729,7 @@ def track_pair(
     for name in ("u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
         out[name] = np.nan
     out["x"], out["y"] = r["x"], r["y"]
-    out["diameter"] = 4.0 * r["eta"]
+    out["diameter"] = DIAMETER_PER_WIDTH * r["eta"]
     out["peak"] = r["i0"]
     out["iteration"] = r["iteration"]
     status = r["flags"].astype(np.int32)
@@ -1218,7 +770,7 @@ def track_pair(
     over = [
         _overshoot(out[cx], out[cy], d / 2.0, (h_img, w_img)) for cx, cy in (("x", "y"), ("x_gradient", "y_gradient"))
     ]
-    cut = (np.abs(over[0] - over[1]) > _EDGE_CUT_PX).any(axis=1)
+    cut = (np.abs(over[0] - over[1]) > EDGE_CUT_PX).any(axis=1)
     cut &= matched
     status[cut] |= DotStatus.EDGE_CUT
     matched &= ~cut

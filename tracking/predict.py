@@ -27,6 +27,7 @@ from scipy import ndimage
 from synthbos.correlation.peak import three_point_offset
 
 from .kernels import deform_nearest_kernel
+from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 from .workspace import scratch
 
 __all__ = [
@@ -43,15 +44,8 @@ __all__ = [
 #: pixels (0.2 px per px in the tests). The pyramid ends at the first pass that changes little.
 PREDICTOR_WINDOWS = (64, 32, 16, 16)
 
-#: A pass that changes no tile's displacement by more than this (px) from the coarser pass's field
-#: (interpolated to its tile centres) ends the pyramid: the field is resolved for the tracker's needs.
-_RESOLVED = 0.25
-
 #: The samples of a correlation plane around its peak that the three-point fits read (row, column offsets).
 _CROSS = ((-1, 0), (0, -1), (0, 0), (0, 1), (1, 0))
-
-#: A tile takes part only where at least this fraction of its reference pixels is not masked.
-_MIN_VALID_FRACTION = 0.25
 
 
 def dots_inside(xy, shape):
@@ -139,7 +133,7 @@ def local_normalized_correlation(a, b, *, size, weights=None):
         return ndimage.uniform_filter(f, size=size, mode="constant")
 
     n = box(w)
-    enough = n > 0.25
+    enough = n > PREDICTOR_MIN_VALID_FRACTION
     n = np.where(enough, n, 1.0)
     ma, mb = box(w * a) / n, box(w * b) / n
     va = box(w * a * a) / n - ma * ma
@@ -405,7 +399,7 @@ def _correlate_tiles(reference, tb, partial, wt, shape, size, *, rows=None):
         # irfft2's factor: float32(1 / size**2) from a long double quotient, as pocketfft computes it
         planes *= np.float32(np.longdouble(1.0) / (size * size))
     norm = np.sqrt(ea * eb)
-    enough = _MIN_VALID_FRACTION * size * size
+    enough = PREDICTOR_MIN_VALID_FRACTION * size * size
     usable = ((na >= enough) & (nb >= enough) & (norm > 0)).reshape(shape)
     return planes, norm, usable, (ea.reshape(shape), eb.reshape(shape))
 
@@ -688,7 +682,7 @@ def predict_displacement(
         u, v = _replace_outliers(np.stack([base_u + ru, base_v + rv]))
         field = (_fill_nan(u), _fill_nan(v), cy, cx)
         change = np.maximum(np.abs(field[0] - prev_u), np.abs(field[1] - prev_v))
-        if np.all(change <= _RESOLVED):
+        if np.all(change <= PREDICTOR_RESOLVED_PX):
             break  # the coarser field already gave this one to within the finer pass's noise
     u, v = field[0], field[1]
 

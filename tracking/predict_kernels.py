@@ -27,16 +27,18 @@ from synthbos.correlation.pass_kernels import (
     weighted,
 )
 
+from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
+
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
-#: The pass's field must change no tile by more than this (px) for a pair to stop (``predict._RESOLVED``).
-RESOLVED = wp.constant(wp.float64(0.25))
-#: A tile takes part where at least this fraction of its pixels does (``predict._MIN_VALID_FRACTION``).
-MIN_VALID_FRACTION = wp.constant(wp.float64(0.25))
+#: The pass's field must change no tile by more than this (px) for a pair to stop.
+RESOLVED = wp.constant(wp.float64(PREDICTOR_RESOLVED_PX))
+#: A tile takes part where at least this fraction of its pixels does.
+MIN_VALID_FRACTION = wp.constant(wp.float64(PREDICTOR_MIN_VALID_FRACTION))
 
 
 @wp.struct

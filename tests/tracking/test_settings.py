@@ -1,0 +1,42 @@
+"""The vocabulary's one home (tracking.settings): the kernels' constants come from its values, and the
+names that lived in tracking.pipeline still reach the same objects."""
+
+import numpy as np
+import warp as wp
+from numpy.testing import assert_array_equal
+from synthbos.tracking import batch_kernels as bk
+from synthbos.tracking import kernels, pipeline, predict_kernels, settings
+
+
+def test_kernel_constants_are_the_settings_values():
+    pairs = [
+        (bk.EDGE_CUT_MAX, settings.EDGE_CUT_PX),
+        (bk.PIXEL_EDGE, settings.PIXEL_EDGE_PX),
+        ((bk.WIDTH_LO, bk.WIDTH_HI), settings.THREE_POINT_WIDTH_RANGE),
+        ((bk.CLIP_LO, bk.CLIP_HI), settings.RESIDUAL_WIDTH_CLIP),
+        (bk.STAMP_WIDTHS, settings.RESIDUAL_STAMP_WIDTHS),
+        ((bk.MODEL_LO, bk.MODEL_HI), settings.MODEL_WIDTH_RANGE),
+        (bk.DIAMETER_WIDTHS, settings.DIAMETER_PER_WIDTH),
+        (predict_kernels.RESOLVED, settings.PREDICTOR_RESOLVED_PX),
+        (predict_kernels.MIN_VALID_FRACTION, settings.PREDICTOR_MIN_VALID_FRACTION),
+        (kernels.SMALL_W, settings.SMALL_WINDOW),
+    ]
+    for constant, value in pairs:
+        assert_array_equal(np.asarray(constant, dtype=np.float64), np.asarray(value, dtype=np.float64))
+    # float64 constants, not Python floats that a kernel would read as float32
+    assert all(type(c) is wp.float64 for c in (bk.EDGE_CUT_MAX, bk.WIDTH_LO, predict_kernels.RESOLVED))
+    for bit in settings.DotStatus:
+        if hasattr(bk, bit.name):
+            assert getattr(bk, bit.name) == int(bit), bit.name
+
+
+def test_the_pipeline_names_are_the_settings_objects():
+    for name in ("TrackingSettings", "DotStatus", "TRACK_DTYPE", "is_valid", "window_sizes", "prior_inside"):
+        assert getattr(pipeline, name) is getattr(settings, name), name
+
+
+def test_window_geometry_of_a_3px_dot():
+    eta0, half_r, half_g, map_half = settings.window_sizes(3.0, settings.TrackingSettings())
+    assert (eta0, half_r, half_g, map_half) == (0.75, 3, 5, 2)  # ceil(1.5 + 1), ceil(1.5 + 1 + 2), ceil(2)
+    inside = settings.prior_inside(np.array([[-0.49, 0.0], [-0.5, 0.0], [9.49, 4.49], [np.nan, 1.0]]), (5, 10))
+    assert_array_equal(inside, [True, False, True, False])
