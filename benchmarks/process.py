@@ -75,7 +75,7 @@ import h5py
 import imageio.v3 as iio
 import numpy as np
 import tifffile
-from synthbos.correlation import multigrid
+from synthbos.correlation import flags as correlation_flags
 from synthbos.raytrace.pairfile import describe_datasets, is_scale, name_dimensions
 from synthbos.tracking import DotStatus
 
@@ -165,7 +165,7 @@ def _module_flag_bits(module) -> dict[int, tuple[str, str]]:
 
 # Bit-flag columns of the methods' tables, described from their own documentation.
 FLAG_BITS = {
-    "flags": _module_flag_bits(multigrid),
+    "flags": _module_flag_bits(correlation_flags),
     "status": _int_flag_bits(DotStatus),
 }
 

@@ -13,7 +13,6 @@ replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
 
 from __future__ import annotations
 
-import enum
 import numbers
 from dataclasses import dataclass, field, replace
 
@@ -24,6 +23,7 @@ from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
 from .device_pass import correlate_on_device, device_supports
+from .flags import VectorFlag
 from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
 from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation
@@ -44,41 +44,6 @@ __all__ = [
     "correlate_pair",
     "count_vectors",
 ]
-
-
-class VectorFlag(enum.IntFlag):
-    """Bits of :attr:`CorrelationResult.flags`; 0 is a vector measured in its own window and accepted.
-
-    A vector is *replaced* when its window gave a significant correlation peak that the normalised
-    median test rejected (``MEDIAN`` alone); it *failed* when its window gave no usable measurement
-    (``PEAK``, ``BORDER``, ``DISAGREE`` or ``ISOLATED``). Both carry in ``u``, ``v`` a value
-    interpolated from the valid vectors around them (harmonic interpolation,
-    ``validation.fill_by_interpolation``), so that the field stays continuous for integration (NaN where nothing
-    was measured anywhere). ``MASKED`` windows are NaN. :func:`count_vectors` counts them.
-
-    MEDIAN
-        Replaced by interpolation from the valid vectors around it: failed the normalised median test.
-    PEAK
-        Failed: correlation peak not significant (peak ratio below peak_ratio_min, random patterns
-        only, or peak correlation coefficient below min_correlation in the iterations that judge it).
-    BORDER
-        Failed: the correlation peak lay on the border of the correlation plane.
-    MASKED
-        Window more than half covered by the mask; u, v are NaN.
-    DISAGREE
-        Failed: differs from the previous pass's field (an independent, coarser estimate) by more than
-        max_disagreement times the window size.
-    ISOLATED
-        Failed: fewer than two of its (at least three unmasked) neighbours were measured, so nothing
-        confirms it; a lone vector among failed ones is as likely a chance peak.
-    """
-
-    MEDIAN = 1
-    PEAK = 2
-    BORDER = 4
-    MASKED = 8
-    DISAGREE = 16
-    ISOLATED = 32
 
 
 #: Bits meaning that a window gave no usable measurement.

@@ -19,25 +19,27 @@ from typing import Any
 
 import warp as wp
 
+from .flags import VectorFlag
 from .kernels import sample_image
+from .median_test import median_scale_wp, median_wp, normalised_residual_wp, vec8d
 
 wp.config.quiet = True
 wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})
 
-FLAG_MEDIAN = wp.constant(1)
-FLAG_PEAK = wp.constant(2)
-FLAG_BORDER = wp.constant(4)
-FLAG_MASKED = wp.constant(8)
-FLAG_DISAGREE = wp.constant(16)
-FLAG_ISOLATED = wp.constant(32)
+#: The :class:`correlation.flags.VectorFlag` bits, as the kernels read them.
+FLAG_MEDIAN = wp.constant(int(VectorFlag.MEDIAN))
+FLAG_PEAK = wp.constant(int(VectorFlag.PEAK))
+FLAG_BORDER = wp.constant(int(VectorFlag.BORDER))
+FLAG_MASKED = wp.constant(int(VectorFlag.MASKED))
+FLAG_DISAGREE = wp.constant(int(VectorFlag.DISAGREE))
+FLAG_ISOLATED = wp.constant(int(VectorFlag.ISOLATED))
 
 #: Relative size below which a three-point denominator counts as zero (``correlation.peak._TINY``).
 PEAK_TINY = wp.constant(wp.float64(1.0e-12))
 #: The largest float64, the peak ratio of a plane whose only positive value is its peak.
 FLOAT64_MAX = wp.constant(wp.float64(1.7976931348623157e308))
 
-vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
 
 # ---------------------------------------------------------------- cubic B-spline prefilter (Unser 1999)
@@ -581,20 +583,6 @@ def fit_peaks(
 
 
 @wp.func
-def sorted_median(values: vec8d, count: int) -> wp.float64:
-    """Median of the first ``count`` entries (``count`` >= 1), as ``validation._nan_median_last``."""
-    s = vec8d(values)
-    for a in range(1, count):
-        x = s[a]
-        b = a - 1
-        while b >= 0 and s[b] > x:
-            s[b + 1] = s[b]
-            b -= 1
-        s[b + 1] = x
-    return wp.float64(0.5) * (s[(count - 1) // 2] + s[count // 2])
-
-
-@wp.func
 def row_extended(field: wp.array2d(dtype=wp.float64), ok: wp.array2d(dtype=wp.int32), i: int, j: int) -> wp.vec2d:
     """(value, 1) of node (i, j) for -1 <= i <= ny, the rows continued linearly; (0, 0) where not valid."""
     ny = field.shape[0]
@@ -646,14 +634,10 @@ def median_residual(
                     count += 1
     if count == 0:
         return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    med = sorted_median(nb, count)
-    res = vec8d()
-    for a in range(count):
-        res[a] = wp.abs(nb[a] - med)
-    den = sorted_median(res, count) + epsilon
+    ms = median_scale_wp(nb, count)
+    r0 = normalised_residual_wp(wp.abs(field[i, j] - ms[0]), ms[1], epsilon)
     r2 = wp.float64(0.0)
-    if den > wp.float64(0.0):  # a zero denominator gives inf or NaN there: not counted
-        r0 = wp.abs(field[i, j] - med) / den
+    if wp.isfinite(r0):  # a zero denominator gives inf or NaN there: not counted, as on the host
         r2 = r0 * r0
     return wp.vec2d(r2, wp.float64(count))
 
@@ -710,7 +694,7 @@ def median_test(
                                 nb[count] = coef[y, x]
                                 count += 1
                 if count > 0:
-                    confirmed = coef[i, j] >= confirm_fraction * sorted_median(nb, count)
+                    confirmed = coef[i, j] >= confirm_fraction * median_wp(nb, count)
             outlier = not confirmed
         if outlier:
             f = f | FLAG_MEDIAN
@@ -760,7 +744,7 @@ def neighbour_median_at(
                     count += 1
     if count == 0:
         return wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return wp.vec2d(sorted_median(nb, count), wp.float64(count))
+    return wp.vec2d(median_wp(nb, count), wp.float64(count))
 
 
 @wp.kernel

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .median_test import median_scale, nan_median, normalised_residual
+
 __all__ = ["FILL_SWEEPS", "fill_by_interpolation", "neighbour_median", "normalized_median_test", "replace_outliers"]
 
 #: Jacobi sweeps of :func:`fill_by_interpolation` after its start from the neighbours' median. The
@@ -47,16 +49,6 @@ def _neighbours(field, *, extrapolate=False):
     )
 
 
-def _nan_median_last(stack):
-    """Median over the last axis ignoring NaN, and the number of non-NaN values (0 -> NaN median)."""
-    count = np.sum(~np.isnan(stack), axis=-1)
-    ordered = np.sort(stack, axis=-1)  # NaN sort last
-    lo = np.clip((count - 1) // 2, 0, None)[..., None]
-    hi = np.clip(count // 2, 0, stack.shape[-1] - 1)[..., None]
-    med = 0.5 * (np.take_along_axis(ordered, lo, -1) + np.take_along_axis(ordered, hi, -1))[..., 0]
-    return np.where(count > 0, med, np.nan), count
-
-
 def neighbour_median(field, valid=None):
     """Median of the valid 3x3 neighbours (centre excluded) of every node of a grid.
 
@@ -76,7 +68,7 @@ def neighbour_median(field, valid=None):
     field = np.asarray(field, dtype=np.float64)
     if valid is not None:
         field = np.where(valid, field, np.nan)
-    return _nan_median_last(_neighbours(field))
+    return nan_median(_neighbours(field))
 
 
 def normalized_median_test(u, v, *, epsilon=0.1, threshold=2.0, valid=None):
@@ -104,10 +96,10 @@ def normalized_median_test(u, v, *, epsilon=0.1, threshold=2.0, valid=None):
     For each component, with ``U_m`` the median of the (valid) 3x3 neighbours and ``r_m`` the median of
     the neighbours' residuals ``|U_i - U_m|``, the normalised residual is
     ``r_0 = |U_0 - U_m| / (r_m + epsilon)`` (Westerweel and Scarano, Exp. Fluids 39 (2005) 1096,
-    eq. 2); the two components are combined as ``sqrt(r_0u^2 + r_0v^2)``. Beyond the edges the field is
-    continued linearly, so that edge nodes of a field with a uniform gradient are not flagged (with
-    missing neighbours the median of a one-sided neighbourhood is off by the gradient). Nodes with
-    fewer than two valid neighbours are not flagged.
+    eq. 2; the core is :mod:`correlation.median_test`); the two components are combined as
+    ``sqrt(r_0u^2 + r_0v^2)``. Beyond the edges the field is continued linearly, so that edge nodes of
+    a field with a uniform gradient are not flagged (with missing neighbours the median of a one-sided
+    neighbourhood is off by the gradient). Nodes with fewer than two valid neighbours are not flagged.
     """
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
@@ -117,10 +109,9 @@ def normalized_median_test(u, v, *, epsilon=0.1, threshold=2.0, valid=None):
     enough = np.ones(u.shape, dtype=bool)
     for comp in (u, v):
         nb = _neighbours(np.where(valid, comp, np.nan), extrapolate=True)
-        med, count = _nan_median_last(nb)
-        resid_med, _ = _nan_median_last(np.abs(nb - med[..., None]))
+        med, scale, count = median_scale(nb)
         with np.errstate(invalid="ignore"):
-            r0 = np.abs(comp - med) / (resid_med + epsilon)
+            r0 = normalised_residual(np.abs(comp - med), scale, epsilon=epsilon)
         r2 += np.where(np.isfinite(r0), r0, 0.0) ** 2
         enough &= count >= 2
     return valid & enough & (np.sqrt(r2) > threshold)

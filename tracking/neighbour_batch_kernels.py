@@ -14,6 +14,7 @@ the bit), with the grid read per pair.
 """
 
 import warp as wp
+from synthbos.correlation.median_test import residual_limit_wp
 
 from .kernels import nearest_in_grid, plane_fit
 
@@ -314,7 +315,7 @@ def outlier_flags_kernel(
             bad[b, i] = 0
         return
     g = b * role.shape[1] + i
-    far = deviation(uv, value, b, i) > threshold * (spread[g] + epsilon)
+    far = deviation(uv, value, b, i) > residual_limit_wp(spread[g], epsilon, threshold)
     if far:
         bad[b, i] = 1
         if first_round != 0:
@@ -374,6 +375,6 @@ def confirm_flags_kernel(
     if (role[b, i] & QUERY) == 0 or shape[b][0] == 0:
         return
     g = b * role.shape[1] + i
-    limit = wp.min(threshold * (spread[g] + epsilon), tolerance)
+    limit = wp.min(residual_limit_wp(spread[g], epsilon, threshold), tolerance)
     if deviation(uv, value, b, i) <= limit:
         ok[b, i] = 1

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
+from synthbos.correlation.median_test import residual_limit
 from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
@@ -398,7 +399,8 @@ def _confirmed_by_neighbours(out, good, query, settings, device):
     qxy, quv = xy_uv(qi)
     fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), settings, device)
     r = np.linalg.norm(quv - fit, axis=1)
-    limit = np.minimum(settings.outlier_threshold * (spread + settings.outlier_epsilon), settings.predictor_tolerance)
+    limit = residual_limit(spread, epsilon=settings.outlier_epsilon, threshold=settings.outlier_threshold)
+    limit = np.minimum(limit, settings.predictor_tolerance)
     ok[qi] = r <= limit
     return ok
 
@@ -418,7 +420,8 @@ def _neighbour_outliers(xy, uv, settings, device):
 
     def far(fit, spread):  # |uv - fit| (the root of the sum of the two squares, as np.linalg.norm's) beyond the limit
         d = uv - fit
-        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) > threshold * (spread + epsilon)
+        limit = residual_limit(spread, epsilon=epsilon, threshold=threshold)
+        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) > limit
 
     own = np.arange(n)
     fit, spread, near = _neighbour_fit(xy, uv, xy, own, settings, device, return_neighbours=True)

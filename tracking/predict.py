@@ -24,6 +24,7 @@ import numpy as np
 import warp as wp
 from scipy import fft as sfft
 from scipy import ndimage
+from synthbos.correlation.median_test import median_scale, nan_median, residual_limit
 from synthbos.correlation.peak import three_point_offset
 
 from .kernels import deform_nearest_kernel
@@ -216,20 +217,6 @@ def _cell(t, centres):
     return i, f - i
 
 
-def _nanmedian0(stack):
-    """Median over the first axis of the finite values (NaN where there are none): ``np.nanmedian``
-    without its slow path for small arrays (the values sorted, NaN last, and the middle one or two read
-    off by the count of finite values)."""
-    srt = np.sort(stack, axis=0)
-    count = np.isfinite(stack).sum(axis=0)
-    lo = np.maximum(count - 1, 0) // 2
-    hi = np.maximum(count, 1) // 2
-    hi = np.where(count % 2 == 1, lo, hi)
-    a = np.take_along_axis(srt, lo[None], axis=0)[0]
-    b = np.take_along_axis(srt, hi[None], axis=0)[0]
-    return np.where(count > 0, 0.5 * (a + b), np.nan)
-
-
 #: The offsets (rows, columns) of a tile's eight neighbours.
 _NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
@@ -245,7 +232,7 @@ def _neighbours(u):
 def _neighbour_median(u):
     """Median of each tile's (up to) eight neighbours, the tile itself left out (NaN where it has none),
     of a field or a stack of fields (``(..., ny, nx)``)."""
-    return _nanmedian0(_neighbours(u))
+    return nan_median(_neighbours(u), axis=0)[0]
 
 
 def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
@@ -253,13 +240,11 @@ def _replace_outliers(u, *, threshold=3.0, epsilon=0.5):
     (of a field or of each of a stack of fields, ``(..., ny, nx)``).
 
     Westerweel and Scarano (2005): a tile further from its neighbours' median than ``threshold`` times
-    (their median distance from it + ``epsilon`` px) is an outlier.
+    (their median distance from it + ``epsilon`` px) is an outlier (:mod:`correlation.median_test`).
     """
-    around = _neighbours(u)
-    med = _nanmedian0(around)
-    scale = _nanmedian0(np.abs(around - med))
+    med, scale, _ = median_scale(_neighbours(u), axis=0)
     scale[np.isnan(scale)] = np.inf
-    bad = np.isfinite(med) & ~(np.abs(u - med) <= threshold * (scale + epsilon))
+    bad = np.isfinite(med) & ~(np.abs(u - med) <= residual_limit(scale, epsilon=epsilon, threshold=threshold))
     return np.where(bad, med, u)
 
 

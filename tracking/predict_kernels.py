@@ -17,6 +17,7 @@ displacement at ``(size // 2, size // 2)`` (as the host's planes).
 """
 
 import warp as wp
+from synthbos.correlation.median_test import median_scale_wp, median_sorted_wp, residual_limit_wp, vec8d
 from synthbos.correlation.pass_kernels import (
     centred_complex,
     cross_spectrum,
@@ -32,8 +33,6 @@ from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
-
-vec8d = wp.types.vector(length=8, dtype=wp.float64)
 
 #: The pass's field must change no tile by more than this (px) for a pair to stop.
 RESOLVED = wp.constant(wp.float64(PREDICTOR_RESOLVED_PX))
@@ -611,22 +610,10 @@ def sorted_neighbours(f: wp.array3d(dtype=wp.float64), b: int, i: int, j: int) -
 
 
 @wp.func
-def sorted_median(v: vec8d, cnt: int) -> wp.float64:
-    """Median of the first ``cnt`` (sorted) values (NaN where none): ``predict._nanmedian0``."""
-    if cnt == 0:
-        return wp.float64(wp.nan)
-    lo = (cnt - 1) // 2
-    hi = cnt // 2
-    if cnt % 2 == 1:
-        hi = lo
-    return wp.float64(0.5) * (v[lo] + v[hi])
-
-
-@wp.func
 def neighbour_median(f: wp.array3d(dtype=wp.float64), b: int, i: int, j: int) -> wp.float64:
     """Median of the finite neighbours of tile (i, j) (NaN where none): ``predict._neighbour_median``."""
     v, cnt = sorted_neighbours(f, b, i, j)
-    return sorted_median(v, cnt)
+    return median_sorted_wp(v, cnt)
 
 
 @wp.func
@@ -634,20 +621,12 @@ def median_test(f: wp.array3d(dtype=wp.float64), b: int, i: int, j: int) -> wp.f
     """Tile (i, j)'s value, or its neighbours' median where it fails the normalised median test
     (threshold 3, epsilon 0.5 px; a NaN tile fails where the median exists): ``predict._replace_outliers``."""
     v, cnt = sorted_neighbours(f, b, i, j)
-    med = sorted_median(v, cnt)
+    ms = median_scale_wp(v, cnt)
+    med = ms[0]
     x = f[b, i, j]
     if not wp.isfinite(med):
         return x
-    d = vec8d()
-    for q in range(cnt):
-        val = wp.abs(v[q] - med)
-        r = q
-        while r > 0 and d[r - 1] > val:
-            d[r] = d[r - 1]
-            r -= 1
-        d[r] = val
-    scale = sorted_median(d, cnt)
-    if wp.abs(x - med) <= wp.float64(3.0) * (scale + wp.float64(0.5)):
+    if wp.abs(x - med) <= residual_limit_wp(ms[1], wp.float64(0.5), wp.float64(3.0)):
         return x
     return med
 
