@@ -398,12 +398,14 @@ class _Plan:
             self._launch_all()
         self.runs += 1
         last = self.iterations[-1]
+        # copies: on the CPU device .numpy() is a view of the plan's buffers, which the plan's next run
+        # (a cached plan, the next pair) overwrites
         return {
-            "u": last.rep_u.numpy(),
-            "v": last.rep_v.numpy(),
-            "peak_ratio": last.ratio.numpy(),
-            "correlation": last.coef.numpy(),
-            "flags": last.flags[2].numpy(),
+            "u": last.rep_u.numpy().copy(),
+            "v": last.rep_v.numpy().copy(),
+            "peak_ratio": last.ratio.numpy().copy(),
+            "correlation": last.coef.numpy().copy(),
+            "flags": last.flags[2].numpy().copy(),
             "node": last.node,
         }
 

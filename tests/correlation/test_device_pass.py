@@ -61,6 +61,22 @@ def test_warp_path_matches_numpy_bump(case, device):
     assert_same_field(ref, dev)
 
 
+def test_a_result_keeps_its_values_when_the_cached_plan_runs_again(device):
+    """The Warp path reuses its plan for the next pair of the same size: the first result's arrays are
+    its own (on the CPU device a Warp array's .numpy() is a view of the plan's buffer)."""
+    field = bump_field((128, 128), amplitude=2.0)
+    a, b = synthetic_pair((128, 128), field, seed=5)
+    settings = CorrelationSettings(backend="warp", device=device)
+    first = correlate_pair(a, b, settings=settings)
+    kept = {k: np.array(getattr(first, k), copy=True) for k in ("u", "v", "flags")}
+    mask = np.zeros(a.shape, bool)
+    mask[40:100, 10:70] = True  # another result from the same plan: masked windows, other flags
+    second = correlate_pair(a, b, settings=settings, mask=mask)
+    assert not np.array_equal(second.flags, kept["flags"])
+    for k, before in kept.items():
+        assert_array_equal(getattr(first, k), before, err_msg=k)
+
+
 def test_warp_path_matches_numpy_turbulent_with_failures(device):
     """A rough field, a noisy patch and an image edge: failed, replaced and confirmed vectors alike."""
     field = random_phase_field((256, 256), seed=3, max_displacement=4.0)
