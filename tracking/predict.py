@@ -27,7 +27,7 @@ from scipy import ndimage
 from synthbos.correlation.median_test import median_scale, nan_median, residual_limit
 from synthbos.correlation.peak import three_point_offset
 
-from .kernels import deform_nearest_kernel
+from .deform_kernels import deform_nearest_kernel
 from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 from .workspace import scratch
 

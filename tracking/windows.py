@@ -13,7 +13,7 @@ import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .identify import blob_score, segment_windows
-from .kernels import measure_windows_kernel
+from .identify_kernels import measure_windows_kernel
 from .sorting import median_network
 
 __all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy", "median_network"]

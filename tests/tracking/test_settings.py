@@ -4,8 +4,8 @@ names that lived in tracking.pipeline still reach the same objects."""
 import numpy as np
 import warp as wp
 from numpy.testing import assert_array_equal
-from synthbos.tracking import batch_kernels as bk
-from synthbos.tracking import kernels, pipeline, predict_kernels, settings
+from synthbos.tracking import identify_kernels, pipeline, predict_kernels, settings
+from synthbos.tracking import kernel_constants as bk
 
 
 def test_kernel_constants_are_the_settings_values():
@@ -19,7 +19,7 @@ def test_kernel_constants_are_the_settings_values():
         (bk.DIAMETER_WIDTHS, settings.DIAMETER_PER_WIDTH),
         (predict_kernels.RESOLVED, settings.PREDICTOR_RESOLVED_PX),
         (predict_kernels.MIN_VALID_FRACTION, settings.PREDICTOR_MIN_VALID_FRACTION),
-        (kernels.SMALL_W, settings.SMALL_WINDOW),
+        (identify_kernels.SMALL_W, settings.SMALL_WINDOW),
     ]
     for constant, value in pairs:
         assert_array_equal(np.asarray(constant, dtype=np.float64), np.asarray(value, dtype=np.float64))
