@@ -49,6 +49,32 @@ def rounds_to(a: wp.float64, b: wp.float64, s: int) -> int:
     return 0
 
 
+@wp.func
+def copy_row(
+    image: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.float32),
+    use_valid: int,
+    src0: int,
+    copied: int,
+    at: int,
+    out: wp.array(dtype=wp.float32),
+    out_valid: wp.array(dtype=wp.float32),
+) -> int:
+    """``copied`` pixels of ``image`` from ``src0`` on copied to ``out`` from ``at`` on as float32, with
+    their weights (``valid``'s if ``use_valid``, else 1) to ``out_valid``; returns how many weights are
+    not 1."""
+    n_part = int(0)
+    for c in range(copied):
+        v = wp.float32(1.0)
+        if use_valid != 0:
+            v = valid[src0 + c]
+            if v != wp.float32(1.0):
+                n_part += 1
+        out[at + c] = wp.float32(image[src0 + c])
+        out_valid[at + c] = v
+    return n_part
+
+
 @wp.kernel
 def deform_nearest_kernel(
     image: wp.array(dtype=wp.float64),
@@ -141,14 +167,7 @@ def deform_nearest_kernel(
             copied = size
             if one_shift == 1 and copy_whole == 0:
                 copied = 0
-            for c in range(copied):
-                v = wp.float32(1.0)
-                if use_valid != 0:
-                    v = valid[src0 + c]
-                    if v != wp.float32(1.0):
-                        n_part += 1
-                out[at + c] = wp.float32(image[src0 + c])
-                out_valid[at + c] = v
+            n_part = copy_row(image, valid, use_valid, src0, copied, at, out, out_valid)
         for c in range(pixels):
             col = col0 + c
             ix = col_cell[col]

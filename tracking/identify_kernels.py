@@ -337,6 +337,144 @@ def _edge_network():
 
 
 @wp.func
+def load_small_window(image: wp.array2d(dtype=wp.float64), fill: wp.float64, ox: int, oy: int) -> vec_small_f:
+    """``load_window`` for the 7 x 7 window: its pixels from (``oy``, ``ox``) on, ``fill`` beyond the image."""
+    w = SMALL_W
+    win = vec_small_f()
+    if ox >= 0 and oy >= 0 and ox + w <= image.shape[1] and oy + w <= image.shape[0]:
+        for r in range(SMALL_W):
+            for c in range(SMALL_W):
+                win[wp.static(7 * r + c)] = image[oy + r, ox + c]
+    else:
+        for r in range(SMALL_W):
+            y = oy + r
+            row_in = y >= 0 and y < image.shape[0]
+            for c in range(SMALL_W):
+                x = ox + c
+                v = fill
+                if row_in and x >= 0 and x < image.shape[1]:
+                    v = image[y, x]
+                win[wp.static(7 * r + c)] = v
+    return win
+
+
+@wp.func
+def small_edge_median(win: vec_small_f) -> wp.float64:
+    """``edge_median`` of the 7 x 7 window: the median of its 24 edge pixels by the unrolled network."""
+    ring = vec_ring()
+    for c in range(SMALL_W):
+        ring[c] = win[c]
+        ring[wp.static(17 + c)] = win[wp.static(42 + c)]
+    for r in range(1, 6):
+        ring[wp.static(5 + 2 * r)] = win[wp.static(7 * r)]
+        ring[wp.static(6 + 2 * r)] = win[wp.static(7 * r + 6)]
+    for k in range(wp.static(len(_edge_network()))):
+        va = ring[wp.static(_edge_network()[k][0])]
+        vb = ring[wp.static(_edge_network()[k][1])]
+        # min and max as plain selects on one comparison: no branch depends on the data, and on the
+        # CPU each is one instruction (finite pixels; Warp's NaN-aware wp.min / wp.max take four)
+        lt = va < vb
+        ring[wp.static(_edge_network()[k][0])] = wp.where(lt, va, vb)
+        ring[wp.static(_edge_network()[k][1])] = wp.where(lt, vb, va)
+    return (ring[11] + ring[12]) / wp.float64(2.0)
+
+
+@wp.func
+def choose_small_blob(
+    win: vec_small_f,
+    area: vec_small_i,
+    roots: vec_small_i,
+    nblobs: int,
+    bg: wp.float64,
+    lx: wp.float64,
+    ly: wp.float64,
+    radius: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+) -> int:
+    """``choose_blob`` for the 7 x 7 window: the root of the blob with the best Eq. 1 score within
+    ``radius`` of (``lx``, ``ly``), -1 if none."""
+    w = SMALL_W
+    ma = wp.float64(-1.0e300)
+    mi = wp.float64(-1.0e300)
+    md = wp.float64(-1.0e300)
+    for k in range(nblobs):
+        p = roots[k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            ma = wp.max(ma, wp.float64(area[p]))
+            mi = wp.max(mi, win[p] - bg)
+            md = wp.max(md, dist)
+    chosen = int(-1)
+    best_score = wp.float64(-1.0e300)
+    for k in range(nblobs):
+        p = roots[k]
+        dist = peak_distance(p, w, lx, ly)
+        if dist <= radius:
+            score = eq1_score(wp.float64(area[p]), win[p] - bg, dist, ma, mi, md, wa, wi, wd)
+            if score > best_score:
+                best_score = score
+                chosen = p
+    return chosen
+
+
+@wp.func
+def cut_small_maps(
+    win: vec_small_f,
+    lab: vec_small_i,
+    chosen: int,
+    bg: wp.float64,
+    hc: int,
+    full_maps: int,
+    i: int,
+    dotmap: wp.array3d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """``cut_dot_map`` / ``cut_cross`` for the 7 x 7 window: a pixel is kept where it is the blob's, or
+    background with a blob neighbour."""
+    w = SMALL_W
+    rr = chosen // w
+    rc = chosen % w
+    cw = 2 * hc + 1
+    count = 5
+    if full_maps != 0:
+        count = cw * cw
+    for j in range(count):
+        # map row a, column b: the whole map, or the cross (peak, left, right, upper, lower; no division)
+        a = hc
+        b = hc
+        if full_maps != 0:
+            a = j // cw
+            b = j % cw
+        else:
+            off = cross_offset(j)
+            a = hc + off[0]
+            b = hc + off[1]
+        qr = rr + a - hc
+        qc = rc + b - hc
+        val = wp.float64(0.0)
+        if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
+            q = qr * w + qc
+            l = lab[q]
+            keep = l == chosen
+            if l < 0:
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        tr = qr + dy
+                        tc = qc + dx
+                        if tr >= 0 and tr < w and tc >= 0 and tc < w:
+                            if lab[tr * w + tc] == chosen:
+                                keep = True
+            if keep:
+                val = win[q] - bg
+        if full_maps == 0:
+            cross[i, j] = val
+        else:
+            dotmap[i, a, b] = val
+
+
+@wp.func
 def measure_small_window(
     image: wp.array2d(dtype=wp.float64),
     fill: wp.float64,
@@ -366,23 +504,9 @@ def measure_small_window(
     median are plain selects, which NaN pixels would upset)."""
     w = SMALL_W
     # load_window
-    win = vec_small_f()
+    win = load_small_window(image, fill, ox, oy)
     vmin = wp.float64(1.0e300)
     vmax = wp.float64(-1.0e300)
-    if ox >= 0 and oy >= 0 and ox + w <= image.shape[1] and oy + w <= image.shape[0]:
-        for r in range(SMALL_W):
-            for c in range(SMALL_W):
-                win[wp.static(7 * r + c)] = image[oy + r, ox + c]
-    else:
-        for r in range(SMALL_W):
-            y = oy + r
-            row_in = y >= 0 and y < image.shape[0]
-            for c in range(SMALL_W):
-                x = ox + c
-                v = fill
-                if row_in and x >= 0 and x < image.shape[1]:
-                    v = image[y, x]
-                win[wp.static(7 * r + c)] = v
     for r in range(SMALL_W):
         for c in range(SMALL_W):
             v = win[wp.static(7 * r + c)]
@@ -392,22 +516,7 @@ def measure_small_window(
     # edge_median
     bg = vmin
     if use_min == 0:
-        ring = vec_ring()
-        for c in range(SMALL_W):
-            ring[c] = win[c]
-            ring[wp.static(17 + c)] = win[wp.static(42 + c)]
-        for r in range(1, 6):
-            ring[wp.static(5 + 2 * r)] = win[wp.static(7 * r)]
-            ring[wp.static(6 + 2 * r)] = win[wp.static(7 * r + 6)]
-        for k in range(wp.static(len(_edge_network()))):
-            va = ring[wp.static(_edge_network()[k][0])]
-            vb = ring[wp.static(_edge_network()[k][1])]
-            # min and max as plain selects on one comparison: no branch depends on the data, and on the
-            # CPU each is one instruction (finite pixels; Warp's NaN-aware wp.min / wp.max take four)
-            lt = va < vb
-            ring[wp.static(_edge_network()[k][0])] = wp.where(lt, va, vb)
-            ring[wp.static(_edge_network()[k][1])] = wp.where(lt, vb, va)
-        bg = (ring[11] + ring[12]) / wp.float64(2.0)
+        bg = small_edge_median(win)
     thr = bg + wp.max(frac * (vmax - bg), floor)
     # segment_window: row-best of three, then steepest ascent, then the roots and areas. Both passes keep the
     # winner's value beside its index, so that no pixel is read through an index and only the (rare) root
@@ -455,26 +564,7 @@ def measure_small_window(
             lab[p] = rt
             area[rt] = area[rt] + 1
     # choose_blob
-    ma = wp.float64(-1.0e300)
-    mi = wp.float64(-1.0e300)
-    md = wp.float64(-1.0e300)
-    for k in range(nblobs):
-        p = roots[k]
-        dist = peak_distance(p, w, lx, ly)
-        if dist <= radius:
-            ma = wp.max(ma, wp.float64(area[p]))
-            mi = wp.max(mi, win[p] - bg)
-            md = wp.max(md, dist)
-    chosen = int(-1)
-    best_score = wp.float64(-1.0e300)
-    for k in range(nblobs):
-        p = roots[k]
-        dist = peak_distance(p, w, lx, ly)
-        if dist <= radius:
-            score = eq1_score(wp.float64(area[p]), win[p] - bg, dist, ma, mi, md, wa, wi, wd)
-            if score > best_score:
-                best_score = score
-                chosen = p
+    chosen = choose_small_blob(win, area, roots, nblobs, bg, lx, ly, radius, wa, wi, wd)
     out_int[i, 0] = chosen
     out_int[i, 1] = nblobs
     out_int[i, 2] = 0
@@ -491,45 +581,8 @@ def measure_small_window(
         out_int[i, 2] = nsat
         out_float[i, 1] = win[chosen] - bg
         out_float[i, 2] = peak_distance(chosen, w, lx, ly)
-    # cut_dot_map / cut_cross: a pixel is kept where it is the blob's, or background with a blob neighbour
-    rr = chosen // w
-    rc = chosen % w
-    cw = 2 * hc + 1
-    count = 5
-    if full_maps != 0:
-        count = cw * cw
-    for j in range(count):
-        # map row a, column b: the whole map, or the cross (peak, left, right, upper, lower; no division)
-        a = hc
-        b = hc
-        if full_maps != 0:
-            a = j // cw
-            b = j % cw
-        else:
-            off = cross_offset(j)
-            a = hc + off[0]
-            b = hc + off[1]
-        qr = rr + a - hc
-        qc = rc + b - hc
-        val = wp.float64(0.0)
-        if chosen >= 0 and qr >= 0 and qr < w and qc >= 0 and qc < w:
-            q = qr * w + qc
-            l = lab[q]
-            keep = l == chosen
-            if l < 0:
-                for dy in range(-1, 2):
-                    for dx in range(-1, 2):
-                        tr = qr + dy
-                        tc = qc + dx
-                        if tr >= 0 and tr < w and tc >= 0 and tc < w:
-                            if lab[tr * w + tc] == chosen:
-                                keep = True
-            if keep:
-                val = win[q] - bg
-        if full_maps == 0:
-            cross[i, j] = val
-        else:
-            dotmap[i, a, b] = val
+    # cut_dot_map / cut_cross
+    cut_small_maps(win, lab, chosen, bg, hc, full_maps, i, dotmap, cross)
 
 
 @wp.func
