@@ -1,6 +1,8 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of the batched correlation predictor (host code: :mod:`tracking.predict_batch`).
+"""Warp kernels of the batched correlation predictor (host code: :mod:`tracking.predict_batch`): which pairs
+run, tile grids and fields, the deformation, peak fits, the median test and the end of a pass; the tile
+correlation is in :mod:`tracking.predict_fft_kernels`.
 
 Kernels and ``@wp.func`` steps only. Each kernel does one step of a pass of
 :func:`tracking.predict.predict_displacement` for every pair of a batch at once (threads indexed by pair
