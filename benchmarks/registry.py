@@ -145,7 +145,13 @@ def _checked(method: Method) -> Method:
 
 
 # the Warp modules that track_pair launches (compiled ahead of the work by a campaign: scheduling)
-_TRACKING_KERNELS = ("synthbos.tracking.kernels", "synthbos.tracking.moment_kernels")
+_TRACKING_KERNELS = (
+    "synthbos.tracking.identify_kernels",
+    "synthbos.tracking.fit_kernels",
+    "synthbos.tracking.moment_kernels",
+    "synthbos.tracking.neighbour_kernels",
+    "synthbos.tracking.deform_kernels",
+)
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,

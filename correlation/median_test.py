@@ -25,7 +25,7 @@ Scattered dots of the tracker's outlier test (the ``k`` nearest dots)
     Host ``tracking.pipeline`` (the outlier test and the confirmation of the predictor), device
     ``tracking.neighbour_batch_kernels.outlier_flags_kernel`` and ``confirm_flags_kernel``: ``U_m`` is
     a local linear fit's value at the dot and ``r_m`` the median distance of the neighbours' vectors
-    from the fit (``tracking.neighbours``, ``tracking.kernels.plane_fit``); the distance ``|uv - U_m|``
+    from the fit (``tracking.neighbours``, ``tracking.neighbour_kernels.plane_fit``); the distance ``|uv - U_m|``
     is compared with :func:`residual_limit` (:func:`residual_limit_wp`).
 
 The Warp funcs (suffix ``_wp``) work on the up to eight neighbours of a grid node in a :data:`vec8d`;

@@ -606,6 +606,15 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     >>> bool(np.allclose(res.u, 1.5, atol=0.02)), bool(np.allclose(res.v, 0.0, atol=0.02))
     (True, True)
     """
+    a, b, valid_px, settings = _checked_inputs(reference, gradient, settings, mask)
+    if settings.uses_warp():
+        return _correlate_pair_warp(a, b, valid_px, settings)
+    return _correlate_pair_host(a, b, valid_px, settings)
+
+
+def _checked_inputs(reference, gradient, settings, mask):
+    """``correlate_pair``'s inputs checked: the two images, the valid-pixel weights (None without a mask) and
+    the settings with an ``auto`` pattern resolved from the reference image."""
     if settings is None:
         settings = CorrelationSettings()
     if not isinstance(settings, CorrelationSettings):
@@ -624,73 +633,35 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     if settings.pattern == "auto":
         periodic = is_periodic(a if excluded is None else np.where(excluded, np.mean(a), a), settings.window_sizes[0])
         settings = replace(settings, pattern="periodic" if periodic else "random")
-    if settings.uses_warp():
-        return _correlate_pair_warp(a, b, valid_px, settings)
+    return a, b, valid_px, settings
 
+
+def _correlate_pair_host(a, b, valid_px, settings):
+    """``correlate_pair`` on the host: every pass and iteration on NumPy arrays."""
+    shape = a.shape
     coefs = None  # interpolant of each image, made at the first deformation
     prev = None  # (node_y, node_x, u, v) of the latest iteration
     for pass_index, (size, overlap, n_iter) in enumerate(
         zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
     ):
         g = window_grid(shape, size, overlap)
-        step, yc, xc, rows, cols = g.step, g.yc, g.xc, g.rows, g.cols
-        ny, nx = len(yc), len(xc)
-        r0, c0 = int(rows[0]), int(cols[0])
         win_valid, masked = _window_validity(valid_px, g)
         coarse = None  # the previous pass's field at this pass's nodes
         raw = None  # the measured (unreplaced) field of the previous iteration of this pass
         for iteration in range(n_iter):
-            pix_valid = win_valid
-            if prev is None:
-                img_a, img_b, origin = a, b, (r0, c0)
-                node_y, node_x = yc, xc
-                pu = pv = np.zeros((ny, nx))
-            else:
-                if coefs is None:
-                    if settings.interpolator == "cubic":
-                        coefs = (bspline3_coefficients(a), bspline3_coefficients(b))
-                    else:
-                        coefs = (a, b)
-                py, px, u_old, v_old = prev
-                q = SAMPLING_OFFSET
-                node_y, node_x = yc + q, xc + q
-                du, dv = grid_to_pixels((u_old, v_old), py, px, rows + q, cols + q)
-                pu, pv = grid_to_pixels((u_old, v_old), py, px, node_y, node_x).astype(np.float64)
-                if iteration == 0 and pass_index > 0:
-                    coarse = (pu, pv)
-                img_a, img_b = deform_pair(
-                    *coefs,
-                    du,
-                    dv,
-                    origin=(r0 + q, c0 + q),
-                    interpolator=settings.interpolator,
-                    device=settings.device,
-                )
-                origin = (0, 0)
-                edge = _edge_weights(du, dv, rows + q, cols + q, shape, EDGE_MARGIN)
-                if edge is not None:
-                    edge = extract_windows(edge, size, step, 0, 0, ny, nx).reshape(-1, size, size)
-                    pix_valid = edge if win_valid is None else edge * win_valid
-            wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
-            wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
-            planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
-            select = settings.peak_selection(size)
-            prow, pcol, border = subpixel_peak(
-                planes, method=settings.subpixel, weights=overlap_weights((size, size)), select=select
+            if prev is not None and coefs is None:
+                if settings.interpolator == "cubic":
+                    coefs = (bspline3_coefficients(a), bspline3_coefficients(b))
+                else:
+                    coefs = (a, b)
+            wa, wb, pix_valid, node_y, node_x, pu, pv = _iteration_windows(
+                a, b, coefs, prev, g, size, win_valid, settings
             )
-            ratio = peak_ratio(planes, select=select).reshape(ny, nx)
-            coef = _peak_coefficient(planes, norm).reshape(ny, nx)
-            u = pu + (pcol - size // 2).reshape(ny, nx)
-            v = pv + (prow - size // 2).reshape(ny, nx)
-            flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
-            weak = ratio < settings.peak_ratio_threshold()
-            if norm is not None and judges_correlation(settings, pass_index, iteration):
-                weak |= coef < settings.min_correlation
-            flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
-            if coarse is not None:
-                far = np.hypot(u - coarse[0], v - coarse[1]) > settings.max_disagreement * size
-                flags |= np.where(far, FLAG_DISAGREE, 0).astype(np.int32)
-            flags |= np.where(masked, FLAG_MASKED, 0).astype(np.int32)
+            if prev is not None and iteration == 0 and pass_index > 0:
+                coarse = (pu, pv)
+            u, v, ratio, coef, flags = _measured_field(
+                wa, wb, pix_valid, (pu, pv), size, settings, (pass_index, iteration), coarse, masked
+            )
             outliers = normalized_median_test(
                 u, v, epsilon=settings.median_epsilon, threshold=settings.median_threshold, valid=flags == 0
             )
@@ -711,3 +682,66 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     return CorrelationResult(
         x=x, y=y, u=u, v=v, peak_ratio=ratio, flags=flags, settings=settings, correlation=coef
     )
+
+
+def _iteration_windows(a, b, coefs, prev, g, size, win_valid, settings):
+    """The windows one iteration correlates: of the images themselves at the first iteration of all, else
+    of the images deformed by the latest field ``prev``; with their pixel weights, the nodes and the
+    predictor ``(pu, pv)`` at the nodes."""
+    step, yc, xc, rows, cols = g.step, g.yc, g.xc, g.rows, g.cols
+    ny, nx = len(yc), len(xc)
+    r0, c0 = int(rows[0]), int(cols[0])
+    pix_valid = win_valid
+    if prev is None:
+        img_a, img_b, origin = a, b, (r0, c0)
+        node_y, node_x = yc, xc
+        pu = pv = np.zeros((ny, nx))
+    else:
+        py, px, u_old, v_old = prev
+        q = SAMPLING_OFFSET
+        node_y, node_x = yc + q, xc + q
+        du, dv = grid_to_pixels((u_old, v_old), py, px, rows + q, cols + q)
+        pu, pv = grid_to_pixels((u_old, v_old), py, px, node_y, node_x).astype(np.float64)
+        img_a, img_b = deform_pair(
+            *coefs,
+            du,
+            dv,
+            origin=(r0 + q, c0 + q),
+            interpolator=settings.interpolator,
+            device=settings.device,
+        )
+        origin = (0, 0)
+        edge = _edge_weights(du, dv, rows + q, cols + q, a.shape, EDGE_MARGIN)
+        if edge is not None:
+            edge = extract_windows(edge, size, step, 0, 0, ny, nx).reshape(-1, size, size)
+            pix_valid = edge if win_valid is None else edge * win_valid
+    wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
+    wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
+    return wa, wb, pix_valid, node_y, node_x, pu, pv
+
+
+def _measured_field(wa, wb, pix_valid, predictor, size, settings, at, coarse, masked):
+    """One iteration's measured field ``(u, v)`` (the predictor plus the peak's offset), its peak ratio,
+    peak coefficient and the flags of every test before the normalised median test; ``at`` is
+    ``(pass_index, iteration)``."""
+    pu, pv = predictor
+    ny, nx = pu.shape
+    planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
+    select = settings.peak_selection(size)
+    prow, pcol, border = subpixel_peak(
+        planes, method=settings.subpixel, weights=overlap_weights((size, size)), select=select
+    )
+    ratio = peak_ratio(planes, select=select).reshape(ny, nx)
+    coef = _peak_coefficient(planes, norm).reshape(ny, nx)
+    u = pu + (pcol - size // 2).reshape(ny, nx)
+    v = pv + (prow - size // 2).reshape(ny, nx)
+    flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
+    weak = ratio < settings.peak_ratio_threshold()
+    if norm is not None and judges_correlation(settings, *at):
+        weak |= coef < settings.min_correlation
+    flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
+    if coarse is not None:
+        far = np.hypot(u - coarse[0], v - coarse[1]) > settings.max_disagreement * size
+        flags |= np.where(far, FLAG_DISAGREE, 0).astype(np.int32)
+    flags |= np.where(masked, FLAG_MASKED, 0).astype(np.int32)
+    return u, v, ratio, coef, flags

@@ -27,9 +27,10 @@ from synthbos import SynthbosError
 from synthbos.device import init_warp
 
 from . import batch_kernels as bk
+from . import claim_kernels as ck
 from .dotfit import _fixed_point_scale, fit_window_half
+from .fit_kernels import render_dots_kernel
 from .frame_stats import frame_statistics
-from .kernels import render_dots_kernel
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
 from .predict import pooling_block, predictor_passes
@@ -185,7 +186,7 @@ class _Batch:
         origin = self.zeros((M, 2), wp.int32)
         todo = self.zeros(M, wp.int32)
         subtracted = self.zeros(M, wp.int32)
-        self.launch(bk.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
+        self.launch(ck.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
         wp.copy(self.residual, image)
         active = self.full(self.B, 1, wp.int32)
         won = self.zeros(self.B, wp.int32)
@@ -213,7 +214,7 @@ class _Batch:
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
         for it in range(1, s.max_iterations + 1):
             self.launch(
-                bk.measure_batch,
+                ck.measure_batch,
                 n_ids,
                 [
                     self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
@@ -227,29 +228,29 @@ class _Batch:
                 self.launch(bk.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
                 ref_peak = self.segment_median(values, valid, self.N, self.B)
             self.launch(
-                bk.accept_blobs,
+                ck.accept_blobs,
                 n_ids,
                 [
                     ids, self.N, out_int, out_float, origin, noise, ref_peak, float(s.detection_snr),
                     float(s.min_relative_peak), w, self.hp, self.wpad, key, self.claim_dist,
                 ],
             )  # fmt: skip
-            self.launch(bk.claim_nearest, n_ids, [ids, out_float, key, self.claim_dist, self.claim_id])
+            self.launch(ck.claim_nearest, n_ids, [ids, out_float, key, self.claim_dist, self.claim_id])
             self.launch(
-                bk.take_blobs,
+                ck.take_blobs,
                 n_ids,
                 [
                     ids, self.N, it, out_int, out_float, cross, origin, key, self.claim_id, self.eta0, w,
                     out["x"], out["y"], out["eta"], out["i0"], out["iteration"], out["root"], out["flags"], todo, won,
                 ],
             )  # fmt: skip
-            self.launch(bk.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
-            self.launch(bk.next_round, self.B, [won, active])
+            self.launch(ck.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
+            self.launch(ck.next_round, self.B, [won, active])
             if it < s.max_iterations:
-                self.launch(bk.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
+                self.launch(ck.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
                 self.grid.build(points, float(np.max(reach_px)) + 1.0)
                 self.launch(
-                    bk.subtract_near_waiting,
+                    ck.subtract_near_waiting,
                     n_ids,
                     [
                         self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
@@ -544,7 +545,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         if n_miss:
             g2 = batch.identify(grads, 1, pred_g, miss, n_miss, wide=True)
             batch.launch(
-                bk.merge_wide,
+                ck.merge_wide,
                 n_miss,
                 [miss, *(g2[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags")),
                  *(g[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags"))],
@@ -552,17 +553,17 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
             key = wp.empty(M, dtype=wp.int32, device=device)
             w = 2 * batch.geometry.half_g + 1
             batch.launch(
-                bk.claim_shared_blobs,
+                ck.claim_shared_blobs,
                 M,
                 [N, has_miss, g["x"], g["y"], g["root"], pred_g, w, batch.hp, batch.wpad, key, batch.claim_dist],
             )
-            batch.launch(bk.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, batch.claim_dist, batch.claim_id])
+            batch.launch(ck.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, batch.claim_dist, batch.claim_id])
             batch.launch(
-                bk.drop_shared_losers,
+                ck.drop_shared_losers,
                 M,
                 [key, batch.claim_id, g["x"], g["y"], g["eta"], g["i0"], g["iteration"], g["flags"]],
             )
-            batch.launch(bk.release_claims, M, [key, batch.claim_dist, batch.claim_id])
+            batch.launch(ck.release_claims, M, [key, batch.claim_dist, batch.claim_id])
     else:
         g = batch.identify(grads, 1, base, batch.all_ids, M, wide=True)
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)

@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
-from .kernels import fit_dot_step_kernel, render_dots_kernel
+from .fit_kernels import fit_dot_step_kernel, render_dots_kernel
 from .moment_kernels import (
     MAX_RESIDUAL_FLUX_REL,
     MAX_SHIFT_PER_SPREAD_REL,

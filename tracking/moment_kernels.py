@@ -14,7 +14,7 @@ The host code and the NumPy reference (``moment_shifts_numpy``, which defines th
 
 import warp as wp
 
-from .kernels import window_is_whole
+from .fit_kernels import window_is_whole
 
 wp.set_module_options({"enable_backward": False})
 

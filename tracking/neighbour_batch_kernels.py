@@ -9,14 +9,14 @@ the fitted points), ``QUERY`` (a place to fit at), both, or neither (0). Each pa
 ``tracking.neighbours._cell_grid`` over the box of its dots with a role; pair ``b``'s cell ``c = row * nx
 + col`` is ``b * stride + c`` of the batch, so that one exclusive scan of all the cells' counts gives
 every pair's runs at once. The k-nearest search and the fit are those of
-``tracking.kernels.neighbour_fit_kernel`` (the same operations in the same order: the same results to
+``tracking.neighbour_kernels.neighbour_fit_kernel`` (the same operations in the same order: the same results to
 the bit), with the grid read per pair.
 """
 
 import warp as wp
 from synthbos.correlation.median_test import residual_limit_wp
 
-from .kernels import nearest_in_grid, plane_fit
+from .neighbour_kernels import nearest_in_grid, plane_fit
 
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 

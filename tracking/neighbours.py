@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
-from .kernels import neighbour_fit_kernel
+from .neighbour_kernels import neighbour_fit_kernel
 from .windows import median_network
 from .workspace import scratch
 

@@ -102,11 +102,10 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     flags, root (N, 2) = (col, row) of the dot's peak pixel, and, for the paper's correction (the only
     user), dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
     """
-    h_img, w_img = image.shape
+    w_img = image.shape[1]
     n = len(pred)
     c = 2 * map_half + 1
     width_lo, width_hi = THREE_POINT_WIDTH_RANGE
-    clip_lo, clip_hi = RESIDUAL_WIDTH_CLIP
     out = {
         "x": np.full(n, np.nan),
         "y": np.full(n, np.nan),
@@ -119,19 +118,7 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     keep_maps = settings.correction == "paper"
     if keep_maps:
         out["dotmap"] = np.zeros((n, c, c))
-    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
-    px, py = pred[:, 0], pred[:, 1]
-    inside = (px > -0.5) & (px < w_img - 0.5)
-    inside &= py > -0.5
-    inside &= py < h_img - 0.5
-    out["flags"][~inside] |= DotStatus.OUTSIDE_IMAGE
-    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
-    origin_all -= half
-    ox, oy = origin_all[:, 0], origin_all[:, 1]
-    border = (ox < 0) | (oy < 0)
-    border |= ox + 2 * half >= w_img
-    border |= oy + 2 * half >= h_img
-    out["flags"][inside & border] |= DotStatus.NEAR_BORDER
+    inside, origin_all = _window_origins(pred, image.shape, half, out["flags"])
     todo = inside.copy()
     subtracted = np.zeros(n, dtype=bool)
     residual = image
@@ -167,45 +154,10 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             ref_peak = partial_median(cpeak[has]) if has.any() else 0.0
         ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
         ok &= cpeak > 0
-        w = 2 * half + 1
-        root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
-        root_c += origin[:, 0]
-        root_r += origin[:, 1]
-        # Two prior dots may claim one blob: the nearer keeps it, the other waits for the residual image.
-        absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
-        cidx = np.flatnonzero(ok)
-        claimed = np.sort(absroot[cidx])
-        if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
-            win_idx = cidx  # every blob claimed once (the usual case): nothing to resolve
-        else:
-            order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
-            first = np.ones(len(order), dtype=bool)
-            first[1:] = absroot[order][1:] != absroot[order][:-1]
-            win_idx = order[first]
-            out["flags"][sel[order[~first]]] |= DotStatus.AMBIGUOUS
+        root_r, root_c, win_idx = _claims(m, ok, origin, 2 * half + 1, w_img, sel, out["flags"])
         if win_idx.size == 0:
             break
-        # The model fit (centroid="model") starts from the three-point estimate, which needs only the
-        # peak pixel and its four neighbours.
-        if method == "gaussian3":
-            if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
-                cross = m["cross"]
-            else:
-                k0 = map_half * c + map_half
-                cross = m["dotmap"].reshape(len(sel), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
-            # the five samples as contiguous rows (the three-point fit's array operations read them often)
-            dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
-            xw, yw = map_half + dx, map_half + dy
-        else:
-            dotmap = m["dotmap"][win_idx]
-            hc = np.full(len(win_idx), map_half)
-            xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
-        # A wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel.
-        wild = ~(np.isfinite(xw) & np.isfinite(yw))
-        wild |= (np.abs(xw - map_half) > WILD_FIT_PX) | (np.abs(yw - map_half) > WILD_FIT_PX)
-        xw = np.where(wild, map_half, xw)
-        yw = np.where(wild, map_half, yw)
-        fit_ok &= ~wild
+        xw, yw, eta, i0, fit_ok = _window_centroids(m, win_idx, method, map_half)
         eta_ok = np.isfinite(eta) & (eta > width_lo * eta0) & (eta < width_hi * eta0)
         eta = np.where(eta_ok, eta, eta0)
         i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
@@ -225,25 +177,96 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
         out["flags"][g] = (out["flags"].take(g) & ~np.int32(DotStatus.AMBIGUOUS)) | flags
         todo[g] = False
         if todo.any() and it < max_iterations:
-            # Eq. 2, applied where it matters: found dots near a dot still missing leave the image.
-            found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
-            if found.size:
-                fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
-                near = cKDTree(fxy).query_ball_point(pred[todo], residual_reach(half, eta0))
-                near = np.unique(
-                    np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)])
-                )
-                if near.size:
-                    idx = found[near]
-                    residual = subtract_gaussians(
-                        residual,
-                        fxy[near],
-                        out["i0"][idx],
-                        np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
-                        radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
-                    )
-                    subtracted[idx] = True
+            residual = _subtract_found(residual, out, subtracted, pred[todo], half, eta0)
     return out
+
+
+def _window_origins(pred, shape, half, flags):
+    """Which predictions lie inside the image and each window's first (column, row); ``flags`` gets
+    OUTSIDE_IMAGE and NEAR_BORDER."""
+    h_img, w_img = shape
+    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
+    px, py = pred[:, 0], pred[:, 1]
+    inside = (px > -0.5) & (px < w_img - 0.5)
+    inside &= py > -0.5
+    inside &= py < h_img - 0.5
+    flags[~inside] |= DotStatus.OUTSIDE_IMAGE
+    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
+    origin_all -= half
+    ox, oy = origin_all[:, 0], origin_all[:, 1]
+    border = (ox < 0) | (oy < 0)
+    border |= ox + 2 * half >= w_img
+    border |= oy + 2 * half >= h_img
+    flags[inside & border] |= DotStatus.NEAR_BORDER
+    return inside, origin_all
+
+
+def _claims(m, ok, origin, w, w_img, sel, flags):
+    """The chosen blobs' peak pixels (row, column in the image) and the windows that keep their blob:
+    two prior dots may claim one blob, the nearer keeps it, the other (flagged AMBIGUOUS) waits for the
+    residual image."""
+    root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
+    root_c += origin[:, 0]
+    root_r += origin[:, 1]
+    absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
+    cidx = np.flatnonzero(ok)
+    claimed = np.sort(absroot[cidx])
+    if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
+        return root_r, root_c, cidx  # every blob claimed once (the usual case): nothing to resolve
+    order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = absroot[order][1:] != absroot[order][:-1]
+    flags[sel[order[~first]]] |= DotStatus.AMBIGUOUS
+    return root_r, root_c, order[first]
+
+
+def _window_centroids(m, win_idx, method, map_half):
+    """Each kept window's dot centre (window coordinates), width, peak and whether the fit held. The model
+    fit (centroid="model") starts from the three-point estimate, which needs only the peak pixel and its
+    four neighbours; a wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel."""
+    c = 2 * map_half + 1
+    if method == "gaussian3":
+        if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
+            cross = m["cross"]
+        else:
+            k0 = map_half * c + map_half
+            cross = m["dotmap"].reshape(len(m["chosen"]), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+        # the five samples as contiguous rows (the three-point fit's array operations read them often)
+        dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
+        xw, yw = map_half + dx, map_half + dy
+    else:
+        dotmap = m["dotmap"][win_idx]
+        hc = np.full(len(win_idx), map_half)
+        xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
+    wild = ~(np.isfinite(xw) & np.isfinite(yw))
+    wild |= (np.abs(xw - map_half) > WILD_FIT_PX) | (np.abs(yw - map_half) > WILD_FIT_PX)
+    xw = np.where(wild, map_half, xw)
+    yw = np.where(wild, map_half, yw)
+    fit_ok &= ~wild
+    return xw, yw, eta, i0, fit_ok
+
+
+def _subtract_found(residual, out, subtracted, missing, half, eta0):
+    """Eq. 2, applied where it matters: found dots near a dot still ``missing`` leave the residual image
+    (and are marked in ``subtracted``)."""
+    clip_lo, clip_hi = RESIDUAL_WIDTH_CLIP
+    found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
+    if not found.size:
+        return residual
+    fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
+    near = cKDTree(fxy).query_ball_point(missing, residual_reach(half, eta0))
+    near = np.unique(np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)]))
+    if not near.size:
+        return residual
+    idx = found[near]
+    subtracted[idx] = True
+    return subtract_gaussians(
+        residual,
+        fxy[near],
+        out["i0"][idx],
+        np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
+        radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
+    )
 
 
 class _Frame(NamedTuple):
@@ -613,24 +636,72 @@ def track_pair(
     True
     """
     settings = TrackingSettings() if settings is None else settings
+    ref, grad, tops, excluded = _checked_images(reference, gradient, mask)
+    prior = None if prior_xy is None else _checked_prior(prior_xy, mapping, ref.shape)
+    run = _setup(ref, grad, tops, excluded, settings, device)
+    if prior is not None:
+        r, g, pred = _dots_from_prior(run, prior)
+        partner = np.arange(len(prior))
+    else:
+        r, g, partner, pred = _dots_without_prior(run)
+    fits = None
+    if settings.centroid == "model" or settings.correction == "model":
+        saturation = (run.frame_r.saturation, run.frame_g.saturation)
+        noise = (run.frame_r.noise, run.frame_g.noise)
+        fits = _fit_models((ref, grad), (r, g), partner, run.eta0, saturation, noise, settings, device)
+    if settings.centroid == "model":
+        _take_model(r, fits[0])
+        _take_model(g, fits[1])
+    return _table(run, r, g, partner, prior, pred, fits)
+
+
+class _Run(NamedTuple):
+    """What every step of one pair's tracking reads: the images, the settings and the window geometry."""
+
+    ref: np.ndarray
+    grad: np.ndarray
+    excluded: np.ndarray | None
+    settings: TrackingSettings
+    device: object
+    diameter: float
+    eta0: float
+    half_r: int
+    half_g: int
+    map_half: int
+    frame_r: _Frame
+    frame_g: _Frame
+    search: float
+    near_mask: np.ndarray | None
+
+
+def _checked_images(reference, gradient, mask):
+    """The two images checked, their maxima (None where a mask filled them) and the checked mask."""
     ref, top_r = _check_image("reference", reference)
     grad, top_g = _check_image("gradient", gradient)
     if ref.shape != grad.shape:
         raise SynthbosError(f"reference and gradient images differ in shape: {ref.shape} and {grad.shape}")
-    h_img, w_img = ref.shape
     excluded = _check_mask(mask, ref.shape)
     if excluded is not None:
         ref, grad = _masked_fill(ref, excluded), _masked_fill(grad, excluded)
         top_r = top_g = None  # the maxima of the filled images
-    if prior_xy is not None:
-        prior = np.asarray(prior_xy, dtype=np.float64)
-        if prior.ndim != 2 or prior.shape[1] != 2:
-            raise SynthbosError(f"prior positions must be an Nx2 array, got shape {prior.shape}")
-        if mapping is not None:
-            prior = np.asarray(mapping(prior), dtype=np.float64).reshape(-1, 2)
-        if not prior_inside(prior, (h_img, w_img)).any():
-            raise SynthbosError(f"no prior dot lies inside the {h_img}x{w_img} image")
+    return ref, grad, (top_r, top_g), excluded
 
+
+def _checked_prior(prior_xy, mapping, shape):
+    """The prior positions checked and mapped into the image; some must lie inside it."""
+    h_img, w_img = shape
+    prior = np.asarray(prior_xy, dtype=np.float64)
+    if prior.ndim != 2 or prior.shape[1] != 2:
+        raise SynthbosError(f"prior positions must be an Nx2 array, got shape {prior.shape}")
+    if mapping is not None:
+        prior = np.asarray(mapping(prior), dtype=np.float64).reshape(-1, 2)
+    if not prior_inside(prior, (h_img, w_img)).any():
+        raise SynthbosError(f"no prior dot lies inside the {h_img}x{w_img} image")
+    return prior
+
+
+def _setup(ref, grad, tops, excluded, settings, device):
+    """The dot diameter, window geometry, both frames' statistics and the mask's reach."""
     d = settings.diameter
     if d is None:
         d = estimate_dot_diameter(ref)
@@ -638,95 +709,98 @@ def track_pair(
             raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
     eta0, half_r, half_g, map_half = window_sizes(d, settings)
     noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
-
-    frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, top_r), fill_level(ref))
-    frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, top_g), fill_level(grad))
+    frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, tops[0]), fill_level(ref))
+    frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, tops[1]), fill_level(grad))
     search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
-    use_pred = settings.predictor == "correlation"
     near_mask = None
     if excluded is not None:
         near_mask = ndimage.binary_dilation(excluded, structure=_disk(d / 2.0))
+    return _Run(
+        ref, grad, excluded, settings, device, d, eta0, half_r, half_g, map_half, frame_r, frame_g, search, near_mask
+    )
 
-    def predict(xy):
-        return predict_displacement(
-            ref, grad, xy, window_sizes=settings.predictor_windows, mask=excluded, device=device
-        )
 
-    def find(frame, pred, *, wide=False, standard=False):
-        """One call of the identification: the prior's narrow window, the paper's wide one, or standard."""
-        return _identify(
-            frame.image,
-            pred,
-            half=half_g if wide else half_r,
-            map_half=map_half,
-            radius=1.0 if standard else (search if wide else settings.prior_radius),
-            settings=settings,
-            eta0=eta0,
-            max_iterations=1 if standard else settings.max_iterations,
-            noise=frame.noise,
-            sat_level=frame.saturation,
-            fill=frame.fill,
-            device=device,
-        )
+def _predict(run, xy):
+    """The correlation predictor's displacement and coefficient at ``xy``."""
+    return predict_displacement(
+        run.ref, run.grad, xy, window_sizes=run.settings.predictor_windows, mask=run.excluded, device=run.device
+    )
 
-    if prior_xy is not None:
-        r = find(frame_r, prior)
-        found_r = np.isfinite(r["x"])
-        base = np.where(found_r[:, None], np.stack([r["x"], r["y"]], axis=1), prior)
-        if use_pred:
-            pred_uv, pred_q = predict(base)
-            pred_g = base + np.nan_to_num(pred_uv)
-            g = find(frame_g, pred_g)
-            # Dots the prediction missed get the paper's wide window, around the prediction.
-            miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
-            if miss.size:
-                g2 = find(frame_g, pred_g[miss], wide=True)
-                for key in g:
-                    if key == "flags":
-                        g[key][miss] |= g2[key]
-                    else:
-                        g[key][miss] = g2[key]
-                _drop_shared_blobs(g, pred_g)
-        else:
-            g = find(frame_g, base, wide=True)
-        partner = np.arange(len(prior))
-    else:
-        cand_r = _standard_candidates(ref, settings, noise_r)
-        cand_g = _standard_candidates(grad, settings, noise_g)
-        if excluded is not None:
-            cand_r = cand_r[~_touches(excluded, cand_r)]
-            cand_g = cand_g[~_touches(excluded, cand_g)]
-        r = find(frame_r, cand_r, standard=True)
-        g = find(frame_g, cand_g, standard=True)
-        r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
-        g = {k: v[np.isfinite(g["x"])] for k, v in g.items()}
-        rxy = np.stack([r["x"], r["y"]], axis=1)
-        gxy = np.stack([g["x"], g["y"]], axis=1)
-        if use_pred:
-            pred_uv, pred_q = predict(rxy)
-            rxy = rxy + np.nan_to_num(pred_uv)  # pair around the predicted gradient-image positions
-        if settings.matching == "nearest":
-            partner = match_nearest(rxy, gxy, radius=search)
-        else:
-            partner = match_multiparametric(
-                rxy,
-                gxy,
-                r["i0"],
-                g["i0"],
-                4 * r["eta"],
-                4 * g["eta"],
-                radius=search,
-                weights=settings.match_weights,
-            )
-    fits = None
-    if settings.centroid == "model" or settings.correction == "model":
-        saturation = (frame_r.saturation, frame_g.saturation)
-        noise = (frame_r.noise, frame_g.noise)
-        fits = _fit_models((ref, grad), (r, g), partner, eta0, saturation, noise, settings, device)
-    if settings.centroid == "model":
-        _take_model(r, fits[0])
-        _take_model(g, fits[1])
 
+def _find(run, frame, pred, *, wide=False, standard=False):
+    """One call of the identification: the prior's narrow window, the paper's wide one, or standard."""
+    settings = run.settings
+    return _identify(
+        frame.image,
+        pred,
+        half=run.half_g if wide else run.half_r,
+        map_half=run.map_half,
+        radius=1.0 if standard else (run.search if wide else settings.prior_radius),
+        settings=settings,
+        eta0=run.eta0,
+        max_iterations=1 if standard else settings.max_iterations,
+        noise=frame.noise,
+        sat_level=frame.saturation,
+        fill=frame.fill,
+        device=run.device,
+    )
+
+
+def _dots_from_prior(run, prior):
+    """The dots of both images found from the prior (the gradient image's around the prediction) and the
+    predictor's (displacement, coefficient), None without the predictor."""
+    r = _find(run, run.frame_r, prior)
+    found_r = np.isfinite(r["x"])
+    base = np.where(found_r[:, None], np.stack([r["x"], r["y"]], axis=1), prior)
+    if run.settings.predictor != "correlation":
+        return r, _find(run, run.frame_g, base, wide=True), None
+    pred_uv, pred_q = _predict(run, base)
+    pred_g = base + np.nan_to_num(pred_uv)
+    g = _find(run, run.frame_g, pred_g)
+    # Dots the prediction missed get the paper's wide window, around the prediction.
+    miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
+    if miss.size:
+        g2 = _find(run, run.frame_g, pred_g[miss], wide=True)
+        for key in g:
+            if key == "flags":
+                g[key][miss] |= g2[key]
+            else:
+                g[key][miss] = g2[key]
+        _drop_shared_blobs(g, pred_g)
+    return r, g, (pred_uv, pred_q)
+
+
+def _dots_without_prior(run):
+    """Standard tracking: the dots of each image found on their own and paired; returns both images'
+    dots, the partner of each reference dot and the predictor's (displacement, coefficient) or None."""
+    settings, excluded = run.settings, run.excluded
+    cand_r = _standard_candidates(run.ref, settings, run.frame_r.noise)
+    cand_g = _standard_candidates(run.grad, settings, run.frame_g.noise)
+    if excluded is not None:
+        cand_r = cand_r[~_touches(excluded, cand_r)]
+        cand_g = cand_g[~_touches(excluded, cand_g)]
+    r = _find(run, run.frame_r, cand_r, standard=True)
+    g = _find(run, run.frame_g, cand_g, standard=True)
+    r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
+    g = {k: v[np.isfinite(g["x"])] for k, v in g.items()}
+    rxy = np.stack([r["x"], r["y"]], axis=1)
+    gxy = np.stack([g["x"], g["y"]], axis=1)
+    pred = None
+    if settings.predictor == "correlation":
+        pred = _predict(run, rxy)
+        rxy = rxy + np.nan_to_num(pred[0])  # pair around the predicted gradient-image positions
+    if settings.matching == "nearest":
+        return r, g, match_nearest(rxy, gxy, radius=run.search), pred
+    sizes = (4 * r["eta"], 4 * g["eta"])
+    partner = match_multiparametric(
+        rxy, gxy, r["i0"], g["i0"], *sizes, radius=run.search, weights=settings.match_weights
+    )
+    return r, g, partner, pred
+
+
+def _positions(r, g, partner, *, with_prior):
+    """The table with both images' positions, widths and iterations, its status bits so far, which
+    reference and gradient dots were found and each reference dot's partner index (0 where none)."""
     n = len(r["x"])
     out = np.zeros(n, dtype=TRACK_DTYPE)
     for name in ("u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
@@ -747,31 +821,48 @@ def track_pair(
     out["x_gradient"] = np.where(found_g, gx, np.nan)
     out["y_gradient"] = np.where(found_g, gy, np.nan)
     out["iteration_gradient"] = np.where(found_g, g["iteration"][pi] if ng else 0, 0)
-    if prior_xy is not None:
+    if with_prior:
         status |= g["flags"].astype(np.int32) & ~np.int32(DotStatus.OUTSIDE_IMAGE)
     status[found_g] |= DotStatus.FOUND_GRADIENT
     status[found_g] |= g["flags"][pi[found_g]].astype(np.int32) & np.int32(DotStatus.DISTORTED)
+    return out, status, found_r, found_g, pi
+
+
+def _predictor_test(out, status, matched, found_r, found_g, pred, settings, device):
+    """The predictor's columns and its tests (PREDICTOR_MISMATCH unless the neighbours confirm the
+    displacement, PREDICTOR_WEAK); returns the pairs still matched."""
+    out["u_pred"] = out["v_pred"] = out["pred_correlation"] = np.nan
+    if pred is None:
+        return matched
+    pred_uv, pred_q = pred
+    out["u_pred"], out["v_pred"], out["pred_correlation"] = pred_uv[:, 0], pred_uv[:, 1], pred_q
+    du = out["x_gradient"] - out["x"] - pred_uv[:, 0]
+    dv = out["y_gradient"] - out["y"] - pred_uv[:, 1]
+    off = found_r & found_g & ~(np.hypot(du, dv) <= settings.predictor_tolerance)
+    weak = found_r & ~(pred_q >= settings.predictor_min_correlation)
+    off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings, device)
+    status[off] |= DotStatus.PREDICTOR_MISMATCH
+    status[weak] |= DotStatus.PREDICTOR_WEAK
+    return matched & ~(off | weak)
+
+
+def _table(run, r, g, partner, prior, pred, fits):
+    """The per-dot table (``TRACK_DTYPE``) from both images' dots: the mask, predictor, edge-cut and
+    neighbour tests, the corrections and the status bits."""
+    settings, device = run.settings, run.device
+    out, status, found_r, found_g, pi = _positions(r, g, partner, with_prior=prior is not None)
     matched = found_r & found_g
-    if near_mask is not None:
-        hidden = _touches(near_mask, np.stack([out["x"], out["y"]], axis=1))
-        hidden |= _touches(near_mask, np.stack([out["x_gradient"], out["y_gradient"]], axis=1))
-        if prior_xy is not None:
-            hidden |= _touches(near_mask, prior)
+    if run.near_mask is not None:
+        hidden = _touches(run.near_mask, np.stack([out["x"], out["y"]], axis=1))
+        hidden |= _touches(run.near_mask, np.stack([out["x_gradient"], out["y_gradient"]], axis=1))
+        if prior is not None:
+            hidden |= _touches(run.near_mask, prior)
         status[hidden] |= DotStatus.MASKED
         matched &= ~hidden
-    out["u_pred"] = out["v_pred"] = out["pred_correlation"] = np.nan
-    if use_pred:
-        out["u_pred"], out["v_pred"], out["pred_correlation"] = pred_uv[:, 0], pred_uv[:, 1], pred_q
-        du = out["x_gradient"] - out["x"] - pred_uv[:, 0]
-        dv = out["y_gradient"] - out["y"] - pred_uv[:, 1]
-        off = found_r & found_g & ~(np.hypot(du, dv) <= settings.predictor_tolerance)
-        weak = found_r & ~(pred_q >= settings.predictor_min_correlation)
-        off &= ~_confirmed_by_neighbours(out, matched & ~off & ~weak, off & ~weak, settings, device)
-        status[off] |= DotStatus.PREDICTOR_MISMATCH
-        status[weak] |= DotStatus.PREDICTOR_WEAK
-        matched &= ~(off | weak)
+    matched = _predictor_test(out, status, matched, found_r, found_g, pred, settings, device)
     over = [
-        _overshoot(out[cx], out[cy], d / 2.0, (h_img, w_img)) for cx, cy in (("x", "y"), ("x_gradient", "y_gradient"))
+        _overshoot(out[cx], out[cy], run.diameter / 2.0, run.ref.shape)
+        for cx, cy in (("x", "y"), ("x_gradient", "y_gradient"))
     ]
     cut = (np.abs(over[0] - over[1]) > EDGE_CUT_PX).any(axis=1)
     cut &= matched
@@ -788,8 +879,8 @@ def track_pair(
     matched[mi[wrong]] = False
     m = np.flatnonzero(matched)
     ucc, vcc, cc_ok = _corrections(out, r, g, pi, m, fits, settings)
-    if prior_xy is None and m.size and np.isfinite(settings.registration_tolerance):
-        off = _misregistered((ref, grad), out, m, (ucc, vcc), half_r, settings, device)
+    if prior is None and m.size and np.isfinite(settings.registration_tolerance):
+        off = _misregistered((run.ref, run.grad), out, m, (ucc, vcc), run.half_r, settings, device)
         status[m[off]] |= DotStatus.MISREGISTERED
         matched[m[off]] = False
         m, ucc, vcc, cc_ok = m[~off], ucc[~off], vcc[~off], cc_ok[~off]
@@ -804,5 +895,5 @@ def track_pair(
         st[off] |= DotStatus.CC_FLAGGED
         status[m] = st
     out["status"] = status
-    out["dot_id"] = np.arange(n) if prior_xy is not None else -1
+    out["dot_id"] = np.arange(len(out)) if prior is not None else -1
     return out

@@ -27,7 +27,7 @@ from scipy import ndimage
 from synthbos.correlation.median_test import median_scale, nan_median, residual_limit
 from synthbos.correlation.peak import three_point_offset
 
-from .kernels import deform_nearest_kernel
+from .deform_kernels import deform_nearest_kernel
 from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 from .workspace import scratch
 
@@ -615,46 +615,16 @@ def predict_displacement(
     field = None  # (u, v, centres_y, centres_x) of the previous pass
     for size in sizes:
         sparse = field is None and len(sizes) > 1 and _sparse_grid(h, w, size)
-        if sparse:
-            # the first pass only places the next one's search (a quarter of its tile): tiles at most twice
-            # their side apart (about a quarter of them)
-            ys, xs = _sparse_tile_grid(h, size), _sparse_tile_grid(w, size)
-        else:
-            ys, xs = _tile_grid(h, size), _tile_grid(w, size)
+        ys, xs = _pass_grid(h, w, size, sparse=sparse)
         ny, nx = len(ys), len(xs)
         if (size, sparse) not in spectra:
             spectra[size, sparse] = _reference_spectra(a, valid, ys, xs, size)
         cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
-        if field is None:
-            tb = _tile_stack(_tiles_view(b, ys, xs, size))
-            vb = None if valid is None else _tiles_view(valid, ys, xs, size)
-            partial = _partial_tiles(vb)
-            wt = _tile_stack(vb, which=partial) if _any(partial) else None
-            base_u = base_v = prev_u = prev_v = 0.0
-        else:
-            # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
-            # (a nearest-pixel window deformation: no interpolation, the residual is measured below),
-            # its tiles stacked
-            tb, wt, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
-            prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
+        tb, wt, base_u, base_v, prev_u, prev_v, partial = _gradient_tiles(b, valid, field, ys, xs, size, device)
         half = size // 2
-        if field is None:
-            top = 0  # the whole plane is searched
-            pl, norm, usable, energy = _correlate_tiles(spectra[size, sparse], tb, partial, wt, (ny, nx), size)
-            r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
-        else:  # the coarser pass placed the window: look for the residual within a quarter
-            lo, m = half - size // 4, 2 * (size // 4) + 1
-            # the planes' rows read (from ``top``): those searched and their neighbours, and those of the
-            # significance sample below (the neighbours' median residual lies within the search, so its
-            # nearest row within rint(lo - 0.5) ... rint(lo + m - 0.5)) and their neighbours
-            top = max(min(lo, int(np.rint(lo - 0.5))) - 1, 0)
-            stop = min(max(lo + m - 1, int(np.rint(lo + m - 0.5))) + 2, size)
-            pl, norm, usable, energy = _correlate_tiles(
-                spectra[size, sparse], tb, partial, wt, (ny, nx), size, rows=(top, stop)
-            )
-            search = pl[:, lo - top : lo - top + m, lo : lo + m]
-            r, c = np.divmod(np.argmax(search.reshape(len(pl), -1), axis=1), m)
-            r, c = r + lo, c + lo
+        pl, norm, usable, energy, r, c, top = _searched_planes(
+            spectra[size, sparse], tb, partial, wt, (ny, nx), size, whole=field is None
+        )
         r, c = np.clip(r, 1, size - 2), np.clip(c, 1, size - 2)
         i = np.arange(len(pl))
         scaled = np.where(norm > 0, norm, 1.0).astype(np.float32)  # the planes normalised where read
@@ -674,11 +644,62 @@ def predict_displacement(
     # Significance of the finest pass: each tile's coefficient at its neighbours' residual displacement.
     mu, mv = (_fill_nan(f) for f in _neighbour_median(np.stack([ru, rv])))
     coef = _gaussian_sample(pl, mv.ravel() + half, mu.ravel() + half, scaled, top=top, height=size).reshape(u.shape)
-    # pooled over k x k tiles as one coefficient: sum of covariances over the root of the sums of
-    # variances, so tiles without dots (variance of the noise only) hardly count
+    coef = _pooled_coefficient(coef, usable, energy, pooling_block(density, size, min_dots_per_box))
+
+    pts = np.where(fin[:, None], xy, 0.0)
+    u, v, quality = _bilinear(np.stack([u, v, coef]), cy, cx, pts[:, 1], pts[:, 0])
+    uv = np.stack([u, v], axis=1)
+    uv[~fin] = np.nan
+    quality = np.where(fin, quality, np.nan)
+    return uv, quality
+
+
+def _gradient_tiles(b, valid, field, ys, xs, size, device):
+    """A pass's gradient tiles stacked, their weights (None: all whole) and which are partial, with the
+    coarser field's rounded shifts ``base`` and its value ``prev`` at the tile centres (0 at the first pass)."""
+    if field is None:
+        tb = _tile_stack(_tiles_view(b, ys, xs, size))
+        vb = None if valid is None else _tiles_view(valid, ys, xs, size)
+        partial = _partial_tiles(vb)
+        wt = _tile_stack(vb, which=partial) if _any(partial) else None
+        return tb, wt, 0.0, 0.0, 0.0, 0.0, partial
+    # the gradient image moved back by the coarser field rounded to whole pixels at every pixel
+    # (a nearest-pixel window deformation: no interpolation, the residual is measured below),
+    # its tiles stacked
+    cy, cx = ys + (size - 1) / 2.0, xs + (size - 1) / 2.0
+    tb, wt, base_u, base_v, partial = _deform_nearest(b, valid, field, ys, xs, size, device)
+    prev_u, prev_v = _bilinear(np.stack(field[:2]), field[2], field[3], cy[:, None], cx[None, :])
+    return tb, wt, base_u, base_v, prev_u, prev_v, partial
+
+
+def _searched_planes(spectra, tb, partial, wt, shape, size, *, whole):
+    """A pass's correlation planes (their rows from ``top`` on), norms, usable tiles and energies, and each
+    plane's highest pixel (row, column): over the ``whole`` plane at the first pass, else within a
+    quarter of the tile around the coarser pass's displacement."""
+    half = size // 2
+    if whole:
+        top = 0  # the whole plane is searched
+        pl, norm, usable, energy = _correlate_tiles(spectra, tb, partial, wt, shape, size)
+        r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
+        return pl, norm, usable, energy, r, c, top
+    # the coarser pass placed the window: look for the residual within a quarter
+    lo, m = half - size // 4, 2 * (size // 4) + 1
+    # the planes' rows read (from ``top``): those searched and their neighbours, and those of the
+    # significance sample below (the neighbours' median residual lies within the search, so its
+    # nearest row within rint(lo - 0.5) ... rint(lo + m - 0.5)) and their neighbours
+    top = max(min(lo, int(np.rint(lo - 0.5))) - 1, 0)
+    stop = min(max(lo + m - 1, int(np.rint(lo + m - 0.5))) + 2, size)
+    pl, norm, usable, energy = _correlate_tiles(spectra, tb, partial, wt, shape, size, rows=(top, stop))
+    search = pl[:, lo - top : lo - top + m, lo : lo + m]
+    r, c = np.divmod(np.argmax(search.reshape(len(pl), -1), axis=1), m)
+    return pl, norm, usable, energy, r + lo, c + lo, top
+
+
+def _pooled_coefficient(coef, usable, energy, k):
+    """The tiles' coefficients pooled over k x k tiles as one coefficient: sum of covariances over the root
+    of the sums of variances, so tiles without dots (variance of the noise only) hardly count."""
     ea, eb = (np.where(usable, e, 0.0) for e in energy)
     cov = np.where(usable, coef, 0.0) * np.sqrt(ea * eb)
-    k = pooling_block(density, size, min_dots_per_box)
     pooled = usable
     if k > 1:
         cov, ea, eb, share = (
@@ -689,11 +710,13 @@ def predict_displacement(
         pooled = share > 0.5 / (k * k)
     den = np.sqrt(np.maximum(ea * eb, 0.0))
     ok = pooled & (den > 0)
-    coef = np.where(ok, cov / np.where(ok, den, 1.0), 0.0)
+    return np.where(ok, cov / np.where(ok, den, 1.0), 0.0)
 
-    pts = np.where(fin[:, None], xy, 0.0)
-    u, v, quality = _bilinear(np.stack([u, v, coef]), cy, cx, pts[:, 1], pts[:, 0])
-    uv = np.stack([u, v], axis=1)
-    uv[~fin] = np.nan
-    quality = np.where(fin, quality, np.nan)
-    return uv, quality
+
+def _pass_grid(h, w, size, *, sparse):
+    """The first row and column of a pass's tiles in an ``h`` x ``w`` image."""
+    if sparse:
+        # the first pass only places the next one's search (a quarter of its tile): tiles at most twice
+        # their side apart (about a quarter of them)
+        return _sparse_tile_grid(h, size), _sparse_tile_grid(w, size)
+    return _tile_grid(h, size), _tile_grid(w, size)

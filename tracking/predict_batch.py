@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import predict_fft_kernels as fk
 from . import predict_kernels as pk
 from .predict import _sparse_grid, _sparse_tile_grid, _tile_grid, pooling_block
 from .workspace import on_device
@@ -48,9 +49,9 @@ def _kernel(what, size):
     key = (what, size)
     if key not in _kernels:
         if what == "centre":
-            _kernels[key] = pk.make_centre_tiles(size)
+            _kernels[key] = fk.make_centre_tiles(size)
         else:
-            _kernels[key] = pk.make_tile_fft_steps(size, _fft_rows(size))
+            _kernels[key] = fk.make_tile_fft_steps(size, _fft_rows(size))
     return _kernels[key]
 
 
@@ -138,12 +139,12 @@ def correlate_tiles(references, moved, weight, shift, changed, p, grid, device):
     peak : (B, ny, nx) int32 Warp array
         The index (row * size + column) of each plane's first maximum over the pass's search block.
     norm, count, energy, base : (B, ny, nx) Warp arrays
-        As :func:`predict_kernels.make_centre_tiles` writes them.
+        As :func:`predict_fft_kernels.make_centre_tiles` writes them.
 
     Notes
     -----
     Tile sizes that are powers of two from ``FFT_FROM`` go through Warp's tile FFT in three kernels of
-    ``FFT_ROWS`` rows per block (:func:`predict_kernels.make_tile_fft_steps`); other sizes through four
+    ``FFT_ROWS`` rows per block (:func:`predict_fft_kernels.make_tile_fft_steps`); other sizes through four
     kernels of direct DFTs over half the spectrum (the tiles are real), one thread per sample.
     """
     size = grid.size
@@ -176,14 +177,14 @@ def correlate_tiles(references, moved, weight, shift, changed, p, grid, device):
         spectra = empty(wp.vec2f, (2, *half))
         cross = empty(wp.vec2f, half)
         for kernel, dim, inputs in (
-            (pk.dft_rows, (2, *half), [centred, tw, changed, p, grid, spectra]),
-            (pk.dft_columns_cross, half, [spectra, tw, _spectral_factors(size, device), changed, p, grid, cross]),
-            (pk.dft_columns_inverse, half, [cross, tw, changed, p, grid, spectra[0]]),
-            (pk.dft_rows_inverse_real, (count_tiles * size, size), [spectra[0], tw, changed, p, grid, planes]),
+            (fk.dft_rows, (2, *half), [centred, tw, changed, p, grid, spectra]),
+            (fk.dft_columns_cross, half, [spectra, tw, _spectral_factors(size, device), changed, p, grid, cross]),
+            (fk.dft_columns_inverse, half, [cross, tw, changed, p, grid, spectra[0]]),
+            (fk.dft_rows_inverse_real, (count_tiles * size, size), [spectra[0], tw, changed, p, grid, planes]),
         ):
             wp.launch(kernel, dim=dim, inputs=inputs, device=device)
     lo, m = _search_block(size, p == 0)
-    wp.launch(pk.search_peaks, dim=per_tile, inputs=[planes, changed, p, grid, lo, m, peak], device=device)
+    wp.launch(fk.search_peaks, dim=per_tile, inputs=[planes, changed, p, grid, lo, m, peak], device=device)
     return planes, peak, norm, count, energy, base
 
 

@@ -1,8 +1,8 @@
 """The tracking method's vocabulary: settings, status bits, table dtype, window geometry and rule constants.
 
 Every rule of the method (a threshold, a clip, a bound) is written here once, as a plain Python value.
-The host code reads these values; the kernel modules (:mod:`tracking.kernels`,
-:mod:`tracking.batch_kernels`, :mod:`tracking.predict_kernels`) read them as ``wp.constant``s defined
+The host code reads these values; the kernel modules (:mod:`tracking.identify_kernels`,
+:mod:`tracking.kernel_constants`, :mod:`tracking.predict_kernels`) read them as ``wp.constant``s defined
 from them. This module imports no other module of :mod:`tracking`, so that every step, host or kernel,
 can import it.
 """

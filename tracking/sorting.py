@@ -1,7 +1,7 @@
 """Sorting networks: the compare-exchange pairs that put the middle of a set of values in place.
 
 A network is fixed for a given count, so kernels can unroll it (the edge median of
-:mod:`tracking.kernels`) or read it from an array (the neighbour tests); it is made here, below every
+:mod:`tracking.identify_kernels`) or read it from an array (the neighbour tests); it is made here, below every
 module that uses it.
 """
 

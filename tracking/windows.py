@@ -13,7 +13,7 @@ import warp as wp
 from numpy.lib.stride_tricks import sliding_window_view
 
 from .identify import blob_score, segment_windows
-from .kernels import measure_windows_kernel
+from .identify_kernels import measure_windows_kernel
 from .sorting import median_network
 
 __all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy", "median_network"]
@@ -182,13 +182,7 @@ def measure_windows(
             saturation=saturation,
             fill=fill,
         )
-    # Windows in raster order of 8-row bands, so that neighbouring threads read neighbouring pixels (the
-    # kernel takes them in that order and writes each at its own row). Only the speed depends on it.
-    key = (origin[:, 1] // 8) * (image.shape[1] + 4 * w) + origin[:, 0]
-    # argsort as a sort of key and index packed into one int64 (a third of the time; ties in index order)
-    shift = int(n).bit_length()
-    packed = ((key - key.min()).astype(np.int64) << shift) | np.arange(n, dtype=np.int64)
-    order = (np.sort(packed) & ((1 << shift) - 1)).astype(np.int32)
+    order = _band_order(origin, image.shape[1], w)
     # With only the cross cut (full_maps False) the inputs go in that order too and the outputs come back
     # in it, put back in place below: the kernel's reads and writes then run through memory in order
     # (10-15 % less time on the CPU); for full dot maps, moving the maps back costs more than it saves.
@@ -249,6 +243,24 @@ def measure_windows(
         ],
         device=device,
     )
+    return _results(out_i, out_f, dotmap, cross, order, permuted=permuted, full_maps=full_maps)
+
+
+def _band_order(origin, width, w):
+    """The windows in raster order of 8-row bands (int32 indices), so that neighbouring threads read
+    neighbouring pixels (the kernel takes them in that order and writes each at its own row). Only the
+    speed depends on it."""
+    n = len(origin)
+    key = (origin[:, 1] // 8) * (width + 4 * w) + origin[:, 0]
+    # argsort as a sort of key and index packed into one int64 (a third of the time; ties in index order)
+    shift = int(n).bit_length()
+    packed = ((key - key.min()).astype(np.int64) << shift) | np.arange(n, dtype=np.int64)
+    return (np.sort(packed) & ((1 << shift) - 1)).astype(np.int32)
+
+
+def _results(out_i, out_f, dotmap, cross, order, *, permuted, full_maps):
+    """``measure_windows``' result from the kernel's outputs, put back in the dots' order if ``permuted``."""
+    n = out_i.shape[0]
     oi, of = out_i.numpy(), out_f.numpy()
     if permuted:
         back = np.empty(n, dtype=np.int64)

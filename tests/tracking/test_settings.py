@@ -4,30 +4,30 @@ names that lived in tracking.pipeline still reach the same objects."""
 import numpy as np
 import warp as wp
 from numpy.testing import assert_array_equal
-from synthbos.tracking import batch_kernels as bk
-from synthbos.tracking import kernels, pipeline, predict_kernels, settings
+from synthbos.tracking import identify_kernels, pipeline, predict_kernels, settings
+from synthbos.tracking import kernel_constants as kc
 
 
 def test_kernel_constants_are_the_settings_values():
     pairs = [
-        (bk.EDGE_CUT_MAX, settings.EDGE_CUT_PX),
-        (bk.PIXEL_EDGE, settings.PIXEL_EDGE_PX),
-        ((bk.WIDTH_LO, bk.WIDTH_HI), settings.THREE_POINT_WIDTH_RANGE),
-        ((bk.CLIP_LO, bk.CLIP_HI), settings.RESIDUAL_WIDTH_CLIP),
-        (bk.STAMP_WIDTHS, settings.RESIDUAL_STAMP_WIDTHS),
-        ((bk.MODEL_LO, bk.MODEL_HI), settings.MODEL_WIDTH_RANGE),
-        (bk.DIAMETER_WIDTHS, settings.DIAMETER_PER_WIDTH),
+        (kc.EDGE_CUT_MAX, settings.EDGE_CUT_PX),
+        (kc.PIXEL_EDGE, settings.PIXEL_EDGE_PX),
+        ((kc.WIDTH_LO, kc.WIDTH_HI), settings.THREE_POINT_WIDTH_RANGE),
+        ((kc.CLIP_LO, kc.CLIP_HI), settings.RESIDUAL_WIDTH_CLIP),
+        (kc.STAMP_WIDTHS, settings.RESIDUAL_STAMP_WIDTHS),
+        ((kc.MODEL_LO, kc.MODEL_HI), settings.MODEL_WIDTH_RANGE),
+        (kc.DIAMETER_WIDTHS, settings.DIAMETER_PER_WIDTH),
         (predict_kernels.RESOLVED, settings.PREDICTOR_RESOLVED_PX),
         (predict_kernels.MIN_VALID_FRACTION, settings.PREDICTOR_MIN_VALID_FRACTION),
-        (kernels.SMALL_W, settings.SMALL_WINDOW),
+        (identify_kernels.SMALL_W, settings.SMALL_WINDOW),
     ]
     for constant, value in pairs:
         assert_array_equal(np.asarray(constant, dtype=np.float64), np.asarray(value, dtype=np.float64))
     # float64 constants, not Python floats that a kernel would read as float32
-    assert all(type(c) is wp.float64 for c in (bk.EDGE_CUT_MAX, bk.WIDTH_LO, predict_kernels.RESOLVED))
+    assert all(type(c) is wp.float64 for c in (kc.EDGE_CUT_MAX, kc.WIDTH_LO, predict_kernels.RESOLVED))
     for bit in settings.DotStatus:
-        if hasattr(bk, bit.name):
-            assert getattr(bk, bit.name) == int(bit), bit.name
+        if hasattr(kc, bit.name):
+            assert getattr(kc, bit.name) == int(bit), bit.name
 
 
 def test_the_pipeline_names_are_the_settings_objects():

@@ -1,0 +1,460 @@
+# ruff: noqa: UP018, RUF046
+# (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
+"""Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.batch`): the
+per-window measurement of :mod:`tracking.identify_kernels` on one frame of an image stack, rounds of
+claims that give each blob to one dot, the subtraction of waiting neighbours and the wide search's merge.
+
+Dots are held flat: dot ``i`` of a call belongs to frame ``i // per_frame``. Status bits and rule
+constants come from :mod:`tracking.kernel_constants`.
+"""
+
+import warp as wp
+from synthbos.correlation.pass_kernels import three_point_offset
+
+from .identify_kernels import measure_window
+from .kernel_constants import (
+    AMBIGUOUS,
+    CLIP_HI,
+    CLIP_LO,
+    FIT_FALLBACK,
+    NEAR_BORDER,
+    OUTSIDE_IMAGE,
+    OVERLAPPED,
+    PIXEL_EDGE,
+    SATURATED,
+    STAMP_WIDTHS,
+    WIDTH_HI,
+    WIDTH_LO,
+)
+
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
+
+
+#: Largest int32: an unclaimed blob.
+NO_CLAIM = wp.constant(2147483647)
+
+
+# --- identification -------------------------------------------------------------------------------
+
+
+@wp.kernel
+def start_identification(
+    pred: wp.array(dtype=wp.vec2d),
+    ids: wp.array(dtype=wp.int32),
+    height: int,
+    width: int,
+    half: int,
+    origin: wp.array2d(dtype=wp.int32),
+    todo: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """Window origin, OUTSIDE_IMAGE and NEAR_BORDER of dot ``ids[t]``; it is to do where inside."""
+    i = ids[wp.tid()]
+    p = pred[i]
+    nan_or_out = not (p[0] > -PIXEL_EDGE and p[0] < wp.float64(width) - PIXEL_EDGE)
+    nan_or_out = nan_or_out or not (p[1] > -PIXEL_EDGE and p[1] < wp.float64(height) - PIXEL_EDGE)
+    if nan_or_out:
+        flags[i] = OUTSIDE_IMAGE
+        origin[i, 0] = -half
+        origin[i, 1] = -half
+        return
+    ox = int(wp.rint(p[0])) - half
+    oy = int(wp.rint(p[1])) - half
+    origin[i, 0] = ox
+    origin[i, 1] = oy
+    todo[i] = 1
+    if ox < 0 or oy < 0 or ox + 2 * half >= width or oy + 2 * half >= height:
+        flags[i] = NEAR_BORDER
+
+
+@wp.kernel
+def measure_batch(
+    images: wp.array3d(dtype=wp.float64),
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    fill: wp.array(dtype=wp.float64),
+    floor: wp.array(dtype=wp.float64),
+    sat: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    origin: wp.array2d(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    half: int,
+    hc: int,
+    radius: wp.float64,
+    frac: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+    use_min: int,
+    win: wp.array2d(dtype=wp.float64),
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    dotmap: wp.array3d(dtype=wp.float64),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+):
+    """``measure_window`` of dot ``ids[t]`` on its frame, results in row t; chosen -1 where not measured
+    (found already, outside, or its frame done)."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    out_int[t, 0] = -1
+    if todo[i] == 0 or active[f] == 0:
+        return
+    ox = origin[i, 0]
+    oy = origin[i, 1]
+    p = pred[i]
+    measure_window(
+        images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
+        floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, 0, out_int, out_float,
+        dotmap, cross,
+    )  # fmt: skip
+
+
+@wp.func
+def claim_key(f: int, root_r: int, root_c: int, w: int, hp: int, wp_: int) -> int:
+    """Flat index of a blob's peak pixel in the padded claim buffer (windows reach ``2 w`` past the edge)."""
+    return (f * hp + root_r + 2 * w) * wp_ + root_c + 2 * w
+
+
+@wp.kernel
+def accept_blobs(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    origin: wp.array2d(dtype=wp.int32),
+    noise: wp.array(dtype=wp.float64),
+    ref_peak: wp.array(dtype=wp.float64),
+    snr: wp.float64,
+    min_relative: wp.float64,
+    w: int,
+    hp: int,
+    wp_: int,
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+):
+    """A measured blob is a dot if its peak clears the noise and the frame's median peak; its key (-1 for
+    none) and the smallest distance of a dot claiming its peak pixel."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    key[t] = -1
+    chosen = out_int[t, 0]
+    if chosen < 0:
+        return
+    cpeak = out_float[t, 1]
+    rp = ref_peak[f]
+    if not wp.isfinite(rp):
+        rp = wp.float64(0.0)  # no blob in the first round
+    if not (cpeak > snr * noise[f] and cpeak > min_relative * rp and cpeak > wp.float64(0.0)):
+        return
+    rr = chosen // w + origin[i, 1]
+    rc = chosen % w + origin[i, 0]
+    k = claim_key(f, rr, rc, w, hp, wp_)
+    key[t] = k
+    wp.atomic_min(claim_dist, k, out_float[t, 2])
+
+
+@wp.kernel
+def claim_nearest(
+    ids: wp.array(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+    claim_id: wp.array(dtype=wp.int32),
+):
+    """Among the dots nearest a claimed blob, the one of the lowest index keeps it."""
+    t = wp.tid()
+    k = key[t]
+    if k >= 0 and out_float[t, 2] == claim_dist[k]:
+        wp.atomic_min(claim_id, k, ids[t])
+
+
+@wp.kernel
+def take_blobs(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    it: int,
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+    origin: wp.array2d(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+    claim_id: wp.array(dtype=wp.int32),
+    eta0: wp.array(dtype=wp.float64),
+    w: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    root: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+    todo: wp.array(dtype=wp.int32),
+    won: wp.array(dtype=wp.int32),
+):
+    """The three-point Gaussian of each dot that keeps its blob (``tracking.pipeline._identify``); a dot
+    that lost its blob to a nearer one is AMBIGUOUS and waits for the residual image."""
+    t = wp.tid()
+    k = key[t]
+    if k < 0:
+        return
+    i = ids[t]
+    if claim_id[k] != i:
+        flags[i] = flags[i] | AMBIGUOUS
+        return
+    f = i // per_frame
+    won[f] = 1
+    cen = cross[t, 0]
+    left = cross[t, 1]
+    right = cross[t, 2]
+    up = cross[t, 3]
+    down = cross[t, 4]
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    dx = three_point_offset(left, cen, right, 0)
+    dy = three_point_offset(up, cen, down, 0)
+    fit_ok = cen > zero and left > zero and right > zero and up > zero and down > zero
+    e = zero
+    peak = cen
+    if fit_ok:
+        lc = wp.log(cen)
+        cx = wp.log(left) - wp.float64(2.0) * lc + wp.log(right)
+        cy = wp.log(up) - wp.float64(2.0) * lc + wp.log(down)
+        fit_ok = cx < zero and cy < zero
+        if fit_ok:
+            e2 = wp.float64(0.5) * (-one / cx - one / cy)
+            e = wp.sqrt(e2)
+            peak = cen * wp.exp((dx * dx + dy * dy) / (wp.float64(2.0) * e2))
+    # a three-point offset is within half a pixel: never wild; a failed fit keeps it (as the host)
+    e0 = eta0[i // per_frame]
+    if not (e > WIDTH_LO * e0 and e < WIDTH_HI * e0):
+        e = e0
+    if not (peak > zero and wp.isfinite(peak)):
+        peak = out_float[t, 1]
+    chosen = out_int[t, 0]
+    rr = chosen // w + origin[i, 1]
+    rc = chosen % w + origin[i, 0]
+    x[i] = wp.float64(rc) + dx
+    y[i] = wp.float64(rr) + dy
+    eta[i] = e
+    i0[i] = peak
+    iteration[i] = it
+    root[i, 0] = rc
+    root[i, 1] = rr
+    bits = int(0)
+    if out_int[t, 1] > 1:
+        bits = bits | OVERLAPPED
+    if not fit_ok:
+        bits = bits | FIT_FALLBACK
+    if out_int[t, 2] >= 2:
+        bits = bits | SATURATED
+    flags[i] = (flags[i] & ~AMBIGUOUS) | bits
+    todo[i] = 0
+
+
+@wp.kernel
+def release_claims(
+    key: wp.array(dtype=wp.int32), claim_dist: wp.array(dtype=wp.float64), claim_id: wp.array(dtype=wp.int32)
+):
+    """Reset the claim buffers where this round wrote (for the next round and call)."""
+    k = key[wp.tid()]
+    if k >= 0:
+        claim_dist[k] = wp.float64(wp.inf)
+        claim_id[k] = NO_CLAIM
+
+
+@wp.kernel
+def next_round(won: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32)):
+    """A frame in which a round found no dot stops (``_identify``'s ``break``)."""
+    f = wp.tid()
+    active[f] = active[f] * won[f]
+    won[f] = 0
+
+
+@wp.func
+def grid_point(p: wp.vec2d, f: int, z_step: float) -> wp.vec3:
+    return wp.vec3(wp.float32(p[0]), wp.float32(p[1]), float(f) * z_step)
+
+
+@wp.kernel
+def waiting_points(
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    per_frame: int,
+    z_step: float,
+    points: wp.array(dtype=wp.vec3),
+):
+    """Hash-grid points of the dots still to find (others far away, spread over the grid's cells)."""
+    i = wp.tid()
+    if todo[i] != 0:
+        points[i] = grid_point(pred[i], i // per_frame, z_step)
+    else:
+        points[i] = wp.vec3(-1.0e6 - 61.0 * float(i % 4093), -1.0e6 - 67.0 * float((i // 4093) % 4093), -1.0e6)
+
+
+@wp.kernel
+def subtract_near_waiting(
+    grid: wp.uint64,
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    z_step: float,
+    active: wp.array(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    reach: wp.array(dtype=wp.float64),
+    subtracted: wp.array(dtype=wp.int32),
+    residual: wp.array3d(dtype=wp.float64),
+):
+    """Eq. 2 where it matters: a found dot within ``reach`` of a dot still to find leaves the residual
+    image (its sampled Gaussian, width clipped to ``RESIDUAL_WIDTH_CLIP`` eta0, stamp half-width
+    ceil(``RESIDUAL_STAMP_WIDTHS`` eta0))."""
+    i = ids[wp.tid()]
+    f = i // per_frame
+    if active[f] == 0 or subtracted[i] != 0 or not wp.isfinite(x[i]):
+        return
+    r = reach[f]
+    xi = x[i]
+    yi = y[i]
+    q = wp.hash_grid_query(grid, grid_point(wp.vec2d(xi, yi), f, z_step), float(r) + 1.0)
+    near = bool(False)
+    for j in q:
+        if j // per_frame == f and todo[j] != 0:
+            dx = pred[j][0] - xi
+            dy = pred[j][1] - yi
+            if wp.sqrt(dx * dx + dy * dy) <= r:
+                near = True
+    if not near:
+        return
+    subtracted[i] = 1
+    e0 = eta0[f]
+    e = wp.clamp(eta[i], CLIP_LO * e0, CLIP_HI * e0)
+    rad = int(wp.ceil(STAMP_WIDTHS * e0))
+    cx = int(wp.rint(xi))
+    cy = int(wp.rint(yi))
+    inv = wp.float64(1.0) / (wp.float64(2.0) * e * e)
+    a = i0[i]
+    height = residual.shape[1]
+    width = residual.shape[2]
+    for rr in range(cy - rad, cy + rad + 1):
+        if rr >= 0 and rr < height:
+            ty = wp.float64(rr) - yi
+            gy = wp.exp(-(ty * ty) * inv)
+            for cc in range(cx - rad, cx + rad + 1):
+                if cc >= 0 and cc < width:
+                    tx = wp.float64(cc) - xi
+                    wp.atomic_sub(residual, f, rr, cc, a * gy * wp.exp(-(tx * tx) * inv))
+
+
+@wp.kernel
+def merge_wide(
+    ids: wp.array(dtype=wp.int32),
+    x2: wp.array(dtype=wp.float64),
+    y2: wp.array(dtype=wp.float64),
+    eta2: wp.array(dtype=wp.float64),
+    i02: wp.array(dtype=wp.float64),
+    iteration2: wp.array(dtype=wp.int32),
+    root2: wp.array2d(dtype=wp.int32),
+    flags2: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    root: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """The wide window's result replaces the narrow one's for the dots it looked for (flags add up)."""
+    i = ids[wp.tid()]
+    x[i] = x2[i]
+    y[i] = y2[i]
+    eta[i] = eta2[i]
+    i0[i] = i02[i]
+    iteration[i] = iteration2[i]
+    root[i, 0] = root2[i, 0]
+    root[i, 1] = root2[i, 1]
+    flags[i] = flags[i] | flags2[i]
+
+
+@wp.func
+def distance_to(x: wp.float64, y: wp.float64, p: wp.vec2d) -> wp.float64:
+    dx = x - p[0]
+    dy = y - p[1]
+    return wp.sqrt(dx * dx + dy * dy)
+
+
+@wp.kernel
+def claim_shared_blobs(
+    per_frame: int,
+    pair_has_miss: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    root: wp.array2d(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    w: int,
+    hp: int,
+    wp_: int,
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+):
+    """``_drop_shared_blobs``, first half: the distance of the dot nearest its prediction on each blob."""
+    i = wp.tid()
+    f = i // per_frame
+    key[i] = -1
+    if pair_has_miss[f] == 0 or not wp.isfinite(x[i]):
+        return
+    k = claim_key(f, root[i, 1], root[i, 0], w, hp, wp_)
+    key[i] = k
+    wp.atomic_min(claim_dist, k, distance_to(x[i], y[i], pred[i]))
+
+
+@wp.kernel
+def claim_shared_nearest(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    pred: wp.array(dtype=wp.vec2d),
+    key: wp.array(dtype=wp.int32),
+    claim_dist: wp.array(dtype=wp.float64),
+    claim_id: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    k = key[i]
+    if k >= 0 and distance_to(x[i], y[i], pred[i]) == claim_dist[k]:
+        wp.atomic_min(claim_id, k, i)
+
+
+@wp.kernel
+def drop_shared_losers(
+    key: wp.array(dtype=wp.int32),
+    claim_id: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    iteration: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """``_drop_shared_blobs``, second half: the others on a blob are not found (AMBIGUOUS)."""
+    i = wp.tid()
+    k = key[i]
+    if k >= 0 and claim_id[k] != i:
+        nan = wp.float64(wp.nan)
+        x[i] = nan
+        y[i] = nan
+        eta[i] = nan
+        i0[i] = nan
+        iteration[i] = 0
+        flags[i] = flags[i] | AMBIGUOUS

@@ -1,0 +1,589 @@
+# ruff: noqa: UP018, RUF046
+# (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
+"""Warp kernels of the model fit: the pixel-integrated dot model, its rendering and its joint fit.
+
+Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfit` (one thread per dot;
+``fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.batch`. Windows are held flat, pixel ``p``
+of a ``w x w`` window at row ``p // w``, column ``p % w``.
+"""
+
+import warp as wp
+
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
+
+
+vec5d = wp.types.vector(length=5, dtype=wp.float64)
+mat32d = wp.types.matrix(shape=(3, 2), dtype=wp.float64)
+
+
+@wp.struct
+class NormalEquations:
+    """Normal equations of one dot, parameters split into position and background ``(x, y, b)`` and shape
+    ``(I0, sigma)``: ``J^T J = [[p, q], [q^T, r]]``, ``J^T res = (g1, g2)``; ``h1`` is the position part
+    of ``J^T res'`` against the common-shape model image."""
+
+    p: wp.mat33d
+    q: mat32d
+    r: wp.mat22d
+    g1: wp.vec3d
+    g2: wp.vec2d
+    h1: wp.vec3d
+
+
+
+# --- the pixel-integrated dot model and its joint fit ---------------------------------------------
+
+
+@wp.func
+def erf_from_gauss(x: wp.float64, g: wp.float64) -> wp.float64:
+    """``erf(x)`` given ``g = exp(-x^2)``: Abramowitz and Stegun 7.1.26 (absolute error below 1.5e-7)."""
+    t = wp.float64(1.0) / (wp.float64(1.0) + wp.float64(0.3275911) * wp.abs(x))
+    poly = wp.float64(1.061405429) * t - wp.float64(1.453152027)
+    poly = poly * t + wp.float64(1.421413741)
+    poly = poly * t - wp.float64(0.284496736)
+    poly = poly * t + wp.float64(0.254829592)
+    e = wp.float64(1.0) - poly * t * g
+    if x < wp.float64(0.0):
+        return -e
+    return e
+
+
+@wp.func
+def profile_start(first: int, c: wp.float64, inv: wp.float64):
+    """Standardised first edge ``z0 = (first - 1/2 - c) / s`` of a 1-D pixel profile (``inv = 1 / s``),
+    ``g0 = exp(-z0^2 / 2)``, ``erf(z0 / sqrt 2)``, the ratio ``exp(-z0 h - h^2 / 2)`` of ``g`` at the
+    next edge to ``g0`` (``h = 1 / s``) and whether every edge takes its own exponential instead."""
+    z0 = (wp.float64(first) - wp.float64(0.5) - c) * inv
+    g0 = wp.exp(wp.float64(-0.5) * z0 * z0)
+    e0 = erf_from_gauss(z0 * wp.float64(0.7071067811865476), g0)
+    # exp(-z^2 / 2) at the next edge is g times exp(-z h - h^2 / 2), a ratio that itself changes by
+    # exp(-h^2) per edge: two exponentials per axis and one per dot, unless the first ratio would
+    # overflow or g underflow (very narrow dots on a wide stamp), where every edge takes its own.
+    direct = z0 < wp.float64(-20.0) or z0 * inv < wp.float64(-200.0)
+    ratio = wp.exp(-z0 * inv - wp.float64(0.5) * inv * inv)
+    return z0, g0, e0, ratio, direct
+
+
+@wp.func
+def profile_pixel(
+    z0: wp.float64,
+    g0: wp.float64,
+    e0: wp.float64,
+    ratio: wp.float64,
+    direct: bool,
+    inv: wp.float64,
+    step: wp.float64,
+    scale: wp.float64,
+):
+    """One pixel of a 1-D profile (``profile_start``'s recurrence): from the pixel's first edge (``z0``,
+    ``g0``, ``erf``, the ratio of ``g`` to the next edge) its next edge's four values, then its
+    ``p``, ``dp/dc`` and ``dp/ds`` (``inv = 1 / s``, ``step = exp(-inv^2)``, ``scale = sqrt(pi / 2) s``)."""
+    z1 = z0 + inv
+    g1 = g0 * ratio
+    if direct:
+        g1 = wp.exp(wp.float64(-0.5) * z1 * z1)
+    e1 = erf_from_gauss(z1 * wp.float64(0.7071067811865476), g1)
+    p = scale * (e1 - e0)
+    return z1, g1, e1, ratio * step, p, g0 - g1, z0 * g0 - z1 * g1 + p * inv
+
+
+@wp.func
+def dot_profiles(params: wp.array2d(dtype=wp.float64), i: int, half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Both axes' pixel profiles of dot i on its ``2 half + 1`` stamp centred on the nearest pixel.
+
+    Rows 0-2 of ``prof[i]``: the x profile of a unit-peak Gaussian and its c- and s-derivatives,
+    ``p_k = sqrt(pi / 2) s [erf(z / sqrt 2)]``, ``dp/dc = [-exp(-z^2 / 2)]``,
+    ``dp/ds = [-z exp(-z^2 / 2)] + p / s`` over the pixel's standardised edges ``z = (k -+ 1/2 - c) / s``;
+    rows 3-5: the same along y. Both axes in one loop (they share ``s``).
+    """
+    n = 2 * half + 1
+    s = params[i, 3]
+    inv = wp.float64(1.0) / s
+    scale = wp.float64(1.2533141373155003) * s  # sqrt(pi / 2) s
+    step = wp.exp(-inv * inv)
+    zx, gx, ex, rx, dx = profile_start(int(wp.rint(params[i, 0])) - half, params[i, 0], inv)
+    zy, gy, ey, ry, dy = profile_start(int(wp.rint(params[i, 1])) - half, params[i, 1], inv)
+    k = int(0)
+    while k < n:
+        zx, gx, ex, rx, p, dpdc, dpds = profile_pixel(zx, gx, ex, rx, dx, inv, step, scale)
+        prof[i, 0, k] = p
+        prof[i, 1, k] = dpdc
+        prof[i, 2, k] = dpds
+        zy, gy, ey, ry, p, dpdc, dpds = profile_pixel(zy, gy, ey, ry, dy, inv, step, scale)
+        prof[i, 3, k] = p
+        prof[i, 4, k] = dpdc
+        prof[i, 5, k] = dpds
+        k += 1
+
+
+@wp.func
+def common_shape(params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), i: int) -> wp.vec2d:
+    """(I0, sigma) of dot i shared with its partner in the other image: the mean of both (own if none)."""
+    j = partner[i]
+    if j < 0:
+        return wp.vec2d(params[i, 2], params[i, 3])
+    half = wp.float64(0.5)
+    return wp.vec2d(half * (params[i, 2] + params[j, 2]), half * (params[i, 3] + params[j, 3]))
+
+
+@wp.func
+def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
+    """``value`` in fixed point: the nearest integer to ``value * scale``."""
+    return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
+
+
+@wp.kernel
+def render_dots_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    half: int,
+    common: int,
+    profiles: int,
+    prof: wp.array3d(dtype=wp.float64),
+    scale: wp.float64,
+    height: int,
+    width: int,
+    models: wp.array(dtype=wp.int64),
+):
+    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
+
+    ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;
+    if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
+    holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit),
+    they are computed here first, from ``params``.
+    The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
+    dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
+    """
+    i = wp.tid()
+    if profiles != 0:
+        dot_profiles(params, i, half, prof)
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    # the part of the stamp inside the image, rows r0 <= r < r1 and columns c0 <= c < c1
+    c0 = wp.max(-ox, 0)
+    c1 = wp.min(n, width - ox)
+    r0 = wp.max(-oy, 0)
+    r1 = wp.min(n, height - oy)
+    base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
+    a = params[i, 2]
+    if common == 0:
+        r = int(r0)
+        while r < r1:
+            apy = a * prof[i, 3, r]
+            at = base + r * width
+            c = int(c0)
+            while c < c1:
+                wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
+                c += 1
+            r += 1
+    else:  # both images in one pass over the stamp; the partner's shape is a scattered read
+        cs = common_shape(params, partner, i)
+        ds = cs[1] - params[i, 3]
+        layer = models.shape[0] // 2
+        r = int(r0)
+        while r < r1:
+            py = prof[i, 3, r]
+            spy = prof[i, 5, r]
+            apy = a * py
+            at = base + r * width
+            c = int(c0)
+            while c < c1:
+                px = prof[i, 0, c]
+                wp.atomic_add(models, at + c, to_fixed(apy * px, scale))
+                shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
+                c += 1
+            r += 1
+
+
+@wp.func
+def normal_matrix(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    sat: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+) -> NormalEquations:
+    """Dot i's normal equations: ``J^T J`` in blocks, ``J^T r`` and ``J^T r'`` (see ``NormalEquations``).
+
+    The window is the central ``2 half + 1`` part of the stamp whose profiles ``prof`` holds (``skip``
+    pixels in from its edge). ``r = image - models[0] - b``: the model image holds dot i itself, so
+    this is the image less the other dots, minus dot i's model and background; ``r'`` is the same
+    against the common-shape model image ``models[1]`` (both fixed point: ``inv_scale`` per unit).
+    ``models`` holds the model images ``[2, frames, height, width]`` flat (``image`` is ``height x width``).
+    ``J`` is the derivative of the model with
+    respect to x, y, I0, sigma and the background. Pixels at or above ``sat`` (saturated: they only
+    bound the intensity) take no part.
+    """
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    s00 = zero
+    s01 = zero
+    s02 = zero
+    s03 = zero
+    s04 = zero
+    s11 = zero
+    s12 = zero
+    s13 = zero
+    s14 = zero
+    s22 = zero
+    s23 = zero
+    s24 = zero
+    s33 = zero
+    s34 = zero
+    s44 = zero
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
+    for rr in range(n):
+        row = oy + rr
+        if row >= 0 and row < image.shape[0]:
+            py = prof[i, 3, rr + skip]
+            dpy = a * prof[i, 4, rr + skip]
+            spy = a * prof[i, 5, rr + skip]
+            apy = a * py
+            for cc in range(n):
+                col = ox + cc
+                if col >= 0 and col < image.shape[1] and image[row, col] < sat:
+                    px = prof[i, 0, cc + skip]
+                    v = image[row, col] - b
+                    at = (f * image.shape[0] + row) * image.shape[1] + col
+                    res = v - wp.float64(models[at]) * inv_scale
+                    res2 = v - wp.float64(models[at + models.shape[0] // 2]) * inv_scale
+                    j0 = apy * prof[i, 1, cc + skip]
+                    j1 = dpy * px
+                    j2 = py * px
+                    j3 = spy * px + apy * prof[i, 2, cc + skip]
+                    s00 += j0 * j0
+                    s01 += j0 * j1
+                    s02 += j0 * j2
+                    s03 += j0 * j3
+                    s04 += j0
+                    s11 += j1 * j1
+                    s12 += j1 * j2
+                    s13 += j1 * j3
+                    s14 += j1
+                    s22 += j2 * j2
+                    s23 += j2 * j3
+                    s24 += j2
+                    s33 += j3 * j3
+                    s34 += j3
+                    s44 += wp.float64(1.0)
+                    g0 += j0 * res
+                    g1 += j1 * res
+                    g2 += j2 * res
+                    g3 += j3 * res
+                    g4 += res
+                    h0 += j0 * res2
+                    h1 += j1 * res2
+                    h4 += res2
+    eps = wp.float64(1.0e-12)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(g0, g1, g4)
+    ne.g2 = wp.vec2d(g2, g3)
+    ne.h1 = wp.vec3d(h0, h1, h4)
+    return ne
+
+
+@wp.func
+def window_is_whole(
+    image: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), i: int, half: int, sat: wp.float64
+) -> bool:
+    """True where dot i's ``2 half + 1`` window lies inside the image and holds no pixel at or above ``sat``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    if ox < 0 or oy < 0 or ox + n > image.shape[1] or oy + n > image.shape[0]:
+        return False
+    if sat < wp.float64(1.0e300):
+        for rr in range(n):
+            for cc in range(n):
+                if image[oy + rr, ox + cc] >= sat:
+                    return False
+    return True
+
+
+@wp.func
+def profile_moments(prof: wp.array3d(dtype=wp.float64), i: int, axis0: int, n: int, skip: int):
+    """Sums over one axis of dot ``i``'s profile terms ``p = prof[i, axis0]``, ``d = prof[i, axis0 + 1]``,
+    ``s = prof[i, axis0 + 2]`` (entries ``skip ... skip + n - 1``): pp, dd, ss, pd, ps, ds, p, d, s."""
+    zero = wp.float64(0.0)
+    pp = zero
+    dd = zero
+    ss = zero
+    pd = zero
+    ps = zero
+    ds = zero
+    sp = zero
+    sd = zero
+    s_ = zero
+    k = int(skip)
+    while k < skip + n:
+        p = prof[i, axis0, k]
+        d = prof[i, axis0 + 1, k]
+        sg = prof[i, axis0 + 2, k]
+        pp += p * p
+        dd += d * d
+        ss += sg * sg
+        pd += p * d
+        ps += p * sg
+        ds += d * sg
+        sp += p
+        sd += d
+        s_ += sg
+        k += 1
+    return pp, dd, ss, pd, ps, ds, sp, sd, s_
+
+
+@wp.func
+def normal_matrix_separable(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    f: int,
+    params: wp.array2d(dtype=wp.float64),
+    i: int,
+    half: int,
+    skip: int,
+    common: int,
+    prof: wp.array3d(dtype=wp.float64),
+) -> NormalEquations:
+    """``normal_matrix`` for a whole window (``window_is_whole``): every Jacobian column is a product of
+    an x and a y profile term, so ``J^T J`` comes from 1-D sums over the rows and columns, and ``J^T r``
+    from one pass that sums each row against the x terms first. ``J^T r'`` only if ``common``."""
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    a = params[i, 2]
+    b = params[i, 4]
+    zero = wp.float64(0.0)
+    g0 = zero
+    g1 = zero
+    g2 = zero
+    g3 = zero
+    g4 = zero
+    h0 = zero
+    h1 = zero
+    h4 = zero
+    width = image.shape[1]
+    layer = models.shape[0] // 2
+    at = (f * image.shape[0] + oy) * width + ox  # flat index of the window's first pixel in models
+    rr = int(0)
+    while rr < n:
+        row = oy + rr
+        r0 = zero
+        r1 = zero
+        r2 = zero
+        r3 = zero
+        t0 = zero
+        t1 = zero
+        t3 = zero
+        cc = int(0)
+        while cc < n:
+            col = ox + cc
+            k = cc + skip
+            res = image[row, col] - b - wp.float64(models[at + cc]) * inv_scale
+            r0 += prof[i, 1, k] * res
+            r1 += prof[i, 0, k] * res
+            r2 += prof[i, 2, k] * res
+            r3 += res
+            cc += 1
+        if common != 0:
+            cc = int(0)
+            while cc < n:
+                col = ox + cc
+                k = cc + skip
+                res2 = image[row, col] - b - wp.float64(models[at + layer + cc]) * inv_scale
+                t0 += prof[i, 1, k] * res2
+                t1 += prof[i, 0, k] * res2
+                t3 += res2
+                cc += 1
+        k = rr + skip
+        py = prof[i, 3, k]
+        dy = prof[i, 4, k]
+        sy = prof[i, 5, k]
+        g0 += py * r0
+        g1 += dy * r1
+        g2 += py * r1
+        g3 += sy * r1 + py * r2
+        g4 += r3
+        h0 += py * t0
+        h1 += dy * t1
+        h4 += t3
+        at += width
+        rr += 1
+    # 1-D sums of the x terms (p: profile, d: its c-derivative, s: its sigma-derivative) and of the y terms
+    # (after the pixel loop: fewer values live across it)
+    xpp, xdd, xss, xpd, xps, xds, xp, xd, xs = profile_moments(prof, i, 0, n, skip)
+    ypp, ydd, yss, ypd, yps, yds, yp, yd, ys = profile_moments(prof, i, 3, n, skip)
+    a2 = a * a
+    eps = wp.float64(1.0e-12)
+    s00 = a2 * ypp * xdd
+    s01 = a2 * ypd * xpd
+    s02 = a * ypp * xpd
+    s03 = a2 * (yps * xpd + ypp * xds)
+    s04 = a * yp * xd
+    s11 = a2 * ydd * xpp
+    s12 = a * ypd * xpp
+    s13 = a2 * (yds * xpp + ypd * xps)
+    s14 = a * yd * xp
+    s22 = ypp * xpp
+    s23 = a * (yps * xpp + ypp * xps)
+    s24 = yp * xp
+    s33 = a2 * (yss * xpp + wp.float64(2.0) * yps * xps + ypp * xss)
+    s34 = a * (ys * xp + yp * xs)
+    s44 = wp.float64(n * n)
+    ne = NormalEquations()
+    ne.p = wp.mat33d(s00 + eps, s01, s04, s01, s11 + eps, s14, s04, s14, s44 + eps)
+    ne.q = mat32d(s02, s03, s12, s13, s24, s34)
+    ne.r = wp.mat22d(s22 + eps, s23, s23, s33 + eps)
+    ne.g1 = wp.vec3d(a * g0, a * g1, g4)
+    ne.g2 = wp.vec2d(g2, a * g3)
+    ne.h1 = wp.vec3d(a * h0, a * h1, h4)
+    return ne
+
+
+@wp.func
+def limited(step: vec5d) -> vec5d:
+    """The step scaled so that the position moves at most half a pixel per axis."""
+    big = wp.max(wp.abs(step[0]), wp.abs(step[1]))
+    if big > wp.float64(0.5):
+        return step * (wp.float64(0.5) / big)
+    return step
+
+
+@wp.func
+def all_finite(q: vec5d) -> bool:
+    """Whether every entry is finite: ``|x| <= DBL_MAX`` fails for NaN and infinity alike (compares inline,
+    where ``wp.isfinite`` on the CPU is a call per entry)."""
+    big = wp.float64(1.7976931348623157e308)
+    xy = wp.abs(q[0]) <= big and wp.abs(q[1]) <= big
+    return xy and wp.abs(q[2]) <= big and wp.abs(q[3]) <= big and wp.abs(q[4]) <= big
+
+
+@wp.func
+def fit_dot_step(
+    image: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    f: int,
+    i: int,
+    has_partner: int,
+    sat: wp.float64,
+    half: int,
+    render_half: int,
+    common: int,
+    max_move: wp.float64,
+    smin: wp.float64,
+    smax: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """One Gauss-Newton step of dot i (in model frame ``f``) against its image less the other dots (see
+    ``fit_dots_numpy``).
+
+    ``models``: the fixed-point model images ``[2, frames, height, width]``, flat.
+
+    ``prof`` holds the dot's profiles at ``params`` on its rendering stamp; they are replaced by those
+    at the new parameters ``out``, except in the last step (``common``), after which none are needed.
+    If ``common``, ``shared_xy`` gets the position of the step for position and background against
+    the common-shape model image (NaN without a partner; all NaN without ``common``, when that image
+    is not drawn).
+    """
+    p = vec5d(params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4])
+    skip = render_half - half
+    ne = NormalEquations()
+    if window_is_whole(image, params, i, half, sat):
+        ne = normal_matrix_separable(image, models, inv_scale, f, params, i, half, skip, common, prof)
+    else:
+        ne = normal_matrix(image, models, inv_scale, f, params, i, half, skip, sat, prof)
+    # Block elimination: the shape step from the Schur complement, then position and background.
+    pinv = wp.inverse(ne.p)
+    pq = pinv * ne.q
+    schur = ne.r - wp.transpose(ne.q) * pq
+    d2 = wp.inverse(schur) * (ne.g2 - wp.transpose(pq) * ne.g1)
+    d1 = pinv * (ne.g1 - ne.q * d2)
+    step = vec5d(d1[0], d1[1], d2[0], d2[1], d1[2])
+    q = p + limited(step)
+    good = all_finite(q)
+    good = good and wp.abs(q[0] - start[i, 0]) <= max_move and wp.abs(q[1] - start[i, 1]) <= max_move
+    good = good and q[2] > wp.float64(0.0) and q[3] >= smin and q[3] <= smax
+    if not good:
+        q = p
+    hs = pinv * ne.h1
+    qs = limited(vec5d(hs[0], hs[1], wp.float64(0.0), wp.float64(0.0), hs[2]))
+    nan = wp.float64(wp.nan)
+    shared_xy[i, 0] = nan
+    shared_xy[i, 1] = nan
+    if common != 0 and has_partner != 0:
+        shared_xy[i, 0] = p[0] + qs[0]
+        shared_xy[i, 1] = p[1] + qs[1]
+    for k in range(5):
+        out[i, k] = q[k]
+    ok[i] = int(good)
+    if common == 0:  # not the last step: the next one needs the profiles at the new parameters
+        dot_profiles(out, i, render_half, prof)
+
+
+@wp.kernel
+def fit_dot_step_kernel(
+    image0: wp.array2d(dtype=wp.float64),
+    image1: wp.array2d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    half: int,
+    render_half: int,
+    common: int,
+    max_move: wp.float64,
+    smin: wp.float64,
+    smax: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """``fit_dot_step`` of dot i; ``image0``, ``image1``: the images of frames 0 and 1 (the same array
+    twice for a single image)."""
+    i = wp.tid()
+    f = frame[i]
+    has_partner = int(partner[i] >= 0)
+    if f == 0:
+        fit_dot_step(
+            image0, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, smin, smax, prof, out, ok, shared_xy,
+        )  # fmt: skip
+    else:
+        fit_dot_step(
+            image1, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, smin, smax, prof, out, ok, shared_xy,
+        )  # fmt: skip

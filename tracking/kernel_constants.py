@@ -1,0 +1,53 @@
+"""The tracking vocabulary as Warp constants: the status bits and rule constants of
+:mod:`tracking.settings` (their one home), read by the stacked tracker's kernel modules.
+
+Float64 constants, since a literal in a kernel may be float32.
+"""
+
+import warp as wp
+
+from .settings import (
+    DIAMETER_PER_WIDTH,
+    EDGE_CUT_PX,
+    MODEL_WIDTH_RANGE,
+    PIXEL_EDGE_PX,
+    RESIDUAL_STAMP_WIDTHS,
+    RESIDUAL_WIDTH_CLIP,
+    THREE_POINT_WIDTH_RANGE,
+    DotStatus,
+)
+
+wp.config.quiet = True  # no banner or module-load lines from library code
+wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
+
+
+# the status bits, from their one home
+FOUND_REFERENCE = wp.constant(int(DotStatus.FOUND_REFERENCE))
+FOUND_GRADIENT = wp.constant(int(DotStatus.FOUND_GRADIENT))
+MATCHED = wp.constant(int(DotStatus.MATCHED))
+CC_VALID = wp.constant(int(DotStatus.CC_VALID))
+CC_FLAGGED = wp.constant(int(DotStatus.CC_FLAGGED))
+OUTSIDE_IMAGE = wp.constant(int(DotStatus.OUTSIDE_IMAGE))
+NEAR_BORDER = wp.constant(int(DotStatus.NEAR_BORDER))
+SATURATED = wp.constant(int(DotStatus.SATURATED))
+OVERLAPPED = wp.constant(int(DotStatus.OVERLAPPED))
+AMBIGUOUS = wp.constant(int(DotStatus.AMBIGUOUS))
+FIT_FALLBACK = wp.constant(int(DotStatus.FIT_FALLBACK))
+DISTORTED = wp.constant(int(DotStatus.DISTORTED))
+PREDICTOR_MISMATCH = wp.constant(int(DotStatus.PREDICTOR_MISMATCH))
+PREDICTOR_WEAK = wp.constant(int(DotStatus.PREDICTOR_WEAK))
+EDGE_CUT = wp.constant(int(DotStatus.EDGE_CUT))
+OUTLIER = wp.constant(int(DotStatus.OUTLIER))
+
+# the rule constants, from their one home (float64 constants: a literal in a kernel may be float32)
+PIXEL_EDGE = wp.constant(wp.float64(PIXEL_EDGE_PX))
+WIDTH_LO = wp.constant(wp.float64(THREE_POINT_WIDTH_RANGE[0]))
+WIDTH_HI = wp.constant(wp.float64(THREE_POINT_WIDTH_RANGE[1]))
+CLIP_LO = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[0]))
+CLIP_HI = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[1]))
+STAMP_WIDTHS = wp.constant(wp.float64(RESIDUAL_STAMP_WIDTHS))
+MODEL_LO = wp.constant(wp.float64(MODEL_WIDTH_RANGE[0]))
+MODEL_HI = wp.constant(wp.float64(MODEL_WIDTH_RANGE[1]))
+EDGE_CUT_MAX = wp.constant(wp.float64(EDGE_CUT_PX))
+DIAMETER_WIDTHS = wp.constant(wp.float64(DIAMETER_PER_WIDTH))
