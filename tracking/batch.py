@@ -70,8 +70,6 @@ def batch_support(settings: TrackingSettings) -> str | None:
     """Why :func:`track_pairs` cannot run these settings (then use ``track_pair``), or None when it can."""
     if settings.centroid != "model" or settings.correction != "model":
         return "the batch runs the default estimators only (centroid and correction 'model')"
-    if settings.backend != "warp":
-        return "the batch runs Warp kernels only (backend 'warp')"
     return None
 
 

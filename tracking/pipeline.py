@@ -36,7 +36,7 @@ from synthbos import SynthbosError
 from .centroid import fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
-from .dotfit import fit_dots, fit_dots_numpy, fit_window_half, moment_shifts, moment_shifts_numpy
+from .dotfit import fit_dots, fit_window_half, moment_shifts
 from .frame_stats import fill_level, partial_median, saturation_level
 from .identify import (
     blob_properties,
@@ -45,9 +45,9 @@ from .identify import (
     static_threshold_identification,
 )
 from .match import match_multiparametric, match_nearest
-from .neighbours import neighbour_fit, neighbour_fit_numpy
+from .neighbours import neighbour_fit
 from .predict import predict_displacement
-from .register import local_gradients, registration_offsets, registration_offsets_numpy, spline_coefficients
+from .register import local_gradients, registration_offsets, spline_coefficients
 from .residual import subtract_gaussians
 
 # The vocabulary lives in tracking.settings; TRACK_DTYPE, DotStatus, TrackingSettings, is_valid and the
@@ -72,7 +72,7 @@ from .settings import (  # noqa: F401  (re-exported)
     start_width,
     window_sizes,
 )
-from .windows import measure_windows, measure_windows_numpy
+from .windows import measure_windows
 
 __all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
 
@@ -123,17 +123,16 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
     subtracted = np.zeros(n, dtype=bool)
     residual = image
     ref_peak = None
-    measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
     method = "gaussian3" if settings.centroid == "model" else settings.centroid
     # the three-point start needs only the centre of the dot maps
-    extra = {"device": device, "full_maps": keep_maps or method != "gaussian3"} if settings.backend == "warp" else {}
+    full_maps = keep_maps or method != "gaussian3"
     for it in range(1, max_iterations + 1):
         sel = np.flatnonzero(todo)
         if sel.size == 0:
             break
         every = sel.size == n  # the first round, all inside (the usual case): no gather
         origin = origin_all if every else origin_all[sel]
-        m = measure(
+        m = measure_windows(
             residual,
             origin,
             (pred if every else pred[sel]) - origin,
@@ -146,7 +145,8 @@ def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterat
             use_minimum=settings.background == "minimum",
             saturation=sat_level,
             fill=fill,
-            **extra,
+            full_maps=full_maps,
+            device=device,
         )
         has = m["chosen"] >= 0
         cpeak = m["peak"]
@@ -314,10 +314,8 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
     has = np.flatnonzero(pair_r >= 0)
     pair[has] = idx_r.size + pair_r[has]
     pair[idx_r.size + pair_r[has]] = has
-    fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
-    extra = {"device": device} if settings.backend == "warp" else {}
     frame = np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)]
-    params, ok, shared = fit(
+    params, ok, shared = fit_dots(
         images,
         np.vstack([start_r, start_g]),
         half=half,
@@ -327,14 +325,13 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
         saturation=saturation,
         iterations=settings.fit_iterations,
         sigma_range=(MODEL_WIDTH_RANGE[0] * eta0, MODEL_WIDTH_RANGE[1] * eta0),
-        **extra,
+        device=device,
     )
     moved = np.zeros(len(params), dtype=bool)
     if settings.distortion == "moment":
-        shift = moment_shifts if settings.backend == "warp" else moment_shifts_numpy
-        d, moved = shift(
+        d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, **extra,
+            chi2=settings.distortion_chi2, device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d
@@ -397,11 +394,9 @@ def _standard_candidates(image, settings, noise):
 
 
 def _neighbour_fit(xy, uv, query, self_index, settings, device, *, return_neighbours=False):
-    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``, on the settings' backend."""
+    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``."""
     k = settings.outlier_neighbours
-    if settings.backend == "warp":
-        return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
-    return neighbour_fit_numpy(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours)
+    return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
 
 
 def _confirmed_by_neighbours(out, good, query, settings, device):
@@ -489,10 +484,7 @@ def _misregistered(images, out, m, uv_cc, half, settings, device):
     uv = np.stack(uv_cc, axis=1)
     coef = spline_coefficients(images[1])
     grads = local_gradients(xy, uv, k=settings.outlier_neighbours)
-    if settings.backend == "warp":
-        c, ok = registration_offsets(images[0], coef, xy, uv, half=half, gradients=grads, device=device)
-    else:
-        c, ok = registration_offsets_numpy(images[0], coef, xy, uv, half=half, gradients=grads)
+    c, ok = registration_offsets(images[0], coef, xy, uv, half=half, gradients=grads, device=device)
     centroid = np.stack([out["x_gradient"][m], out["y_gradient"][m]], axis=1) - xy
     far = np.hypot(c[:, 0], c[:, 1]) > settings.registration_tolerance
     far |= np.hypot(*(uv + c - centroid).T) > settings.registration_tolerance
