@@ -162,8 +162,8 @@ class _Batch:
     # --- identification ---------------------------------------------------------------------------
 
     def identify(self, image, which, pred, ids, n_ids, *, wide):
-        """``tracking.pipeline._identify`` for the dots ``ids`` (``n_ids`` of them) of every pair, on the
-        reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
+        """``tracking.identify.identify_near_predictions`` for the dots ``ids`` (``n_ids`` of them) of every
+        pair, on the reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
         search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius

@@ -1,6 +1,6 @@
 """Each step of a ``track_pair`` run checked against its NumPy reference, on the run's own inputs.
 
-:func:`record_steps` wraps the Warp steps that :mod:`tracking.pipeline` calls (window measurement, model
+:func:`record_steps` wraps the Warp steps that a run calls (window measurement, model
 fit, first-moment step, neighbour fit, registration) so that every call also runs the step's reference
 (:mod:`tracking.reference`) on the same arguments, at the moment of the call; :func:`assert_steps_agree`
 compares the two results of every call.
@@ -8,7 +8,7 @@ compares the two results of every call.
 
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
-from synthbos.tracking import pipeline, reference
+from synthbos.tracking import identify, pipeline, reference
 
 
 def _windows_reference(*args, full_maps=True, **kw):
@@ -19,12 +19,13 @@ def _windows_reference(*args, full_maps=True, **kw):
     return out
 
 
+#: step -> (the module that calls it, its reference)
 STEPS = {
-    "measure_windows": _windows_reference,
-    "fit_dots": reference.fit_dots_numpy,
-    "moment_shifts": reference.moment_shifts_numpy,
-    "neighbour_fit": reference.neighbour_fit_numpy,
-    "registration_offsets": reference.registration_offsets_numpy,
+    "measure_windows": (identify, _windows_reference),
+    "fit_dots": (pipeline, reference.fit_dots_numpy),
+    "moment_shifts": (pipeline, reference.moment_shifts_numpy),
+    "neighbour_fit": (pipeline, reference.neighbour_fit_numpy),
+    "registration_offsets": (pipeline, reference.registration_offsets_numpy),
 }
 
 
@@ -37,8 +38,8 @@ def _copy(result):
 def record_steps(monkeypatch):
     """``{step: list of (warp result, reference result)}``, filled as the pipeline runs."""
     calls = {name: [] for name in STEPS}
-    for name, ref in STEPS.items():
-        warp_step = getattr(pipeline, name)
+    for name, (caller, ref) in STEPS.items():
+        warp_step = getattr(caller, name)
 
         def both(*args, device=None, _warp=warp_step, _ref=ref, _calls=calls[name], **kw):
             expected = _ref(*args, **kw)  # before the pipeline changes any input in place
@@ -46,7 +47,7 @@ def record_steps(monkeypatch):
             _calls.append((_copy(got), expected))  # a step may reuse its output arrays on the next call
             return got
 
-        monkeypatch.setattr(pipeline, name, both)
+        monkeypatch.setattr(caller, name, both)
     return calls
 
 
