@@ -194,14 +194,58 @@ def fit_dots(
     sigma_range=(0.2, 10.0),
     device=None,
 ):
-    """Same as :func:`tracking.reference.fit_dots_numpy`, with Warp kernels (one thread per dot).
+    """Fit the pixel-integrated Gaussian model to every dot of one image or a pair, jointly with its neighbours.
 
     Parameters
     ----------
+    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
+        One image or a stack (the reference and gradient images of a pair; :func:`fit_dots` takes at
+        most two).
+    params : (N, 5) array
+        Starting parameters, columns :data:`PARAMS` (finite).
+    half, render_half : int, keyword-only
+        Half-widths of each dot's fit window and of its rendered stamp (:func:`fit_window_half`).
+    frame : (N,) int array, optional, keyword-only
+        Image of each dot in the stack; all 0 by default.
+    partner : (N,) int array, optional, keyword-only
+        Row of the same dot in the other image of a pair, -1 for none.
+    saturation : float or (K,) array, optional, keyword-only
+        Saturation level of each image: pixels at or above it are left out of the fit (they only tell
+        that the intensity is at least that). None: no saturation.
+    iterations : int, keyword-only
+        Gauss-Newton steps; the model images are redrawn before each.
+    max_move : float, keyword-only
+        A step that takes a dot farther than this (px, per axis) from its start is refused.
+    sigma_range : (float, float), keyword-only
+        A step that takes ``sigma`` outside this range (or ``I0`` to zero) is refused.
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`tracking.reference.fit_dots_numpy`.
+    Returns
+    -------
+    params : (N, 5) array
+        Fitted parameters, each image fitted on its own.
+    ok : (N,) bool array
+        False where the last step was refused (the dot keeps its previous parameters).
+    shared_xy : (N, 2) array
+        Positions of the last step taken with every paired dot at its pair's common shape
+        (the mean of the two fits' ``I0`` and ``sigma``); NaN for dots without a partner. Their difference
+        across a pair is the model correction.
+
+    Notes
+    -----
+    Block-Jacobi Gauss-Newton on ``sum_pixels (I - sum_dots (I0 p_x p_y + b))^2``: before each step the
+    model image ``R`` of all dots is drawn, and dot ``i`` takes one Gauss-Newton step on its window of
+    ``I - R + I0_i p_x p_y`` (the image with the other dots removed) with its five parameters. For
+    non-touching dots it is the Gauss-Newton fit of Brady, Raben and Vlachos (2009, section 2.3) with
+    the pixel-integrated model instead of a sampled Gaussian, which removes that fit's bias on small
+    dots; the joint fit removes the bias that neighbours' tails cause in a dense pattern.
+
+    The common-shape step is the same step for position and background only, against the model image
+    ``R'`` in which every paired dot has its pair's mean ``I0`` and ``sigma``: the shift that best maps
+    the reference dot onto the gradient dot when both share one shape. With two fewer free parameters
+    per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     n = len(p)
@@ -301,14 +345,80 @@ def moment_shifts(
     max_shift=MAX_SHIFT_PX,
     device=None,
 ):
-    """Same as :func:`tracking.reference.moment_shifts_numpy`, with Warp kernels (one thread per dot).
+    """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
+
+    A symmetric model's centre is the mean of a dot's light only while the dot's image is symmetric. A
+    dot seen through a flow is the spot spread by the landing positions of rays that crossed different
+    density, and the mean landing position is what the truth (and BOS) defines. The step weighs what the
+    model leaves over: with ``M`` the model image of every dot, ``m_i`` dot i's own model and ``R = I - b_i
+    - M`` the residual on dot i's stamp, dot i's share of the light is ``m_i + w R`` with ``w = m_i / M``
+    (``M`` taken as at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak),
+    and its first moment about the model centre ``(x_i, y_i)`` is
+
+    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``
+
+    (the own model, symmetric about the centre, adds nothing to the numerators).
 
     Parameters
     ----------
+    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
+        As for :func:`fit_dots`.
+    params : (N, 5) array
+        Fitted parameters (columns :data:`PARAMS`).
+    half : int, keyword-only
+        Half-width of the stamp on which each dot is rendered and weighed (the fit's ``render_half``).
+    frame : (N,) int array, optional, keyword-only
+        Image of each dot in the stack: 0 the reference, 1 the gradient image.
+    partner : (N,) int array, optional, keyword-only
+        Row of the same dot in the other image, -1 for none. The background ``b_i`` under a gradient
+        image's dot is its reference partner's fitted background (the same target and light, seen
+        undistorted: a distorted dot's own fit lifts or lowers its background by up to 1 % of the peak
+        to absorb the asymmetric light, which would bias the moment); other dots keep their own.
+    saturation : float or (K,) array, optional, keyword-only
+        Saturation level of each image; a stamp holding a pixel at or above it is left alone.
+    noise : float or (K,) array, optional, keyword-only
+        Noise standard deviation of each image (0 by default).
+    chi2 : float, keyword-only
+        The shift is applied only where it is significant: ``|d|^2 / (var_d / 2) > chi2``, with
+        ``var_d = noise^2 sum (r - r_i)^2 w^2 / F^2`` (both axes) its variance under white noise.
+        Where the dot is an undistorted spot under noise, a shift this large is a chance event of
+        probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
+    max_shift : float, keyword-only
+        A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`tracking.reference.moment_shifts_numpy`.
+    Returns
+    -------
+    shift : (N, 2) array
+        ``(dx, dy)``, px: 0 where not applied.
+    applied : (N,) bool array
+        Where the shift is usable and the dot or its partner is distorted: a matched pair is measured
+        alike in both images (the fit's own residuals in a tight cluster, alike in both, then cancel in
+        the displacement). Usable: the stamp lies inside its image with no saturated pixel, the residual
+        light of the dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is
+        another dot's light, not a distortion) and the shift is at most ``max_shift``. Distorted: the
+        shift is also significant, at least ``MIN_SHIFT_PX`` (1e-3 px) and at most
+        ``MAX_SHIFT_PER_SPREAD_REL`` (1) times the spread the dot's fitted width adds to its partner's,
+        ``sqrt(sigma^2 - sigma_partner^2)`` (a dot without a partner, or no wider than it, is not).
+
+    Examples
+    --------
+    A reference spot, and in the gradient image the same spot with a faint second one 1 px to its right:
+    the fit's centre sits on the main spot (its width grown to 0.85 px), the first moment 0.111 px further
+    right (the second spot holds 1/9 of the light); the undistorted reference's first moment is its centre.
+
+    >>> import numpy as np
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> reference = draw_dots((15, 15), [[7.0, 7.0]], 3.2, radius_sigmas=6.25)
+    >>> gradient = reference + draw_dots((15, 15), [[8.0, 7.0]], 3.2, intensity=0.125, radius_sigmas=6.25)
+    >>> fitted = [[7.0, 7.0, 1.0, 0.8, 0.0], [7.0, 7.0, 1.0, 0.85, 0.0]]
+    >>> shift, applied = moment_shifts(
+    ...     [reference, gradient], fitted, half=5, frame=[0, 1], partner=[1, 0]
+    ... )
+    >>> (np.round(shift, 3) + 0.0).tolist(), applied.tolist()  # + 0.0: no negative zeros
+    ([[0.0, 0.0], [0.111, 0.0]], [True, True])
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     n = len(p)

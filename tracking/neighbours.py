@@ -59,14 +59,40 @@ def _cell_grid(xy, query, count):
 
 
 def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, device=None):
-    """Same as :func:`tracking.reference.neighbour_fit_numpy`, as a Warp kernel with one thread per query point.
+    """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
 
     Parameters
     ----------
+    xy : (M, 2) array
+        Points (finite), ``M > k``.
+    uv : (M, 2) array
+        Their vectors.
+    query : (N, 2) array
+        Points at which to fit (finite).
+    self_index : (N,) int array
+        The query's own row in ``xy`` (left out of its neighbours), or -1.
+    k : int, keyword-only
+        Neighbours per fit.
+    return_neighbours : bool, keyword-only
+        Also return the neighbours' rows.
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`tracking.reference.neighbour_fit_numpy`.
+    Returns
+    -------
+    value : (N, 2) array
+        The fit's value at the query point.
+    spread : (N,) array
+        Median distance of the neighbours' vectors from the fit.
+    neighbours : (N, k) int array
+        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
+        order within a row is not part of the result).
+
+    Notes
+    -----
+    ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
+    ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
     """
     same = query is xy  # the points themselves (the outlier test)
     xy = np.ascontiguousarray(xy, dtype=np.float64)

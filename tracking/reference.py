@@ -196,7 +196,7 @@ def measure_windows_numpy(
 
 
 def deform_nearest_numpy(image, valid, field, ys, xs, size):
-    """NumPy reference of :func:`_deform_nearest` (for the tests)."""
+    """NumPy reference of the predictor's ``tracking.predict._deform_nearest`` (for the tests)."""
     h, w = image.shape
     u, v, cy, cx = field
     ny, nx = len(ys), len(xs)
@@ -361,55 +361,9 @@ def fit_dots_numpy(
     max_move=FIT_MAX_MOVE_PX,
     sigma_range=(0.2, 10.0),
 ):
-    """Fit the pixel-integrated Gaussian model to every dot of one image or a pair, jointly with its neighbours.
+    """NumPy reference of :func:`tracking.dotfit.fit_dots` (for the tests).
 
-    Parameters
-    ----------
-    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
-        One image or a stack (the reference and gradient images of a pair; :func:`fit_dots` takes at
-        most two).
-    params : (N, 5) array
-        Starting parameters, columns :data:`PARAMS` (finite).
-    half, render_half : int, keyword-only
-        Half-widths of each dot's fit window and of its rendered stamp (:func:`fit_window_half`).
-    frame : (N,) int array, optional, keyword-only
-        Image of each dot in the stack; all 0 by default.
-    partner : (N,) int array, optional, keyword-only
-        Row of the same dot in the other image of a pair, -1 for none.
-    saturation : float or (K,) array, optional, keyword-only
-        Saturation level of each image: pixels at or above it are left out of the fit (they only tell
-        that the intensity is at least that). None: no saturation.
-    iterations : int, keyword-only
-        Gauss-Newton steps; the model images are redrawn before each.
-    max_move : float, keyword-only
-        A step that takes a dot farther than this (px, per axis) from its start is refused.
-    sigma_range : (float, float), keyword-only
-        A step that takes ``sigma`` outside this range (or ``I0`` to zero) is refused.
-
-    Returns
-    -------
-    params : (N, 5) array
-        Fitted parameters, each image fitted on its own.
-    ok : (N,) bool array
-        False where the last step was refused (the dot keeps its previous parameters).
-    shared_xy : (N, 2) array
-        Positions of the last step taken with every paired dot at its pair's common shape
-        (:func:`common_shape`); NaN for dots without a partner. Their difference across a pair is the
-        model correction.
-
-    Notes
-    -----
-    Block-Jacobi Gauss-Newton on ``sum_pixels (I - sum_dots (I0 p_x p_y + b))^2``: before each step the
-    model image ``R`` of all dots is drawn, and dot ``i`` takes one Gauss-Newton step on its window of
-    ``I - R + I0_i p_x p_y`` (the image with the other dots removed) with its five parameters. For
-    non-touching dots it is the Gauss-Newton fit of Brady, Raben and Vlachos (2009, section 2.3) with
-    the pixel-integrated model instead of a sampled Gaussian, which removes that fit's bias on small
-    dots; the joint fit removes the bias that neighbours' tails cause in a dense pattern.
-
-    The common-shape step is the same step for position and background only, against the model image
-    ``R'`` in which every paired dot has its pair's mean ``I0`` and ``sigma``: the shift that best maps
-    the reference dot onto the gradient dot when both share one shape. With two fewer free parameters
-    per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
+    Parameters and result are those of :func:`tracking.dotfit.fit_dots`, without ``device``.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     stack = np.stack(stack)
@@ -440,76 +394,9 @@ def fit_dots_numpy(
 def moment_shifts_numpy(
     images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=MAX_SHIFT_PX
 ):
-    """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
+    """NumPy reference of :func:`tracking.dotfit.moment_shifts` (for the tests).
 
-    A symmetric model's centre is the mean of a dot's light only while the dot's image is symmetric. A
-    dot seen through a flow is the spot spread by the landing positions of rays that crossed different
-    density, and the mean landing position is what the truth (and BOS) defines. The step weighs what the
-    model leaves over: with ``M`` the model image of every dot, ``m_i`` dot i's own model and ``R = I - b_i
-    - M`` the residual on dot i's stamp, dot i's share of the light is ``m_i + w R`` with ``w = m_i / M``
-    (``M`` taken as at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak),
-    and its first moment about the model centre ``(x_i, y_i)`` is
-
-    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``
-
-    (the own model, symmetric about the centre, adds nothing to the numerators).
-
-    Parameters
-    ----------
-    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
-        As for :func:`fit_dots_numpy`.
-    params : (N, 5) array
-        Fitted parameters (columns :data:`PARAMS`).
-    half : int, keyword-only
-        Half-width of the stamp on which each dot is rendered and weighed (the fit's ``render_half``).
-    frame : (N,) int array, optional, keyword-only
-        Image of each dot in the stack: 0 the reference, 1 the gradient image.
-    partner : (N,) int array, optional, keyword-only
-        Row of the same dot in the other image, -1 for none. The background ``b_i`` under a gradient
-        image's dot is its reference partner's fitted background (the same target and light, seen
-        undistorted: a distorted dot's own fit lifts or lowers its background by up to 1 % of the peak
-        to absorb the asymmetric light, which would bias the moment); other dots keep their own.
-    saturation : float or (K,) array, optional, keyword-only
-        Saturation level of each image; a stamp holding a pixel at or above it is left alone.
-    noise : float or (K,) array, optional, keyword-only
-        Noise standard deviation of each image (0 by default).
-    chi2 : float, keyword-only
-        The shift is applied only where it is significant: ``|d|^2 / (var_d / 2) > chi2``, with
-        ``var_d = noise^2 sum (r - r_i)^2 w^2 / F^2`` (both axes) its variance under white noise.
-        Where the dot is an undistorted spot under noise, a shift this large is a chance event of
-        probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
-    max_shift : float, keyword-only
-        A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
-
-    Returns
-    -------
-    shift : (N, 2) array
-        ``(dx, dy)``, px: 0 where not applied.
-    applied : (N,) bool array
-        Where the shift is usable and the dot or its partner is distorted: a matched pair is measured
-        alike in both images (the fit's own residuals in a tight cluster, alike in both, then cancel in
-        the displacement). Usable: the stamp lies inside its image with no saturated pixel, the residual
-        light of the dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is
-        another dot's light, not a distortion) and the shift is at most ``max_shift``. Distorted: the
-        shift is also significant, at least ``MIN_SHIFT_PX`` (1e-3 px) and at most
-        ``MAX_SHIFT_PER_SPREAD_REL`` (1) times the spread the dot's fitted width adds to its partner's,
-        ``sqrt(sigma^2 - sigma_partner^2)`` (a dot without a partner, or no wider than it, is not).
-
-    Examples
-    --------
-    A reference spot, and in the gradient image the same spot with a faint second one 1 px to its right:
-    the fit's centre sits on the main spot (its width grown to 0.85 px), the first moment 0.111 px further
-    right (the second spot holds 1/9 of the light); the undistorted reference's first moment is its centre.
-
-    >>> import numpy as np
-    >>> reference = render_dots((15, 15), [[7.0, 7.0, 1.0, 0.8, 0.0]], half=5)
-    >>> gradient = reference + render_dots((15, 15), [[8.0, 7.0, 0.125, 0.8, 0.0]], half=5)
-    >>> fitted = [[7.0, 7.0, 1.0, 0.8, 0.0], [7.0, 7.0, 1.0, 0.85, 0.0]]
-    >>> shift, applied = moment_shifts_numpy(
-    ...     [reference, gradient], fitted, half=5, frame=[0, 1], partner=[1, 0]
-    ... )
-    >>> np.round(shift, 3).tolist(), applied.tolist()
-    ([[0.0, 0.0], [0.111, 0.0]], [True, True])
+    Parameters and result are those of :func:`tracking.dotfit.moment_shifts`, without ``device``.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     stack = np.stack(stack)
@@ -548,37 +435,9 @@ def moment_shifts_numpy(
 
 
 def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False):
-    """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
+    """NumPy reference of :func:`tracking.neighbours.neighbour_fit` (for the tests).
 
-    Parameters
-    ----------
-    xy : (M, 2) array
-        Points (finite), ``M > k``.
-    uv : (M, 2) array
-        Their vectors.
-    query : (N, 2) array
-        Points at which to fit (finite).
-    self_index : (N,) int array
-        The query's own row in ``xy`` (left out of its neighbours), or -1.
-    k : int, keyword-only
-        Neighbours per fit.
-    return_neighbours : bool, keyword-only
-        Also return the neighbours' rows.
-
-    Returns
-    -------
-    value : (N, 2) array
-        The fit's value at the query point.
-    spread : (N,) array
-        Median distance of the neighbours' vectors from the fit.
-    neighbours : (N, k) int array
-        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
-        order within a row is not part of the result).
-
-    Notes
-    -----
-    ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
-    ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
+    Parameters and result are those of :func:`tracking.neighbours.neighbour_fit`, without ``device``.
     """
     xy = np.asarray(xy, dtype=np.float64)
     uv = np.asarray(uv, dtype=np.float64)
@@ -673,52 +532,9 @@ def _sums(ref, coef, xy, half, t, a):
 
 
 def registration_offsets_numpy(reference, coefficients, xy, uv, *, half, gradients=None):
-    """Lucas-Kanade correction of each displacement, registering the reference window onto the gradient image.
+    """NumPy reference of :func:`tracking.register.registration_offsets` (for the tests).
 
-    Parameters
-    ----------
-    reference : (H, W) array
-        Reference image.
-    coefficients : (H, W) array
-        The gradient image's cubic B-spline coefficients (:func:`spline_coefficients`).
-    xy : (N, 2) array
-        Reference-image positions of the dots (x = column); the window is centred on the nearest pixel.
-    uv : (N, 2) array
-        Their measured displacements, px.
-    half : int, keyword-only
-        Half-width of the window.
-    gradients : (N, 2, 2) array, optional, keyword-only
-        The displacement's gradient at each dot, ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (e.g.
-        :func:`local_gradients`): the window is deformed by it about the dot's position. Zero by default
-        (the window only moves).
-
-    Returns
-    -------
-    correction : (N, 2) array
-        ``c`` such that the gradient image at ``p + uv + c + A (p - xy)`` matches the reference at ``p``
-        over the window (least squares, up to a constant offset; ``A`` the gradient), px.
-    ok : (N,) bool array
-        Every step was solved: at least ``MIN_PIXELS`` usable pixels and a positive determinant.
-
-    Notes
-    -----
-    ``REGISTRATION_STEPS`` Gauss-Newton steps on ``sum_p (G(p + uv + c + A (p - xy)) - R(p) - b)^2`` over the window
-    pixels ``p`` (those whose reference central differences and spline taps lie inside the image), the
-    offset ``b`` eliminated by centring the sums; the Jacobian is the mean of the two images' gradients
-    (the reference's central differences and the spline's exact slope), as in the symmetric
-    (efficient second-order) variant of the method. Each step is clipped to ``MAX_STEP_PX`` per axis; a
-    dot whose step cannot be solved keeps the correction it had.
-
-    Examples
-    --------
-    A 4 px dot moved by (0.5, -0.2) px, measured as (0.3, 0): the correction finds the rest.
-
-    >>> from synthbos.raytrace.dots import draw_dots
-    >>> ref = draw_dots((15, 15), [[7.0, 7.0]], 4.0)
-    >>> grad = draw_dots((15, 15), [[7.5, 6.8]], 4.0)
-    >>> c, ok = registration_offsets_numpy(ref, spline_coefficients(grad), [[7.0, 7.0]], [[0.3, 0.0]], half=4)
-    >>> np.round(c, 2).tolist(), ok.tolist()
-    ([[0.2, -0.2]], [True])
+    Parameters and result are those of :func:`tracking.register.registration_offsets`, without ``device``.
     """
     ref = np.asarray(reference, dtype=np.float64)
     coef = np.asarray(coefficients, dtype=np.float64)

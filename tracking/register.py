@@ -83,14 +83,55 @@ def _gradients(gradients, n):
 
 
 def registration_offsets(reference, coefficients, xy, uv, *, half, gradients=None, device=None):
-    """Same as :func:`tracking.reference.registration_offsets_numpy`, with a Warp kernel (one thread per dot).
+    """Lucas-Kanade correction of each displacement, registering the reference window onto the gradient image.
 
     Parameters
     ----------
+    reference : (H, W) array
+        Reference image.
+    coefficients : (H, W) array
+        The gradient image's cubic B-spline coefficients (:func:`spline_coefficients`).
+    xy : (N, 2) array
+        Reference-image positions of the dots (x = column); the window is centred on the nearest pixel.
+    uv : (N, 2) array
+        Their measured displacements, px.
+    half : int, keyword-only
+        Half-width of the window.
+    gradients : (N, 2, 2) array, optional, keyword-only
+        The displacement's gradient at each dot, ``[[du/dx, du/dy], [dv/dx, dv/dy]]`` (e.g.
+        :func:`local_gradients`): the window is deformed by it about the dot's position. Zero by default
+        (the window only moves).
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`tracking.reference.registration_offsets_numpy`.
+    Returns
+    -------
+    correction : (N, 2) array
+        ``c`` such that the gradient image at ``p + uv + c + A (p - xy)`` matches the reference at ``p``
+        over the window (least squares, up to a constant offset; ``A`` the gradient), px.
+    ok : (N,) bool array
+        Every step was solved: at least ``MIN_PIXELS`` usable pixels and a positive determinant.
+
+    Notes
+    -----
+    ``REGISTRATION_STEPS`` Gauss-Newton steps on ``sum_p (G(p + uv + c + A (p - xy)) - R(p) - b)^2`` over the window
+    pixels ``p`` (those whose reference central differences and spline taps lie inside the image), the
+    offset ``b`` eliminated by centring the sums; the Jacobian is the mean of the two images' gradients
+    (the reference's central differences and the spline's exact slope), as in the symmetric
+    (efficient second-order) variant of the method. Each step is clipped to ``MAX_STEP_PX`` per axis; a
+    dot whose step cannot be solved keeps the correction it had.
+
+    Examples
+    --------
+    A 4 px dot moved by (0.5, -0.2) px, measured as (0.3, 0): the correction finds the rest.
+
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> ref = draw_dots((15, 15), [[7.0, 7.0]], 4.0)
+    >>> grad = draw_dots((15, 15), [[7.5, 6.8]], 4.0)
+    >>> c, ok = registration_offsets(ref, spline_coefficients(grad), [[7.0, 7.0]], [[0.3, 0.0]], half=4)
+    >>> np.round(c, 2).tolist(), ok.tolist()
+    ([[0.2, -0.2]], [True])
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

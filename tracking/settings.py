@@ -142,14 +142,14 @@ class DotStatus(enum.IntFlag):
         The dot's light in either image was measurably asymmetric (a dot distorted by the flow inside the
         camera's light cone): both its positions are the first moments of its share of the light (the
         mean landing positions of its rays), not the symmetric model's centres
-        (``TrackingSettings.distortion``; :func:`tracking.reference.moment_shifts_numpy`).
+        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts`).
     MISREGISTERED
         Standard tracking only (no prior, where nothing says the pattern is dots): the reference image
         around the dot, moved by the measured displacement, does not land on the gradient image. Lucas-Kanade
         steps that register the dot's identification window (half-width ``ceil(d / 2 +
         window_margin)``) onto the gradient image, starting from ``u_cc, v_cc``, end further than
         ``TrackingSettings.registration_tolerance`` from ``u_cc, v_cc`` or from ``u, v``, or cannot be
-        solved (:func:`tracking.reference.registration_offsets_numpy`). On dots this is rare (noise only);
+        solved (:func:`tracking.register.registration_offsets`). On dots this is rare (noise only);
         on speckle, squares or blobs that merge or part between the images it marks the blobs that the dot
         model measured wrongly. Never MATCHED; ``x_gradient, y_gradient`` show what was found.
 
