@@ -70,7 +70,6 @@ def main(argv=None):
     p.add_argument("--amplitude", type=float, default=1.5, help="peak displacement, px")
     p.add_argument("--repeat", type=int, default=7, help="timed pairs per procedure; the best is reported")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--backend", choices=("warp", "numpy"), default="warp")
     p.add_argument("--trackpy-diameter", type=int, default=5, help="odd feature size for trackpy.locate")
     p.add_argument("--trackpy-separation", type=float, default=3.0, help="trackpy.locate minimum separation")
     p.add_argument(
@@ -103,15 +102,15 @@ def main(argv=None):
     procedures = (
         (
             "synthbos tracking, default (model fit + model correction)",
-            TrackingSettings(diameter=args.diameter, backend=args.backend),
+            TrackingSettings(diameter=args.diameter),
         ),
         (
             "synthbos tracking, paper (gaussian3 + map correlation)",
-            TrackingSettings.paper(diameter=args.diameter, backend=args.backend),
+            TrackingSettings.paper(diameter=args.diameter),
         ),
         (
             "synthbos tracking, default without the first-moment step",
-            TrackingSettings(diameter=args.diameter, backend=args.backend, distortion="none"),
+            TrackingSettings(diameter=args.diameter, distortion="none"),
         ),
     )
     for name, settings in procedures:
@@ -215,8 +214,8 @@ def accuracy_sweep(args, levels):
         grad = clean_g + noise * rng.standard_normal(shape)
         cells = []
         for settings in (
-            TrackingSettings(diameter=args.diameter, backend=args.backend),
-            TrackingSettings.paper(diameter=args.diameter, backend=args.backend),
+            TrackingSettings(diameter=args.diameter),
+            TrackingSettings.paper(diameter=args.diameter),
         ):
             res = track_pair(ref, grad, prior_xy=xy, settings=settings, device="cpu")
             ok = is_valid(res["status"])

@@ -202,3 +202,14 @@ def test_the_kernel_modules_import_the_vocabulary_not_the_orchestrator():
     ):
         assert "synthbos.tracking.pipeline" not in graph[f"synthbos.tracking.{kernels}"]
     assert not (graph["synthbos.tracking.settings"] - {"synthbos", "synthbos.errors", "synthbos.values"})
+
+
+def test_no_production_module_imports_the_tracking_reference():
+    """The NumPy references (``tracking/reference.py``) are for the tests: no module of the package loads
+    them, and they are there to be loaded (the test would pass vacuously if the module were renamed)."""
+    graph = import_graph()
+    reference = "synthbos.tracking.reference"
+    assert reference in graph
+    assert {"synthbos.tracking.dotfit", "synthbos.tracking.register"} <= graph[reference]
+    importers = sorted(module for module, edges in graph.items() if reference in edges)
+    assert importers == []

@@ -23,7 +23,7 @@ from .centroid import (
 from .correction import correlation_correction
 from .crlb import displacement_crlb, position_crlb
 from .diameter import estimate_dot_diameter
-from .dotfit import fit_dots, fit_dots_numpy
+from .dotfit import fit_dots
 from .identify import (
     blob_properties,
     blob_score,
@@ -59,7 +59,6 @@ __all__ = [
     "estimate_noise",
     "fit_centroids",
     "fit_dots",
-    "fit_dots_numpy",
     "fit_soloff",
     "is_valid",
     "mapping_from_dict",

@@ -70,8 +70,6 @@ def batch_support(settings: TrackingSettings) -> str | None:
     """Why :func:`track_pairs` cannot run these settings (then use ``track_pair``), or None when it can."""
     if settings.centroid != "model" or settings.correction != "model":
         return "the batch runs the default estimators only (centroid and correction 'model')"
-    if settings.backend != "warp":
-        return "the batch runs Warp kernels only (backend 'warp')"
     return None
 
 
@@ -164,8 +162,8 @@ class _Batch:
     # --- identification ---------------------------------------------------------------------------
 
     def identify(self, image, which, pred, ids, n_ids, *, wide):
-        """``tracking.pipeline._identify`` for the dots ``ids`` (``n_ids`` of them) of every pair, on the
-        reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
+        """``tracking.identify.identify_near_predictions`` for the dots ``ids`` (``n_ids`` of them) of every
+        pair, on the reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
         search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius

@@ -201,7 +201,7 @@ def take_blobs(
     todo: wp.array(dtype=wp.int32),
     won: wp.array(dtype=wp.int32),
 ):
-    """The three-point Gaussian of each dot that keeps its blob (``tracking.pipeline._identify``); a dot
+    """The three-point Gaussian of each dot that keeps its blob (``tracking.identify.identify_near_predictions``); a dot
     that lost its blob to a nearer one is AMBIGUOUS and waits for the residual image."""
     t = wp.tid()
     k = key[t]
@@ -274,7 +274,7 @@ def release_claims(
 
 @wp.kernel
 def next_round(won: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32)):
-    """A frame in which a round found no dot stops (``_identify``'s ``break``)."""
+    """A frame in which a round found no dot stops (``identify_near_predictions``' ``break``)."""
     f = wp.tid()
     active[f] = active[f] * won[f]
     won[f] = 0

@@ -12,7 +12,7 @@ model image is redrawn between Gauss-Newton steps (block-Jacobi iteration on the
 problem of all dots). At zero noise the fit converges to the exact positions; under white noise it is
 the maximum-likelihood estimate and reaches the Cramer-Rao bound (:mod:`tracking.crlb`).
 
-:func:`fit_dots` runs the iteration with Warp kernels (one thread per dot); :func:`fit_dots_numpy` is
+:func:`fit_dots` runs the iteration with Warp kernels (one thread per dot); :func:`tracking.reference.fit_dots_numpy` is
 the array-program reference that defines the result.
 """
 
@@ -20,15 +20,10 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .fit_kernels import fit_dot_step_kernel, render_dots_kernel
 from .moment_kernels import (
-    MAX_RESIDUAL_FLUX_REL,
-    MAX_SHIFT_PER_SPREAD_REL,
     MAX_SHIFT_PX,
-    MIN_SHIFT_PX,
-    SHARE_FLOOR_REL,
     moment_moves_kernel,
     moment_shift_kernel,
 )
@@ -37,15 +32,11 @@ from .workspace import scratch
 
 __all__ = [
     "PARAMS",
-    "common_shape",
     "erf_from_gauss",
     "fit_dots",
-    "fit_dots_numpy",
     "fit_window_half",
     "integrated_profile",
     "moment_shifts",
-    "moment_shifts_numpy",
-    "render_dots",
 ]
 
 PARAMS = ("x", "y", "peak", "sigma", "background")
@@ -113,138 +104,6 @@ def integrated_profile(centre, sigma, first, n):
     return p, dp_dc, dp_ds
 
 
-def _origin(params, half):
-    return np.rint(params[:, 0]).astype(np.int64) - half, np.rint(params[:, 1]).astype(np.int64) - half
-
-
-def common_shape(params, partner):
-    """Each dot's common ``(I0, sigma)`` with its partner in the other image: the mean of the two fits.
-
-    Parameters
-    ----------
-    params : (N, 5) array
-    partner : (N,) int array
-        Row of the same dot in the other image, -1 for none (its own shape is kept).
-
-    Returns
-    -------
-    (N, 2) array
-    """
-    own = params[:, 2:4]
-    other = params[np.maximum(partner, 0), 2:4]
-    return np.where((partner >= 0)[:, None], 0.5 * (own + other), own)
-
-
-def render_dots(shape, params, *, half, frame=None, common=None):
-    """Images of the dots' models (backgrounds left out), each drawn on a ``2 half + 1`` square stamp.
-
-    Parameters
-    ----------
-    shape : (H, W) or (K, H, W)
-        Shape of one image or of a stack of K images.
-    params : (N, 5) array
-        Columns :data:`PARAMS`.
-    half : int, keyword-only
-        Stamp half-width, centred on the pixel nearest each dot.
-    frame : (N,) int array, optional
-        Image of each dot in the stack (all 0 by default).
-    common : (N, 2) array, optional
-        Draw each dot with this ``(I0, sigma)`` instead, linearised in sigma about the dot's own:
-        ``I0' (p_x p_y + (sigma' - sigma) d(p_x p_y)/d sigma)``.
-
-    Returns
-    -------
-    float64 array of ``shape``
-    """
-    params = np.asarray(params, dtype=np.float64).reshape(-1, 5)
-    full = (1, *shape) if len(shape) == 2 else tuple(shape)
-    k, h, w = full
-    frame = np.zeros(len(params), dtype=np.int64) if frame is None else np.asarray(frame)
-    if len(params) == 0:
-        return np.zeros(shape)
-    n = 2 * half + 1
-    ox, oy = _origin(params, half)
-    px, _, spx = integrated_profile(params[:, 0], params[:, 3], ox, n)
-    py, _, spy = integrated_profile(params[:, 1], params[:, 3], oy, n)
-    stamp = py[:, :, None] * px[:, None, :]
-    if common is None:
-        stamp = params[:, 2, None, None] * stamp
-    else:
-        ds = (common[:, 1] - params[:, 3])[:, None, None]
-        dstamp = spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :]
-        stamp = common[:, 0, None, None] * (stamp + ds * dstamp)
-    cols = np.broadcast_to((ox[:, None] + np.arange(n))[:, None, :], stamp.shape)
-    rows = np.broadcast_to((oy[:, None] + np.arange(n))[:, :, None], stamp.shape)
-    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-    flat = ((frame[:, None, None] * h + rows) * w + cols)[inside]
-    return np.bincount(flat, weights=stamp[inside], minlength=k * h * w).reshape(shape)
-
-
-def _windows(stack, frame, ox, oy, n):
-    pad = n + 1
-    padded = np.pad(stack, ((0, 0), (pad, pad), (pad, pad)))
-    return sliding_window_view(padded, (n, n), axis=(1, 2))[frame, oy + pad, ox + pad]
-
-
-def _step_numpy(images, models, params, start, frame, partner, saturation, *, half, max_move, sigma_range):
-    """One Gauss-Newton step of every dot against its image minus the other dots (NumPy).
-
-    ``models`` holds the free and the common-shape model images; returns the new parameters, the
-    step's success and the position of the common-shape step (NaN without a partner).
-    """
-    n_dots = len(params)
-    n = 2 * half + 1
-    _, h, w = images.shape
-    ox, oy = _origin(params, half)
-    cols = ox[:, None] + np.arange(n)
-    rows = oy[:, None] + np.arange(n)
-    inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
-    inside &= _windows(images, frame, ox, oy, n) < saturation[frame][:, None, None]  # saturated: no data
-    x, y, a, s, b = params.T
-    px, dpx, spx = integrated_profile(x, s, ox, n)
-    py, dpy, spy = integrated_profile(y, s, oy, n)
-    shape_xy = py[:, :, None] * px[:, None, :]
-    jac = (
-        np.stack(
-            [
-                a[:, None, None] * py[:, :, None] * dpx[:, None, :],
-                a[:, None, None] * dpy[:, :, None] * px[:, None, :],
-                shape_xy,
-                a[:, None, None] * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :]),
-                np.ones_like(shape_xy),
-            ],
-            axis=-1,
-        )
-        * inside[..., None]
-    )
-    jac = jac.reshape(n_dots, n * n, 5)
-    normal = np.einsum("npk,npl->nkl", jac, jac)
-    # The model images hold every dot, this one included: the residual of the image less the other
-    # dots against this dot's model and background is ``image - model - b``.
-    rhs = []
-    for model in models:
-        resid = np.where(inside, _windows(images - model, frame, ox, oy, n) - b[:, None, None], 0.0)
-        rhs.append(np.einsum("npk,np->nk", jac, resid.reshape(n_dots, n * n)))
-    new = params + _limited(_solve_free(normal, rhs[0], np.ones(5)))
-    ok = np.isfinite(new).all(axis=1)
-    ok &= (np.abs(new[:, 0] - start[:, 0]) <= max_move) & (np.abs(new[:, 1] - start[:, 1]) <= max_move)
-    ok &= (new[:, 2] > 0) & (new[:, 3] >= sigma_range[0]) & (new[:, 3] <= sigma_range[1])
-    shared = params[:, :2] + _limited(_solve_free(normal, rhs[1], np.array([1.0, 1.0, 0.0, 0.0, 1.0])))[:, :2]
-    shared[partner < 0] = np.nan
-    return np.where(ok[:, None], new, params), ok, shared
-
-
-def _solve_free(normal, rhs, free):
-    """Gauss-Newton steps for the parameters with ``free = 1`` (the others' step is zero)."""
-    a = normal * free[:, None] * free[None, :] + np.diag(1.0 - free + 1e-12)
-    return np.linalg.solve(a, (rhs * free)[:, :, None])[:, :, 0]
-
-
-def _limited(step):
-    """Steps scaled so that the position moves at most half a pixel per axis."""
-    big = np.abs(step[:, :2]).max(axis=1)
-    return step * np.where(big > 0.5, 0.5 / np.where(big > 0.5, big, 1.0), 1.0)[:, None]
-
 
 def _saturation(saturation, k):
     if saturation is None:
@@ -282,94 +141,6 @@ def _checked(images, params, frame, partner):
         raise ValueError("frame or partner index out of range")
     return stack, p, frame, partner
 
-
-def fit_dots_numpy(
-    images,
-    params,
-    *,
-    half,
-    render_half,
-    frame=None,
-    partner=None,
-    saturation=None,
-    iterations=2,
-    max_move=FIT_MAX_MOVE_PX,
-    sigma_range=(0.2, 10.0),
-):
-    """Fit the pixel-integrated Gaussian model to every dot of one image or a pair, jointly with its neighbours.
-
-    Parameters
-    ----------
-    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
-        One image or a stack (the reference and gradient images of a pair; :func:`fit_dots` takes at
-        most two).
-    params : (N, 5) array
-        Starting parameters, columns :data:`PARAMS` (finite).
-    half, render_half : int, keyword-only
-        Half-widths of each dot's fit window and of its rendered stamp (:func:`fit_window_half`).
-    frame : (N,) int array, optional, keyword-only
-        Image of each dot in the stack; all 0 by default.
-    partner : (N,) int array, optional, keyword-only
-        Row of the same dot in the other image of a pair, -1 for none.
-    saturation : float or (K,) array, optional, keyword-only
-        Saturation level of each image: pixels at or above it are left out of the fit (they only tell
-        that the intensity is at least that). None: no saturation.
-    iterations : int, keyword-only
-        Gauss-Newton steps; the model images are redrawn before each.
-    max_move : float, keyword-only
-        A step that takes a dot farther than this (px, per axis) from its start is refused.
-    sigma_range : (float, float), keyword-only
-        A step that takes ``sigma`` outside this range (or ``I0`` to zero) is refused.
-
-    Returns
-    -------
-    params : (N, 5) array
-        Fitted parameters, each image fitted on its own.
-    ok : (N,) bool array
-        False where the last step was refused (the dot keeps its previous parameters).
-    shared_xy : (N, 2) array
-        Positions of the last step taken with every paired dot at its pair's common shape
-        (:func:`common_shape`); NaN for dots without a partner. Their difference across a pair is the
-        model correction.
-
-    Notes
-    -----
-    Block-Jacobi Gauss-Newton on ``sum_pixels (I - sum_dots (I0 p_x p_y + b))^2``: before each step the
-    model image ``R`` of all dots is drawn, and dot ``i`` takes one Gauss-Newton step on its window of
-    ``I - R + I0_i p_x p_y`` (the image with the other dots removed) with its five parameters. For
-    non-touching dots it is the Gauss-Newton fit of Brady, Raben and Vlachos (2009, section 2.3) with
-    the pixel-integrated model instead of a sampled Gaussian, which removes that fit's bias on small
-    dots; the joint fit removes the bias that neighbours' tails cause in a dense pattern.
-
-    The common-shape step is the same step for position and background only, against the model image
-    ``R'`` in which every paired dot has its pair's mean ``I0`` and ``sigma``: the shift that best maps
-    the reference dot onto the gradient dot when both share one shape. With two fewer free parameters
-    per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
-    """
-    stack, p, frame, partner = _checked(images, params, frame, partner)
-    stack = np.stack(stack)
-    sat = _saturation(saturation, len(stack))
-    start = p.copy()
-    ok = np.ones(len(p), dtype=bool)
-    shared = np.full((len(p), 2), np.nan)
-    for _ in range(iterations):
-        models = (
-            render_dots(stack.shape, p, half=render_half, frame=frame),
-            render_dots(stack.shape, p, half=render_half, frame=frame, common=common_shape(p, partner)),
-        )
-        p, ok, shared = _step_numpy(
-            stack,
-            models,
-            p,
-            start,
-            frame,
-            partner,
-            sat,
-            half=half,
-            max_move=max_move,
-            sigma_range=sigma_range,
-        )
-    return p, ok, shared
 
 
 def _raster_order(p, frame):
@@ -423,14 +194,58 @@ def fit_dots(
     sigma_range=(0.2, 10.0),
     device=None,
 ):
-    """Same as :func:`fit_dots_numpy`, with Warp kernels (one thread per dot).
+    """Fit the pixel-integrated Gaussian model to every dot of one image or a pair, jointly with its neighbours.
 
     Parameters
     ----------
+    images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
+        One image or a stack (the reference and gradient images of a pair; :func:`fit_dots` takes at
+        most two).
+    params : (N, 5) array
+        Starting parameters, columns :data:`PARAMS` (finite).
+    half, render_half : int, keyword-only
+        Half-widths of each dot's fit window and of its rendered stamp (:func:`fit_window_half`).
+    frame : (N,) int array, optional, keyword-only
+        Image of each dot in the stack; all 0 by default.
+    partner : (N,) int array, optional, keyword-only
+        Row of the same dot in the other image of a pair, -1 for none.
+    saturation : float or (K,) array, optional, keyword-only
+        Saturation level of each image: pixels at or above it are left out of the fit (they only tell
+        that the intensity is at least that). None: no saturation.
+    iterations : int, keyword-only
+        Gauss-Newton steps; the model images are redrawn before each.
+    max_move : float, keyword-only
+        A step that takes a dot farther than this (px, per axis) from its start is refused.
+    sigma_range : (float, float), keyword-only
+        A step that takes ``sigma`` outside this range (or ``I0`` to zero) is refused.
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`fit_dots_numpy`.
+    Returns
+    -------
+    params : (N, 5) array
+        Fitted parameters, each image fitted on its own.
+    ok : (N,) bool array
+        False where the last step was refused (the dot keeps its previous parameters).
+    shared_xy : (N, 2) array
+        Positions of the last step taken with every paired dot at its pair's common shape
+        (the mean of the two fits' ``I0`` and ``sigma``); NaN for dots without a partner. Their difference
+        across a pair is the model correction.
+
+    Notes
+    -----
+    Block-Jacobi Gauss-Newton on ``sum_pixels (I - sum_dots (I0 p_x p_y + b))^2``: before each step the
+    model image ``R`` of all dots is drawn, and dot ``i`` takes one Gauss-Newton step on its window of
+    ``I - R + I0_i p_x p_y`` (the image with the other dots removed) with its five parameters. For
+    non-touching dots it is the Gauss-Newton fit of Brady, Raben and Vlachos (2009, section 2.3) with
+    the pixel-integrated model instead of a sampled Gaussian, which removes that fit's bias on small
+    dots; the joint fit removes the bias that neighbours' tails cause in a dense pattern.
+
+    The common-shape step is the same step for position and background only, against the model image
+    ``R'`` in which every paired dot has its pair's mean ``I0`` and ``sigma``: the shift that best maps
+    the reference dot onto the gradient dot when both share one shape. With two fewer free parameters
+    per dot, and its neighbours' shapes averaged over both images, it is the more precise of the two.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     n = len(p)
@@ -516,8 +331,19 @@ def _noise(noise, k):
     return np.zeros(k) if noise is None else np.broadcast_to(np.asarray(noise, dtype=np.float64), (k,)).copy()
 
 
-def moment_shifts_numpy(
-    images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=MAX_SHIFT_PX
+
+def moment_shifts(
+    images,
+    params,
+    *,
+    half,
+    frame=None,
+    partner=None,
+    saturation=None,
+    noise=None,
+    chi2=25.0,
+    max_shift=MAX_SHIFT_PX,
+    device=None,
 ):
     """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
 
@@ -536,7 +362,7 @@ def moment_shifts_numpy(
     Parameters
     ----------
     images : (H, W) array, (K, H, W) array or sequence of (H, W) arrays
-        As for :func:`fit_dots_numpy`.
+        As for :func:`fit_dots`.
     params : (N, 5) array
         Fitted parameters (columns :data:`PARAMS`).
     half : int, keyword-only
@@ -560,6 +386,9 @@ def moment_shifts_numpy(
     max_shift : float, keyword-only
         A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
 
+    device : str or None, keyword-only
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
     Returns
     -------
     shift : (N, 2) array
@@ -581,72 +410,15 @@ def moment_shifts_numpy(
     right (the second spot holds 1/9 of the light); the undistorted reference's first moment is its centre.
 
     >>> import numpy as np
-    >>> reference = render_dots((15, 15), [[7.0, 7.0, 1.0, 0.8, 0.0]], half=5)
-    >>> gradient = reference + render_dots((15, 15), [[8.0, 7.0, 0.125, 0.8, 0.0]], half=5)
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> reference = draw_dots((15, 15), [[7.0, 7.0]], 3.2, radius_sigmas=6.25)
+    >>> gradient = reference + draw_dots((15, 15), [[8.0, 7.0]], 3.2, intensity=0.125, radius_sigmas=6.25)
     >>> fitted = [[7.0, 7.0, 1.0, 0.8, 0.0], [7.0, 7.0, 1.0, 0.85, 0.0]]
-    >>> shift, applied = moment_shifts_numpy(
+    >>> shift, applied = moment_shifts(
     ...     [reference, gradient], fitted, half=5, frame=[0, 1], partner=[1, 0]
     ... )
-    >>> np.round(shift, 3).tolist(), applied.tolist()
+    >>> (np.round(shift, 3) + 0.0).tolist(), applied.tolist()  # + 0.0: no negative zeros
     ([[0.0, 0.0], [0.111, 0.0]], [True, True])
-    """
-    stack, p, frame, partner = _checked(images, params, frame, partner)
-    stack = np.stack(stack)
-    k, h, w = stack.shape
-    other = p[np.maximum(partner, 0)]
-    background = np.where((frame == 1) & (partner >= 0), other[:, 4], p[:, 4])
-    spread2 = np.where(partner >= 0, MAX_SHIFT_PER_SPREAD_REL**2 * np.maximum(p[:, 3] ** 2 - other[:, 3] ** 2, 0), 0.0)
-    sat, sigma = _saturation(saturation, k), _noise(noise, k)
-    n = 2 * half + 1
-    ox, oy = _origin(p, half)
-    px, _, _ = integrated_profile(p[:, 0], p[:, 3], ox, n)
-    py, _, _ = integrated_profile(p[:, 1], p[:, 3], oy, n)
-    own = p[:, 2, None, None] * py[:, :, None] * px[:, None, :]
-    whole = (ox >= 0) & (oy >= 0) & (ox + n <= w) & (oy + n <= h)
-    rows = np.clip(oy[:, None] + np.arange(n), 0, h - 1)[:, :, None]
-    cols = np.clip(ox[:, None] + np.arange(n), 0, w - 1)[:, None, :]
-    image = stack[frame[:, None, None], rows, cols]
-    total = render_dots(stack.shape, p, half=half, frame=frame)[frame[:, None, None], rows, cols]
-    whole &= ~(image >= sat[frame][:, None, None]).any(axis=(1, 2))
-    share = np.clip(own / np.maximum(total, SHARE_FLOOR_REL * np.abs(p[:, 2, None, None])), 0.0, 1.0)
-    wr = share * (image - background[:, None, None] - total)
-    dx = (ox[:, None] + np.arange(n) - p[:, 0, None])[:, None, :]
-    dy = (oy[:, None] + np.arange(n) - p[:, 1, None])[:, :, None]
-    own_flux = own.sum(axis=(1, 2))
-    flux = own_flux + wr.sum(axis=(1, 2))
-    safe = np.where(flux > 0, flux, 1.0)
-    shift = np.stack([(dx * wr).sum(axis=(1, 2)), (dy * wr).sum(axis=(1, 2))], axis=1) / safe[:, None]
-    var = sigma[frame] ** 2 * ((dx**2 + dy**2) * share**2).sum(axis=(1, 2)) / safe**2
-    size2 = (shift**2).sum(axis=1)
-    usable = (
-        whole & (flux > 0) & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux) & (size2 <= max_shift**2)
-    )
-    distorted = usable & (size2 > 0.5 * chi2 * var) & (size2 >= MIN_SHIFT_PX**2) & (size2 <= spread2)
-    applied = usable & (distorted | ((partner >= 0) & distorted[np.maximum(partner, 0)]))
-    return np.where(applied[:, None], shift, 0.0), applied
-
-
-def moment_shifts(
-    images,
-    params,
-    *,
-    half,
-    frame=None,
-    partner=None,
-    saturation=None,
-    noise=None,
-    chi2=25.0,
-    max_shift=MAX_SHIFT_PX,
-    device=None,
-):
-    """Same as :func:`moment_shifts_numpy`, with Warp kernels (one thread per dot).
-
-    Parameters
-    ----------
-    device : str or None, keyword-only
-        Warp device ("cpu", "cuda:0"); Warp's default when None.
-
-    Other parameters and the result are those of :func:`moment_shifts_numpy`.
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     n = len(p)

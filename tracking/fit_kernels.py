@@ -3,8 +3,8 @@
 """Warp kernels of the model fit: the pixel-integrated dot model, its rendering and its joint fit.
 
 Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfit` (one thread per dot;
-``fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.batch`. Windows are held flat, pixel ``p``
-of a ``w x w`` window at row ``p // w``, column ``p % w``.
+``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.batch`.
+Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 """
 
 import warp as wp
@@ -505,7 +505,7 @@ def fit_dot_step(
     shared_xy: wp.array2d(dtype=wp.float64),
 ):
     """One Gauss-Newton step of dot i (in model frame ``f``) against its image less the other dots (see
-    ``fit_dots_numpy``).
+    ``tracking.reference.fit_dots_numpy``).
 
     ``models``: the fixed-point model images ``[2, frames, height, width]``, flat.
 

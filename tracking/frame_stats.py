@@ -4,7 +4,7 @@ The numbers the tracker (:func:`tracking.pipeline.track_pair`) takes from each i
 for dots: the extremes and the image check, the saturation level, the fill level of the windows, the
 noise and the dot diameter. :func:`frame_statistics` computes them for a whole ``(F, H, W)`` stack with
 a fixed number of launches (independent of ``F``) and no host synchronisation, so it can be queued or
-captured in a graph; :func:`frame_statistics_numpy` calls the tracker's host functions frame by frame
+captured in a graph; :func:`tracking.reference.frame_statistics_numpy` calls the tracker's host functions frame by frame
 and defines the result.
 """
 
@@ -15,12 +15,10 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-from .diameter import estimate_dot_diameter
-from .identify import estimate_noise
 from .stats_kernels import band_lags, band_moments, column_lags, column_pass, frame_moments, frame_results
 from .workspace import on_device
 
-__all__ = ["FRAME_STATISTICS", "frame_statistics", "frame_statistics_numpy"]
+__all__ = ["FRAME_STATISTICS", "frame_statistics"]
 
 FRAME_STATISTICS = ("lo", "hi", "bad", "saturation", "fill", "noise", "diameter")
 
@@ -159,33 +157,3 @@ def frame_statistics(images, *, device=None):
     return out
 
 
-def frame_statistics_numpy(images):
-    """Reference of :func:`frame_statistics`: the tracker's host functions, frame by frame.
-
-    Parameters
-    ----------
-    images : (F, H, W) array
-
-    Returns
-    -------
-    dict of (F,) NumPy arrays
-        The keys of :func:`frame_statistics`; ``bad`` int32, the others float64.
-    """
-    stack = np.asarray(images, dtype=np.float64)
-    n = len(stack)
-    out = {name: np.empty(n) for name in FRAME_STATISTICS}
-    out["bad"] = np.zeros(n, dtype=np.int32)
-    with np.errstate(invalid="ignore", over="ignore"):  # non-finite frames: NaN, as the device gives
-        for f, image in enumerate(stack):
-            lo, hi = image.min(), image.max()
-            out["lo"][f], out["hi"][f] = lo, hi
-            # tracking.pipeline._check_image's two refusals
-            if not (np.isfinite(lo) and np.isfinite(hi)):
-                out["bad"][f] = 1
-            elif lo == 0 and hi == 0:
-                out["bad"][f] = 2
-            out["saturation"][f] = saturation_level(image, None)
-            out["fill"][f] = fill_level(image)
-            out["noise"][f] = estimate_noise(image)
-            out["diameter"][f] = estimate_dot_diameter(image)
-    return out

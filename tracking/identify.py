@@ -5,19 +5,36 @@ threshold segmentation of Cardwell, Vlachos and Thole (2011), which raises the t
 and splits a blob wherever it breaks into several at a higher level. Identification with prior
 information works on small windows around predicted positions: :func:`segment_windows` splits each
 window's above-threshold pixels into blobs for a whole stack of windows at once, and :func:`blob_score`
-ranks the blobs of a window with Eq. 1 of Rajendran, Bane and Vlachos (2019).
+ranks the blobs of a window with Eq. 1 of Rajendran, Bane and Vlachos (2019);
+:func:`identify_near_predictions` is the step itself: one dot near each predicted position, the window
+measurement (:func:`tracking.windows.measure_windows`, a Warp kernel) iterated on the residual image.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from .centroid import fit_centroids, gaussian3_from_samples
+from .frame_stats import partial_median
+from .residual import subtract_gaussians
+from .settings import (
+    RESIDUAL_STAMP_WIDTHS,
+    RESIDUAL_WIDTH_CLIP,
+    THREE_POINT_WIDTH_RANGE,
+    WILD_FIT_PX,
+    DotStatus,
+    residual_reach,
+)
+from .windows import measure_windows
 
 __all__ = [
     "blob_properties",
     "blob_score",
     "dynamic_threshold_identification",
     "estimate_noise",
+    "identify_near_predictions",
     "segment_windows",
     "static_threshold_identification",
 ]
@@ -291,3 +308,180 @@ def blob_score(area, peak, distance, *, weights=(1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0
         td = np.where(md > 0, 1.0 - distance / md, 1.0)
     score = (wa * ta + wi * ti + wd * td) / (wa + wi + wd)
     return np.where(np.isnan(area) | np.isnan(peak) | np.isnan(distance), np.nan, score)
+
+
+def identify_near_predictions(
+    image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, fill, device
+):
+    """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
+
+    ``fill`` is the value of the pixels outside the image (the median background,
+    :func:`tracking.frame_stats.fill_level`). Returns a dict of per-dot arrays: x, y, eta, i0, iteration,
+    flags, root (N, 2) = (col, row) of the dot's peak pixel, and, for the paper's correction (the only
+    user), dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
+    """
+    w_img = image.shape[1]
+    n = len(pred)
+    c = 2 * map_half + 1
+    width_lo, width_hi = THREE_POINT_WIDTH_RANGE
+    out = {
+        "x": np.full(n, np.nan),
+        "y": np.full(n, np.nan),
+        "eta": np.full(n, np.nan),
+        "i0": np.full(n, np.nan),
+        "iteration": np.zeros(n, dtype=np.int16),
+        "flags": np.zeros(n, dtype=np.int32),
+        "root": np.zeros((n, 2), dtype=np.int64),
+    }
+    keep_maps = settings.correction == "paper"
+    if keep_maps:
+        out["dotmap"] = np.zeros((n, c, c))
+    inside, origin_all = _window_origins(pred, image.shape, half, out["flags"])
+    todo = inside.copy()
+    subtracted = np.zeros(n, dtype=bool)
+    residual = image
+    ref_peak = None
+    method = "gaussian3" if settings.centroid == "model" else settings.centroid
+    # the three-point start needs only the centre of the dot maps
+    full_maps = keep_maps or method != "gaussian3"
+    for it in range(1, max_iterations + 1):
+        sel = np.flatnonzero(todo)
+        if sel.size == 0:
+            break
+        every = sel.size == n  # the first round, all inside (the usual case): no gather
+        origin = origin_all if every else origin_all[sel]
+        m = measure_windows(
+            residual,
+            origin,
+            (pred if every else pred[sel]) - origin,
+            half=half,
+            map_half=map_half,
+            radius=radius,
+            threshold_fraction=settings.threshold_fraction,
+            noise_floor=settings.noise_threshold * noise,
+            weights=settings.weights,
+            use_minimum=settings.background == "minimum",
+            saturation=sat_level,
+            fill=fill,
+            full_maps=full_maps,
+            device=device,
+        )
+        has = m["chosen"] >= 0
+        cpeak = m["peak"]
+        if ref_peak is None:
+            ref_peak = partial_median(cpeak[has]) if has.any() else 0.0
+        ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
+        ok &= cpeak > 0
+        root_r, root_c, win_idx = _claims(m, ok, origin, 2 * half + 1, w_img, sel, out["flags"])
+        if win_idx.size == 0:
+            break
+        xw, yw, eta, i0, fit_ok = _window_centroids(m, win_idx, method, map_half)
+        eta_ok = np.isfinite(eta) & (eta > width_lo * eta0) & (eta < width_hi * eta0)
+        eta = np.where(eta_ok, eta, eta0)
+        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
+        g = win_idx if every else sel[win_idx]
+        rc, rr = root_c.take(win_idx), root_r.take(win_idx)  # take: faster than indexing
+        out["x"][g] = rc + (xw - map_half)
+        out["y"][g] = rr + (yw - map_half)
+        out["eta"][g] = eta
+        out["i0"][g] = i0
+        out["iteration"][g] = it
+        out["root"][g, 0], out["root"][g, 1] = rc, rr
+        if keep_maps:
+            out["dotmap"][g] = m["dotmap"][win_idx]
+        flags = np.where(m["nblobs"].take(win_idx) > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
+        flags |= np.where(fit_ok, np.int32(0), np.int32(DotStatus.FIT_FALLBACK))
+        flags |= np.where(m["nsat"].take(win_idx) >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
+        out["flags"][g] = (out["flags"].take(g) & ~np.int32(DotStatus.AMBIGUOUS)) | flags
+        todo[g] = False
+        if todo.any() and it < max_iterations:
+            residual = _subtract_found(residual, out, subtracted, pred[todo], half, eta0)
+    return out
+
+
+def _window_origins(pred, shape, half, flags):
+    """Which predictions lie inside the image and each window's first (column, row); ``flags`` gets
+    OUTSIDE_IMAGE and NEAR_BORDER."""
+    h_img, w_img = shape
+    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
+    px, py = pred[:, 0], pred[:, 1]
+    inside = (px > -0.5) & (px < w_img - 0.5)
+    inside &= py > -0.5
+    inside &= py < h_img - 0.5
+    flags[~inside] |= DotStatus.OUTSIDE_IMAGE
+    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
+    origin_all -= half
+    ox, oy = origin_all[:, 0], origin_all[:, 1]
+    border = (ox < 0) | (oy < 0)
+    border |= ox + 2 * half >= w_img
+    border |= oy + 2 * half >= h_img
+    flags[inside & border] |= DotStatus.NEAR_BORDER
+    return inside, origin_all
+
+
+def _claims(m, ok, origin, w, w_img, sel, flags):
+    """The chosen blobs' peak pixels (row, column in the image) and the windows that keep their blob:
+    two prior dots may claim one blob, the nearer keeps it, the other (flagged AMBIGUOUS) waits for the
+    residual image."""
+    root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
+    root_c += origin[:, 0]
+    root_r += origin[:, 1]
+    absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
+    cidx = np.flatnonzero(ok)
+    claimed = np.sort(absroot[cidx])
+    if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
+        return root_r, root_c, cidx  # every blob claimed once (the usual case): nothing to resolve
+    order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = absroot[order][1:] != absroot[order][:-1]
+    flags[sel[order[~first]]] |= DotStatus.AMBIGUOUS
+    return root_r, root_c, order[first]
+
+
+def _window_centroids(m, win_idx, method, map_half):
+    """Each kept window's dot centre (window coordinates), width, peak and whether the fit held. The model
+    fit (centroid="model") starts from the three-point estimate, which needs only the peak pixel and its
+    four neighbours; a wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel."""
+    c = 2 * map_half + 1
+    if method == "gaussian3":
+        if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
+            cross = m["cross"]
+        else:
+            k0 = map_half * c + map_half
+            cross = m["dotmap"].reshape(len(m["chosen"]), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
+        # the five samples as contiguous rows (the three-point fit's array operations read them often)
+        dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
+        xw, yw = map_half + dx, map_half + dy
+    else:
+        dotmap = m["dotmap"][win_idx]
+        hc = np.full(len(win_idx), map_half)
+        xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
+    wild = ~(np.isfinite(xw) & np.isfinite(yw))
+    wild |= (np.abs(xw - map_half) > WILD_FIT_PX) | (np.abs(yw - map_half) > WILD_FIT_PX)
+    xw = np.where(wild, map_half, xw)
+    yw = np.where(wild, map_half, yw)
+    fit_ok &= ~wild
+    return xw, yw, eta, i0, fit_ok
+
+
+def _subtract_found(residual, out, subtracted, missing, half, eta0):
+    """Eq. 2, applied where it matters: found dots near a dot still ``missing`` leave the residual image
+    (and are marked in ``subtracted``)."""
+    clip_lo, clip_hi = RESIDUAL_WIDTH_CLIP
+    found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
+    if not found.size:
+        return residual
+    fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
+    near = cKDTree(fxy).query_ball_point(missing, residual_reach(half, eta0))
+    near = np.unique(np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)]))
+    if not near.size:
+        return residual
+    idx = found[near]
+    subtracted[idx] = True
+    return subtract_gaussians(
+        residual,
+        fxy[near],
+        out["i0"][idx],
+        np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
+        radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
+    )

@@ -4,7 +4,7 @@
 
 Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.windows` (one pair) and
 :mod:`tracking.batch` (a stack of pairs, through :mod:`tracking.claim_kernels`). The NumPy reference
-``measure_windows_numpy`` defines what the kernels compute. Windows are held flat, pixel ``p`` of a
+``tracking.reference.measure_windows_numpy`` defines what the kernels compute. Windows are held flat, pixel ``p`` of a
 ``w x w`` window at row ``p // w``, column ``p % w``.
 """
 

@@ -8,7 +8,7 @@ model fit already gives everything needed to take it in a dense pattern: the mod
 tells which share of each pixel's light belongs to which dot, and the dot's own model carries the
 symmetric part exactly. Only the residual (image less background less every model) is left to weigh.
 
-The host code and the NumPy reference (``moment_shifts_numpy``, which defines the result) live in
+The host code and the NumPy reference (``tracking.reference.moment_shifts_numpy``, which defines the result) live in
 :mod:`tracking.dotfit`.
 """
 
@@ -65,7 +65,7 @@ def moment_shift(
 ) -> wp.vec3d:
     """Shift ``(dx, dy)`` from dot i's model centre to the first moment of its share of the light, and
     its code: ``DISTORTED_CODE`` where the dot is distorted, ``USABLE_CODE`` where the shift is usable
-    but not significant on its own, 0 where neither (see ``moment_shifts_numpy``).
+    but not significant on its own, 0 where neither (see ``tracking.reference.moment_shifts_numpy``).
 
     ``models``: the fixed-point model images ``[frames, height, width]`` (flat) of every dot at
     ``params``; ``prof`` holds dot i's profiles on its ``2 half + 1`` stamp at ``params``;

@@ -259,7 +259,7 @@ def neighbour_fit_kernel(
 ):
     """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
     ``self_index[q]`` left out; ``k = neighbours.shape[1]``): the fit's value at q and the median distance
-    of the neighbours' vectors from the fit (see ``tracking.neighbours.neighbour_fit_numpy``);
+    of the neighbours' vectors from the fit (see ``tracking.reference.neighbour_fit_numpy``);
     ``neighbours[q]`` gets the ``k`` points' indices, nearest first (ties: the lower index first).
 
     The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``

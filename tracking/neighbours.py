@@ -5,7 +5,7 @@ Scarano 2005, with a local linear reference as in Duncan et al. 2010): for every
 squares plane ``f = c + G d`` through the vectors of its ``k`` nearest points and the median distance of
 those vectors from it. :func:`neighbour_fit` is a Warp kernel (one thread per query, the points sorted
 into square cells, growing blocks of cells around the query searched until one holds k points within its
-inner edge); :func:`neighbour_fit_numpy` is the array-program reference (a k-d tree) that defines the
+inner edge); :func:`tracking.reference.neighbour_fit_numpy` is the array-program reference (a k-d tree) that defines the
 result.
 """
 
@@ -15,87 +15,16 @@ import functools
 
 import numpy as np
 import warp as wp
-from scipy.spatial import cKDTree
 
 from .neighbour_kernels import neighbour_fit_kernel
 from .windows import median_network
 from .workspace import scratch
 
-__all__ = ["neighbour_fit", "neighbour_fit_numpy"]
+__all__ = ["neighbour_fit"]
 
 #: Points per cell, on average, of the kernel's cell grid.
 _POINTS_PER_CELL = 4.5
 
-
-def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False):
-    """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
-
-    Parameters
-    ----------
-    xy : (M, 2) array
-        Points (finite), ``M > k``.
-    uv : (M, 2) array
-        Their vectors.
-    query : (N, 2) array
-        Points at which to fit (finite).
-    self_index : (N,) int array
-        The query's own row in ``xy`` (left out of its neighbours), or -1.
-    k : int, keyword-only
-        Neighbours per fit.
-    return_neighbours : bool, keyword-only
-        Also return the neighbours' rows.
-
-    Returns
-    -------
-    value : (N, 2) array
-        The fit's value at the query point.
-    spread : (N,) array
-        Median distance of the neighbours' vectors from the fit.
-    neighbours : (N, k) int array
-        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
-        order within a row is not part of the result).
-
-    Notes
-    -----
-    ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
-    ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
-    """
-    xy = np.asarray(xy, dtype=np.float64)
-    uv = np.asarray(uv, dtype=np.float64)
-    query = np.asarray(query, dtype=np.float64)
-    self_index = np.asarray(self_index)
-    _, idx = cKDTree(xy).query(query, k=k + 1)
-    drop = np.where((idx == self_index[:, None]).any(axis=1), np.argmax(idx == self_index[:, None], axis=1), k)
-    keep = np.ones(idx.shape, dtype=bool)
-    keep[np.arange(len(idx)), drop] = False
-    nb = idx[keep].reshape(len(idx), k)
-    # Components as separate (n, k) arrays: contiguous and cheap to gather.
-    ex, ey = xy[:, 0][nb], xy[:, 1][nb]
-    ex -= query[:, 0:1]
-    ey -= query[:, 1:2]
-    dmx, dmy = ex.mean(axis=1, keepdims=True), ey.mean(axis=1, keepdims=True)
-    ex -= dmx
-    ey -= dmy
-    sxx, syy, sxy = (ex * ex).sum(1), (ey * ey).sum(1), (ex * ey).sum(1)
-    ridge = 1e-6 * (k + sxx + syy)
-    sxx += ridge
-    syy += ridge
-    det = sxx * syy - sxy * sxy
-    value = np.empty((len(nb), 2))
-    resid2 = np.zeros(nb.shape)
-    for c in range(2):
-        g = uv[:, c][nb]
-        fm = g.mean(axis=1, keepdims=True)
-        g -= fm
-        bx, by = (ex * g).sum(1), (ey * g).sum(1)
-        gx = ((syy * bx - sxy * by) / det)[:, None]
-        gy = ((sxx * by - sxy * bx) / det)[:, None]
-        value[:, c] = (fm - dmx * gx - dmy * gy)[:, 0]
-        g -= ex * gx
-        g -= ey * gy
-        resid2 += g * g
-    spread = np.median(np.sqrt(resid2), axis=1)
-    return (value, spread, nb) if return_neighbours else (value, spread)
 
 
 @functools.lru_cache(maxsize=8)
@@ -130,14 +59,40 @@ def _cell_grid(xy, query, count):
 
 
 def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, device=None):
-    """Same as :func:`neighbour_fit_numpy`, as a Warp kernel with one thread per query point.
+    """Local linear fit of ``uv`` at each query point from its ``k`` nearest points of ``xy``.
 
     Parameters
     ----------
+    xy : (M, 2) array
+        Points (finite), ``M > k``.
+    uv : (M, 2) array
+        Their vectors.
+    query : (N, 2) array
+        Points at which to fit (finite).
+    self_index : (N,) int array
+        The query's own row in ``xy`` (left out of its neighbours), or -1.
+    k : int, keyword-only
+        Neighbours per fit.
+    return_neighbours : bool, keyword-only
+        Also return the neighbours' rows.
+
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
-    Other parameters and the result are those of :func:`neighbour_fit_numpy`.
+    Returns
+    -------
+    value : (N, 2) array
+        The fit's value at the query point.
+    spread : (N,) array
+        Median distance of the neighbours' vectors from the fit.
+    neighbours : (N, k) int array
+        Only with ``return_neighbours``: the rows of ``xy`` of each query's neighbours (the set; the
+        order within a row is not part of the result).
+
+    Notes
+    -----
+    ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
+    ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
     """
     same = query is xy  # the points themselves (the outlier test)
     xy = np.ascontiguousarray(xy, dtype=np.float64)

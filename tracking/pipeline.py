@@ -27,28 +27,26 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 from synthbos.correlation.median_test import residual_limit
 from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
 
-from .centroid import fit_centroids, gaussian3_from_samples
 from .correction import correlation_correction
 from .diameter import estimate_dot_diameter
-from .dotfit import fit_dots, fit_dots_numpy, fit_window_half, moment_shifts, moment_shifts_numpy
-from .frame_stats import fill_level, partial_median, saturation_level
+from .dotfit import fit_dots, fit_window_half, moment_shifts
+from .frame_stats import fill_level, saturation_level
 from .identify import (
     blob_properties,
     dynamic_threshold_identification,
     estimate_noise,
+    identify_near_predictions,
     static_threshold_identification,
 )
 from .match import match_multiparametric, match_nearest
-from .neighbours import neighbour_fit, neighbour_fit_numpy
+from .neighbours import neighbour_fit
 from .predict import predict_displacement
-from .register import local_gradients, registration_offsets, registration_offsets_numpy, spline_coefficients
-from .residual import subtract_gaussians
+from .register import local_gradients, registration_offsets, spline_coefficients
 
 # The vocabulary lives in tracking.settings; TRACK_DTYPE, DotStatus, TrackingSettings, is_valid and the
 # geometry helpers are also reachable from here, where they were defined until the vocabulary moved.
@@ -72,7 +70,6 @@ from .settings import (  # noqa: F401  (re-exported)
     start_width,
     window_sizes,
 )
-from .windows import measure_windows, measure_windows_numpy
 
 __all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
 
@@ -92,181 +89,6 @@ def _check_image(name, image):
     if lo == 0 and hi == 0:
         raise SynthbosError(f"{name} image is all zero")
     return a, hi
-
-
-def _identify(image, pred, *, half, map_half, radius, settings, eta0, max_iterations, noise, sat_level, fill, device):
-    """Find one dot near each predicted position, iterating on the residual image (Eqs. 1 and 2).
-
-    ``fill`` is the value of the pixels outside the image (the median background,
-    :func:`tracking.frame_stats.fill_level`). Returns a dict of per-dot arrays: x, y, eta, i0, iteration,
-    flags, root (N, 2) = (col, row) of the dot's peak pixel, and, for the paper's correction (the only
-    user), dotmap (N, c, c): its background-free pixels centred on the peak, others zero.
-    """
-    w_img = image.shape[1]
-    n = len(pred)
-    c = 2 * map_half + 1
-    width_lo, width_hi = THREE_POINT_WIDTH_RANGE
-    out = {
-        "x": np.full(n, np.nan),
-        "y": np.full(n, np.nan),
-        "eta": np.full(n, np.nan),
-        "i0": np.full(n, np.nan),
-        "iteration": np.zeros(n, dtype=np.int16),
-        "flags": np.zeros(n, dtype=np.int32),
-        "root": np.zeros((n, 2), dtype=np.int64),
-    }
-    keep_maps = settings.correction == "paper"
-    if keep_maps:
-        out["dotmap"] = np.zeros((n, c, c))
-    inside, origin_all = _window_origins(pred, image.shape, half, out["flags"])
-    todo = inside.copy()
-    subtracted = np.zeros(n, dtype=bool)
-    residual = image
-    ref_peak = None
-    measure = measure_windows if settings.backend == "warp" else measure_windows_numpy
-    method = "gaussian3" if settings.centroid == "model" else settings.centroid
-    # the three-point start needs only the centre of the dot maps
-    extra = {"device": device, "full_maps": keep_maps or method != "gaussian3"} if settings.backend == "warp" else {}
-    for it in range(1, max_iterations + 1):
-        sel = np.flatnonzero(todo)
-        if sel.size == 0:
-            break
-        every = sel.size == n  # the first round, all inside (the usual case): no gather
-        origin = origin_all if every else origin_all[sel]
-        m = measure(
-            residual,
-            origin,
-            (pred if every else pred[sel]) - origin,
-            half=half,
-            map_half=map_half,
-            radius=radius,
-            threshold_fraction=settings.threshold_fraction,
-            noise_floor=settings.noise_threshold * noise,
-            weights=settings.weights,
-            use_minimum=settings.background == "minimum",
-            saturation=sat_level,
-            fill=fill,
-            **extra,
-        )
-        has = m["chosen"] >= 0
-        cpeak = m["peak"]
-        if ref_peak is None:
-            ref_peak = partial_median(cpeak[has]) if has.any() else 0.0
-        ok = has & (cpeak > settings.detection_snr * noise) & (cpeak > settings.min_relative_peak * ref_peak)
-        ok &= cpeak > 0
-        root_r, root_c, win_idx = _claims(m, ok, origin, 2 * half + 1, w_img, sel, out["flags"])
-        if win_idx.size == 0:
-            break
-        xw, yw, eta, i0, fit_ok = _window_centroids(m, win_idx, method, map_half)
-        eta_ok = np.isfinite(eta) & (eta > width_lo * eta0) & (eta < width_hi * eta0)
-        eta = np.where(eta_ok, eta, eta0)
-        i0 = np.where(np.isfinite(i0) & (i0 > 0), i0, cpeak.take(win_idx))
-        g = win_idx if every else sel[win_idx]
-        rc, rr = root_c.take(win_idx), root_r.take(win_idx)  # take: faster than indexing
-        out["x"][g] = rc + (xw - map_half)
-        out["y"][g] = rr + (yw - map_half)
-        out["eta"][g] = eta
-        out["i0"][g] = i0
-        out["iteration"][g] = it
-        out["root"][g, 0], out["root"][g, 1] = rc, rr
-        if keep_maps:
-            out["dotmap"][g] = m["dotmap"][win_idx]
-        flags = np.where(m["nblobs"].take(win_idx) > 1, np.int32(DotStatus.OVERLAPPED), np.int32(0))
-        flags |= np.where(fit_ok, np.int32(0), np.int32(DotStatus.FIT_FALLBACK))
-        flags |= np.where(m["nsat"].take(win_idx) >= 2, np.int32(DotStatus.SATURATED), np.int32(0))
-        out["flags"][g] = (out["flags"].take(g) & ~np.int32(DotStatus.AMBIGUOUS)) | flags
-        todo[g] = False
-        if todo.any() and it < max_iterations:
-            residual = _subtract_found(residual, out, subtracted, pred[todo], half, eta0)
-    return out
-
-
-def _window_origins(pred, shape, half, flags):
-    """Which predictions lie inside the image and each window's first (column, row); ``flags`` gets
-    OUTSIDE_IMAGE and NEAR_BORDER."""
-    h_img, w_img = shape
-    # every comparison with NaN is false and +-inf fails one of the bounds: non-finite rows are outside
-    px, py = pred[:, 0], pred[:, 1]
-    inside = (px > -0.5) & (px < w_img - 0.5)
-    inside &= py > -0.5
-    inside &= py < h_img - 0.5
-    flags[~inside] |= DotStatus.OUTSIDE_IMAGE
-    origin_all = np.rint(np.where(inside[:, None], pred, 0.0)).astype(np.int64)
-    origin_all -= half
-    ox, oy = origin_all[:, 0], origin_all[:, 1]
-    border = (ox < 0) | (oy < 0)
-    border |= ox + 2 * half >= w_img
-    border |= oy + 2 * half >= h_img
-    flags[inside & border] |= DotStatus.NEAR_BORDER
-    return inside, origin_all
-
-
-def _claims(m, ok, origin, w, w_img, sel, flags):
-    """The chosen blobs' peak pixels (row, column in the image) and the windows that keep their blob:
-    two prior dots may claim one blob, the nearer keeps it, the other (flagged AMBIGUOUS) waits for the
-    residual image."""
-    root_r, root_c = np.divmod(np.maximum(m["chosen"], 0), w)
-    root_c += origin[:, 0]
-    root_r += origin[:, 1]
-    absroot = (root_r + 2 * w) * (w_img + 4 * w) + (root_c + 2 * w)
-    cidx = np.flatnonzero(ok)
-    claimed = np.sort(absroot[cidx])
-    if cidx.size < 2 or (claimed[1:] != claimed[:-1]).all():
-        return root_r, root_c, cidx  # every blob claimed once (the usual case): nothing to resolve
-    order = cidx[np.lexsort((m["dist"][cidx], absroot[cidx]))]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = absroot[order][1:] != absroot[order][:-1]
-    flags[sel[order[~first]]] |= DotStatus.AMBIGUOUS
-    return root_r, root_c, order[first]
-
-
-def _window_centroids(m, win_idx, method, map_half):
-    """Each kept window's dot centre (window coordinates), width, peak and whether the fit held. The model
-    fit (centroid="model") starts from the three-point estimate, which needs only the peak pixel and its
-    four neighbours; a wild fit (beyond the peak pixel's neighbours) falls back to the peak pixel."""
-    c = 2 * map_half + 1
-    if method == "gaussian3":
-        if "cross" in m:  # the kernel cut only the centre cross: peak, left, right, up, down
-            cross = m["cross"]
-        else:
-            k0 = map_half * c + map_half
-            cross = m["dotmap"].reshape(len(m["chosen"]), c * c)[:, [k0, k0 - 1, k0 + 1, k0 - c, k0 + c]]
-        # the five samples as contiguous rows (the three-point fit's array operations read them often)
-        dx, dy, eta, i0, fit_ok = gaussian3_from_samples(*np.take(cross.T, win_idx, axis=1))
-        xw, yw = map_half + dx, map_half + dy
-    else:
-        dotmap = m["dotmap"][win_idx]
-        hc = np.full(len(win_idx), map_half)
-        xw, yw, eta, i0, fit_ok = fit_centroids(dotmap, method=method, peak_rc=(hc, hc), mask=dotmap != 0)
-    wild = ~(np.isfinite(xw) & np.isfinite(yw))
-    wild |= (np.abs(xw - map_half) > WILD_FIT_PX) | (np.abs(yw - map_half) > WILD_FIT_PX)
-    xw = np.where(wild, map_half, xw)
-    yw = np.where(wild, map_half, yw)
-    fit_ok &= ~wild
-    return xw, yw, eta, i0, fit_ok
-
-
-def _subtract_found(residual, out, subtracted, missing, half, eta0):
-    """Eq. 2, applied where it matters: found dots near a dot still ``missing`` leave the residual image
-    (and are marked in ``subtracted``)."""
-    clip_lo, clip_hi = RESIDUAL_WIDTH_CLIP
-    found = np.flatnonzero(np.isfinite(out["x"]) & ~subtracted)
-    if not found.size:
-        return residual
-    fxy = np.stack([out["x"][found], out["y"][found]], axis=1)
-    near = cKDTree(fxy).query_ball_point(missing, residual_reach(half, eta0))
-    near = np.unique(np.concatenate([np.asarray(a, dtype=np.int64) for a in near] + [np.zeros(0, np.int64)]))
-    if not near.size:
-        return residual
-    idx = found[near]
-    subtracted[idx] = True
-    return subtract_gaussians(
-        residual,
-        fxy[near],
-        out["i0"][idx],
-        np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
-        radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
-    )
 
 
 class _Frame(NamedTuple):
@@ -314,10 +136,8 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
     has = np.flatnonzero(pair_r >= 0)
     pair[has] = idx_r.size + pair_r[has]
     pair[idx_r.size + pair_r[has]] = has
-    fit = fit_dots if settings.backend == "warp" else fit_dots_numpy
-    extra = {"device": device} if settings.backend == "warp" else {}
     frame = np.r_[np.zeros(idx_r.size, np.int64), np.ones(idx_g.size, np.int64)]
-    params, ok, shared = fit(
+    params, ok, shared = fit_dots(
         images,
         np.vstack([start_r, start_g]),
         half=half,
@@ -327,14 +147,13 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
         saturation=saturation,
         iterations=settings.fit_iterations,
         sigma_range=(MODEL_WIDTH_RANGE[0] * eta0, MODEL_WIDTH_RANGE[1] * eta0),
-        **extra,
+        device=device,
     )
     moved = np.zeros(len(params), dtype=bool)
     if settings.distortion == "moment":
-        shift = moment_shifts if settings.backend == "warp" else moment_shifts_numpy
-        d, moved = shift(
+        d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, **extra,
+            chi2=settings.distortion_chi2, device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d
@@ -397,11 +216,9 @@ def _standard_candidates(image, settings, noise):
 
 
 def _neighbour_fit(xy, uv, query, self_index, settings, device, *, return_neighbours=False):
-    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``, on the settings' backend."""
+    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``."""
     k = settings.outlier_neighbours
-    if settings.backend == "warp":
-        return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
-    return neighbour_fit_numpy(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours)
+    return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
 
 
 def _confirmed_by_neighbours(out, good, query, settings, device):
@@ -489,10 +306,7 @@ def _misregistered(images, out, m, uv_cc, half, settings, device):
     uv = np.stack(uv_cc, axis=1)
     coef = spline_coefficients(images[1])
     grads = local_gradients(xy, uv, k=settings.outlier_neighbours)
-    if settings.backend == "warp":
-        c, ok = registration_offsets(images[0], coef, xy, uv, half=half, gradients=grads, device=device)
-    else:
-        c, ok = registration_offsets_numpy(images[0], coef, xy, uv, half=half, gradients=grads)
+    c, ok = registration_offsets(images[0], coef, xy, uv, half=half, gradients=grads, device=device)
     centroid = np.stack([out["x_gradient"][m], out["y_gradient"][m]], axis=1) - xy
     far = np.hypot(c[:, 0], c[:, 1]) > settings.registration_tolerance
     far |= np.hypot(*(uv + c - centroid).T) > settings.registration_tolerance
@@ -730,7 +544,7 @@ def _predict(run, xy):
 def _find(run, frame, pred, *, wide=False, standard=False):
     """One call of the identification: the prior's narrow window, the paper's wide one, or standard."""
     settings = run.settings
-    return _identify(
+    return identify_near_predictions(
         frame.image,
         pred,
         half=run.half_g if wide else run.half_r,

@@ -513,25 +513,6 @@ def _deform_nearest(image, valid, field, ys, xs, size, device, *, whole_on_host=
     )
 
 
-def deform_nearest_numpy(image, valid, field, ys, xs, size):
-    """NumPy reference of :func:`_deform_nearest` (for the tests)."""
-    h, w = image.shape
-    u, v, cy, cx = field
-    ny, nx = len(ys), len(xs)
-    rows = ys[0] + np.arange(ny * size)
-    cols = xs[0] + np.arange(nx * size)
-    shifts = [np.rint(_bilinear(f, cy, cx, rows[:, None], cols[None, :])).astype(np.int64) for f in (u, v)]
-    ry, rx = rows[:, None] + shifts[1], cols[None, :] + shifts[0]
-    inside = (ry >= 0) & (ry < h) & (rx >= 0) & (rx < w)
-    ry, rx = np.clip(ry, 0, h - 1), np.clip(rx, 0, w - 1)
-    weights = inside.astype(np.float32) * (1.0 if valid is None else valid[ry, rx])
-    means = [s.reshape(ny, size, nx, size).mean(axis=(1, 3)) for s in shifts]
-    partial = (weights != 1).reshape(ny, size, nx, size).any(axis=(1, 3))
-    moved = image[ry, rx].astype(np.float32)
-    at = size * np.arange(ny), size * np.arange(nx)
-    stacks = [_tile_stack(_tiles_view(f, *at, size)) for f in (moved, weights)]
-    return stacks[0], stacks[1][partial.ravel()] if partial.any() else None, means[0], means[1], partial
-
 
 def predict_displacement(
     reference,

@@ -1,8 +1,8 @@
 """Warp kernel of the registration check: the window around a dot, moved by its displacement, refined by
 Lucas-Kanade steps (Lucas and Kanade 1981) on the gradient image.
 
-The host code and the NumPy reference (``registration_offsets_numpy``, which defines the result) live in
-:mod:`tracking.register`.
+The host code lives in :mod:`tracking.register`, the NumPy reference that defines the result in
+:mod:`tracking.reference` (``registration_offsets_numpy``, tests only).
 """
 
 import warp as wp
@@ -61,7 +61,7 @@ def registration_sums(
 ):
     """The window's sums for one step at the trial displacement (tx, ty) at the dot (x0, y0), with the
     displacement gradient ``a``: count, Jx, Jy, r, JxJx, JxJy, JyJy, Jx r, Jy r (see
-    ``registration_offsets_numpy``)."""
+    ``tracking.reference.registration_offsets_numpy``)."""
     h = ref.shape[0]
     w = ref.shape[1]
     zero = wp.float64(0.0)
@@ -132,7 +132,7 @@ def registration_kernel(
     ok: wp.array(dtype=wp.int32),
 ):
     """One thread per dot: ``out`` the correction to ``uv`` after ``REGISTRATION_STEPS`` steps, ``ok`` 1
-    where every step could be solved (see ``registration_offsets_numpy``)."""
+    where every step could be solved (see ``tracking.reference.registration_offsets_numpy``)."""
     d = wp.tid()
     x0 = xy[d][0]
     y0 = xy[d][1]

@@ -142,14 +142,14 @@ class DotStatus(enum.IntFlag):
         The dot's light in either image was measurably asymmetric (a dot distorted by the flow inside the
         camera's light cone): both its positions are the first moments of its share of the light (the
         mean landing positions of its rays), not the symmetric model's centres
-        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts_numpy`).
+        (``TrackingSettings.distortion``; :func:`tracking.dotfit.moment_shifts`).
     MISREGISTERED
         Standard tracking only (no prior, where nothing says the pattern is dots): the reference image
         around the dot, moved by the measured displacement, does not land on the gradient image. Lucas-Kanade
         steps that register the dot's identification window (half-width ``ceil(d / 2 +
         window_margin)``) onto the gradient image, starting from ``u_cc, v_cc``, end further than
         ``TrackingSettings.registration_tolerance`` from ``u_cc, v_cc`` or from ``u, v``, or cannot be
-        solved (:func:`tracking.register.registration_offsets_numpy`). On dots this is rare (noise only);
+        solved (:func:`tracking.register.registration_offsets`). On dots this is rare (noise only);
         on speckle, squares or blobs that merge or part between the images it marks the blobs that the dot
         model measured wrongly. Never MATCHED; ``x_gradient, y_gradient`` show what was found.
 
@@ -403,8 +403,6 @@ class TrackingSettings:
         ``inf`` disables the check. The registration's own error is ~0.03 px on 3 px dots without noise
         and ~0.09 px at 5 % noise, so 0.25 px flags almost no true dot and keeps every dot measured within
         about 0.5 px.
-    backend : {"warp", "numpy"}
-        The per-dot window step as a Warp kernel or as the NumPy reference (same results).
 
     Examples
     --------
@@ -447,7 +445,6 @@ class TrackingSettings:
     outlier_epsilon: float = 0.2
     outlier_neighbours: int = 12
     registration_tolerance: float = 0.25
-    backend: str = "warp"
 
     def __post_init__(self):
         check_ranges(self, TRACKING_RANGES, "")
@@ -471,8 +468,6 @@ class TrackingSettings:
             raise SynthbosError(f"dot diameter must be a positive number, got {self.diameter!r}")
         if self.predictor not in ("correlation", "none"):
             raise SynthbosError(f"unknown predictor {self.predictor!r}; choose 'correlation' or 'none'")
-        if self.backend not in ("warp", "numpy"):
-            raise SynthbosError(f"unknown backend {self.backend!r}; choose 'warp' or 'numpy'")
         if not (np.isfinite(self.predictor_tolerance) and self.predictor_tolerance > 0):
             raise SynthbosError(f"predictor_tolerance must be a positive number, got {self.predictor_tolerance!r}")
         if not (len(self.predictor_windows) and all(int(s) >= 8 for s in self.predictor_windows)):

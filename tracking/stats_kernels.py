@@ -3,8 +3,9 @@
 """Warp kernels of the per-frame image statistics of a stack of frames.
 
 Kernels only; the host code that allocates, launches and sorts lives next to it in
-:mod:`tracking.frame_stats`, whose ``frame_statistics_numpy`` (the host functions of the tracker, frame by
-frame) defines what they compute. Frames are ``images[f]`` of an ``(F, H, W)`` array, cut into bands of
+:mod:`tracking.frame_stats`; ``tracking.reference.frame_statistics_numpy`` (the host functions of the
+tracker, frame by frame) defines what they compute. Frames are ``images[f]`` of an ``(F, H, W)`` array,
+cut into bands of
 ``band`` rows; one thread walks one column of one band down its rows (neighbouring threads read
 neighbouring pixels), one thread per band reduces its columns' partial results, and one thread per
 frame its bands'.

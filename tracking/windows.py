@@ -2,7 +2,7 @@
 
 One step of identification with prior information (Rajendran, Bane and Vlachos 2019, section 2.2), for
 a whole set of predictions at once. :func:`measure_windows` runs it as a Warp kernel (one thread per dot;
-on the CPU Warp compiles it to native code); :func:`measure_windows_numpy` is the array-program
+on the CPU Warp compiles it to native code); :func:`tracking.reference.measure_windows_numpy` is the array-program
 reference that defines the result and that the tests compare the kernel with.
 """
 
@@ -10,36 +10,17 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
-from numpy.lib.stride_tricks import sliding_window_view
 
-from .identify import blob_score, segment_windows
 from .identify_kernels import measure_windows_kernel
 from .sorting import median_network
 
-__all__ = ["WINDOW_FIELDS", "measure_windows", "measure_windows_numpy", "median_network"]
+__all__ = ["WINDOW_FIELDS", "measure_windows", "median_network"]
 
 WINDOW_FIELDS = ("chosen", "nblobs", "nsat", "bg", "peak", "dist")
 
 
-def _ring(w):
-    idx = list(range(w)) + [(w - 1) * w + k for k in range(w)]
-    for row in range(1, w - 1):
-        idx += [row * w, row * w + w - 1]
-    return np.array(idx)
 
-
-def _dilate(mask):
-    """3x3 dilation of a stack of boolean windows."""
-    out = mask.copy()
-    out[:, :, 1:] |= mask[:, :, :-1]
-    out[:, :, :-1] |= mask[:, :, 1:]
-    row = out.copy()
-    out[:, 1:, :] |= row[:, :-1, :]
-    out[:, :-1, :] |= row[:, 1:, :]
-    return out
-
-
-def measure_windows_numpy(
+def measure_windows(
     image,
     origin,
     local,
@@ -53,8 +34,11 @@ def measure_windows_numpy(
     use_minimum=False,
     saturation=np.inf,
     fill=0.0,
+    full_maps=True,
+    device=None,
 ):
-    """Segment the window of each dot, choose its blob with Eq. 1 and cut out its dot map (NumPy).
+    """Segment the window of each dot, choose its blob with Eq. 1 and cut out its dot map (a Warp kernel,
+    one thread per dot).
 
     Parameters
     ----------
@@ -79,6 +63,12 @@ def measure_windows_numpy(
     fill : float, keyword-only
         Value of pixels outside the image.
 
+    full_maps : bool, keyword-only
+        False: instead of ``dotmap``, ``cross`` (N, 5): only the centre of each dot map, its peak pixel
+        and left, right, upper and lower neighbours (what the three-point fit needs, for less work).
+    device : str or None, keyword-only
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
     Returns
     -------
     dict
@@ -88,100 +78,11 @@ def measure_windows_numpy(
         (N, 2 map_half + 1, 2 map_half + 1): the chosen blob and its one-pixel rim minus background, other
         pixels zero, centred on the peak pixel.
     """
-    image = np.asarray(image, dtype=np.float64)
-    n = len(origin)
-    w = 2 * half + 1
-    c = 2 * map_half + 1
-    pad = w
-    padded = np.pad(image, pad, constant_values=fill)
-    win = sliding_window_view(padded, (w, w))[origin[:, 1] + pad, origin[:, 0] + pad]
-    flat = win.reshape(n, w * w)
-    bg = flat.min(axis=1) if use_minimum else np.median(flat[:, _ring(w)], axis=1)
-    thr = bg + np.maximum(threshold_fraction * (flat.max(axis=1) - bg), noise_floor)
-    lab = segment_windows(win, thr)
-    pix = np.arange(w * w)
-    roots = lab == pix
-    fg = lab >= 0
-    area = np.bincount((np.arange(n)[:, None] * (w * w) + lab)[fg], minlength=n * w * w).reshape(n, -1)
-    dist = np.sqrt(((pix % w) - local[:, 0:1]) ** 2 + ((pix // w) - local[:, 1:2]) ** 2)
-    cand = roots & (dist <= radius)
-    peakv = flat - bg[:, None]
-    score = blob_score(
-        np.where(cand, area, np.nan),
-        np.where(cand, peakv, np.nan),
-        np.where(cand, dist, np.nan),
-        weights=weights,
-    )
-    has = cand.any(axis=1)
-    chosen = np.where(has, np.argmax(np.where(cand, score, -np.inf), axis=1), -1)
-    rows = np.arange(n)
-    ch = np.maximum(chosen, 0)
-    chosen_mask = (lab == ch[:, None]) & has[:, None]
-    other = fg & ~chosen_mask
-    keep = _dilate(chosen_mask.reshape(n, w, w)) & ~other.reshape(n, w, w)
-    maps = np.where(keep, win - bg[:, None, None], 0.0)
-    mp = np.zeros((n, w + 2 * map_half, w + 2 * map_half))
-    mp[:, map_half:-map_half, map_half:-map_half] = maps
-    rr, rc = np.divmod(ch, w)
-    dotmap = sliding_window_view(mp, (c, c), axis=(1, 2))[rows, rr, rc]
-    return {
-        "chosen": chosen,
-        "nblobs": roots.sum(axis=1),
-        "nsat": np.where(has, ((flat >= saturation) & chosen_mask).sum(axis=1), 0),
-        "bg": bg,
-        "peak": np.where(has, peakv[rows, ch], 0.0),
-        "dist": np.where(has, dist[rows, ch], 0.0),
-        "dotmap": np.where(has[:, None, None], dotmap, 0.0),
-    }
-
-
-def measure_windows(
-    image,
-    origin,
-    local,
-    *,
-    half,
-    map_half,
-    radius,
-    threshold_fraction,
-    noise_floor,
-    weights,
-    use_minimum=False,
-    saturation=np.inf,
-    fill=0.0,
-    full_maps=True,
-    device=None,
-):
-    """Same as :func:`measure_windows_numpy`, as a Warp kernel with one thread per dot.
-
-    Parameters
-    ----------
-    full_maps : bool, keyword-only
-        False: instead of ``dotmap``, ``cross`` (N, 5): only the centre of each dot map, its peak pixel
-        and left, right, upper and lower neighbours (what the three-point fit needs, for less work).
-    device : str or None, keyword-only
-        Warp device ("cpu", "cuda:0"); Warp's default when None.
-
-    Other parameters and the result are those of :func:`measure_windows_numpy`.
-    """
     n = len(origin)
     w = 2 * half + 1
     c = 2 * map_half + 1
     if n == 0:
-        return measure_windows_numpy(
-            image,
-            origin,
-            local,
-            half=half,
-            map_half=map_half,
-            radius=radius,
-            threshold_fraction=threshold_fraction,
-            noise_floor=noise_floor,
-            weights=weights,
-            use_minimum=use_minimum,
-            saturation=saturation,
-            fill=fill,
-        )
+        return _empty(c, full_maps=full_maps)
     order = _band_order(origin, image.shape[1], w)
     # With only the cross cut (full_maps False) the inputs go in that order too and the outputs come back
     # in it, put back in place below: the kernel's reads and writes then run through memory in order
@@ -244,6 +145,14 @@ def measure_windows(
         device=device,
     )
     return _results(out_i, out_f, dotmap, cross, order, permuted=permuted, full_maps=full_maps)
+
+
+def _empty(c, *, full_maps):
+    """``measure_windows``' result for no windows."""
+    out = {name: np.zeros(0, dtype=np.int64) for name in ("chosen", "nblobs", "nsat")}
+    out.update({name: np.zeros(0) for name in ("bg", "peak", "dist")})
+    out["dotmap" if full_maps else "cross"] = np.zeros((0, c, c) if full_maps else (0, 5))
+    return out
 
 
 def _band_order(origin, width, w):

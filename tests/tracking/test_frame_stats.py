@@ -5,7 +5,8 @@ import pytest
 import warp as wp
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
-from synthbos.tracking.frame_stats import FRAME_STATISTICS, frame_statistics, frame_statistics_numpy
+from synthbos.tracking.frame_stats import FRAME_STATISTICS, frame_statistics
+from synthbos.tracking.reference import frame_statistics_numpy
 
 from synthbos import SynthbosError
 

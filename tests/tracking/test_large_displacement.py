@@ -15,10 +15,10 @@ from synthbos.tracking.predict import (
     _deform_nearest,
     _tile_grid,
     _uniform_tile_shifts,
-    deform_nearest_numpy,
     local_normalized_correlation,
     predict_displacement,
 )
+from synthbos.tracking.reference import deform_nearest_numpy
 
 from synthbos import SynthbosError
 

@@ -24,8 +24,9 @@ from synthbos.tracking import (
     static_threshold_identification,
     subtract_gaussians,
 )
-from synthbos.tracking.neighbours import neighbour_fit, neighbour_fit_numpy
-from synthbos.tracking.windows import measure_windows, measure_windows_numpy, median_network
+from synthbos.tracking.neighbours import neighbour_fit
+from synthbos.tracking.reference import measure_windows_numpy, neighbour_fit_numpy
+from synthbos.tracking.windows import measure_windows, median_network
 
 from synthbos import SynthbosError
 
@@ -372,3 +373,17 @@ def test_dot_diameter_sums_the_autocorrelation_of_the_zero_padded_image():
     expect = 4.0 * np.sqrt(3.0 / (2.0 * np.log(r1 / r2))) / np.sqrt(2.0)
     assert_allclose(estimate_dot_diameter(img), expect, rtol=1e-12)
     assert np.isnan(estimate_dot_diameter(np.ones((16, 16))))
+
+
+def test_no_windows_give_empty_results(device):
+    img = draw_dots((32, 32), np.array([[16.0, 16.0]]), 3.0)
+    kw = dict(half=3, map_half=2, radius=2.5, threshold_fraction=0.1, noise_floor=0.06, weights=(1, 1, 1))
+    none = np.zeros((0, 2), dtype=np.int64)
+    for full_maps, maps, shape in ((True, "dotmap", (0, 5, 5)), (False, "cross", (0, 5))):
+        b = measure_windows(img, none, none.astype(float), full_maps=full_maps, device=device, **kw)
+        assert set(b) == {"chosen", "nblobs", "nsat", "bg", "peak", "dist", maps}
+        assert b[maps].shape == shape and b[maps].dtype == np.float64
+        for key in ("chosen", "nblobs", "nsat"):
+            assert b[key].shape == (0,) and b[key].dtype == np.int64, key
+        for key in ("bg", "peak", "dist"):
+            assert b[key].shape == (0,) and b[key].dtype == np.float64, key

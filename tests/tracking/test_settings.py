@@ -2,10 +2,13 @@
 names that lived in tracking.pipeline still reach the same objects."""
 
 import numpy as np
+import pytest
 import warp as wp
 from numpy.testing import assert_array_equal
 from synthbos.tracking import identify_kernels, pipeline, predict_kernels, settings
 from synthbos.tracking import kernel_constants as kc
+
+from synthbos import SynthbosError
 
 
 def test_kernel_constants_are_the_settings_values():
@@ -40,3 +43,14 @@ def test_window_geometry_of_a_3px_dot():
     assert (eta0, half_r, half_g, map_half) == (0.75, 3, 5, 2)  # ceil(1.5 + 1), ceil(1.5 + 1 + 2), ceil(2)
     inside = settings.prior_inside(np.array([[-0.49, 0.0], [-0.5, 0.0], [9.49, 4.49], [np.nan, 1.0]]), (5, 10))
     assert_array_equal(inside, [True, False, True, False])
+
+
+def test_the_removed_backend_setting_is_refused_in_one_line():
+    """The NumPy path is gone (its references live in tracking/reference.py, for the tests): a settings
+    table that still names ``backend`` is refused with one line naming the key."""
+    from synthbos.benchmarks.registry import METHODS
+
+    assert "backend" not in settings.TrackingSettings.__dataclass_fields__
+    with pytest.raises(SynthbosError, match=r"^unknown tracking setting\(s\) backend; known: ") as err:
+        METHODS["tracking"].settings({"backend": "warp"})
+    assert "\n" not in str(err.value)
