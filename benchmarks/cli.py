@@ -236,8 +236,8 @@ def _calibrate(args):
 
 
 def _grid_polarity(invert):
-    """The grid's dot polarity from ``--invert`` (a flag, or a choice auto/true/false)."""
-    return {True: "dark", "true": "dark", "false": "bright"}.get(invert, "auto")
+    """The grid's dot polarity from ``--invert`` (its choice, read through ``_INVERT`` as process reads it)."""
+    return {True: "dark", False: "bright"}.get(_INVERT[invert], "auto")
 
 
 def _floats(text, n, what):
