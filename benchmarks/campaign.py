@@ -23,16 +23,18 @@ from .items import render_item, score_item
 from .registry import check_available, get_method
 from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, run_items, run_pipeline
 from .spec import CampaignSpec
+from .stacks import check_stack
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import summarise
 
-__all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_spec", "resolve_process_device", "run_campaign",
-           "write_summary"]
+__all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_spec", "resolve_process_device",
+           "run_campaign", "write_summary"]
 
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
-                 scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None, timings=None):
+                 scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None, timings=None,
+                 stack=None, stacks=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
 
     ``device`` renders; ``process_device`` runs the methods (default: ``device``, and the CPU when
@@ -47,6 +49,15 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     (``PIPELINE_WORKER_DEVICE``), since their host work between kernels dominates and a dozen processes
     sharing one GPU by time slices were measured slower than on their own cores; pass the GPU to run
     them there. Each score file records the device that processed it.
+
+    ``stack``: pairs per stack of tracking items (``stacks``; ``scheduling.run_pipeline``): the
+    pipeline tracks the noisy images of every noise level of up to ``stack`` pairs with one
+    ``tracking.batch.track_pairs`` call, in the process that drives the device. None: stacks of
+    ``stacks.DEFAULT_STACK`` pairs when processing on a GPU, and item by item in the worker processes on
+    the CPU, where they spread the pairs over the cores; 0: item by item. A ``stack`` > 0 on the CPU
+    runs the pipeline (unless ``pipeline`` is False, which is refused), so the CPU runs the same
+    orchestration as a GPU; the results equal the item-by-item ones to floating-point rounding.
+    ``stacks`` (a list, optional) receives one entry per ``track_pairs`` call (``stacks.Stacks``).
 
     Everything a user can get wrong (the configuration, the methods and their settings, the folder) is
     checked before any work starts. The folder is locked (``folder/.lock``) for the campaign's life: a
@@ -74,13 +85,30 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
 
         check_scheduler(scheduler)  # so does a bad --scheduler, even for a finished campaign
     methods = [get_method(name) for name in spec.methods]
+    check_campaign_stack(stack, spec, device=device, scheduler=scheduler, pipeline=pipeline)
     if pipeline is None:
-        pipeline = process_device.startswith("cuda")
+        pipeline = process_device.startswith("cuda") or bool(stack)
     make_folder(folder)
     with folder_lock(folder, wait=wait):
         return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
                            figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline,
-                           worker_device=worker_device, timings={} if timings is None else timings)
+                           worker_device=worker_device, timings={} if timings is None else timings, stack=stack,
+                           stacks=stacks)
+
+
+def check_campaign_stack(stack, spec: CampaignSpec, *, device=None, scheduler=None, pipeline=None) -> None:
+    """Refuse, in one line, a ``stack`` (pairs per stack) that a campaign cannot honour: not a count, no method
+    tracked in stacks (``stacks.check_stack``), the pipeline turned off, or Dask workers that run one task
+    per pair (a cluster that renders on the CPU) instead of the pipeline."""
+    check_stack(stack, spec.methods, lambda name: spec.overrides_for(get_method(name)))
+    if not stack:
+        return
+    if scheduler is None and pipeline is False:
+        raise SynthbosError(f"stack {stack}: stacks are tracked by the pipeline, which pipeline=False turns off")
+    on_pipeline = getattr(scheduler, "pipeline", str(device or "").startswith("cuda"))
+    if scheduler is not None and not on_pipeline:
+        raise SynthbosError(f"--stack {stack}: with --scheduler on CPU workers each pair is a task of its own; "
+                            "stacks are tracked by GPU workers (--device cuda), which run the pipeline")
 
 
 def resolve_process_device(device=None, process_device=None) -> str:
@@ -107,7 +135,7 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
 
 
 def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline,
-                worker_device=None, timings):
+                worker_device=None, timings, stack=None, stacks=None):
     t0 = time.perf_counter()
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
@@ -142,7 +170,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
         rows = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
-                            worker_device=there, jobs=jobs,
+                            worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
                             on_items_done=lambda: t_items.append(time.perf_counter()))[0]
         timings["render and process"] = t_items[0] - t0
         timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
@@ -151,7 +179,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         from .distributed import run_pairs
 
         run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress,
-                  process_device=process_device)
+                  process_device=process_device, stack=stack)
     else:
         workers = workers or default_workers()
         run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)

@@ -31,7 +31,7 @@ from synthbos.values import error_line
 
 from .advice import failure_advice, failure_reason
 from .calibrate import calibrate_from_grid, dots_from_mapping
-from .campaign import check_spec, run_campaign
+from .campaign import check_campaign_stack, check_spec, run_campaign
 from .items import nominal_positions
 from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
@@ -40,6 +40,7 @@ from .regress import BASELINE, run_regress
 from .show_density import plot_density_file, plot_snapshots, snapshot_table
 from .show_result import plot_result
 from .spec import FULL, QUICK
+from .stacks import DEFAULT_STACK, describe_stacks
 from .sweep import parse_parameter, run_sweep
 from .tables import format_summary
 
@@ -296,21 +297,29 @@ def _paper(args):
     spec = paper_spec(full=full, methods=args.methods, setup=args.setup)
     out = check_output_folder(args.out or f"runs/paper-{spec.name}")
     check_spec(spec, device, process_device)  # before the banner: an error is the only line
+    check_campaign_stack(args.stack, spec, device=device, scheduler=args.scheduler)
     print(f"synthbos paper: {spec.name} campaign ({len(spec.snapshots)} snapshots x {spec.pairs_per_snapshot} pairs, "
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
-    timings = {}
+    timings, stacks = {}, []
     rows = run_campaign(spec, out, device=device, process_device=process_device, workers=args.workers,
                         progress=not args.quiet, scheduler=args.scheduler, wait=args.wait,
-                        worker_device=worker_device, timings=timings)
+                        worker_device=worker_device, timings=timings, stack=args.stack, stacks=stacks)
     print(format_summary(rows))
+    _stacks_note(stacks, args.stack)
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf, .svg) "
           f"({time.perf_counter() - t0:.0f} s: {phases})")
     _budget_note(out / "fig_budget.png")
     return 0
+
+
+def _stacks_note(stacks, stack) -> None:
+    """The line on the stacks a campaign tracked (``stacks.describe_stacks``), when it tracked any."""
+    if stacks:
+        print(describe_stacks(stacks, stack))
 
 
 def paper_spec(*, full=False, methods=None, setup="default"):
@@ -339,9 +348,11 @@ def _regress(args):
         args.interrupted = "nothing was kept (the campaign ran in a temporary folder; -o FOLDER keeps it to resume)"
     _device("cpu")  # the regression campaign runs on the CPU, so it gives the same numbers everywhere
     methods = _method_list(args.methods) if args.methods else None
+    stacks = []
     rows, problems = run_regress(update=args.update, out=args.out, workers=args.workers, progress=not args.quiet,
                                  scheduler=args.scheduler, wait=args.wait, methods=methods,
-                                 baseline=args.baseline or BASELINE)
+                                 baseline=args.baseline or BASELINE, stack=args.stack, stacks=stacks)
+    _stacks_note(stacks, args.stack)
     if args.update:
         print(f"regression baseline written to {args.baseline or BASELINE} ({len(rows)} rows)")
         return 0
@@ -363,11 +374,13 @@ def _sweep(args):
     device = _device(args.device)
     process_device = _process_device(args, device)
     worker_device = _worker_device(args, process_device)
+    stacks = []
     rows = run_sweep(base, params, args.out, size=args.size, device=device,
                      methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
-                     workers=args.workers,
+                     workers=args.workers, stack=args.stack, stacks=stacks,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
+    _stacks_note(stacks, args.stack)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
           f"{Path(args.out) / 'sweep_budget.png'} (and .pdf, .svg)")
     _budget_note(Path(args.out) / "sweep_budget.png")
@@ -431,6 +444,25 @@ def _add_process_device_option(p) -> None:
                    help="when processing on a GPU: the device of the worker processes that run the methods with "
                         "host work between their kernels (tracking), e.g. cuda:0 (default: cpu, measured faster "
                         "than a dozen processes sharing one GPU)")
+
+
+def _add_stack_option(p, *, cpu_only=False) -> None:
+    where = ("the regression campaign processes on the CPU, where it tracks item by item unless told" if cpu_only
+             else f"default: {DEFAULT_STACK} when processing on a GPU, 0 on the CPU")
+    p.add_argument("--stack", type=_stack_count, default=None, metavar="N",
+                   help="track the tracking items in stacks: the noisy images of every noise level of up to N "
+                        "pairs in one batched call on the processing device (tracking.batch.track_pairs), the "
+                        f"results equal to rounding; 0: item by item in the worker processes ({where})")
+
+
+def _stack_count(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of pairs, got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 (item by item) or more pairs, got {n}")
+    return n
 
 
 def _worker_device(args, process_device: str):
@@ -649,6 +681,7 @@ def build_parser() -> argparse.ArgumentParser:
                             f"{','.join(n for n in BUILT_IN if n not in default_methods())} and installed "
                             "plugins' methods: synthbos methods lists them)")
         _add_scheduler_option(p)
+        _add_stack_option(p)
         p.set_defaults(func=_paper, interrupted=_KEPT)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
@@ -664,6 +697,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     _add_scheduler_option(p)
+    _add_stack_option(p, cpu_only=True)
     p.set_defaults(func=_regress, interrupted=_KEPT)
 
     p = sub.add_parser("sweep", help="experiment design: errors and yield against one or two parameters")
@@ -683,6 +717,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     _add_scheduler_option(p)
+    _add_stack_option(p)
     p.set_defaults(func=_sweep, interrupted=_KEPT)
 
     p = sub.add_parser("methods", help="list the registered methods: kind, source package and version")

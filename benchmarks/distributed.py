@@ -203,10 +203,11 @@ def host_workers() -> int:
     return max(1, default_workers() // max(1, len(visible_gpus())))
 
 
-def pipeline_task(renders, scores, token: str, worker_device=None) -> int:
+def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -> int:
     """Run a share of a campaign's pairs through the single-node pipeline (``scheduling.run_pipeline``)
-    on this GPU worker, with :func:`host_workers` host processes; skips what exists and starts no further
-    pair once run ``token`` is told to stop. Returns the number of items it wrote."""
+    on this GPU worker, with :func:`host_workers` host processes and its tracking items in stacks of
+    ``stack`` pairs (None: the pipeline's default, stacks on a GPU); skips what exists and starts no
+    further pair once run ``token`` is told to stop. Returns the number of items it wrote."""
     renders = [r for r in renders if not Path(r[1]).exists()]
     scores = [s for s in scores if not Path(s[4]).exists()]
     with _LOCK:
@@ -214,7 +215,7 @@ def pipeline_task(renders, scores, token: str, worker_device=None) -> int:
     try:
         run_pipeline(renders, scores, workers=host_workers(), progress=False,
                      worker_device=PIPELINE_WORKER_DEVICE if worker_device is None else worker_device,
-                     stop=lambda: token in _STOPPED)
+                     stop=lambda: token in _STOPPED, stack=stack)
     finally:
         with _LOCK:
             _IN_FLIGHT[token] -= 1
@@ -473,11 +474,16 @@ class DaskRunner:
                 self._bar.refresh()
             return self._bar
 
-    def run_pairs(self, renders, scores) -> int:
+    def run_pairs(self, renders, scores, *, stack=None) -> int:
         """Run a campaign's render and score items as one task per pair; return the items written.
 
+        ``stack``: pairs per stack of the pipeline tasks' tracking items (:func:`pipeline_task`; None:
+        the pipeline's default); refused (> 0) where the workers run one task per pair.
         Safe to call from several threads at once (a sweep runs its points together).
         """
+        if stack and not self.pipeline:
+            raise SynthbosError(f"--stack {stack}: these Dask workers run one task per pair; stacks are tracked "
+                                "by workers that run the pipeline (GPU workers)")
         distributed = _distributed()
         tasks = _pair_tasks(renders, scores)
         if not tasks:
@@ -485,7 +491,7 @@ class DaskRunner:
         token = uuid.uuid4().hex
         with self._lock:
             self._tokens.add(token)
-        futures = self._submit(tasks, token)
+        futures = self._submit(tasks, token, stack)
         with self._lock:
             self._futures.update(futures)
         bar = self._progress_bar(len(tasks))
@@ -507,7 +513,7 @@ class DaskRunner:
         _remove_stale_temporaries([r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items])
         return written
 
-    def _submit(self, tasks, token: str) -> dict:
+    def _submit(self, tasks, token: str, stack=None) -> dict:
         """Submit ``tasks`` (``scheduling.pair_tasks``); return ``{future: pairs it holds}``. With
         ``pipeline`` (GPU workers), one :func:`pipeline_task` per worker, each first offered to its own
         worker; else (CPU workers), one :func:`pair_task` per pair."""
@@ -520,8 +526,8 @@ class DaskRunner:
         futures = {}
         for i, (renders, scores) in enumerate(shards(tasks, len(workers))):
             key = f"{TASK_PREFIX}s-{i}-of-{len(workers)}-{token[:8]}"
-            fut = self.client.submit(pipeline_task, renders, scores, token, pure=False, retries=0, key=key,
-                                     workers=[workers[i]], allow_other_workers=True)
+            fut = self.client.submit(pipeline_task, renders, scores, token, stack=stack, pure=False, retries=0,
+                                     key=key, workers=[workers[i]], allow_other_workers=True)
             futures[fut] = len({s[0] for s in scores} | {r[1] for r in renders})
         return futures
 
@@ -553,12 +559,14 @@ class DaskRunner:
             pass
 
 
-def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True, process_device=None) -> int:
-    """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address."""
+def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True, process_device=None,
+              stack=None) -> int:
+    """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address;
+    ``stack``: see :meth:`DaskRunner.run_pairs`."""
     if isinstance(scheduler, DaskRunner):
-        return scheduler.run_pairs(renders, scores)
+        return scheduler.run_pairs(renders, scores, stack=stack)
     if not renders and not scores:  # a finished campaign: no cluster to start
         return 0
     with DaskRunner(scheduler, device=device, workers=workers, progress=progress,
                     process_device=process_device) as runner:
-        return runner.run_pairs(renders, scores)
+        return runner.run_pairs(renders, scores, stack=stack)

@@ -23,6 +23,7 @@ from dataclasses import replace
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
+from synthbos.tracking.batch import batch_support
 
 import synthbos
 from synthbos import SynthbosError
@@ -32,9 +33,10 @@ from .openpiv_method import OpenPIVSettings, run_openpiv
 from .optical_flow import OpticalFlowSettings, run_optical_flow
 from .plugins import load_plugins
 
-__all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "Method", "MethodResult", "check_available",
-           "correlation_result", "default_methods", "forget_plugins", "forget_shared_results", "get_method",
-           "method_names", "methods_table", "missing_modules", "settings_dict", "tracking_result"]
+__all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "STACK_KERNELS", "Method", "MethodResult",
+           "check_available", "correlation_result", "default_methods", "forget_plugins", "forget_shared_results",
+           "get_method", "method_names", "methods_table", "missing_modules", "settings_dict", "stack_settings",
+           "stacked_result", "tracking_result"]
 
 
 def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
@@ -129,6 +131,27 @@ def _tracker(columns: tuple[str, str], name: str):
     return run
 
 
+def stack_settings(name: str, overrides: dict):
+    """The settings with which a stack (``tracking.batch.track_pairs``) tracks the items of method ``name``,
+    or None where they are tracked one by one (``track_pair``).
+
+    Stacks hold the built-in trackers with a prior, whose result is two columns of one ``track_pair``
+    table (``tracking``, ``tracking-cc``), with settings that ``track_pairs`` runs
+    (``tracking.batch.batch_support``: the default estimators; the paper's procedure is not one of them).
+    """
+    m = get_method(name)
+    if name not in BUILT_IN or not m.uses_prior or getattr(m.run, "columns", None) is None:
+        return None
+    settings = m.settings(overrides)
+    return settings if batch_support(settings) is None else None
+
+
+def stacked_result(name: str, table, settings) -> MethodResult:
+    """Method ``name``'s result from its image pair's row of a ``track_pairs`` table (:func:`stack_settings`):
+    what its run gives from ``track_pair``'s table of that pair."""
+    return tracking_result(table, name=name, columns=get_method(name).run.columns, settings=settings)
+
+
 def _checked(method: Method) -> Method:
     """``method`` whose run first checks that its modules are there and then checks its result
     (``method_api.check_result``): how a method the project does not test itself is registered."""
@@ -151,6 +174,16 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.moment_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
+)
+#: the Warp modules that ``tracking.batch.track_pairs`` launches (a campaign that tracks stacks: scheduling)
+STACK_KERNELS = (
+    "synthbos.tracking.batch_kernels",
+    "synthbos.tracking.claim_kernels",
+    "synthbos.tracking.fit_kernels",
+    "synthbos.tracking.neighbour_batch_kernels",
+    "synthbos.tracking.predict_fft_kernels",
+    "synthbos.tracking.predict_kernels",
+    "synthbos.tracking.stats_kernels",
 )
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 

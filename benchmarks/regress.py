@@ -59,13 +59,14 @@ def compare_to_baseline(rows, baseline_rows):
 
 
 def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, progress=True, scheduler=None,
-                wait=False, methods=None):
+                wait=False, methods=None, stack=None, stacks=None):
     """Run the regression campaign; return (rows, problems). With ``update`` write the baseline instead.
 
     ``methods`` (names) runs those instead of the default ones and compares only their rows; with
     ``update`` their rows replace theirs in the baseline and the other methods' rows stay (also without
     ``methods``), so a
-    plugin's rows enter a baseline only when asked for.
+    plugin's rows enter a baseline only when asked for. ``stack`` > 0 tracks the tracking items in stacks
+    of that many pairs (``run_campaign``; on the CPU, as a GPU campaign does), ``stacks`` logs them.
     """
     baseline = Path(baseline)
     if not update and not baseline.is_file():
@@ -78,7 +79,7 @@ def run_regress(*, update=False, out=None, baseline=BASELINE, workers=None, prog
     with tempfile.TemporaryDirectory(prefix="synthbos-regress-") as tmp:
         folder = Path(out) if out else Path(tmp)
         rows = run_campaign(spec, folder, device="cpu", workers=workers, progress=progress, figures=False,
-                            scheduler=scheduler, wait=wait)
+                            scheduler=scheduler, wait=wait, stack=stack, stacks=stacks)
     if update:
         kept = []
         if baseline.is_file():

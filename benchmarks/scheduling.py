@@ -11,6 +11,9 @@ result to a pool of worker processes for the host work (scoring, density integra
 file), so the device never waits for the host and no worker initialises CUDA; a thread renders the
 next pair meanwhile. Both give
 byte-identical files: every item computes the same thing from the same seeds, only where differs.
+The pipeline can also track the tracking items in stacks of several pairs (``stacks``: one
+``tracking.batch.track_pairs`` call per stack, the default on a GPU), whose results equal the
+item-by-item ones to floating-point rounding.
 
 Worker processes die with the campaign: each asks Linux to send it SIGKILL when its parent exits
 (``prctl(PR_SET_PDEATHSIG)``; the parent is the campaign process, or the multiprocessing fork server,
@@ -39,7 +42,7 @@ from tqdm.auto import tqdm
 from synthbos.device import load_kernels, shared_by_threads
 
 __all__ = ["PIPELINE_WORKER_DEVICE", "campaign_kernels", "default_workers", "die_with_parent", "pair_tasks",
-           "run_items", "run_pipeline", "same_image_runs", "worker_kernels"]
+           "run_items", "run_pipeline", "same_image_runs", "split_items", "worker_kernels"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
@@ -156,25 +159,28 @@ def _start_workers(pool, n: int, ready) -> None:
         ready.set()
 
 
-def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
+def worker_kernels(scores, *, worker_device=None, stack=0) -> list[tuple[str, str]]:
     """The ``(kernel module, device)`` pairs that the worker processes of :func:`run_pipeline` launch: those
-    of the methods that are not device resident (``Method.kernels``), on their processing devices."""
+    of the methods that are not device resident (``Method.kernels``) nor tracked in stacks (with
+    ``stack``), on their processing devices."""
     from .registry import get_method
 
-    there = split_by_residency(scores, worker_device=worker_device)[1]
+    there = split_items(scores, worker_device=worker_device, stack=stack)[2]
     return sorted({(name, str(args[-1])) for args in there for name in get_method(args[1]).kernels
                    if args[-1] is not None})
 
 
-def campaign_kernels(renders, scores, *, worker_device=None) -> list[tuple[str, str]]:
+def campaign_kernels(renders, scores, *, worker_device=None, stack=0) -> list[tuple[str, str]]:
     """Every ``(kernel module, device)`` pair that :func:`run_pipeline` launches: the renderer's on each
-    render device, the device-resident methods' here and :func:`worker_kernels`."""
-    from .registry import get_method
+    render device, the device-resident methods' here, ``track_pairs``'s here (with ``stack``: stacked
+    tracking) and :func:`worker_kernels`."""
+    from .registry import STACK_KERNELS, get_method
 
-    here, _ = split_by_residency(scores, worker_device=worker_device)
+    here, stacked, _ = split_items(scores, worker_device=worker_device, stack=stack)
     pairs = {("synthbos.raytrace.kernels", str(args[2])) for args in renders if args[2] is not None}
     pairs |= {(name, str(args[-1])) for args in here for name in get_method(args[1]).kernels if args[-1] is not None}
-    return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device)))
+    pairs |= {(name, str(args[-1])) for args in stacked for name in STACK_KERNELS}
+    return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device, stack=stack)))
 
 
 def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
@@ -228,6 +234,19 @@ def split_by_residency(run, *, worker_device=None) -> tuple[list, list]:
     return here, there
 
 
+def split_items(run, *, worker_device=None, stack=0) -> tuple[list, list, list]:
+    """Split score items three ways: the device-resident ones (:func:`split_by_residency`), those tracked in
+    stacks (with ``stack`` > 0: ``stacks.split_stacked``), both measured by the process that drives the
+    device, and the others, measured by worker processes (on ``worker_device`` when given)."""
+    stacked, rest = [], list(run)
+    if stack:
+        from .stacks import split_stacked  # here: scheduling stays free of the algorithm packages
+
+        stacked, rest = split_stacked(run)
+    here, there = split_by_residency(rest, worker_device=worker_device)
+    return here, stacked, there
+
+
 def same_image_runs(scores) -> list[list]:
     """Split score items into runs of consecutive items on the same noisy images (same pair, noise and seeds).
 
@@ -247,7 +266,8 @@ def same_image_runs(scores) -> list[list]:
 
 
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
-                 worker_device=None, jobs=(), renders_ahead: int = 2, on_items_done=None, stop=None) -> list:
+                 worker_device=None, jobs=(), renders_ahead: int = 2, on_items_done=None, stop=None, stack=None,
+                 stacks_log=None) -> list:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items whose method is
@@ -267,6 +287,16 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     slower side (while the workers start, the device goes on).
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
 
+    ``stack``: pairs per stack of tracking items (``stacks``). With ``stack`` > 0 this process also
+    tracks the items of the trackers whose settings ``track_pairs`` runs (``registry.stack_settings``),
+    the noisy image pairs of every noise level of up to ``stack`` pairs in one ``track_pairs`` call on
+    their processing device, and hands each item's result to the workers to score and write, as it does
+    the device-resident methods'; 0 leaves them to the workers, item by item; None (the default) is
+    ``stacks.default_stack``: stacks on a GPU, item by item on the CPU. An interrupted run loses the
+    items of the stacks still open as well as those in flight; a run again stacks the missing items
+    only, with the same results. ``stacks_log`` (a list) receives one entry per ``track_pairs`` call
+    (``stacks.Stacks``).
+
     ``jobs``: ``(fn, args, pairs)`` tuples of other host work (tables, figures), run by the worker
     processes: as soon as every pair file in ``pairs`` is there when ``pairs`` is a set of pair paths, or
     after the last item when it is None (``on_items_done()``, when given, is called just before).
@@ -278,7 +308,10 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
     from .items import finish_item, item_images, measure_item, process_items, render_only
+    from .stacks import Stacks, default_stack
 
+    stack = default_stack(scores) if stack is None else int(stack)
+    stacks = Stacks(stack, log=stacks_log) if stack else None
     tasks = pair_tasks(renders, scores)
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
     pending: dict = {}  # future -> how many items it scores
@@ -325,7 +358,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                 return
             images[k] = {r: noiser.submit(item_images, pair, run[0])
                          for r, run in enumerate(same_image_runs(tasks[k][1]))
-                         if split_by_residency(run, worker_device=worker_device)[0]}
+                         if any(split_items(run, worker_device=worker_device, stack=stack)[:2])}
 
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
@@ -354,12 +387,25 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             while len(pending) >= PENDING_PER_WORKER * workers:
                 collect(block=True)
 
+    def hand_out(measured) -> None:
+        """Score and write, or hand to the workers, the items that the stacks measured
+        (``Stacks.take``: ``((pair file being written, its path), finish_item arguments)``)."""
+        for (written, path), hosts in measured:
+            if pool is None:
+                for host in hosts:
+                    finish_item(*host)
+                    bar.update(1)
+            else:
+                deferred.append((written, path, hosts, [], len(hosts)))
+        submit_ready(block=False)
+
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
     preload = sorted({fn.__module__ for fn, _, _ in jobs})
-    load_kernels(campaign_kernels(renders, scores, worker_device=worker_device))  # all at once: a cold cache
+    load_kernels(campaign_kernels(renders, scores, worker_device=worker_device, stack=stack))  # at once: a cold cache
     pool = None
     if workers > 1:
-        pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device), nice=WORKER_NICE)
+        pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
+                     nice=WORKER_NICE)
     ahead = max(1, int(renders_ahead))
     renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
     writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
@@ -397,22 +443,31 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                 if pool is not None and pair is not None:
                     make_images(k, pair)
                 prepared = images.get(k, {})
+                to_stack = []  # (noisy images, items) of the pair's runs that stacks track
                 for r, run in enumerate(same_image_runs(items)):
-                    here, there = split_by_residency(run, worker_device=worker_device)
+                    here, stacked, there = split_items(run, worker_device=worker_device, stack=stack)
+                    noisy = prepared[r].result() if r in prepared else None
+                    if stacked:
+                        to_stack.append((noisy, stacked))
                     if pool is None:
                         for args in [*here, *there]:
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    noisy = prepared[r].result() if r in prepared else None
                     batch = [measure_item(pair, *args, images=noisy) for args in here]
                     # the workers read the pair file: they get the run once it is written
-                    deferred.append((written, path, batch, there, len(run)))
+                    deferred.append((written, path, batch, there, len(here) + len(there)))
                     submit_ready(block=False)
                 if pool is not None and not items:
                     deferred.append((written, path, None, None, 0))
                 images[k] = {}  # drawn and measured: let them go
+                if to_stack:
+                    stacks.add((written, path), pair, to_stack)
+                    hand_out(stacks.take())
                 submit_ready(block=False)
+            if stacks is not None:  # the pairs started are finished (also when told to stop)
+                stacks.flush()
+                hand_out(stacks.take())
             submit_ready(block=True)
             while pending:
                 collect(block=True)
