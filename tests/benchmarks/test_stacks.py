@@ -297,3 +297,60 @@ def test_the_library_refuses_stacks_without_the_pipeline(tmp_path):
     with pytest.raises(SynthbosError, match="whole number"):
         run_campaign(SMALL, tmp_path / "c", device="cpu", progress=False, stack=2.5)
     assert not (tmp_path / "c").exists()
+
+
+def test_the_stack_reaches_dask_pipeline_tasks(monkeypatch):
+    """``run_pairs(stack=...)`` reaches each GPU worker's pipeline task and its ``run_pipeline``; workers that run
+    one task per pair refuse a stack."""
+    pytest.importorskip("distributed")
+    from synthbos.benchmarks import distributed as dist
+
+    submitted = []
+
+    class Client:
+        def nthreads(self):
+            return {"tcp://a": 1, "tcp://b": 1}
+
+        def submit(self, fn, *args, **kwargs):
+            submitted.append((fn, kwargs.get("stack")))
+            return object()
+
+    runner = dist.DaskRunner("local", device="cuda:0", pipeline=True)
+    runner.client = Client()
+    tasks = [(("cfg", f"p{i}.h5", "cuda:0"), [(f"p{i}.h5", "tracking")]) for i in range(3)]
+    assert len(runner._submit(tasks, "token", 4)) == 2
+    assert submitted == [(dist.pipeline_task, 4)] * 2
+    seen = []
+    monkeypatch.setattr(dist, "run_pipeline", lambda renders, scores, *, stack, **kw: seen.append(stack))
+    dist.pipeline_task([], [], "token", stack=4)
+    dist.pipeline_task([], [], "token")
+    assert seen == [4, None]
+    with pytest.raises(SynthbosError, match="--stack 2: these Dask workers run one task per pair"):
+        dist.DaskRunner("local", device="cpu").run_pairs([], [], stack=2)
+
+
+@pytest.fixture
+def slow_only(request):
+    """The project's rule: ``slow`` tests run only when selected (``-m slow``)."""
+    markexpr = request.config.getoption("markexpr") or ""
+    if "slow" not in markexpr or "not slow" in markexpr:
+        pytest.skip("a local Dask cluster, about 15 s; select with -m slow")
+
+
+@pytest.mark.slow
+def test_a_stacked_campaign_on_a_local_dask_cluster(slow_only, plain, tmp_path):
+    """Pipeline tasks on a local cluster (each holding every second pair) track their pairs in stacks: the
+    plain run's results.csv, and the score files of a run in one process with stacks of one pair each."""
+    pytest.importorskip("distributed")
+    from synthbos.benchmarks.distributed import DaskRunner
+
+    folder, _ = plain
+    ones = tmp_path / "one"
+    run_campaign(SMALL, ones, device="cpu", workers=1, progress=False, figures=False, stack=1)
+    with DaskRunner("local", device="cpu", workers=2, progress=False, pipeline=True) as runner:
+        run_campaign(SMALL, tmp_path / "dask", device="cpu", scheduler=runner, progress=False, figures=False, stack=8)
+    assert (tmp_path / "dask" / "results.csv").read_bytes() == (folder / "results.csv").read_bytes()
+    assert_same_scores(ones, tmp_path / "dask", exact=True)
+    # and the workers did stack: item by item, the last bits of the tracking scores differ
+    mine, theirs = _scores(folder), _scores(tmp_path / "dask")
+    assert any(mine[n][k].tobytes() != theirs[n][k].tobytes() for n in mine for k in mine[n])
