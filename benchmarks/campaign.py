@@ -45,7 +45,8 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     (``scheduling.run_pipeline``): this process does the device work of pair after pair while
     ``workers - 1`` processes score the results. ``pipeline`` (True or False) chooses either way
     whatever the device; the files are byte-identical. In the pipeline the methods that are not
-    device resident (tracking) run in the worker processes, on ``worker_device``: by default the CPU
+    device resident (tracking, unless tracked in stacks: ``stack`` below) run in the worker
+    processes, on ``worker_device``: by default the CPU
     (``PIPELINE_WORKER_DEVICE``), since their host work between kernels dominates and a dozen processes
     sharing one GPU by time slices were measured slower than on their own cores; pass the GPU to run
     them there. Each score file records the device that processed it.

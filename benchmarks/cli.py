@@ -442,8 +442,9 @@ def _add_process_device_option(p) -> None:
                         "process on cpu)")
     p.add_argument("--worker-device", default=None, metavar="DEVICE",
                    help="when processing on a GPU: the device of the worker processes that run the methods with "
-                        "host work between their kernels (tracking), e.g. cuda:0 (default: cpu, measured faster "
-                        "than a dozen processes sharing one GPU)")
+                        "host work between their kernels (tracking not in stacks: --stack 0, or the paper's "
+                        "procedure), e.g. cuda:0 (default: cpu, measured faster than a dozen processes sharing "
+                        "one GPU)")
 
 
 def _add_stack_option(p, *, cpu_only=False) -> None:
