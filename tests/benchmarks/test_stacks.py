@@ -354,3 +354,19 @@ def test_a_stacked_campaign_on_a_local_dask_cluster(slow_only, plain, tmp_path):
     # and the workers did stack: item by item, the last bits of the tracking scores differ
     mine, theirs = _scores(folder), _scores(tmp_path / "dask")
     assert any(mine[n][k].tobytes() != theirs[n][k].tobytes() for n in mine for k in mine[n])
+
+
+@pytest.mark.gpu
+def test_a_gpu_campaign_stacks_by_default_and_gives_the_item_by_item_results(tmp_path):
+    """On a GPU the pipeline stacks by default; item by item with the tracking workers on the same GPU
+    (``--stack 0 --worker-device cuda:0``) it gives the same results.csv and score arrays to 1e-9 px."""
+    log = []
+    stacked = run_campaign(SMALL, tmp_path / "s", device="cpu", process_device="cuda:0", workers=2, progress=False,
+                           figures=False, stacks=log)
+    assert log == [{"pairs": 2, "images": 4, "device": "cuda:0"}]
+    one_by_one = run_campaign(SMALL, tmp_path / "i", device="cpu", process_device="cuda:0", workers=2,
+                              progress=False, figures=False, stack=0, worker_device="cuda:0")
+    assert {r["process_device"] for r in stacked} == {"cuda:0"}
+    assert (tmp_path / "s" / "results.csv").read_bytes() == (tmp_path / "i" / "results.csv").read_bytes()
+    assert_same_rows(stacked, one_by_one)
+    assert_same_scores(tmp_path / "i", tmp_path / "s", exact=False)
