@@ -2,20 +2,20 @@
 
 On a GPU, ``track_pairs`` covers the dots of every pair of a stack with each kernel launch (0.34 ms per
 pair in stacks of 400 on an H200 against 23 ms for one ``track_pair``, docs/benchmarks.md), so a
-campaign that processes on a GPU groups its
-tracking items into stacks (``scheduling.run_pipeline``): the noisy images of every noise level of up
-to ``stack`` pairs go to the device in one ``track_pairs`` call, made by the process that drives the
-device, and each item's result goes to the worker processes to be scored and written, as the
-correlation's results do. A stack holds image pairs of one shape, one dot count, one processing device
-and one set of settings (``registry.stack_settings``); the items of one noisy image pair with the same
-settings (``tracking`` and ``tracking-cc``: two columns of one table) share one image pair of the stack.
+campaign that processes on a GPU groups its tracking items into stacks (``scheduling.run_pipeline``):
+the noisy images of every noise level of up to ``stack`` pairs go to the device in one ``track_pairs``
+call, made by the process that drives the device, and each item's result goes to the worker processes to
+be scored and written, as the correlation's results do. A stack holds image pairs of one shape, one dot
+count, one processing device and one set of settings (``registry.stack_settings``); the items of one
+noisy image pair with the same settings (``tracking`` and ``tracking-cc``: two columns of one table)
+share one image pair of the stack.
 
 ``track_pairs`` gives each pair what ``track_pair`` gives it to floating-point rounding (1e-11 px or
-less on the campaign's pairs; the predictor's float32 correlations to 1e-6), whatever else the stack holds: the
-model fit's fixed-point sums take their scale from the largest peak of the whole stack, so the last
-bits of a pair's table depend on its stack. A campaign's ``results.csv`` (six significant digits) is
-the same stacked or not, and a resumed campaign, which stacks only the missing items, gets the same
-table; the score files agree to 1e-9 px (``tests/benchmarks/test_stacks.py``).
+less on the campaign's pairs; the predictor's float32 correlations to 1e-6), whatever else the stack
+holds: the model fit's fixed-point sums take their scale from the largest peak of the whole stack, so
+the last bits of a pair's table depend on its stack. A campaign's ``results.csv`` (six significant
+digits) is the same stacked or not, and a resumed campaign, which stacks only the missing items, gets
+the same table; the score files agree to 1e-9 px (``tests/benchmarks/test_stacks.py``).
 """
 
 from __future__ import annotations
