@@ -77,6 +77,7 @@ class RenderPlan:
         # The longest RK4 step: step_mm, or with "cells" stepping and step_mm = "grid" a quarter of the depth.
         self.ray_step = self.medium.size[2] / 4.0 if self.cells and step == "grid" else self.step
         self.rays_per_group = rays["rays_per_group"]
+        self.rays_per_thread = rays["rays_per_thread"]
         self.block_dim = rays["block_dim"]
         self.max_registers = rays["max_registers"]
         self.launch_order = morton_order(px) if rays["dot_order"] == "morton" else np.arange(len(px), dtype=np.int32)
@@ -192,8 +193,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     Notes
     -----
     The plan's speed settings (``rays.field``, ``rays.dot_order``, ``rays.rays_per_group``,
-    ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored and read and which
-    thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
+    ``rays.rays_per_thread``, ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored
+    and read and which thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
     """
     init_warp()
     W, H = plan.camera.pixels
@@ -218,18 +219,21 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
     kernel = kernels.MAX_REGISTERS[plan.max_registers if wp.get_device(device).is_cuda else 0]
-    rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
-    group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
-    if rays_per_launch > group:
-        rays_per_launch -= rays_per_launch % group  # whole groups, except in the last launch
+    per_thread = plan.rays_per_thread
+    rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
+    # at most every chunk of a launch in a group: dot-major order
+    group = min(plan.rays_per_group, -(-rays_per_launch // per_thread))
+    if rays_per_launch > group * per_thread:
+        rays_per_launch -= rays_per_launch % (group * per_thread)  # whole groups, except in the last launch
     for start in range(0, plan.rays_per_dot, rays_per_launch):
         count = min(rays_per_launch, plan.rays_per_dot - start)
-        threads = -(-count // group) * group * n
+        chunks = -(-count // per_thread)
+        threads = -(-chunks // group) * group * n
         wp.launch(
             kernel, dim=threads,
             inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.ray_step,
                     int(plan.cells), plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group,
-                    wp.float64(scale2), wp.float64(scale3)],
+                    per_thread, wp.float64(scale2), wp.float64(scale3)],
             outputs=[image, sum_x, sum_y, sums, far, hits, lost, tir], device=device, block_dim=plan.block_dim,
         )
         if progress is not None:
