@@ -727,10 +727,10 @@ def render_rays(
     acc_x = wp.int64(0)
     acc_y = wp.int64(0)
     acc = vec7l()
-    n_hit = 0
-    n_lost = 0
-    n_tir = 0
-    n_far = 0
+    n_hit = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_lost = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_tir = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_far = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
     for local in range(r0, r1):
         xs, status = trace_one_ray(medium, active, cam, dots, dot, ray_start + local, n_dots, dot_radius, step,
                                    cells, aim_iterations, seed)
