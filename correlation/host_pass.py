@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .deform import bspline3_coefficients, deform_pair, grid_to_pixels
-from .flags import VectorFlag
+from .flags import FLAG_BORDER, FLAG_DISAGREE, FLAG_ISOLATED, FLAG_MASKED, FLAG_MEDIAN, FLAG_PEAK_RATIO
 from .passes import Measured, pass_schedule, run_passes
 from .peak import overlap_weights, peak_ratio, subpixel_peak
 from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET
@@ -20,14 +20,6 @@ from .windows import extract_windows, window_validity
 from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = ["HostEngine", "correlate_on_host"]
-
-FLAG_MEDIAN = int(VectorFlag.MEDIAN)
-FLAG_PEAK = int(VectorFlag.PEAK)
-FLAG_BORDER = int(VectorFlag.BORDER)
-FLAG_MASKED = int(VectorFlag.MASKED)
-FLAG_DISAGREE = int(VectorFlag.DISAGREE)
-FLAG_ISOLATED = int(VectorFlag.ISOLATED)
-
 
 def _mean_subtracted(wa, wb, valid):
     """Windows minus their mean; with a (K, N, N) pixel weight stack, mean over valid pixels, 0 elsewhere."""
@@ -228,7 +220,7 @@ class HostEngine:
         weak = ratio < s.peak_ratio_threshold()
         if norm is not None and step.judges_correlation:
             weak |= coef < s.min_correlation
-        flags |= np.where(weak, FLAG_PEAK, 0).astype(np.int32)
+        flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
         if coarse is not None:
             far = np.hypot(u - coarse[0], v - coarse[1]) > s.max_disagreement * size
             flags |= np.where(far, FLAG_DISAGREE, 0).astype(np.int32)

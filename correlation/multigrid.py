@@ -9,6 +9,12 @@ the correlation peak, agreement with the coarser pass, the normalised median tes
 rejected vectors by interpolation from the valid ones around them (``validation.fill_by_interpolation``)
 before the next iteration. Every vector ends up measured,
 replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
+
+This module holds the settings, the checks of the inputs and the result. The sequence of passes and
+iterations is written once, in :func:`correlation.passes.run_passes`; each of its steps is done by the
+engine that :meth:`CorrelationSettings.uses_warp` chooses: the host engine
+(:mod:`correlation.host_pass`, NumPy/SciPy) or the Warp engine (:mod:`correlation.device_pass`, a fixed
+sequence of launches that a CUDA graph records).
 """
 
 from __future__ import annotations
@@ -23,7 +29,15 @@ from synthbos.values import check_ranges
 
 from .deform import INTERPOLATORS
 from .device_pass import correlate_on_device, device_supports
-from .flags import VectorFlag
+from .flags import (
+    FLAG_BORDER,
+    FLAG_DISAGREE,
+    FLAG_ISOLATED,
+    FLAG_MASKED,
+    FLAG_MEDIAN,
+    FLAG_PEAK_RATIO,
+    VectorFlag,
+)
 from .host_pass import correlate_on_host
 from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights
@@ -48,12 +62,6 @@ __all__ = [
 #: Bits meaning that a window gave no usable measurement.
 FAILED_BITS = VectorFlag.PEAK | VectorFlag.BORDER | VectorFlag.DISAGREE | VectorFlag.ISOLATED
 
-FLAG_MEDIAN = int(VectorFlag.MEDIAN)
-FLAG_PEAK_RATIO = int(VectorFlag.PEAK)
-FLAG_BORDER = int(VectorFlag.BORDER)
-FLAG_MASKED = int(VectorFlag.MASKED)
-FLAG_DISAGREE = int(VectorFlag.DISAGREE)
-FLAG_ISOLATED = int(VectorFlag.ISOLATED)
 
 
 def count_vectors(flags):
@@ -195,12 +203,14 @@ class CorrelationSettings:
         Warp device ("cpu", "cuda:0"): of the deformation kernels on the NumPy path, of everything on
         the Warp path.
     backend : {"auto", "numpy", "warp"}
-        ``numpy``: windows, FFTs, peak fit and validation in NumPy/SciPy on the host, the image
-        deformation on ``device``, host copies every iteration (the reference). ``warp``: every step
-        as Warp kernels on ``device`` (:mod:`correlation.device_pass`; the images go up once, the
-        vectors come back once; power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA
-        devices when the window sizes allow it, else ``numpy``. Both give the same vectors and flags
-        to float32 rounding (1e-4 px).
+        The engine of the steps; both walk the one sequence of passes
+        (:func:`correlation.passes.run_passes`). ``numpy``: the host engine
+        (:mod:`correlation.host_pass`): windows, FFTs, peak fit and validation in NumPy/SciPy on the
+        host, the image deformation on ``device``, host copies every iteration (the reference).
+        ``warp``: the Warp engine, every step as Warp kernels on ``device``
+        (:mod:`correlation.device_pass`; the images go up once, the vectors come back once;
+        power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA devices when the window sizes
+        allow it, else ``numpy``. Both give the same vectors and flags to float32 rounding (1e-4 px).
 
     Examples
     --------
