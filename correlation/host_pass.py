@@ -21,6 +21,7 @@ from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = ["HostEngine", "correlate_on_host"]
 
+
 def _mean_subtracted(wa, wb, valid):
     """Windows minus their mean; with a (K, N, N) pixel weight stack, mean over valid pixels, 0 elsewhere."""
     wa = wa - wa.mean(axis=(-2, -1), keepdims=True, dtype=np.float32)
@@ -133,8 +134,6 @@ def _edge_weights(du, dv, rows, cols, shape, margin):
     weights[ir, :] *= inside(rows[ir, None], cols[None, :], 0.5 * np.abs(du[ir]), 0.5 * np.abs(dv[ir]))
     weights[:, ic] *= inside(rows[:, None], cols[None, ic], 0.5 * np.abs(du[:, ic]), 0.5 * np.abs(dv[:, ic]))
     return weights
-
-
 
 
 class HostEngine:
