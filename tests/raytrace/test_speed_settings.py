@@ -126,7 +126,8 @@ def test_speed_settings_are_checked():
     assert set(EXACT_FIELDS) < set(FIELDS)
     for rays, word in [({"field": "float8"}, "rays.field"), ({"dot_order": "hilbert"}, "rays.dot_order"),
                        ({"rays_per_group": 0}, "rays.rays_per_group"),
-                       ({"rays_per_thread": 0}, "rays.rays_per_thread"), ({"block_dim": 4096}, "rays.block_dim"),
+                       ({"rays_per_thread": 0}, "rays.rays_per_thread"),
+                       ({"rays_per_thread": "fast"}, "rays.rays_per_thread"), ({"block_dim": 4096}, "rays.block_dim"),
                        ({"max_registers": 48}, "rays.max_registers")]:
         with pytest.raises(SynthbosError, match=word):
             plan_render(small_config(rays=rays))
