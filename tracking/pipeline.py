@@ -118,8 +118,8 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
 
     Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
     last step also gives their positions at the pair's common shape (the model correction); with
-    ``settings.distortion == "moment"``, the positions (both kinds) then move to the first moments of
-    the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
+    ``settings.distortion`` "moment" or "ellipse", the positions (both kinds) then move to the first
+    moments of the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
     (N, 5; NaN where not found), ``ok`` (N,), ``shared_xy`` (N, 2; NaN where not matched) and ``moved``
     (N,) bool.
     """
@@ -150,10 +150,10 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
         device=device,
     )
     moved = np.zeros(len(params), dtype=bool)
-    if settings.distortion == "moment":
+    if settings.distortion != "none":
         d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, device=device,
+            chi2=settings.distortion_chi2, ellipse=settings.distortion == "ellipse", device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d
