@@ -29,9 +29,9 @@ from synthbos.device import init_warp
 from . import batch_kernels as bk
 from . import claim_kernels as ck
 from .dotfit import _fixed_point_scale, fit_window_half
+from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
 from .frame_stats import frame_statistics
-from .ellipse import ellipse_step
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
 from .predict import pooling_block, predictor_passes

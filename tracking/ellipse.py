@@ -69,8 +69,8 @@ def ellipse_step(gradients, models, scale, params, frame, partner, prof, shift, 
     height, width = gradients.shape[1], gradients.shape[2]
 
     def draw(symmetric, sign):
-        wp.launch(ellipse_render, dim=rows, device=device,
-                  inputs=[params, frame, active, ell, prof, symmetric, sign, half, scale, height, width, models])  # fmt: skip
+        inputs = [params, frame, active, ell, prof, symmetric, sign, half, scale, height, width, models]
+        wp.launch(ellipse_render, dim=rows, inputs=inputs, device=device)
 
     draw(1, -1)  # the moving rows' symmetric models out: the model image of the others
     others = wp.clone(models)

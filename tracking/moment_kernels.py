@@ -14,7 +14,6 @@ The host code and the NumPy reference (``tracking.reference.moment_shifts_numpy`
 
 import warp as wp
 
-
 wp.set_module_options({"enable_backward": False})
 
 #: Shifts below this (px) are left alone: far below any measurement's noise, they would only flag the
