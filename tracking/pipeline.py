@@ -522,7 +522,7 @@ def _setup(ref, grad, tops, excluded, settings, device):
         if not (np.isfinite(d) and d > 0):
             raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
     eta0, half_r, half_g, map_half = window_sizes(d, settings)
-    noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
+    noise_r, noise_g = estimate_noise(ref, excluded=excluded), estimate_noise(grad, excluded=excluded)
     frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, tops[0]), fill_level(ref))
     frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, tops[1]), fill_level(grad))
     search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
