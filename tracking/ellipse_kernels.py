@@ -16,7 +16,7 @@ Rows are dots in a stack of model frames: frame ``f`` is image ``f % 2`` (0 the 
 image) of pair ``f // 2``, the model images ``[frames, height, width]`` are fixed point (units of
 ``1 / scale``), as the model fit's. The state of a row is ``ell[i] = (F, x0, y0, r1, r2, r3)``. The host
 code is :func:`tracking.ellipse.ellipse_step`; the NumPy reference,
-``tracking.reference.ellipse_shifts_numpy``, defines the result.
+``tracking.reference.moment_shifts_numpy(..., ellipse=True)``, defines the result.
 """
 
 import warp as wp

@@ -8,7 +8,8 @@ every available device. No production module imports this one (``tests/test_impo
 - :func:`measure_windows_numpy`: :func:`tracking.windows.measure_windows` (identification, Eq. 1);
 - :func:`deform_nearest_numpy`: the predictor's ``tracking.predict._deform_nearest``;
 - :func:`fit_dots_numpy`, :func:`render_dots`, :func:`common_shape`: :func:`tracking.dotfit.fit_dots`;
-- :func:`moment_shifts_numpy`: :func:`tracking.dotfit.moment_shifts`;
+- :func:`moment_shifts_numpy`: :func:`tracking.dotfit.moment_shifts` (with ``ellipse=True`` the elliptical
+  moment step, :func:`tracking.ellipse.ellipse_step`);
 - :func:`neighbour_fit_numpy`: :func:`tracking.neighbours.neighbour_fit` (the outlier tests);
 - :func:`registration_offsets_numpy`: :func:`tracking.register.registration_offsets`.
 """
