@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import tempfile
 import time
 
 import numpy as np
@@ -68,9 +70,56 @@ CPU_VARIANTS = [
 ]
 
 
-def paper_config(rays_per_dot: int) -> dict:
-    """The paper's set-up (``raytrace/default.toml``, its one home) with ``rays_per_dot`` rays per dot."""
-    return {"rays": {"per_dot": rays_per_dot, "chunk": CHUNK}}
+#: The volumes ``--volume`` names: the paper's extruded slice (the default set-up), and two truly 3-D
+#: 256 x 256 x 64 volumes, a Gaussian blob and a seeded turbulence cube read through the file loader.
+VOLUMES = ("slice", "gaussian3d", "turbulence3d")
+GRID_3D = (256, 256, 64)
+
+
+def turbulence_cube(path, *, shape_xyz=GRID_3D, seed=0, amplitude_kg_m3=0.02, ambient_kg_m3=1.225):
+    """Write a seeded 3-D density cube with a turbulence-like spectrum (amplitude ~ k^-11/6, an energy
+    spectrum ~ k^-5/3, above the grid's two largest wavelengths) as an (nz, ny, nx) ``.npy`` file,
+    density in kg/m^3 with an RMS fluctuation of ``amplitude_kg_m3``.
+
+    Examples
+    --------
+    >>> import tempfile, os, numpy as np
+    >>> path = os.path.join(tempfile.mkdtemp(), "cube.npy")
+    >>> rho = np.load(turbulence_cube(path, shape_xyz=(16, 12, 8)))
+    >>> rho.shape, round(float(rho.std()), 4), round(float(rho.mean()), 3)
+    ((8, 12, 16), 0.02, 1.225)
+    """
+    nx, ny, nz = shape_xyz
+    rng = np.random.default_rng(seed)
+    k = np.sqrt(sum(np.meshgrid(np.fft.fftfreq(nz) ** 2, np.fft.fftfreq(ny) ** 2, np.fft.rfftfreq(nx) ** 2,
+                                indexing="ij")))
+    kmin = 2.0 / max(shape_xyz)
+    amp = np.where(k >= kmin, np.maximum(k, kmin) ** (-11.0 / 6.0), 0.0)
+    spec = amp * (rng.standard_normal(k.shape) + 1j * rng.standard_normal(k.shape))
+    field = np.fft.irfftn(spec, s=(nz, ny, nx))
+    field *= amplitude_kg_m3 / field.std()
+    np.save(path, (ambient_kg_m3 + field - field.mean()).astype(np.float32))
+    return path
+
+
+def volume_config(volume: str, workdir: str) -> dict:
+    """The ``[volume]`` table of ``--volume``: {} for the default slice."""
+    if volume == "slice":
+        return {}
+    if volume == "gaussian3d":
+        return {"volume": {"source": "gaussian", "grid": list(GRID_3D)}}
+    if volume == "turbulence3d":
+        path = os.path.join(workdir, "turbulence3d.npy")
+        if not os.path.exists(path):
+            turbulence_cube(path)
+        return {"volume": {"source": "file", "path": path}}
+    raise SynthbosError(f"--volume must be one of {', '.join(VOLUMES)}, got {volume!r}")
+
+
+def paper_config(rays_per_dot: int, volume: dict | None = None) -> dict:
+    """The paper's set-up (``raytrace/default.toml``, its one home) with ``rays_per_dot`` rays per dot,
+    and ``volume`` (``volume_config``) instead of its slice when given."""
+    return {"rays": {"per_dot": rays_per_dot, "chunk": CHUNK}, **(volume or {})}
 
 
 def parse_variant(text: str) -> dict:
@@ -92,8 +141,8 @@ def parse_variant(text: str) -> dict:
     return out
 
 
-def variant_config(rays_per_dot: int, variant: str) -> dict:
-    cfg = paper_config(rays_per_dot)
+def variant_config(rays_per_dot: int, variant: str, volume: dict | None = None) -> dict:
+    cfg = paper_config(rays_per_dot, volume)
     cfg["rays"].update(parse_variant(variant))
     return cfg
 
@@ -115,11 +164,11 @@ def _trace_pair(plan, device):
     return (t1 - t0, t2 - t1, t3 - t2), ref, grad
 
 
-def time_variant(device: str, rays_per_dot: int, variant: str, repeats: int, *, warm_up=True) -> dict:
+def time_variant(device: str, rays_per_dot: int, variant: str, repeats: int, *, warm_up=True, volume=None) -> dict:
     """Best of ``repeats`` pair traces of one variant on one device, with its results for comparison."""
-    plan = render.plan_render(variant_config(rays_per_dot, variant))
+    plan = render.plan_render(variant_config(rays_per_dot, variant, volume))
     if warm_up:
-        render.render_pair(render.plan_render(variant_config(2, variant)), device=device)  # compile, load
+        render.render_pair(render.plan_render(variant_config(2, variant, volume)), device=device)  # compile, load
     best, ref, grad = None, None, None
     for _ in range(repeats):
         times, ref, grad = _trace_pair(plan, device)
@@ -176,8 +225,13 @@ def main(argv=None):
     parser.add_argument("--cpu-variants", nargs="+", default=None,
                         help="the variants timed on the CPU (default: a short list, or --variants when given)")
     parser.add_argument("--profile", action="store_true", help="one trace per image and variant, for ncu")
+    parser.add_argument("--volume", choices=VOLUMES, default="slice",
+                        help="the paper's extruded slice (default), or a 256 x 256 x 64 3-D Gaussian or "
+                             "turbulence cube (the cube is written as .npy and read through the file loader)")
     parser.add_argument("--json", help="write the results here too")
     args = parser.parse_args(argv)
+    workdir = tempfile.mkdtemp(prefix="synthbos-bench-render-")
+    volume = volume_config(args.volume, workdir)
     variants = args.variants or DEFAULT_VARIANTS
     cpu_variants = args.cpu_variants or args.variants or CPU_VARIANTS
     init_warp()
@@ -188,7 +242,8 @@ def main(argv=None):
         base = None
         for variant in cpu_variants if dev == "cpu" else variants:
             try:
-                row = time_variant(dev, rays, variant, repeats, warm_up=not args.profile)
+                row = time_variant(dev, rays, variant, repeats, warm_up=not args.profile, volume=volume)
+                row["volume"] = args.volume
             except Exception as exc:  # one failing variant must not lose the others' numbers
                 print(f"{dev} {variant}: FAILED: {type(exc).__name__}: {exc}", flush=True)
                 failed.append({"device": dev, "variant": variant, "error": f"{type(exc).__name__}: {exc}"})
@@ -208,7 +263,8 @@ def main(argv=None):
     if not rows:
         raise SynthbosError(f"every variant failed: {failed}")
     r0 = rows[0]
-    print(f"\nrender speed, paper configuration ({r0['dots']} dots, {r0['steps_per_ray']} RK4 steps per ray); "
+    print(f"\nrender speed, paper configuration, volume {args.volume} ({r0['dots']} dots, "
+          f"{r0['steps_per_ray']} RK4 steps per ray); "
           "diff: displacement against each device's first variant")
     print(f"{'device':<7} {'variant':<58} {'rays':>5} {'upload':>7} {'ref s':>7} {'grad s':>7} {'pair rays/s':>11} "
           f"{'grad steps/s':>12} {'speedup':>7} {'max diff':>9} {'rms diff':>9} {'same':>5} {'vs 2e6':>7}")

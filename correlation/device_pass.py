@@ -1,11 +1,13 @@
-"""The whole multigrid correlation on one Warp device: host code of :mod:`correlation.pass_kernels`.
+"""The Warp engine of the multigrid correlation: host code of :mod:`correlation.pass_kernels`.
 
 :func:`correlate_on_device` runs the passes and iterations of :func:`correlation.correlate_pair`
 with every step on device arrays: the two images go up once, the vector field comes back once, and
-nothing in between waits for the host. Everything that depends only on the geometry (window grids,
-spline weights of the predictor, buffers) is prepared once per image shape and settings in a
-:class:`_Plan` and kept for the next pair; on CUDA devices the plan's launches are recorded into a
-CUDA graph at the second pair and replayed after that.
+nothing in between waits for the host. The order of the steps is :func:`correlation.passes.run_passes`',
+the one the host engine (:mod:`correlation.host_pass`) follows too; :class:`_Plan` does each step with
+Warp launches. Everything that depends only on the geometry (the schedule's window grids, spline
+weights of the predictor, buffers) is prepared once per image shape and settings in a :class:`_Plan`
+and kept for the next pair; on CUDA devices the plan's launches are recorded into a CUDA graph at the
+second pair and replayed after that.
 
 The filling of rejected vectors (``validation.fill_by_interpolation``) starts as
 ``validation.replace_outliers`` does, with a fixed number of parallel median sweeps
@@ -13,7 +15,7 @@ The filling of rejected vectors (``validation.fill_by_interpolation``) starts as
 is finished by a single-thread kernel that carries on exactly as the NumPy loop does, so both give the
 same start; then ``validation.FILL_SWEEPS`` Jacobi sweeps of the Laplace equation, as on the host.
 
-The NumPy path in :mod:`correlation.multigrid` is the reference; the two agree to float32 rounding
+The host engine (:mod:`correlation.host_pass`) is the reference; the two agree to float32 rounding
 (3e-5 px on the tests' and the benchmark's pairs, identical flags).
 """
 
@@ -28,9 +30,10 @@ from synthbos import SynthbosError
 from synthbos.device import graph_capture_allowed
 
 from .deform import spline_weights
-from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation
+from .passes import Measured, pass_schedule, run_passes
+from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET
 from .validation import FILL_SWEEPS
-from .windows import window_grid
+from .windows import window_validity
 from .xcorr import rpc_spectral_filter
 
 __all__ = [
@@ -99,11 +102,16 @@ def _graph_replay(device):
 
 
 class _Iteration:
-    """Geometry and buffers of one iteration of one pass."""
+    """Buffers of one step of the schedule (:class:`correlation.passes.PassStep`)."""
 
 
 class _Plan:
-    """Buffers, spline weights and the launch sequence for one image shape and settings."""
+    """The Warp engine of :func:`correlation.passes.run_passes` for one image shape and settings.
+
+    Buffers and spline weights are made once, here; each step method only enqueues launches on them and
+    returns the buffers that hold its result, so that one walk of the schedule (:meth:`_launch_all`)
+    is a fixed sequence of launches that a CUDA graph can record.
+    """
 
     def __init__(self, shape, settings, device):
         wp, k = _warp()
@@ -112,21 +120,16 @@ class _Plan:
         self.settings = settings
         self.shape = shape
         h, w = shape
-        f32, f64, i32 = wp.float32, wp.float64, wp.int32
-
-        def zeros(s, dtype):
-            return wp.zeros(s, dtype=dtype, device=device)
-
+        f32, f64 = wp.float32, wp.float64
+        zeros = self._zeros
         self.img = [zeros(shape, f32), zeros(shape, f32)]
         self.raw = {}  # input images as given (float32 or float64), by dtype
         self.col_stats = [zeros((w, 4), f64), zeros((w, 4), f64)]
         self.summary = zeros((2, 6), f64)
         self.valid_px = zeros(shape, f32)
         self.valid_is_ones = False
-        self.deformed = any(
-            p > 0 or it > 0 for p, n_iter in enumerate(settings.iterations) for it in range(n_iter)
-        )
-        self.prefilter = self.deformed and settings.interpolator == "cubic"
+        self.steps = pass_schedule(shape, settings)
+        self.prefilter = len(self.steps) > 1 and settings.interpolator == "cubic"
         if self.prefilter:
             self.coef = [zeros(shape, f32), zeros(shape, f32)]
             self.rows_tmp = zeros(shape, f32)
@@ -134,208 +137,200 @@ class _Plan:
             self.line_cols = zeros((w, h), f64)
         else:
             self.coef = self.img
-        self.passes = []
-        self.iterations = []
-        prev = None  # (node_y, node_x) of the latest iteration
-        q = SAMPLING_OFFSET
-        for pass_index, (size, overlap, n_iter) in enumerate(
-            zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
-        ):
-            g = window_grid(shape, size, overlap)
-            ny, nx = len(g.yc), len(g.xc)
-            rows, cols = len(g.rows), len(g.cols)
-            ps = {
-                "grid": g,
-                "masked": zeros((ny, nx), i32),
-                "zero": zeros((ny, nx), f32),
-                "planes": zeros((ny * nx * size, size), f32),
-                "norm": zeros(ny * nx, f64),
-                "kernel": _correlate_kernel(wp, k, size, settings.rpc),
-            }
-            if settings.rpc:
-                spectral = rpc_spectral_filter((size, size), settings.rpc_diameter, half=False) / size**2
-            else:
-                spectral = np.full((size, size), 1.0 / size**2)
-            ps["spectral"] = wp.array(spectral.astype(np.float32), dtype=f32, device=device)
-            # shifted position (fftshift) of every sample of an unshifted plane, coded row * code + column
-            shifted = (np.arange(size) + size // 2) % size
-            code = int(k.PLANE_CODE)
-            positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
-            ps["positions"] = wp.array(positions, dtype=wp.int32, device=device)
-            # the peak search's weights (``CorrelationSettings.peak_selection``), unshifted like the planes
-            select = settings.peak_selection(size)
-            select = np.ones((size, size)) if select is None else select[np.ix_(shifted, shifted)]
-            ps["select"] = wp.array(select.astype(np.float32), dtype=f32, device=device)
-            ps["peak_at"] = zeros(ny * nx, i32)
-            ps["peak_values"] = zeros((ny * nx, 3), f32)
-            if prev is not None or n_iter > 1:
-                ps["def"] = [zeros((rows, cols), f32) for _ in range(3)]  # first, second, weight
-                ps["du"] = [zeros((rows, cols), f32), zeros((rows, cols), f32)]
-            self.passes.append(ps)
-            for iteration in range(n_iter):
-                it = _Iteration()
-                it.pass_ = ps
-                it.size, it.step = size, g.step
-                it.first_of_pass = iteration == 0
-                it.judges_correlation = judges_correlation(settings, pass_index, iteration)
-                it.use_coarse = pass_index > 0
-                it.confirm = iteration > 0 and settings.confirm_tolerance > 0
-                it.deform = prev is not None
-                if it.deform:
-                    py, px = prev
-                    it.node = (g.yc + q, g.xc + q)
-                    wy_pix = spline_weights(py, g.rows + q).astype(np.float32)
-                    wx_pix = spline_weights(px, g.cols + q).astype(np.float32)
-                    wy_node = spline_weights(py, g.yc + q).astype(np.float32)
-                    wx_node = spline_weights(px, g.xc + q).astype(np.float32)
-                    it.w = [wp.array(m, dtype=f32, device=device) for m in (wy_pix, wx_pix, wy_node, wx_node)]
-                    it.s_pix = [zeros((rows, len(px)), f32) for _ in range(2)]
-                    it.s_node = [zeros((ny, len(px)), f32) for _ in range(2)]
-                    it.p = [zeros((ny, nx), f32), zeros((ny, nx), f32)]
-                else:
-                    it.node = (g.yc, g.xc)
-                    it.p = [ps["zero"], ps["zero"]]
-                it.u, it.v = zeros((ny, nx), f64), zeros((ny, nx), f64)
-                it.ratio, it.coef = zeros((ny, nx), f64), zeros((ny, nx), f64)
-                it.flags = [zeros((ny, nx), i32) for _ in range(3)]
-                it.ok = zeros((ny, nx), i32)
-                it.rep = [[zeros((ny, nx), f64) for _ in range(2)] for _ in range(2)]  # ping-pong (u, v)
-                it.todo = [zeros((ny, nx), i32), zeros((ny, nx), i32)]
-                it.left = zeros(PARALLEL_SWEEPS, i32)
-                it.scratch = zeros(ny * nx, f64)
-                self.iterations.append(it)
-                prev = it.node
-        # the vectors measured by the previous iteration of the same pass (confirmation) and the
-        # coarser pass's predictor (disagreement)
-        for idx, it in enumerate(self.iterations):
-            it.raw = self.iterations[idx - 1] if it.confirm else it
-            if it.first_of_pass:
-                first = it
-            it.coarse = first.p if it.use_coarse else [it.pass_["zero"], it.pass_["zero"]]
+        self.passes = [self._pass_buffers(step) for step in self.steps if step.first_of_pass]
+        self.iterations = [
+            self._step_buffers(step, previous) for previous, step in zip((None, *self.steps), self.steps, strict=False)
+        ]
+        self.outputs = None  # what the last walk of the schedule returned: the buffers of the result
         self.graph = None
         self.runs = 0
         self.lock = threading.Lock()
 
-    # -------------------------------------------------------------------------------- launches
+    def _zeros(self, shape, dtype):
+        return self.wp.zeros(shape, dtype=dtype, device=self.device)
+
+    def _pass_buffers(self, step):
+        """The buffers of one pass, shared by its iterations: planes, peak search, FFT spectral weights."""
+        wp, k, s = self.wp, self.k, self.settings
+        f32, i32 = wp.float32, wp.int32
+        zeros = self._zeros
+        g, size = step.grid, step.size
+        ny, nx = len(g.yc), len(g.xc)
+        rows, cols = len(g.rows), len(g.cols)
+        ps = {
+            "masked": zeros((ny, nx), i32),
+            "zero": zeros((ny, nx), f32),
+            "planes": zeros((ny * nx * size, size), f32),
+            "norm": zeros(ny * nx, wp.float64),
+            "kernel": _correlate_kernel(wp, k, size, s.rpc),
+        }
+        if s.rpc:
+            spectral = rpc_spectral_filter((size, size), s.rpc_diameter, half=False) / size**2
+        else:
+            spectral = np.full((size, size), 1.0 / size**2)
+        ps["spectral"] = wp.array(spectral.astype(np.float32), dtype=f32, device=self.device)
+        # shifted position (fftshift) of every sample of an unshifted plane, coded row * code + column
+        shifted = (np.arange(size) + size // 2) % size
+        code = int(k.PLANE_CODE)
+        positions = (shifted[:, None] * code + shifted[None, :]).astype(np.int32)
+        ps["positions"] = wp.array(positions, dtype=i32, device=self.device)
+        # the peak search's weights (``CorrelationSettings.peak_selection``), unshifted like the planes
+        select = s.peak_selection(size)
+        select = np.ones((size, size)) if select is None else select[np.ix_(shifted, shifted)]
+        ps["select"] = wp.array(select.astype(np.float32), dtype=f32, device=self.device)
+        ps["peak_at"] = zeros(ny * nx, i32)
+        ps["peak_values"] = zeros((ny * nx, 3), f32)
+        if step.deform or s.iterations[step.pass_index] > 1:
+            ps["def"] = [zeros((rows, cols), f32) for _ in range(3)]  # first, second, weight
+            ps["du"] = [zeros((rows, cols), f32), zeros((rows, cols), f32)]
+        return ps
+
+    def _step_buffers(self, step, previous):
+        """The buffers of one step: its predictor's spline weights from ``previous``'s nodes, its vectors,
+        flags and filling scratch."""
+        wp = self.wp
+        f32, f64, i32 = wp.float32, wp.float64, wp.int32
+        zeros = self._zeros
+        g, ps = step.grid, self.passes[step.pass_index]
+        ny, nx = len(g.yc), len(g.xc)
+        rows = len(g.rows)
+        it = _Iteration()
+        if step.deform:
+            q = SAMPLING_OFFSET
+            py, px = previous.node
+            weights = (
+                spline_weights(py, g.rows + q),
+                spline_weights(px, g.cols + q),
+                spline_weights(py, step.node[0]),
+                spline_weights(px, step.node[1]),
+            )
+            it.w = [wp.array(m.astype(np.float32), dtype=f32, device=self.device) for m in weights]
+            it.s_pix = [zeros((rows, len(px)), f32) for _ in range(2)]
+            it.s_node = [zeros((ny, len(px)), f32) for _ in range(2)]
+            it.p = [zeros((ny, nx), f32), zeros((ny, nx), f32)]
+        else:
+            it.p = [ps["zero"], ps["zero"]]
+        it.u, it.v = zeros((ny, nx), f64), zeros((ny, nx), f64)
+        it.ratio, it.coef = zeros((ny, nx), f64), zeros((ny, nx), f64)
+        it.flags = [zeros((ny, nx), i32) for _ in range(3)]
+        it.ok = zeros((ny, nx), i32)
+        it.rep = [[zeros((ny, nx), f64) for _ in range(2)] for _ in range(2)]  # ping-pong (u, v)
+        it.todo = [zeros((ny, nx), i32), zeros((ny, nx), i32)]
+        it.left = zeros(PARALLEL_SWEEPS, i32)
+        it.scratch = zeros(ny * nx, f64)
+        return it
+
+    # ------------------------------------------------------- the steps (launches only, no host wait)
 
     def _launch(self, kernel, dim, inputs, block_dim=256):
         self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, block_dim=block_dim)
 
     def _launch_all(self):
-        wp, k, s = self.wp, self.k, self.settings
+        """Every launch of one pair's passes: one walk of the schedule with this engine."""
+        self.outputs = run_passes(self, self.steps)
+
+    def interpolant(self):
+        """The cubic B-spline prefilter of both images (Keys and Lanczos sample the images themselves)."""
         h, w = self.shape
         if self.prefilter:
             for img, coef in zip(self.img, self.coef, strict=True):
-                self._launch(k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], LOOP_BLOCK)
-                self._launch(k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], LOOP_BLOCK)
-        prev = None
+                self._launch(self.k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], LOOP_BLOCK)
+                self._launch(self.k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], LOOP_BLOCK)
+
+    def windows(self, step, previous, field):
+        """The images to cut the step's windows from (the first, the second, the pixel weights) and their
+        origin, and the predictor at the nodes: the images themselves at the first step, else the
+        predictor and both deformed images computed from ``field``."""
+        k = self.k
+        it, ps, g = self.iterations[step.index], self.passes[step.pass_index], step.grid
+        if field is None:
+            return ([*self.img, self.valid_px], (int(g.rows[0]), int(g.cols[0]))), it.p
         q = SAMPLING_OFFSET
-        for it in self.iterations:
-            ps = it.pass_
-            g = ps["grid"]
-            ny, nx = len(g.yc), len(g.xc)
-            n = it.size
-            if it.deform:
-                wy_pix, wx_pix, wy_node, wx_node = it.w
-                du, dv = ps["du"]
-                first, second, weight = ps["def"]
-                self._launch(k.spline_rows, it.s_pix[0].shape, [wy_pix, prev.rep_u, prev.rep_v, *it.s_pix])
-                self._launch(k.spline_cols, du.shape, [*it.s_pix, wx_pix, du, dv])
-                self._launch(k.spline_rows, it.s_node[0].shape, [wy_node, prev.rep_u, prev.rep_v, *it.s_node])
-                self._launch(k.spline_cols, it.p[0].shape, [*it.s_node, wx_node, *it.p])
-                self._launch(
-                    k.deform_pair_weighted,
-                    du.shape,
-                    [
-                        *self.coef,
-                        du,
-                        dv,
-                        float(g.rows[0] + q),
-                        float(g.cols[0] + q),
-                        _INTERPOLATOR_CODES[s.interpolator],
-                        self.valid_px,
-                        int(g.rows[0]),
-                        int(g.cols[0]),
-                        float(EDGE_MARGIN),
-                        first,
-                        second,
-                        weight,
-                    ],
-                )
-                images, origin = [first, second, weight], (0, 0)
-            else:
-                images, origin = [*self.img, self.valid_px], (int(g.rows[0]), int(g.cols[0]))
-            wp.launch_tiled(
-                ps["kernel"],
-                dim=[ny * nx],
-                inputs=[
-                    *images,
-                    *origin,
-                    it.step,
-                    nx,
-                    ps["spectral"],
-                    ps["positions"],
-                    ps["select"],
-                    ps["planes"],
-                    ps["norm"],
-                    ps["peak_at"],
-                    ps["peak_values"],
-                ],
-                block_dim=max(n // 2, 1),
-                device=self.device,
-            )
-            f0, f1, f2 = it.flags
-            self._launch(
-                k.fit_peaks,
-                (ny, nx),
-                [
-                    ps["planes"],
-                    n,
-                    ps["norm"],
-                    ps["peak_at"],
-                    ps["peak_values"],
-                    *it.p,
-                    _METHOD_CODES[s.subpixel],
-                    int(not s.rpc),
-                    s.peak_ratio_threshold(),
-                    float(s.min_correlation) if it.judges_correlation else -np.inf,
-                    *it.coarse,
-                    int(it.use_coarse),
-                    float(s.max_disagreement * n),
-                    ps["masked"],
-                    it.u,
-                    it.v,
-                    it.ratio,
-                    it.coef,
-                    f0,
-                ],
-            )
-            self._launch(k.measured_mask, (ny, nx), [f0, it.ok])
-            self._launch(
-                k.median_test,
-                (ny, nx),
-                [
-                    it.u,
-                    it.v,
-                    it.ok,
-                    float(s.median_epsilon),
-                    float(s.median_threshold),
-                    int(it.confirm),
-                    float(s.confirm_tolerance),
-                    it.raw.u,
-                    it.raw.v,
-                    int(not s.rpc),
-                    it.coef,
-                    float(CONFIRM_CORRELATION),
-                    f0,
-                    f1,
-                ],
-            )
-            self._launch(k.isolated_test, (ny, nx), [f1, f2])
-            it.rep_u, it.rep_v = _launch_fill(
-                wp, k, self.device, it.u, it.v, f2, it.rep, it.todo, it.left, it.scratch
-            )
-            prev = it
+        wy_pix, wx_pix, wy_node, wx_node = it.w
+        du, dv = ps["du"]
+        first, second, weight = ps["def"]
+        self._launch(k.spline_rows, it.s_pix[0].shape, [wy_pix, *field, *it.s_pix])
+        self._launch(k.spline_cols, du.shape, [*it.s_pix, wx_pix, du, dv])
+        self._launch(k.spline_rows, it.s_node[0].shape, [wy_node, *field, *it.s_node])
+        self._launch(k.spline_cols, it.p[0].shape, [*it.s_node, wx_node, *it.p])
+        origin = (float(g.rows[0] + q), float(g.cols[0] + q))
+        code = _INTERPOLATOR_CODES[self.settings.interpolator]
+        self._launch(
+            k.deform_pair_weighted,
+            du.shape,
+            [*self.coef, du, dv, *origin, code, self.valid_px, int(g.rows[0]), int(g.cols[0]), float(EDGE_MARGIN),
+             first, second, weight],
+        )
+        return ([first, second, weight], (0, 0)), it.p
+
+    def correlate(self, step, windows):
+        """One tiled launch: every window pair's correlation plane, norm and integer peak; returns the pass's
+        buffers that hold them."""
+        images, origin = windows
+        ps, g = self.passes[step.pass_index], step.grid
+        ny, nx = len(g.yc), len(g.xc)
+        outputs = [ps["spectral"], ps["positions"], ps["select"], ps["planes"], ps["norm"], ps["peak_at"],
+                   ps["peak_values"]]
+        self.wp.launch_tiled(
+            ps["kernel"],
+            dim=[ny * nx],
+            inputs=[*images, *origin, g.step, nx, *outputs],
+            block_dim=max(step.size // 2, 1),
+            device=self.device,
+        )
+        return ps
+
+    def fit_peaks(self, step, planes, predictor, coarse):
+        """The peak fit and the tests before the median test (:func:`pass_kernels.fit_peaks`)."""
+        s, ps, it, n = self.settings, planes, self.iterations[step.index], step.size
+        coarse_uv = coarse if coarse is not None else [ps["zero"], ps["zero"]]
+        self._launch(
+            self.k.fit_peaks,
+            it.u.shape,
+            [
+                ps["planes"], n, ps["norm"], ps["peak_at"], ps["peak_values"], *predictor,
+                _METHOD_CODES[s.subpixel],
+                int(not s.rpc),
+                s.peak_ratio_threshold(),
+                float(s.min_correlation) if step.judges_correlation else -np.inf,
+                *coarse_uv,
+                int(coarse is not None),
+                float(s.max_disagreement * n),
+                ps["masked"], it.u, it.v, it.ratio, it.coef, it.flags[0],
+            ],
+        )
+        return Measured(it.u, it.v, it.ratio, it.coef, it.flags[0])
+
+    def median_test(self, step, measured, raw):
+        """The normalised median test and the confirmation by ``raw`` (:func:`pass_kernels.median_test`)."""
+        s, k, it = self.settings, self.k, self.iterations[step.index]
+        confirm_by = measured if raw is None else raw
+        self._launch(k.measured_mask, it.ok.shape, [measured.flags, it.ok])
+        self._launch(
+            k.median_test,
+            it.ok.shape,
+            [
+                measured.u, measured.v, it.ok,
+                float(s.median_epsilon), float(s.median_threshold),
+                int(raw is not None), float(s.confirm_tolerance), confirm_by.u, confirm_by.v,
+                int(not s.rpc), measured.coef, float(CONFIRM_CORRELATION),
+                measured.flags, it.flags[1],
+            ],
+        )
+        return it.flags[1]
+
+    def isolated_test(self, step, flags):
+        """``ISOLATED`` added (:func:`pass_kernels.isolated_test`)."""
+        it = self.iterations[step.index]
+        self._launch(self.k.isolated_test, flags.shape, [flags, it.flags[2]])
+        return it.flags[2]
+
+    def fill(self, step, measured, flags):
+        """The launches of the filling (:func:`_launch_fill`); returns the buffers of the filled field."""
+        it = self.iterations[step.index]
+        return _launch_fill(
+            self.wp, self.k, self.device, measured.u, measured.v, flags, it.rep, it.todo, it.left, it.scratch
+        )
 
     def _raw(self, index, dtype):
         wp = self.wp
@@ -397,16 +392,16 @@ class _Plan:
         else:
             self._launch_all()
         self.runs += 1
-        last = self.iterations[-1]
+        (u, v), measured, flags = self.outputs
         # copies: on the CPU device .numpy() is a view of the plan's buffers, which the plan's next run
         # (a cached plan, the next pair) overwrites
         return {
-            "u": last.rep_u.numpy().copy(),
-            "v": last.rep_v.numpy().copy(),
-            "peak_ratio": last.ratio.numpy().copy(),
-            "correlation": last.coef.numpy().copy(),
-            "flags": last.flags[2].numpy().copy(),
-            "node": last.node,
+            "u": u.numpy().copy(),
+            "v": v.numpy().copy(),
+            "peak_ratio": measured.ratio.numpy().copy(),
+            "correlation": measured.coef.numpy().copy(),
+            "flags": flags.numpy().copy(),
+            "node": self.steps[-1].node,
         }
 
 
@@ -535,7 +530,8 @@ def correlate_on_device(
     valid_px : (H, W) float32 array of 0 and 1, optional
         1 on pixels that take part in the correlation (no mask: all).
     masked : list of (ny, nx) bool arrays, optional
-        Per pass, the windows more than half masked.
+        Per pass, the windows more than half masked (default: from ``valid_px``,
+        :func:`correlation.windows.window_validity`).
     device : str
         Warp device.
     raise_for : callable
@@ -545,8 +541,9 @@ def correlate_on_device(
     Returns
     -------
     dict
-        ``u``, ``v`` (replaced field), ``peak_ratio``, ``correlation``, ``flags`` of the last
-        iteration on its grid, and ``node`` (its row and column coordinates).
+        ``u``, ``v`` (filled field), ``peak_ratio``, ``correlation``, ``flags`` of the last
+        iteration on its grid, ``node`` (its row and column coordinates) and ``masked`` (its windows
+        more than half masked), as :func:`correlation.host_pass.correlate_on_host`.
     """
     reason = device_supports(settings)
     if reason is not None:
@@ -554,12 +551,14 @@ def correlate_on_device(
     shape = np.shape(a)
     plan = _plan_for(shape, settings, device)
     if masked is None:
-        masked = [np.zeros((len(p["grid"].yc), len(p["grid"].xc)), dtype=bool) for p in plan.passes]
+        masked = [window_validity(valid_px, step.grid)[1] for step in plan.steps if step.first_of_pass]
     with plan.lock:
-        return plan.run(
+        out = plan.run(
             (np.asarray(a), np.asarray(b)),
             valid_px,
             masked,
             names=("reference image", "gradient image"),
             raise_for=raise_for,
         )
+    out["masked"] = masked[-1]
+    return out

@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["VectorFlag"]
+__all__ = [
+    "FLAG_BORDER",
+    "FLAG_DISAGREE",
+    "FLAG_ISOLATED",
+    "FLAG_MASKED",
+    "FLAG_MEDIAN",
+    "FLAG_PEAK_RATIO",
+    "VectorFlag",
+]
 
 
 class VectorFlag(enum.IntFlag):
@@ -41,3 +49,12 @@ class VectorFlag(enum.IntFlag):
     MASKED = 8
     DISAGREE = 16
     ISOLATED = 32
+
+
+# The bits as plain ints, for NumPy arrays of flags.
+FLAG_MEDIAN = int(VectorFlag.MEDIAN)
+FLAG_PEAK_RATIO = int(VectorFlag.PEAK)
+FLAG_BORDER = int(VectorFlag.BORDER)
+FLAG_MASKED = int(VectorFlag.MASKED)
+FLAG_DISAGREE = int(VectorFlag.DISAGREE)
+FLAG_ISOLATED = int(VectorFlag.ISOLATED)

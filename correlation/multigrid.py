@@ -9,6 +9,12 @@ the correlation peak, agreement with the coarser pass, the normalised median tes
 rejected vectors by interpolation from the valid ones around them (``validation.fill_by_interpolation``)
 before the next iteration. Every vector ends up measured,
 replaced or failed (:class:`VectorFlag`, :func:`count_vectors`).
+
+This module holds the settings, the checks of the inputs and the result. The sequence of passes and
+iterations is written once, in :func:`correlation.passes.run_passes`; each of its steps is done by the
+engine that :meth:`CorrelationSettings.uses_warp` chooses: the host engine
+(:mod:`correlation.host_pass`, NumPy/SciPy) or the Warp engine (:mod:`correlation.device_pass`, a fixed
+sequence of launches that a CUDA graph records).
 """
 
 from __future__ import annotations
@@ -21,15 +27,22 @@ import numpy as np
 from synthbos import SynthbosError
 from synthbos.values import check_ranges
 
-from .deform import INTERPOLATORS, bspline3_coefficients, deform_pair, grid_to_pixels
+from .deform import INTERPOLATORS
 from .device_pass import correlate_on_device, device_supports
-from .flags import VectorFlag
+from .flags import (
+    FLAG_BORDER,
+    FLAG_DISAGREE,
+    FLAG_ISOLATED,
+    FLAG_MASKED,
+    FLAG_MEDIAN,
+    FLAG_PEAK_RATIO,
+    VectorFlag,
+)
+from .host_pass import correlate_on_host
 from .pattern import is_periodic
-from .peak import PEAK_METHODS, overlap_weights, peak_ratio, subpixel_peak
-from .rules import CONFIRM_CORRELATION, EDGE_MARGIN, SAMPLING_OFFSET, judges_correlation
-from .validation import fill_by_interpolation, neighbour_median, normalized_median_test
+from .peak import PEAK_METHODS, overlap_weights
+from .rules import SAMPLING_OFFSET  # noqa: F401  (re-exported)
 from .windows import WindowGrid, checked_mask, extract_windows, window_grid  # noqa: F401  (re-exported)
-from .xcorr import cross_correlate, robust_phase_correlate
 
 __all__ = [
     "FLAG_BORDER",
@@ -49,12 +62,6 @@ __all__ = [
 #: Bits meaning that a window gave no usable measurement.
 FAILED_BITS = VectorFlag.PEAK | VectorFlag.BORDER | VectorFlag.DISAGREE | VectorFlag.ISOLATED
 
-FLAG_MEDIAN = int(VectorFlag.MEDIAN)
-FLAG_PEAK_RATIO = int(VectorFlag.PEAK)
-FLAG_BORDER = int(VectorFlag.BORDER)
-FLAG_MASKED = int(VectorFlag.MASKED)
-FLAG_DISAGREE = int(VectorFlag.DISAGREE)
-FLAG_ISOLATED = int(VectorFlag.ISOLATED)
 
 
 def count_vectors(flags):
@@ -196,12 +203,14 @@ class CorrelationSettings:
         Warp device ("cpu", "cuda:0"): of the deformation kernels on the NumPy path, of everything on
         the Warp path.
     backend : {"auto", "numpy", "warp"}
-        ``numpy``: windows, FFTs, peak fit and validation in NumPy/SciPy on the host, the image
-        deformation on ``device``, host copies every iteration (the reference). ``warp``: every step
-        as Warp kernels on ``device`` (:mod:`correlation.device_pass`; the images go up once, the
-        vectors come back once; power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA
-        devices when the window sizes allow it, else ``numpy``. Both give the same vectors and flags
-        to float32 rounding (1e-4 px).
+        The engine of the steps; both walk the one sequence of passes
+        (:func:`correlation.passes.run_passes`). ``numpy``: the host engine
+        (:mod:`correlation.host_pass`): windows, FFTs, peak fit and validation in NumPy/SciPy on the
+        host, the image deformation on ``device``, host copies every iteration (the reference).
+        ``warp``: the Warp engine, every step as Warp kernels on ``device``
+        (:mod:`correlation.device_pass`; the images go up once, the vectors come back once;
+        power-of-two window sizes). ``auto`` (default): ``warp`` on CUDA devices when the window sizes
+        allow it, else ``numpy``. Both give the same vectors and flags to float32 rounding (1e-4 px).
 
     Examples
     --------
@@ -400,155 +409,6 @@ def _checked_image(image, name):
     return arr.astype(np.float32)
 
 
-def _mean_subtracted(wa, wb, valid):
-    """Windows minus their mean; with a (K, N, N) pixel weight stack, mean over valid pixels, 0 elsewhere."""
-    wa = wa - wa.mean(axis=(-2, -1), keepdims=True, dtype=np.float32)
-    wb = wb - wb.mean(axis=(-2, -1), keepdims=True, dtype=np.float32)
-    if valid is not None:
-        # only the windows with excluded pixels need the weighted means
-        part = np.flatnonzero((valid < 1).any(axis=(-2, -1)))
-        if len(part):
-            vp = valid[part]
-            count = np.maximum(vp.sum(axis=(-2, -1), keepdims=True), 1.0)
-            for w in (wa, wb):
-                wp_ = w[part]
-                w[part] = np.where(vp > 0, wp_ - (wp_ * vp).sum(axis=(-2, -1), keepdims=True) / count, 0.0)
-    return wa, wb
-
-
-def _energies(wa, wb):
-    """``sqrt(sum a^2 sum b^2)`` of (K, N, N) window stacks (float64)."""
-    ea = np.einsum("kij,kij->k", wa, wa, dtype=np.float64)
-    eb = np.einsum("kij,kij->k", wb, wb, dtype=np.float64)
-    return np.sqrt(ea * eb)
-
-
-def _correlate_windows(wa, wb, valid, settings):
-    """Correlation planes of (K, N, N) window stacks; ``valid`` weights pixels (1 in, 0 out) or is None.
-
-    Returns the planes and, per window pair, the norm that turns a plane value into a correlation
-    coefficient (``sqrt(sum a'^2 sum b'^2)`` of the mean-subtracted windows; None with RPC).
-    """
-    if valid is None:
-        # plain mean subtraction: done in the spectrum (the DC bin), no copy of the windows
-        if settings.rpc:
-            return robust_phase_correlate(
-                wa, wb, diameter=settings.rpc_diameter, subtract_mean=True, workers=settings.workers
-            ), None
-        n = wa.shape[-1] * wa.shape[-2]
-        ma = wa.mean(axis=(-2, -1), dtype=np.float64)
-        mb = wb.mean(axis=(-2, -1), dtype=np.float64)
-        ea = np.einsum("kij,kij->k", wa, wa, dtype=np.float64) - n * ma * ma
-        eb = np.einsum("kij,kij->k", wb, wb, dtype=np.float64) - n * mb * mb
-        norm = np.sqrt(np.maximum(ea, 0.0) * np.maximum(eb, 0.0))
-        return cross_correlate(wa, wb, subtract_mean=True, workers=settings.workers), norm
-    wa, wb = _mean_subtracted(wa, wb, valid)
-    if settings.rpc:
-        return robust_phase_correlate(
-            wa, wb, diameter=settings.rpc_diameter, subtract_mean=False, workers=settings.workers
-        ), None
-    return cross_correlate(wa, wb, subtract_mean=False, workers=settings.workers), _energies(wa, wb)
-
-
-def _peak_coefficient(planes, norm):
-    """Plane maximum as a correlation coefficient; NaN where the norm is None (RPC) or zero."""
-    if norm is None:
-        return np.full(len(planes), np.nan)
-    peak = planes.reshape(len(planes), -1).max(axis=1).astype(np.float64)
-    return np.divide(peak, norm, out=np.zeros_like(peak), where=norm > 0)
-
-
-def _isolated(measured, unmasked):
-    """Measured nodes with fewer than two measured neighbours among at least three unmasked ones."""
-    m = np.pad(measured, 1).astype(np.int32)
-    k = np.pad(unmasked, 1).astype(np.int32)
-    ny, nx = measured.shape
-    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    n_meas = sum(m[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in shifts)
-    n_open = sum(k[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy, dx in shifts)
-    return measured & (n_open >= 3) & (n_meas < 2)
-
-
-def _confirmed(u, v, raw, coef, valid, tolerance):
-    """Vectors that the previous iteration measured alike and that correlate about as well as their neighbours.
-
-    The second condition (a correlation coefficient at least ``CONFIRM_CORRELATION`` times the
-    median of the valid neighbours') keeps a window partly filled with something else (a reflection,
-    the edge of the pattern, a patch of unrelated texture) or one with too few dots to pin the peak
-    down from being confirmed: it measures the same biased vector every time, but correlates worse.
-    """
-    ok = np.hypot(u - raw[0], v - raw[1]) <= tolerance
-    if not np.all(np.isnan(coef)):  # RPC has no coefficients
-        nb_coef, count = neighbour_median(coef, valid)
-        ok &= (count == 0) | (coef >= CONFIRM_CORRELATION * nb_coef)
-    return ok
-
-
-def _edge_weights(du, dv, rows, cols, shape, margin):
-    """1 where both deformed images are sampled at least ``margin`` px inside the image, else 0.
-
-    Interpolated values there depend on the boundary extension, not on the image, and differ between
-    the two deformed images; excluding the same pixels from both windows keeps them alike.
-    Returns None when no pixel of the region is affected.
-    """
-    h, w = shape
-    hu, hv = 0.5 * float(np.abs(du).max()), 0.5 * float(np.abs(dv).max())
-    band_r, band_c = margin + hv, margin + hu
-    near_r = (rows < band_r) | (rows > h - 1 - band_r)
-    near_c = (cols < band_c) | (cols > w - 1 - band_c)
-    if not (near_r.any() or near_c.any()):
-        return None
-    weights = np.ones(du.shape, dtype=np.float32)
-
-    def inside(y, x, ahu, ahv):
-        return (
-            (y - ahv >= margin)
-            & (y + ahv <= h - 1 - margin)
-            & (x - ahu >= margin)
-            & (x + ahu <= w - 1 - margin)
-        )
-
-    ir, ic = np.flatnonzero(near_r), np.flatnonzero(near_c)
-    weights[ir, :] *= inside(rows[ir, None], cols[None, :], 0.5 * np.abs(du[ir]), 0.5 * np.abs(dv[ir]))
-    weights[:, ic] *= inside(rows[:, None], cols[None, ic], 0.5 * np.abs(du[:, ic]), 0.5 * np.abs(dv[:, ic]))
-    return weights
-
-
-def _correlate_pair_warp(a, b, valid_px, settings):
-    """:func:`correlate_pair` after its checks, on the Warp path (:mod:`correlation.device_pass`)."""
-    masked = [
-        _window_validity(valid_px, window_grid(a.shape, size, overlap))[1]
-        for size, overlap in zip(settings.window_sizes, settings.overlaps, strict=True)
-    ]
-    out = correlate_on_device(
-        a, b, settings=settings, valid_px=valid_px, masked=masked, device=settings.device, raise_for=_pixel_error
-    )
-    u, v, flags = out["u"], out["v"], out["flags"]
-    if not np.any(flags == 0):
-        u = np.full_like(u, np.nan)
-        v = np.full_like(v, np.nan)
-    u = np.where(masked[-1], np.nan, u)
-    v = np.where(masked[-1], np.nan, v)
-    coef = np.full(u.shape, np.nan) if settings.rpc else out["correlation"]
-    x, y = np.meshgrid(out["node"][1], out["node"][0])
-    return CorrelationResult(
-        x=x, y=y, u=u, v=v, peak_ratio=out["peak_ratio"], flags=flags, settings=settings, correlation=coef
-    )
-
-
-def _window_validity(valid_px, grid):
-    """Pixel weights of every window ((K, N, N), None without a mask) and the (ny, nx) masked windows."""
-    ny, nx, size = len(grid.yc), len(grid.xc), grid.size
-    if valid_px is None:
-        return None, np.zeros((ny, nx), dtype=bool)
-    r0, c0 = int(grid.rows[0]), int(grid.cols[0])
-    win_valid = extract_windows(valid_px, size, grid.step, r0, c0, ny, nx).reshape(-1, size, size)
-    masked = (win_valid.mean(axis=(-2, -1)) < 0.5).reshape(ny, nx)
-    if masked.all():
-        raise SynthbosError(f"the mask covers every {size} px window: no vector can be measured")
-    return win_valid, masked
-
-
 def correlate_pair(reference, gradient, *, settings=None, mask=None):
     """Displacement field between two images by multigrid window-deformation cross-correlation.
 
@@ -608,8 +468,12 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     """
     a, b, valid_px, settings = _checked_inputs(reference, gradient, settings, mask)
     if settings.uses_warp():
-        return _correlate_pair_warp(a, b, valid_px, settings)
-    return _correlate_pair_host(a, b, valid_px, settings)
+        out = correlate_on_device(
+            a, b, settings=settings, valid_px=valid_px, device=settings.device, raise_for=_pixel_error
+        )
+    else:
+        out = correlate_on_host(a, b, settings=settings, valid_px=valid_px)
+    return _result(out, settings)
 
 
 def _checked_inputs(reference, gradient, settings, mask):
@@ -636,112 +500,17 @@ def _checked_inputs(reference, gradient, settings, mask):
     return a, b, valid_px, settings
 
 
-def _correlate_pair_host(a, b, valid_px, settings):
-    """``correlate_pair`` on the host: every pass and iteration on NumPy arrays."""
-    shape = a.shape
-    coefs = None  # interpolant of each image, made at the first deformation
-    prev = None  # (node_y, node_x, u, v) of the latest iteration
-    for pass_index, (size, overlap, n_iter) in enumerate(
-        zip(settings.window_sizes, settings.overlaps, settings.iterations, strict=True)
-    ):
-        g = window_grid(shape, size, overlap)
-        win_valid, masked = _window_validity(valid_px, g)
-        coarse = None  # the previous pass's field at this pass's nodes
-        raw = None  # the measured (unreplaced) field of the previous iteration of this pass
-        for iteration in range(n_iter):
-            if prev is not None and coefs is None:
-                if settings.interpolator == "cubic":
-                    coefs = (bspline3_coefficients(a), bspline3_coefficients(b))
-                else:
-                    coefs = (a, b)
-            wa, wb, pix_valid, node_y, node_x, pu, pv = _iteration_windows(
-                a, b, coefs, prev, g, size, win_valid, settings
-            )
-            if prev is not None and iteration == 0 and pass_index > 0:
-                coarse = (pu, pv)
-            u, v, ratio, coef, flags = _measured_field(
-                wa, wb, pix_valid, (pu, pv), size, settings, (pass_index, iteration), coarse, masked
-            )
-            outliers = normalized_median_test(
-                u, v, epsilon=settings.median_epsilon, threshold=settings.median_threshold, valid=flags == 0
-            )
-            if raw is not None and settings.confirm_tolerance > 0:
-                outliers &= ~_confirmed(u, v, raw, coef, flags == 0, settings.confirm_tolerance)
-            flags |= np.where(outliers, FLAG_MEDIAN, 0).astype(np.int32)
-            flags |= np.where(_isolated(flags == 0, ~masked), FLAG_ISOLATED, 0).astype(np.int32)
-            raw = (u, v)
-            u, v = fill_by_interpolation(u, v, flags != 0)
-            prev = (node_y, node_x, u, v)
-
+def _result(out, settings):
+    """The :class:`CorrelationResult` of an engine's last iteration (``correlate_on_host`` or
+    ``correlate_on_device``): NaN where the window is masked, or everywhere when nothing was measured."""
+    u, v, flags, masked = out["u"], out["v"], out["flags"], out["masked"]
     if not np.any(flags == 0):  # nothing measured anywhere: there is nothing to fill from
         u = np.full_like(u, np.nan)
         v = np.full_like(v, np.nan)
     u = np.where(masked, np.nan, u)
     v = np.where(masked, np.nan, v)
-    x, y = np.meshgrid(node_x, node_y)
+    coef = np.full(u.shape, np.nan) if settings.rpc else out["correlation"]
+    x, y = np.meshgrid(out["node"][1], out["node"][0])
     return CorrelationResult(
-        x=x, y=y, u=u, v=v, peak_ratio=ratio, flags=flags, settings=settings, correlation=coef
+        x=x, y=y, u=u, v=v, peak_ratio=out["peak_ratio"], flags=flags, settings=settings, correlation=coef
     )
-
-
-def _iteration_windows(a, b, coefs, prev, g, size, win_valid, settings):
-    """The windows one iteration correlates: of the images themselves at the first iteration of all, else
-    of the images deformed by the latest field ``prev``; with their pixel weights, the nodes and the
-    predictor ``(pu, pv)`` at the nodes."""
-    step, yc, xc, rows, cols = g.step, g.yc, g.xc, g.rows, g.cols
-    ny, nx = len(yc), len(xc)
-    r0, c0 = int(rows[0]), int(cols[0])
-    pix_valid = win_valid
-    if prev is None:
-        img_a, img_b, origin = a, b, (r0, c0)
-        node_y, node_x = yc, xc
-        pu = pv = np.zeros((ny, nx))
-    else:
-        py, px, u_old, v_old = prev
-        q = SAMPLING_OFFSET
-        node_y, node_x = yc + q, xc + q
-        du, dv = grid_to_pixels((u_old, v_old), py, px, rows + q, cols + q)
-        pu, pv = grid_to_pixels((u_old, v_old), py, px, node_y, node_x).astype(np.float64)
-        img_a, img_b = deform_pair(
-            *coefs,
-            du,
-            dv,
-            origin=(r0 + q, c0 + q),
-            interpolator=settings.interpolator,
-            device=settings.device,
-        )
-        origin = (0, 0)
-        edge = _edge_weights(du, dv, rows + q, cols + q, a.shape, EDGE_MARGIN)
-        if edge is not None:
-            edge = extract_windows(edge, size, step, 0, 0, ny, nx).reshape(-1, size, size)
-            pix_valid = edge if win_valid is None else edge * win_valid
-    wa = extract_windows(img_a, size, step, *origin, ny, nx).reshape(-1, size, size)
-    wb = extract_windows(img_b, size, step, *origin, ny, nx).reshape(-1, size, size)
-    return wa, wb, pix_valid, node_y, node_x, pu, pv
-
-
-def _measured_field(wa, wb, pix_valid, predictor, size, settings, at, coarse, masked):
-    """One iteration's measured field ``(u, v)`` (the predictor plus the peak's offset), its peak ratio,
-    peak coefficient and the flags of every test before the normalised median test; ``at`` is
-    ``(pass_index, iteration)``."""
-    pu, pv = predictor
-    ny, nx = pu.shape
-    planes, norm = _correlate_windows(wa, wb, pix_valid, settings)
-    select = settings.peak_selection(size)
-    prow, pcol, border = subpixel_peak(
-        planes, method=settings.subpixel, weights=overlap_weights((size, size)), select=select
-    )
-    ratio = peak_ratio(planes, select=select).reshape(ny, nx)
-    coef = _peak_coefficient(planes, norm).reshape(ny, nx)
-    u = pu + (pcol - size // 2).reshape(ny, nx)
-    v = pv + (prow - size // 2).reshape(ny, nx)
-    flags = np.where(border.reshape(ny, nx), FLAG_BORDER, 0).astype(np.int32)
-    weak = ratio < settings.peak_ratio_threshold()
-    if norm is not None and judges_correlation(settings, *at):
-        weak |= coef < settings.min_correlation
-    flags |= np.where(weak, FLAG_PEAK_RATIO, 0).astype(np.int32)
-    if coarse is not None:
-        far = np.hypot(u - coarse[0], v - coarse[1]) > settings.max_disagreement * size
-        flags |= np.where(far, FLAG_DISAGREE, 0).astype(np.int32)
-    flags |= np.where(masked, FLAG_MASKED, 0).astype(np.int32)
-    return u, v, ratio, coef, flags

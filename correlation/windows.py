@@ -9,7 +9,15 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from synthbos import SynthbosError
 
-__all__ = ["WindowGrid", "checked_mask", "extract_windows", "window_grid", "window_starts", "window_step"]
+__all__ = [
+    "WindowGrid",
+    "checked_mask",
+    "extract_windows",
+    "window_grid",
+    "window_starts",
+    "window_step",
+    "window_validity",
+]
 
 
 def checked_mask(mask, shape):
@@ -101,3 +109,35 @@ def window_grid(shape, size, overlap):
         rows=np.arange(sy[0], sy[-1] + size),
         cols=np.arange(sx[0], sx[-1] + size),
     )
+
+
+def window_validity(valid_px, grid):
+    """Pixel weights of every window of ``grid`` and the windows more than half masked.
+
+    Parameters
+    ----------
+    valid_px : (H, W) float32 array of 0 and 1, or None
+        1 on the pixels that take part in the correlation; None: all do.
+    grid : WindowGrid
+
+    Returns
+    -------
+    win_valid : (K, N, N) array or None
+        The weights of the K = ny nx windows (a view of ``valid_px``); None without a mask.
+    masked : (ny, nx) bool array
+        Windows with less than half of their pixels valid.
+
+    Raises
+    ------
+    synthbos.SynthbosError
+        When every window is masked.
+    """
+    ny, nx, size = len(grid.yc), len(grid.xc), grid.size
+    if valid_px is None:
+        return None, np.zeros((ny, nx), dtype=bool)
+    r0, c0 = int(grid.rows[0]), int(grid.cols[0])
+    win_valid = extract_windows(valid_px, size, grid.step, r0, c0, ny, nx).reshape(-1, size, size)
+    masked = (win_valid.mean(axis=(-2, -1)) < 0.5).reshape(ny, nx)
+    if masked.all():
+        raise SynthbosError(f"the mask covers every {size} px window: no vector can be measured")
+    return win_valid, masked

@@ -627,30 +627,49 @@ def fixed(value: wp.float64, scale: wp.float64):
     return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
 
 
+#: A ray's seven fixed-point products [xx, yy, xy, xxx, xxy, xyy, yyy] (see ``moment_terms``).
+vec7l = wp.types.vector(length=7, dtype=wp.int64)
+
+
 @wp.func
-def add_moments(
-    sums: wp.array2d(dtype=wp.int64), far: wp.array(dtype=wp.int32), dot: int, d: wp.vec2,
-    scale2: wp.float64, scale3: wp.float64,
-):
-    """Add a ray's offset ``d`` (px, from its dot's nominal position) to the dot's sums of products
-    in fixed point: xx, yy, xy in units of 1 / scale2, then xxx, xxy, xyy, yyy in units of 1 / scale3,
-    formed in float64 from the float32 offset (the values ``sum_x``, ``sum_y`` hold). An offset beyond
-    MOMENT_RANGE_PX counts in ``far`` instead (its powers could overflow the sums)."""
+def moment_terms(d: wp.vec2, scale2: wp.float64, scale3: wp.float64):
+    """A ray's offset ``d`` (px, from its dot's nominal position) as its products in fixed point:
+    xx, yy, xy in units of 1 / scale2, then xxx, xxy, xyy, yyy in units of 1 / scale3, formed in
+    float64 from the float32 offset (the values ``sum_x``, ``sum_y`` hold). Returns the products and
+    0, or zeros and 1 for an offset beyond MOMENT_RANGE_PX (its powers could overflow the sums; it
+    counts in ``far`` instead)."""
     if wp.abs(d[0]) > MOMENT_RANGE_PX or wp.abs(d[1]) > MOMENT_RANGE_PX:
-        wp.atomic_add(far, dot, 1)
-        return
+        return vec7l(), 1
     x = wp.float64(d[0])
     y = wp.float64(d[1])
     xx = x * x
     yy = y * y
     xy = x * y
-    wp.atomic_add(sums, dot, 0, fixed(xx, scale2))
-    wp.atomic_add(sums, dot, 1, fixed(yy, scale2))
-    wp.atomic_add(sums, dot, 2, fixed(xy, scale2))
-    wp.atomic_add(sums, dot, 3, fixed(xx * x, scale3))
-    wp.atomic_add(sums, dot, 4, fixed(xx * y, scale3))
-    wp.atomic_add(sums, dot, 5, fixed(xy * y, scale3))
-    wp.atomic_add(sums, dot, 6, fixed(yy * y, scale3))
+    terms = vec7l(fixed(xx, scale2), fixed(yy, scale2), fixed(xy, scale2), fixed(xx * x, scale3),
+                  fixed(xx * y, scale3), fixed(xy * y, scale3), fixed(yy * y, scale3))
+    return terms, 0
+
+
+@wp.func
+def trace_one_ray(
+    medium: Any, active: int, cam: Camera, dots: wp.array(dtype=wp.vec2), dot: int, ray: int, n_dots: int,
+    dot_radius: float, step: float, cells: int, aim_iterations: int, seed: int,
+):
+    """Ray ``ray`` of dot ``dot``: emitted from a point of the dot towards a point of the aperture (both
+    drawn from the (seed, dot, ray) stream alone), traced through the medium and the lens to the sensor.
+    Returns its sensor position and status (RAY_OK, or why it was lost)."""
+    state = wp.rand_init(seed, ray * n_dots + dot)
+    e2 = dots[dot] + sample_disk(state, dot_radius)
+    a2 = sample_disk(state, cam.aperture_radius)
+    origin = wp.vec3(e2[0], e2[1], 0.0)
+    p, t = aimed_ray(medium, active, cam, origin, wp.vec3(a2[0], a2[1], cam.z_stop), step, cells, aim_iterations)
+    xs = wp.vec2(0.0)
+    status = RAY_OK
+    if cam.lens == LENS_THIN:
+        xs, status = thin_lens_to_sensor(cam, p, t)
+    else:
+        xs, status = thick_lens_to_sensor(cam, p, t)
+    return xs, status
 
 
 @wp.kernel
@@ -670,6 +689,7 @@ def render_rays(
     ray_start: int,
     ray_count: int,
     group: int,
+    rays_per_thread: int,
     scale2: wp.float64,
     scale3: wp.float64,
     image: wp.array2d(dtype=wp.int64),
@@ -681,50 +701,67 @@ def render_rays(
     lost: wp.array(dtype=wp.int32),
     tir: wp.array(dtype=wp.int32),
 ):
-    """One thread per ray: emit from a dot towards the aperture, trace, image, deposit, accumulate.
+    """A thread per ``rays_per_thread`` consecutive rays of one dot: emit, trace, image, deposit, accumulate.
 
-    Rays ``ray_start .. ray_start + ray_count - 1`` of every dot, in groups of ``group`` consecutive
-    rays of one dot: thread ``tid`` is in group ``g = tid // group``, which takes dot
-    ``launch_order[g % n_dots]`` and rays ``(g // n_dots) * group ...`` (threads past ``ray_count``
-    do nothing). ``group = 1`` with the identity order is one ray of each dot in turn; a spatial
-    ``launch_order`` and a larger group make a warp's rays read nearby nodes. The order changes
-    nothing else: a ray's random numbers depend only on (seed, dot, ray), and the images and sums are
-    accumulated in fixed point, so every order gives the same bits.
+    Rays ``ray_start .. ray_start + ray_count - 1`` of every dot are cut into chunks of ``rays_per_thread``;
+    consecutive threads take ``group`` chunks of one dot: thread ``tid`` is in group ``g = tid // group``,
+    which takes dot ``launch_order[g % n_dots]`` and chunks ``(g // n_dots) * group ...`` (threads past
+    ``ray_count`` do nothing). ``group = 1`` with the identity order is one chunk of each dot in turn; a
+    spatial ``launch_order`` and a larger group make a warp's rays read nearby nodes. Each spot goes into
+    the image as its ray lands; a thread sums its rays' per-dot counts and moments and adds them to the
+    dot's sums once (one atomic per sum and chunk instead of per ray: the dot's rays all add to the same
+    addresses). Neither the order nor the chunks change anything else: a ray's random numbers depend only
+    on (seed, dot, ray), and the images and sums are accumulated in fixed point, so every order gives
+    the same bits.
 
     Per dot: ``sum_x``, ``sum_y`` (offsets of the landing positions from the nominal position, units
-    of 1 / POSITION_SCALE px), ``sums`` (N, 7): the sums of their products (see ``add_moments``).
+    of 1 / POSITION_SCALE px), ``sums`` (N, 7): the sums of their products (see ``moment_terms``).
     """
     n_dots = dots.shape[0]
-    slot, local = group_member(wp.tid(), group, n_dots)
-    if local >= ray_count:
+    slot, chunk = group_member(wp.tid(), group, n_dots)
+    r0 = chunk * rays_per_thread
+    if r0 >= ray_count:
         return
     dot = launch_order[slot]
-    ray = ray_start + local
-    state = wp.rand_init(seed, ray * n_dots + dot)
-    e2 = dots[dot] + sample_disk(state, dot_radius)
-    a2 = sample_disk(state, cam.aperture_radius)
-    origin = wp.vec3(e2[0], e2[1], 0.0)
-    p, t = aimed_ray(medium, active, cam, origin, wp.vec3(a2[0], a2[1], cam.z_stop), step, cells, aim_iterations)
-    xs = wp.vec2(0.0)
-    status = RAY_OK
-    if cam.lens == LENS_THIN:
-        xs, status = thin_lens_to_sensor(cam, p, t)
-    else:
-        xs, status = thick_lens_to_sensor(cam, p, t)
-    if status == RAY_TIR:
-        wp.atomic_add(tir, dot, 1)
-    if status != RAY_OK:
-        wp.atomic_add(lost, dot, 1)
-        return
-    px = sensor_to_pixel(sen, xs)
-    if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
-        wp.atomic_add(lost, dot, 1)
-    deposit_gaussian(image, sen, px, sen.energy)
-    d = px - nominal_px[dot]
-    wp.atomic_add(sum_x, dot, wp.int64(wp.floor(d[0] * POSITION_SCALE + 0.5)))
-    wp.atomic_add(sum_y, dot, wp.int64(wp.floor(d[1] * POSITION_SCALE + 0.5)))
-    add_moments(sums, far, dot, d, scale2, scale3)
-    wp.atomic_add(hits, dot, 1)
+    r1 = wp.min(r0 + rays_per_thread, ray_count)
+    acc_x = wp.int64(0)
+    acc_y = wp.int64(0)
+    acc = vec7l()
+    n_hit = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_lost = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_tir = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    n_far = int(0)  # noqa: UP018, RUF046 (a dynamic variable: it changes inside the loop)
+    for local in range(r0, r1):
+        xs, status = trace_one_ray(medium, active, cam, dots, dot, ray_start + local, n_dots, dot_radius, step,
+                                   cells, aim_iterations, seed)
+        if status == RAY_TIR:
+            n_tir += 1
+        if status != RAY_OK:
+            n_lost += 1
+            continue
+        px = sensor_to_pixel(sen, xs)
+        if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
+            n_lost += 1
+        deposit_gaussian(image, sen, px, sen.energy)
+        d = px - nominal_px[dot]
+        acc_x += wp.int64(wp.floor(d[0] * POSITION_SCALE + 0.5))
+        acc_y += wp.int64(wp.floor(d[1] * POSITION_SCALE + 0.5))
+        terms, beyond = moment_terms(d, scale2, scale3)
+        acc += terms
+        n_far += beyond
+        n_hit += 1
+    if n_hit > 0:
+        wp.atomic_add(sum_x, dot, acc_x)
+        wp.atomic_add(sum_y, dot, acc_y)
+        for k in range(7):
+            wp.atomic_add(sums, dot, k, acc[k])
+        wp.atomic_add(hits, dot, n_hit)
+    if n_far > 0:
+        wp.atomic_add(far, dot, n_far)
+    if n_lost > 0:
+        wp.atomic_add(lost, dot, n_lost)
+    if n_tir > 0:
+        wp.atomic_add(tir, dot, n_tir)
 
 
 @wp.func

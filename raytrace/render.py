@@ -21,7 +21,7 @@ from synthbos.device import check_device, init_warp
 from . import checks, kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import MediumData, medium_from_config, straight_to_warp, to_warp
+from .medium import MediumData, is_planar, medium_from_config, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
@@ -77,6 +77,7 @@ class RenderPlan:
         # The longest RK4 step: step_mm, or with "cells" stepping and step_mm = "grid" a quarter of the depth.
         self.ray_step = self.medium.size[2] / 4.0 if self.cells and step == "grid" else self.step
         self.rays_per_group = rays["rays_per_group"]
+        self.rays_per_thread = rays["rays_per_thread"]
         self.block_dim = rays["block_dim"]
         self.max_registers = rays["max_registers"]
         self.launch_order = morton_order(px) if rays["dot_order"] == "morton" else np.arange(len(px), dtype=np.int32)
@@ -192,8 +193,8 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     Notes
     -----
     The plan's speed settings (``rays.field``, ``rays.dot_order``, ``rays.rays_per_group``,
-    ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored and read and which
-    thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
+    ``rays.rays_per_thread``, ``rays.block_dim``, ``rays.max_registers``) choose how the medium is stored
+    and read and which thread traces which ray; only ``field`` can change the result (see ``raytrace.medium.FIELDS``).
     """
     init_warp()
     W, H = plan.camera.pixels
@@ -218,18 +219,21 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
     kernel = kernels.MAX_REGISTERS[plan.max_registers if wp.get_device(device).is_cuda else 0]
-    rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
-    group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
-    if rays_per_launch > group:
-        rays_per_launch -= rays_per_launch % group  # whole groups, except in the last launch
+    per_thread = rays_per_thread(plan, active=active)
+    rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
+    # at most every chunk of a launch in a group: dot-major order
+    group = min(plan.rays_per_group, -(-rays_per_launch // per_thread))
+    if rays_per_launch > group * per_thread:
+        rays_per_launch -= rays_per_launch % (group * per_thread)  # whole groups, except in the last launch
     for start in range(0, plan.rays_per_dot, rays_per_launch):
         count = min(rays_per_launch, plan.rays_per_dot - start)
-        threads = -(-count // group) * group * n
+        chunks = -(-count // per_thread)
+        threads = -(-chunks // group) * group * n
         wp.launch(
             kernel, dim=threads,
             inputs=[medium, int(active), cam, sen, dots, nominal, order, plan.dot_radius, plan.ray_step,
                     int(plan.cells), plan.aim_iterations, plan.cfg["rays"]["seed"], start, count, group,
-                    wp.float64(scale2), wp.float64(scale3)],
+                    per_thread, wp.float64(scale2), wp.float64(scale3)],
             outputs=[image, sum_x, sum_y, sums, far, hits, lost, tir], device=device, block_dim=plan.block_dim,
         )
         if progress is not None:
@@ -244,6 +248,30 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     cov, third = central_moments(sum_x.numpy(), sum_y.numpy(), sums.numpy(), hits_np, far.numpy(),
                                  scales=(scale2, scale3))
     return fixed_to_image(image.numpy()), mean, ok, int(tir.numpy().sum()), cov, third
+
+
+#: ``rays.rays_per_thread = "auto"``: this many rays a thread where every ray of a launch takes about
+#: the same path length in steps (straight rays; planar media, whose cell steps are few and alike), one
+#: through a truly 3-D medium, where a thread's rays cross different numbers of node planes and the
+#: longer ones hold up the warp (measured on an H100, 2026-11-27: slice 1.26e9 -> 1.49e9 pair rays/s at
+#: 8 rays a thread; a 256 x 256 x 64 Gaussian 4.10e8 -> 3.88e8 at 4, 2.74e8 at 16).
+AUTO_RAYS_PER_THREAD = 8
+
+
+def rays_per_thread(plan: RenderPlan, *, active: bool) -> int:
+    """How many consecutive rays of one dot a thread of ``render_rays`` traces (``rays.rays_per_thread``).
+
+    Examples
+    --------
+    >>> plan = plan_render({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 4}})
+    >>> rays_per_thread(plan, active=True), rays_per_thread(plan, active=False)  # the slice is planar
+    (8, 8)
+    """
+    if plan.rays_per_thread != "auto":
+        return int(plan.rays_per_thread)
+    if not active or is_planar(plan.medium.field):
+        return AUTO_RAYS_PER_THREAD
+    return 1
 
 
 def moment_scales(rays_per_dot: int) -> tuple[float, float]:

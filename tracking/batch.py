@@ -29,6 +29,7 @@ from synthbos.device import init_warp
 from . import batch_kernels as bk
 from . import claim_kernels as ck
 from .dotfit import _fixed_point_scale, fit_window_half
+from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
 from .frame_stats import frame_statistics
 from .moment_kernels import MAX_SHIFT_PX
@@ -326,13 +327,15 @@ class _Batch:
             )  # fmt: skip
             cur, nxt = nxt, cur
         moved = self.zeros(rows, wp.int32)
-        if s.distortion == "moment":
+        if s.distortion != "none":
             self.moment_step(cur, frame, partner, live, models[:layer], prof, shared, moved)
         return cur, ok, shared, live, moved
 
     def moment_step(self, params, frame, partner, live, models, prof, shared, moved):
         """``tracking.dotfit.moment_shifts`` of every row, in place: the model image of every dot at the
-        fitted parameters is drawn again (with their profiles), then each row moves to its first moment."""
+        fitted parameters is drawn again (with their profiles), then each row moves to its first moment
+        (with ``distortion="ellipse"``, a moving gradient-image row to its elliptical moment,
+        :func:`tracking.ellipse.ellipse_step`)."""
         rows = params.shape[0]
         peak = self.zeros(1, wp.float64)
         self.launch(bk.largest_peak, rows, [params, live, peak])
@@ -349,6 +352,9 @@ class _Batch:
                 self.stats["noise_frames"], half, float(self.settings.distortion_chi2), MAX_SHIFT_PX, prof, shift,
             ],
         )  # fmt: skip
+        if self.settings.distortion == "ellipse":
+            ellipse_step(self.grads, models, scale, params, frame, partner, prof, shift, half=half,
+                         max_shift=MAX_SHIFT_PX, device=self.device)  # fmt: skip
         self.launch(bk.apply_moment_shift, rows, [shift, partner, params, shared, moved])
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .ellipse import ellipse_step
 from .fit_kernels import fit_dot_step_kernel, render_dots_kernel
 from .moment_kernels import (
     MAX_SHIFT_PX,
@@ -343,6 +344,7 @@ def moment_shifts(
     noise=None,
     chi2=25.0,
     max_shift=MAX_SHIFT_PX,
+    ellipse=False,
     device=None,
 ):
     """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
@@ -385,7 +387,10 @@ def moment_shifts(
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
         A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
-
+    ellipse : bool, keyword-only
+        The elliptical moment step (:func:`tracking.ellipse.ellipse_step`): each gradient-image dot that
+        moves takes the first moment of its share by elliptical models fitted to the dots that move, not by
+        the symmetric ones. Which dots move, and their codes, are the first-moment step's.
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -396,7 +401,8 @@ def moment_shifts(
     applied : (N,) bool array
         Where the shift is usable and the dot or its partner is distorted: a matched pair is measured
         alike in both images (the fit's own residuals in a tight cluster, alike in both, then cancel in
-        the displacement). Usable: the stamp lies inside its image with no saturated pixel, the residual
+        the displacement). Usable: no pixel of the stamp inside the image is saturated (pixels outside
+        it count as the dot's own model, which has no first moment), the residual
         light of the dot's share is at most ``MAX_RESIDUAL_FLUX_REL`` (0.25) of its model's (more is
         another dot's light, not a distortion) and the shift is at most ``max_shift``. Distorted: the
         shift is also significant, at least ``MIN_SHIFT_PX`` (1e-3 px) and at most
@@ -445,6 +451,9 @@ def moment_shifts(
         device=device,
     )  # fmt: skip
     moved = wp.empty(n, dtype=wp.int32, device=device)
+    if ellipse:
+        ellipse_step(img1.reshape((1, h, w)), models.flatten(), scale, pw, fr, pa, prof, out, half=int(half),
+                     max_shift=float(max_shift), device=device)  # fmt: skip
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied

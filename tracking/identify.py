@@ -44,12 +44,15 @@ BLOB_DTYPE = np.dtype([("x", "f8"), ("y", "f8"), ("area", "i8"), ("peak", "f8")]
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
-def estimate_noise(image):
+def estimate_noise(image, *, excluded=None):
     """Standard deviation of the pixel noise, estimated robustly from neighbour differences.
 
     Parameters
     ----------
     image : (H, W) array
+    excluded : (H, W) bool array, optional, keyword-only
+        Pixels left out (a mask, filled with one value: differences there would say the noise is 0);
+        only differences of two pixels both not excluded count.
 
     Returns
     -------
@@ -63,9 +66,13 @@ def estimate_noise(image):
         ``rows // 256``-th row.
     """
     image = np.asarray(image, dtype=np.float64)
-    image = image[:: max(1, image.shape[0] // 256)]
+    step = max(1, image.shape[0] // 256)
+    image = image[::step]
     d = np.diff(image, axis=1)
     d = np.abs(d, out=d).ravel()
+    if excluded is not None:
+        keep = ~np.asarray(excluded, dtype=bool)[::step]
+        d = d[(keep[:, 1:] & keep[:, :-1]).ravel()]
     if d.size == 0:
         return 0.0
     return float(_lower_quartile(d) / (0.31864 * np.sqrt(2.0)))

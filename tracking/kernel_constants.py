@@ -9,6 +9,10 @@ import warp as wp
 from .settings import (
     DIAMETER_PER_WIDTH,
     EDGE_CUT_PX,
+    ELLIPSE_DAMPING,
+    ELLIPSE_MARQUARDT,
+    ELLIPSE_MAX_STEP,
+    ELLIPSE_WIDTH_RANGE,
     MODEL_WIDTH_RANGE,
     PIXEL_EDGE_PX,
     RESIDUAL_STAMP_WIDTHS,
@@ -51,3 +55,8 @@ MODEL_LO = wp.constant(wp.float64(MODEL_WIDTH_RANGE[0]))
 MODEL_HI = wp.constant(wp.float64(MODEL_WIDTH_RANGE[1]))
 EDGE_CUT_MAX = wp.constant(wp.float64(EDGE_CUT_PX))
 DIAMETER_WIDTHS = wp.constant(wp.float64(DIAMETER_PER_WIDTH))
+ELL_DAMPING = wp.constant(wp.float64(ELLIPSE_DAMPING))
+ELL_MARQUARDT = wp.constant(wp.float64(ELLIPSE_MARQUARDT))
+ELL_MAX_STEP = wp.constant(wp.float64(ELLIPSE_MAX_STEP))
+ELL_WIDTH_LO = wp.constant(wp.float64(ELLIPSE_WIDTH_RANGE[0]))
+ELL_WIDTH_HI = wp.constant(wp.float64(ELLIPSE_WIDTH_RANGE[1]))

@@ -14,8 +14,6 @@ The host code and the NumPy reference (``tracking.reference.moment_shifts_numpy`
 
 import warp as wp
 
-from .fit_kernels import window_is_whole
-
 wp.set_module_options({"enable_backward": False})
 
 #: Shifts below this (px) are left alone: far below any measurement's noise, they would only flag the
@@ -47,6 +45,23 @@ DISTORTED_CODE = wp.constant(wp.float64(2.0))
 
 
 @wp.func
+def stamp_unsaturated(
+    image: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), i: int, half: int, sat: wp.float64
+) -> bool:
+    """True where no pixel of dot i's ``2 half + 1`` stamp that lies inside the image is at or above ``sat``."""
+    if sat >= wp.float64(1.0e300):
+        return True
+    n = 2 * half + 1
+    ox = int(wp.rint(params[i, 0])) - half
+    oy = int(wp.rint(params[i, 1])) - half
+    for rr in range(wp.max(-oy, 0), wp.min(n, image.shape[0] - oy)):
+        for cc in range(wp.max(-ox, 0), wp.min(n, image.shape[1] - ox)):
+            if image[oy + rr, ox + cc] >= sat:
+                return False
+    return True
+
+
+@wp.func
 def moment_shift(
     image: wp.array2d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
@@ -73,7 +88,7 @@ def moment_shift(
     allows (``reference_spread2``).
     """
     zero = wp.float64(0.0)
-    if not window_is_whole(image, params, i, half, sat):
+    if not stamp_unsaturated(image, params, i, half, sat):
         return wp.vec3d(zero, zero, zero)
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
@@ -91,16 +106,20 @@ def moment_shift(
     vy = zero
     for r in range(n):
         own_row = params[i, 2] * prof[i, 3, r]
+        row_inside = oy + r >= 0 and oy + r < height
         at = (f * height + oy + r) * width + ox
         dy = wp.float64(oy + r) - y0
         for c in range(n):
             own = own_row * prof[i, 0, c]
+            own_flux += own
+            if not (row_inside and ox + c >= 0 and ox + c < width):
+                flux += own  # outside the image: the dot's own model, which has no first moment
+                continue
             total = wp.float64(models[at + c]) * inv_scale
             share = wp.clamp(own / wp.max(total, floor), zero, wp.float64(1.0))
             wr = share * (image[oy + r, ox + c] - background - total)
             dx = wp.float64(ox + c) - x0
             flux += own + wr
-            own_flux += own
             sx += dx * wr
             sy += dy * wr
             vx += dx * dx * share * share

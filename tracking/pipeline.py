@@ -118,8 +118,8 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
 
     Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
     last step also gives their positions at the pair's common shape (the model correction); with
-    ``settings.distortion == "moment"``, the positions (both kinds) then move to the first moments of
-    the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
+    ``settings.distortion`` "moment" or "ellipse", the positions (both kinds) then move to the first
+    moments of the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
     (N, 5; NaN where not found), ``ok`` (N,), ``shared_xy`` (N, 2; NaN where not matched) and ``moved``
     (N,) bool.
     """
@@ -150,10 +150,10 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
         device=device,
     )
     moved = np.zeros(len(params), dtype=bool)
-    if settings.distortion == "moment":
+    if settings.distortion != "none":
         d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, device=device,
+            chi2=settings.distortion_chi2, ellipse=settings.distortion == "ellipse", device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d
@@ -522,7 +522,7 @@ def _setup(ref, grad, tops, excluded, settings, device):
         if not (np.isfinite(d) and d > 0):
             raise SynthbosError("cannot estimate the dot diameter from the reference image; give it in settings")
     eta0, half_r, half_g, map_half = window_sizes(d, settings)
-    noise_r, noise_g = estimate_noise(ref), estimate_noise(grad)
+    noise_r, noise_g = estimate_noise(ref, excluded=excluded), estimate_noise(grad, excluded=excluded)
     frame_r = _Frame(ref, noise_r, saturation_level(ref, settings.saturation_level, tops[0]), fill_level(ref))
     frame_g = _Frame(grad, noise_g, saturation_level(grad, settings.saturation_level, tops[1]), fill_level(grad))
     search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius

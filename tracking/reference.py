@@ -8,7 +8,8 @@ every available device. No production module imports this one (``tests/test_impo
 - :func:`measure_windows_numpy`: :func:`tracking.windows.measure_windows` (identification, Eq. 1);
 - :func:`deform_nearest_numpy`: the predictor's ``tracking.predict._deform_nearest``;
 - :func:`fit_dots_numpy`, :func:`render_dots`, :func:`common_shape`: :func:`tracking.dotfit.fit_dots`;
-- :func:`moment_shifts_numpy`: :func:`tracking.dotfit.moment_shifts`;
+- :func:`moment_shifts_numpy`: :func:`tracking.dotfit.moment_shifts` (with ``ellipse=True`` the elliptical
+  moment step, :func:`tracking.ellipse.ellipse_step`);
 - :func:`neighbour_fit_numpy`: :func:`tracking.neighbours.neighbour_fit` (the outlier tests);
 - :func:`registration_offsets_numpy`: :func:`tracking.register.registration_offsets`.
 """
@@ -33,7 +34,15 @@ from .moment_kernels import (
 from .predict import _bilinear, _tile_stack, _tiles_view
 from .register import _gradients
 from .register_kernels import MAX_STEP_PX, MIN_PIXELS, REGISTRATION_STEPS
-from .settings import FIT_MAX_MOVE_PX
+from .settings import (
+    ELLIPSE_DAMPING,
+    ELLIPSE_MARQUARDT,
+    ELLIPSE_MAX_STEP,
+    ELLIPSE_MOMENT_ITERATIONS,
+    ELLIPSE_SWEEPS,
+    ELLIPSE_WIDTH_RANGE,
+    FIT_MAX_MOVE_PX,
+)
 
 __all__ = [
     "common_shape",
@@ -392,11 +401,22 @@ def fit_dots_numpy(
 
 
 def moment_shifts_numpy(
-    images, params, *, half, frame=None, partner=None, saturation=None, noise=None, chi2=25.0, max_shift=MAX_SHIFT_PX
+    images,
+    params,
+    *,
+    half,
+    frame=None,
+    partner=None,
+    saturation=None,
+    noise=None,
+    chi2=25.0,
+    max_shift=MAX_SHIFT_PX,
+    ellipse=False,
 ):
     """NumPy reference of :func:`tracking.dotfit.moment_shifts` (for the tests).
 
-    Parameters and result are those of :func:`tracking.dotfit.moment_shifts`, without ``device``.
+    Parameters and result are those of :func:`tracking.dotfit.moment_shifts`, without ``device``;
+    ``ellipse=True`` is the elliptical moment step (:func:`tracking.ellipse.ellipse_step`).
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     stack = np.stack(stack)
@@ -410,16 +430,14 @@ def moment_shifts_numpy(
     px, _, _ = integrated_profile(p[:, 0], p[:, 3], ox, n)
     py, _, _ = integrated_profile(p[:, 1], p[:, 3], oy, n)
     own = p[:, 2, None, None] * py[:, :, None] * px[:, None, :]
-    whole = (ox >= 0) & (oy >= 0) & (ox + n <= w) & (oy + n <= h)
-    rows = np.clip(oy[:, None] + np.arange(n), 0, h - 1)[:, :, None]
-    cols = np.clip(ox[:, None] + np.arange(n), 0, w - 1)[:, None, :]
-    image = stack[frame[:, None, None], rows, cols]
-    total = render_dots(stack.shape, p, half=half, frame=frame)[frame[:, None, None], rows, cols]
-    whole &= ~(image >= sat[frame][:, None, None]).any(axis=(1, 2))
-    share = np.clip(own / np.maximum(total, SHARE_FLOOR_REL * np.abs(p[:, 2, None, None])), 0.0, 1.0)
-    wr = share * (image - background[:, None, None] - total)
-    dx = (ox[:, None] + np.arange(n) - p[:, 0, None])[:, None, :]
-    dy = (oy[:, None] + np.arange(n) - p[:, 1, None])[:, :, None]
+    image, inside, xs, ys = _stamps(stack, p, frame, half)
+    total = render_dots(stack.shape, p, half=half, frame=frame)
+    total = total[frame[:, None, None], np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
+    unsaturated = ~((image >= sat[frame][:, None, None]) & inside).any(axis=(1, 2))
+    share = np.clip(own / np.maximum(total, SHARE_FLOOR_REL * np.abs(p[:, 2, None, None])), 0.0, 1.0) * inside
+    wr = share * (image - background[:, None, None] - total)  # outside the image: the own model only
+    dx = xs - p[:, 0, None, None]
+    dy = ys - p[:, 1, None, None]
     own_flux = own.sum(axis=(1, 2))
     flux = own_flux + wr.sum(axis=(1, 2))
     safe = np.where(flux > 0, flux, 1.0)
@@ -427,11 +445,116 @@ def moment_shifts_numpy(
     var = sigma[frame] ** 2 * ((dx**2 + dy**2) * share**2).sum(axis=(1, 2)) / safe**2
     size2 = (shift**2).sum(axis=1)
     usable = (
-        whole & (flux > 0) & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux) & (size2 <= max_shift**2)
+        unsaturated
+        & (flux > 0)
+        & (np.abs(flux - own_flux) <= MAX_RESIDUAL_FLUX_REL * own_flux)
+        & (size2 <= max_shift**2)
     )
     distorted = usable & (size2 > 0.5 * chi2 * var) & (size2 >= MIN_SHIFT_PX**2) & (size2 <= spread2)
     applied = usable & (distorted | ((partner >= 0) & distorted[np.maximum(partner, 0)]))
+    if ellipse and (applied & (frame == 1)).any():
+        active = applied & (frame == 1)
+        centre, flux = _ellipse_moments(stack, p, frame, active, background, half)
+        d = centre - p[active, :2]
+        model_flux = 2 * np.pi * p[active, 2] * p[active, 3] ** 2
+        ok = (d**2).sum(axis=1) <= max_shift**2
+        ok &= np.abs(flux - model_flux) <= MAX_RESIDUAL_FLUX_REL * np.abs(model_flux)
+        shift[np.flatnonzero(active)[ok]] = d[ok]
     return np.where(applied[:, None], shift, 0.0), applied
+
+
+def _stamps(stack, p, frame, half):
+    """Each dot's ``2 half + 1`` stamp of its image (0 outside it), where it lies inside, and the stamp's
+    pixel coordinates (x, y)."""
+    h, w = stack.shape[1:]
+    n = 2 * half + 1
+    ox, oy = _origin(p, half)
+    xs = np.broadcast_to((ox[:, None] + np.arange(n))[:, None, :], (len(p), n, n))
+    ys = np.broadcast_to((oy[:, None] + np.arange(n))[:, :, None], (len(p), n, n))
+    inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    image = stack[frame[:, None, None], np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)] * inside
+    return image, inside, xs, ys
+
+
+def _ellipse_model(ell, xs, ys):
+    """The elliptical models ``(F, x0, y0, r1, r2, r3)`` (rows of ``ell``) at pixels ``xs, ys``, and
+    ``e1, e2, dx, dy`` (``R (x - x0, y - y0) = (e1, e2)``)."""
+    f, x0, y0, r1, r2, r3 = (ell[:, j, None, None] for j in range(6))
+    dx, dy = xs - x0, ys - y0
+    e1, e2 = r1 * dx + r2 * dy, r3 * dy
+    return f * r1 * r3 / (2 * np.pi) * np.exp(-0.5 * (e1 * e1 + e2 * e2)), e1, e2, dx, dy
+
+
+def _cholesky_solve6(a, g):
+    """``a^-1 g`` for each of a stack of symmetric 6 x 6 matrices, 0 where one is not positive definite
+    (the kernel's ``cholesky_solve6``, step by step)."""
+    m = len(a)
+    low = np.zeros_like(a)
+    good = np.ones(m, dtype=bool)
+    for j in range(6):
+        s = a[:, j, j] - (low[:, j, :j] ** 2).sum(axis=1)
+        good &= s > 0
+        d = np.sqrt(np.where(s > 0, s, 1.0))
+        low[:, j, j] = d
+        for r in range(j + 1, 6):
+            low[:, r, j] = (a[:, r, j] - (low[:, r, :j] * low[:, j, :j]).sum(axis=1)) / d
+    y = np.zeros((m, 6))
+    for j in range(6):
+        y[:, j] = (g[:, j] - (low[:, j, :j] * y[:, :j]).sum(axis=1)) / low[:, j, j]
+    x = np.zeros((m, 6))
+    for j in range(5, -1, -1):
+        x[:, j] = (y[:, j] - (low[:, j + 1 :, j] * x[:, j + 1 :]).sum(axis=1)) / low[:, j, j]
+    return np.where(good[:, None], x, 0.0)
+
+
+def _ellipse_moments(stack, p, frame, active, background, half):
+    """The elliptical moment step's centres and fluxes of the ``active`` rows (NaN where the share holds
+    no light): the reference of :func:`tracking.ellipse.ellipse_step`."""
+    rows = np.flatnonzero(active)
+    others = render_dots(stack.shape, p[~active], half=half, frame=frame[~active])
+    image, inside, xs, ys = (a[rows] for a in _stamps(stack, p, frame, half))
+    h, w = stack.shape[1:]
+    at = (np.broadcast_to(frame[rows, None, None], xs.shape)[inside], ys[inside], xs[inside])
+    b = background[rows, None, None]
+    w0 = np.sqrt(p[rows, 3] ** 2 + 1.0 / 12.0)
+    ell = np.column_stack([2 * np.pi * p[rows, 2] * p[rows, 3] ** 2, p[rows, 0], p[rows, 1], 1 / w0, 0 * w0, 1 / w0])
+
+    def model_image(m):
+        img = others.copy()
+        np.add.at(img, at, m[inside])
+        return img[frame[rows, None, None], np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
+
+    for _ in range(ELLIPSE_SWEEPS):
+        m, e1, e2, dx, dy = _ellipse_model(ell, xs, ys)
+        r1, r2, r3 = (ell[:, j, None, None] for j in (3, 4, 5))
+        jac = np.stack([m / ell[:, 0, None, None], m * r1 * e1, m * (r2 * e1 + r3 * e2), m * (1 - r1 * e1 * dx),
+                        -m * e1 * dy, m * (1 - r3 * e2 * dy)], axis=1) * inside[:, None]  # fmt: skip
+        res = (image - b - model_image(m)) * inside
+        a = np.einsum("nkij,nlij->nkl", jac, jac)
+        g = np.einsum("nkij,nij->nk", jac, res)
+        diag = np.arange(6)
+        a[:, diag, diag] += ELLIPSE_MARQUARDT * np.maximum(a[:, diag, diag], 1e-12)
+        step = _cholesky_solve6(a, g)
+        step[:, 1:] = np.clip(step[:, 1:], -ELLIPSE_MAX_STEP, ELLIPSE_MAX_STEP)
+        step *= ELLIPSE_DAMPING
+        lo, hi = 1 / (ELLIPSE_WIDTH_RANGE[1] * w0), 1 / (ELLIPSE_WIDTH_RANGE[0] * w0)
+        ell = np.column_stack([np.maximum(ell[:, 0] + step[:, 0], 0.1 * ell[:, 0]), ell[:, 1] + step[:, 1],
+                               ell[:, 2] + step[:, 2], np.clip(ell[:, 3] * np.exp(step[:, 3]), lo, hi),
+                               ell[:, 4] + step[:, 4], np.clip(ell[:, 5] * np.exp(step[:, 5]), lo, hi)])  # fmt: skip
+    live = np.ones(len(rows), dtype=bool)
+    for _ in range(ELLIPSE_MOMENT_ITERATIONS):
+        m = _ellipse_model(ell, xs, ys)[0]
+        floor = SHARE_FLOOR_REL * np.abs(p[rows, 2, None, None])
+        share = np.clip(m / np.maximum(model_image(m), floor), 0.0, 1.0)
+        light = np.where(inside, share * (image - b), m)
+        flux = light.sum(axis=(1, 2))
+        go = live & (flux > 0)
+        safe = np.where(go, flux, 1.0)
+        cx = p[rows, 0] + ((xs - p[rows, 0, None, None]) * light).sum(axis=(1, 2)) / safe
+        cy = p[rows, 1] + ((ys - p[rows, 1, None, None]) * light).sum(axis=(1, 2)) / safe
+        ell[go, 0], ell[go, 1], ell[go, 2] = flux[go], cx[go], cy[go]
+        live = go
+    return np.where(live[:, None], ell[:, 1:3], np.nan), np.where(live, ell[:, 0], np.nan)
 
 
 def neighbour_fit_numpy(xy, uv, query, self_index, *, k, return_neighbours=False):

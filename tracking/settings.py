@@ -20,6 +20,7 @@ from synthbos.values import check_ranges
 
 __all__ = [
     "CENTROID_METHODS",
+    "DISTORTION_STEPS",
     "MATCH_METHODS",
     "TRACKING_RANGES",
     "TRACK_DTYPE",
@@ -35,6 +36,9 @@ __all__ = [
 #: Sub-pixel estimators of Brady, Raben and Vlachos (2009) on a dot's segmented map
 #: (:func:`tracking.centroid.fit_centroids`); ``TrackingSettings.centroid`` also takes "model".
 CENTROID_METHODS = ("gaussian3", "centroid", "gaussian4", "lsq")
+
+#: What the model fit's positions measure on a distorted dot (``TrackingSettings.distortion``).
+DISTORTION_STEPS = ("ellipse", "moment", "none")
 
 #: Pairings of standard tracking (:mod:`tracking.match`).
 MATCH_METHODS = ("nearest", "multiparametric")
@@ -71,6 +75,22 @@ MODEL_WIDTH_RANGE = (0.25, 4.0)
 
 #: A model-fit step that takes a dot farther than this (px, along x or y) from its start is refused.
 FIT_MAX_MOVE_PX = 1.0
+
+#: The elliptical moment step (``TrackingSettings.distortion`` "ellipse"): a distorted gradient-image dot's
+#: elliptical Gaussian is fitted by this many block-Jacobi Gauss-Newton sweeps ...
+ELLIPSE_SWEEPS = 4
+#: ... each step scaled by this factor (every dot moves at once, against its neighbours' last models) ...
+ELLIPSE_DAMPING = 0.7
+#: ... with this Levenberg-Marquardt term, relative to the normal matrix's diagonal ...
+ELLIPSE_MARQUARDT = 1.0e-2
+#: ... moving its centre (px along x or y), the logarithms of its two widths and its shear at most this
+#: far per sweep ...
+ELLIPSE_MAX_STEP = 0.3
+#: ... and keeping each width within this range times its start, ``sqrt(sigma^2 + 1/12)``.
+ELLIPSE_WIDTH_RANGE = (0.6, 3.0)
+#: The first moment of the dot's share of the light by those models is then taken this many times, the
+#: model moved to the last moment (and its flux to the last share's) in between.
+ELLIPSE_MOMENT_ITERATIONS = 3
 
 #: Standard tracking pairs within, and the wide search looks as far as, ``max_displacement`` plus this (px)
 #: unless ``TrackingSettings.search_radius`` is set.
@@ -303,14 +323,17 @@ class TrackingSettings:
         Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
         Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
         ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
-    distortion : {"moment", "none"}
+    distortion : {"ellipse", "moment", "none"}
         What the model fit's positions are taken to measure on a dot whose image the flow has distorted
         (rays through different parts of the aperture crossing different density spread and skew it).
-        "moment" (default): the mean of its light, the mean landing position of its rays that the
-        renderer's truth and BOS define: after the fit, each dot moves from the symmetric model's centre
-        to the first moment of its share of the light (:func:`tracking.dotfit.moment_shifts`) where that
-        shift is significant against the image noise, and is flagged DISTORTED. "none": the symmetric
-        model's centre. Only the model estimators (``centroid`` or ``correction`` "model") use it.
+        "moment": the mean of its light, the mean landing position of its rays that the renderer's truth
+        and BOS define: after the fit, each dot moves from the symmetric model's centre to the first
+        moment of its share of the light (:func:`tracking.dotfit.moment_shifts`) where that shift is
+        significant against the image noise, and is flagged DISTORTED. "ellipse" (default): the same,
+        but a moving gradient-image dot's share of a pixel shared with its neighbours is weighed by
+        elliptical models fitted to the moving dots (:func:`tracking.ellipse.ellipse_step`), which follow
+        light the flow spread along its gradient. "none": the symmetric model's centre. Only the model
+        estimators (``centroid`` or ``correction`` "model") use it.
     distortion_chi2 : float
         Significance of that shift: it is applied where ``|d|^2`` exceeds this many times half its
         variance under the image's white noise (a false alarm on an undistorted dot has probability
@@ -416,7 +439,7 @@ class TrackingSettings:
     centroid: str = "model"
     correction: str = "model"
     fit_iterations: int = 3
-    distortion: str = "moment"
+    distortion: str = "ellipse"
     distortion_chi2: float = 25.0
     weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
     diameter: float | None = None
@@ -456,8 +479,8 @@ class TrackingSettings:
             raise SynthbosError(f"unknown correction {self.correction!r}; choose 'model' or 'paper'")
         if self.fit_iterations < 1:
             raise SynthbosError(f"fit_iterations must be at least 1, got {self.fit_iterations}")
-        if self.distortion not in ("moment", "none"):
-            raise SynthbosError(f"unknown distortion {self.distortion!r}; choose 'moment' or 'none'")
+        if self.distortion not in DISTORTION_STEPS:
+            raise SynthbosError(f"unknown distortion {self.distortion!r}; choose one of {DISTORTION_STEPS}")
         if self.matching not in MATCH_METHODS:
             raise SynthbosError(f"unknown matching {self.matching!r}; choose one of {MATCH_METHODS}")
         if self.background not in ("ring-median", "minimum"):

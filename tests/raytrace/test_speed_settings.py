@@ -17,13 +17,15 @@ _BLOB = {"source": "gaussian", "sigma_mm": 4.0, "amplitude_kg_m3": 0.05, "grid":
 _RAYS = {"per_dot": 100, "chunk": 9000}
 
 # The renderer before its speed settings: float32 scalar loads, dots in pattern order, one ray per dot in turn.
-_PLAIN = {"field": "float32", "dot_order": "pattern", "rays_per_group": 1}
+_PLAIN = {"field": "float32", "dot_order": "pattern", "rays_per_group": 1, "rays_per_thread": 1}
 
 # Launch settings: which thread takes which ray. Random numbers depend only on (seed, dot, ray) and the
 # sums are fixed point, so they give the same bits on every device.
 _LAUNCH = [
     {"dot_order": "morton"},
     {"dot_order": "morton", "rays_per_group": 7},
+    {"dot_order": "morton", "rays_per_group": 3, "rays_per_thread": 5},
+    {"rays_per_group": 1, "rays_per_thread": 64},
     {"rays_per_group": 32, "block_dim": 128, "max_registers": 64},
     {"dot_order": "morton", "rays_per_group": 65536},
 ]
@@ -123,7 +125,9 @@ def test_morton_order_is_a_permutation_along_a_z_curve():
 def test_speed_settings_are_checked():
     assert set(EXACT_FIELDS) < set(FIELDS)
     for rays, word in [({"field": "float8"}, "rays.field"), ({"dot_order": "hilbert"}, "rays.dot_order"),
-                       ({"rays_per_group": 0}, "rays.rays_per_group"), ({"block_dim": 4096}, "rays.block_dim"),
+                       ({"rays_per_group": 0}, "rays.rays_per_group"),
+                       ({"rays_per_thread": 0}, "rays.rays_per_thread"),
+                       ({"rays_per_thread": "fast"}, "rays.rays_per_thread"), ({"block_dim": 4096}, "rays.block_dim"),
                        ({"max_registers": 48}, "rays.max_registers")]:
         with pytest.raises(SynthbosError, match=word):
             plan_render(small_config(rays=rays))
