@@ -179,6 +179,7 @@ _TRACKING_KERNELS = (
 STACK_KERNELS = (
     "synthbos.tracking.batch_kernels",
     "synthbos.tracking.claim_kernels",
+    "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.neighbour_batch_kernels",
     "synthbos.tracking.predict_fft_kernels",
