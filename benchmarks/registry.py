@@ -172,6 +172,7 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.identify_kernels",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.moment_kernels",
+    "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
 )
