@@ -178,7 +178,6 @@ _TRACKING_KERNELS = (
 )
 #: the Warp modules that ``tracking.batch.track_pairs`` launches (a campaign that tracks stacks: scheduling)
 STACK_KERNELS = (
-    "synthbos.tracking.batch_kernels",
     "synthbos.tracking.claim_kernels",
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
@@ -186,6 +185,7 @@ STACK_KERNELS = (
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
     "synthbos.tracking.stats_kernels",
+    "synthbos.tracking.table_kernels",
 )
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 

@@ -26,8 +26,11 @@ import warp as wp
 from synthbos import SynthbosError
 from synthbos.device import init_warp
 
-from . import batch_kernels as bk
 from . import claim_kernels as ck
+from . import fit_kernels as fk
+from . import predict_kernels as pk
+from . import stats_kernels as sk
+from . import table_kernels as tk
 from .dotfit import _fixed_point_scale, fit_window_half
 from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
@@ -224,7 +227,7 @@ class _Batch:
             if ref_peak is None:
                 values = self.zeros(M, wp.float64)
                 valid = self.zeros(M, wp.int32)
-                self.launch(bk.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
+                self.launch(ck.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
                 ref_peak = self.segment_median(values, valid, self.N, self.B)
             self.launch(
                 ck.accept_blobs,
@@ -264,12 +267,12 @@ class _Batch:
         keys = wp.empty(2 * n, dtype=wp.float32, device=self.device)
         order = wp.empty(2 * n, dtype=wp.int32, device=self.device)
         count = self.zeros(segments, wp.int32)
-        self.launch(bk.segment_keys, n, [values, valid, length, keys, order, count])
+        self.launch(sk.segment_keys, n, [values, valid, length, keys, order, count])
         starts = self.arr(np.arange(segments, dtype=np.int32) * length, wp.int32)
         ends = self.arr((np.arange(segments, dtype=np.int32) + 1) * length, wp.int32)
         wp.utils.segmented_sort_pairs(keys, order, n, starts, ends)
         median = wp.empty(segments, dtype=wp.float64, device=self.device)
-        self.launch(bk.segment_median, segments, [keys, order, values, count, length, median])
+        self.launch(sk.segment_median, segments, [keys, order, values, count, length, median])
         return median
 
     # --- the model fit ----------------------------------------------------------------------------
@@ -280,7 +283,7 @@ class _Batch:
         s, geo, M, N, B = self.settings, self.geometry, self.M, self.N, self.B
         values = wp.empty(2 * M, dtype=wp.float64, device=self.device)
         valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
-        self.launch(bk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
+        self.launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
         med = self.segment_median(values, valid, 2 * N, B).numpy()
         sigma0 = self.arr(start_width(med, self.eta0_host), wp.float64)
         rows = 2 * M
@@ -290,9 +293,9 @@ class _Batch:
         partner = wp.empty(rows, dtype=wp.int32, device=self.device)
         for row0, found, fb in ((0, r, 0), (M, g, 1)):
             self.launch(
-                bk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame]
+                fk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame]
             )
-        self.launch(bk.pair_partners, M, [live, M, partner])
+        self.launch(fk.pair_partners, M, [live, M, partner])
         half, render_half = geo.fit_half, geo.render_half
         models = wp.empty(2 * 2 * B * self.H * self.W, dtype=wp.int64, device=self.device)
         layer = 2 * B * self.H * self.W
@@ -306,7 +309,7 @@ class _Batch:
         for it in range(s.fit_iterations):
             last = it == s.fit_iterations - 1
             peak.zero_()
-            self.launch(bk.largest_peak, rows, [cur, live, peak])
+            self.launch(fk.largest_peak, rows, [cur, live, peak])
             scale = _fixed_point_scale(float(peak.numpy()[0]))
             if last:
                 models.zero_()
@@ -318,7 +321,7 @@ class _Batch:
                 [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, self.H, self.W, models],
             )
             self.launch(
-                bk.fit_step_batch,
+                fk.fit_step_batch,
                 rows,
                 [
                     self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
@@ -338,14 +341,14 @@ class _Batch:
         :func:`tracking.ellipse.ellipse_step`)."""
         rows = params.shape[0]
         peak = self.zeros(1, wp.float64)
-        self.launch(bk.largest_peak, rows, [params, live, peak])
+        self.launch(fk.largest_peak, rows, [params, live, peak])
         scale = _fixed_point_scale(float(peak.numpy()[0]))
         models.zero_()
         half = self.geometry.render_half
         self.launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, self.H, self.W, models])
         shift = wp.empty(rows, dtype=wp.vec3d, device=self.device)
         self.launch(
-            bk.moment_shift_batch,
+            fk.moment_shift_batch,
             rows,
             [
                 self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
@@ -355,7 +358,7 @@ class _Batch:
         if self.settings.distortion == "ellipse":
             ellipse_step(self.grads, models, scale, params, frame, partner, prof, shift, half=half,
                          max_shift=MAX_SHIFT_PX, device=self.device)  # fmt: skip
-        self.launch(bk.apply_moment_shift, rows, [shift, partner, params, shared, moved])
+        self.launch(fk.apply_moment_shift, rows, [shift, partner, params, shared, moved])
 
 
 def _frame_statistics(images, name, settings, device, first):
@@ -497,7 +500,7 @@ class _HostTable:
         """Copy the device's (M,) ``TrackRow`` table into :attr:`out` and return it."""
         self.toucher.join()
         if len(self.out):
-            view = wp.array(ptr=self.out.ctypes.data, dtype=bk.TrackRow, shape=(len(self.out),), device="cpu")
+            view = wp.array(ptr=self.out.ctypes.data, dtype=tk.TrackRow, shape=(len(self.out),), device="cpu")
             wp.copy(view, table)
             wp.synchronize_device(table.device)
         return self.out
@@ -528,23 +531,23 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     if prior.ndim == 2:  # one set for all pairs, repeated on the device
         one = arr(prior, wp.vec2d)
         on_device = wp.empty(M, dtype=wp.vec2d, device=device)
-        wp.launch(bk.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
+        wp.launch(ck.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
     else:
         on_device = arr(prior.reshape(M, 2), wp.vec2d)
     batch = _Batch(refs, grads, on_device, stats, geometry, s, device)
     r = batch.identify(refs, 0, batch.prior, batch.all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
-    batch.launch(bk.reference_or_prior, M, [r["x"], r["y"], batch.prior, base])
+    batch.launch(pk.reference_or_prior, M, [r["x"], r["y"], batch.prior, base])
     if use_pred:
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
-        batch.launch(bk.predicted_position, M, [base, uv_pred, pred_g])
+        batch.launch(pk.predicted_position, M, [base, uv_pred, pred_g])
         g = batch.identify(grads, 1, pred_g, batch.all_ids, M, wide=False)
         count = wp.zeros(1, dtype=wp.int32, device=device)
         miss = wp.empty(M, dtype=wp.int32, device=device)
         has_miss = wp.zeros(B, dtype=wp.int32, device=device)
-        batch.launch(bk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
+        batch.launch(pk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
         n_miss = int(count.numpy()[0])
         if n_miss:
             g2 = batch.identify(grads, 1, pred_g, miss, n_miss, wide=True)
@@ -576,7 +579,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     params, ok, shared, live, moved = batch.fit(r, g)
     for row0, found in ((0, r), (M, g)):
         batch.launch(
-            bk.take_model,
+            fk.take_model,
             M,
             [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
         )
@@ -586,7 +589,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     good = wp.empty(M, dtype=wp.int32, device=device)
     query = wp.empty(M, dtype=wp.int32, device=device)
     batch.launch(
-        bk.first_status,
+        tk.first_status,
         M,
         [
             r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
@@ -596,14 +599,14 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
     matched = wp.empty(M, dtype=wp.int32, device=device)
     batch.launch(
-        bk.second_status,
+        tk.second_status,
         M,
         [confirmed, query, N, H, W, batch.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
     )
     outlier = _outliers(xy, uv, matched, B, N, s, device)
-    table = wp.empty(M, dtype=bk.TrackRow, device=device)
+    table = wp.empty(M, dtype=tk.TrackRow, device=device)
     batch.launch(
-        bk.write_table,
+        tk.write_table,
         M,
         [
             r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
@@ -623,7 +626,7 @@ def _predict(refs, grads, base, B, N, settings, device):
     """
     H, W = refs.shape[1:]
     count = wp.zeros(B, dtype=wp.int32, device=device)
-    wp.launch(bk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
+    wp.launch(pk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
     plans = {}
     for b, n_in in enumerate(count.numpy()):
         sizes, density = predictor_passes((H, W), int(n_in), settings.predictor_windows)

@@ -2,7 +2,9 @@
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.batch`): the
 per-window measurement of :mod:`tracking.identify_kernels` on one frame of an image stack, rounds of
-claims that give each blob to one dot, the subtraction of waiting neighbours and the wide search's merge.
+claims that give each blob to one dot, the subtraction of waiting neighbours and the wide search's merge;
+one prior repeated for every pair and the peaks of the first round (whose median sets the relative peak
+threshold).
 
 Dots are held flat: dot ``i`` of a call belongs to frame ``i // per_frame``. Status bits and rule
 constants come from :mod:`tracking.kernel_constants`.
@@ -458,3 +460,29 @@ def drop_shared_losers(
         i0[i] = nan
         iteration[i] = 0
         flags[i] = flags[i] | AMBIGUOUS
+
+
+# --- a stack's priors and the first round's peaks ----------------------------------------------------
+
+
+@wp.kernel
+def repeat_rows(one: wp.array(dtype=wp.vec2d), per_frame: int, out: wp.array(dtype=wp.vec2d)):
+    """One set of positions for every pair: ``out[i] = one[i % per_frame]``."""
+    i = wp.tid()
+    out[i] = one[i % per_frame]
+
+
+@wp.kernel
+def measured_peaks(
+    ids: wp.array(dtype=wp.int32),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+):
+    """The peaks of the blobs chosen in a call's first round, at their dots' places."""
+    t = wp.tid()
+    i = ids[t]
+    if out_int[t, 0] >= 0:
+        values[i] = out_float[t, 1]
+        valid[i] = 1
