@@ -36,7 +36,7 @@ from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
 from .frame_stats import frame_statistics
 from .moment_kernels import MAX_SHIFT_PX
-from .neighbours_batch import confirmed_by_neighbours_batch, neighbour_outliers_batch
+from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import pooling_block, predictor_passes
 from .predict_batch import predict_displacement_batch
 from .settings import (
@@ -653,8 +653,8 @@ def _predict(refs, grads, base, B, N, settings, device):
 
 
 def _confirmed(xy, uv, good, query, B, N, settings, device):
-    """``_confirmed_by_neighbours`` of every pair (:mod:`tracking.neighbours_batch`)."""
-    ok = confirmed_by_neighbours_batch(
+    """``_confirmed_by_neighbours`` of every pair (:mod:`tracking.neighbours`)."""
+    ok = confirmed_by_neighbours_stack(
         xy.reshape((B, N)),
         uv.reshape((B, N)),
         good.reshape((B, N)),
@@ -669,8 +669,8 @@ def _confirmed(xy, uv, good, query, B, N, settings, device):
 
 
 def _outliers(xy, uv, matched, B, N, settings, device):
-    """``_neighbour_outliers`` of every pair's matched dots (:mod:`tracking.neighbours_batch`)."""
-    bad = neighbour_outliers_batch(
+    """``_neighbour_outliers`` of every pair's matched dots (:mod:`tracking.neighbours`)."""
+    bad = neighbour_outliers_stack(
         xy.reshape((B, N)),
         uv.reshape((B, N)),
         matched.reshape((B, N)),
