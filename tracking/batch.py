@@ -37,8 +37,7 @@ from .fit_kernels import render_dots_kernel
 from .frame_stats import frame_statistics
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
-from .predict import pooling_block, predictor_passes
-from .predict_batch import predict_displacement_batch
+from .predict import pooling_block, predict_displacement_stack, predictor_passes
 from .settings import (
     DIAMETER_PER_WIDTH,
     FIT_MAX_MOVE_PX,
@@ -619,7 +618,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
 
 
 def _predict(refs, grads, base, B, N, settings, device):
-    """The correlation predictor of every pair (:mod:`tracking.predict_batch`), at ``base``.
+    """The correlation predictor of every pair (:func:`tracking.predict.predict_displacement_stack`), at ``base``.
 
     Pairs whose pass schedule differs (it depends on the number of dots inside the image) are run in
     groups; usually all pairs share one.
@@ -635,14 +634,14 @@ def _predict(refs, grads, base, B, N, settings, device):
     xy = base.reshape((B, N))
     if len(plans) == 1:
         ((sizes, density, _),) = plans.values()
-        uv, q = predict_displacement_batch(refs, grads, xy, sizes=sizes, density=density, device=device)
+        uv, q = predict_displacement_stack(refs, grads, xy, sizes=sizes, density=density, device=device)
         return uv.reshape((B * N,)), q.reshape((B * N,))
     uv = np.empty((B, N, 2))
     q = np.empty((B, N))
     host_xy = xy.numpy()
     for sizes, density, members in plans.values():
         sel = np.array(members)
-        uv_sel, q_sel = predict_displacement_batch(
+        uv_sel, q_sel = predict_displacement_stack(
             _pairs_of(refs, sel), _pairs_of(grads, sel), host_xy[sel], sizes=sizes, density=density, device=device
         )
         uv[sel], q[sel] = uv_sel.numpy(), q_sel.numpy()

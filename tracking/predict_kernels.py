@@ -1,13 +1,13 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of the batched correlation predictor (host code: :mod:`tracking.predict_batch`): which pairs
+"""Warp kernels of the stacked correlation predictor (host code: :func:`tracking.predict.predict_displacement_stack`):
 run, tile grids and fields, the deformation, peak fits, the median test and the end of a pass; the tile
 correlation is in :mod:`tracking.predict_fft_kernels`. The last section hands the prediction over to
 identification: the positions to search from, the dots inside each pair's image (which set its passes)
 and the dots the narrow search missed (left to the wide search).
 
 Kernels and ``@wp.func`` steps only. Each kernel does one step of a pass of
-:func:`tracking.predict.predict_displacement` for every pair of a batch at once (threads indexed by pair
+:func:`tracking.predict.predict_displacement` for every pair of a stack at once (threads indexed by pair
 first), so that the number of launches does not depend on the number of pairs. Which pairs take part is
 read from ``changed[pair, pass]`` (1 where the pass changed some tile of the pair's field by more than
 0.25 px): a pair runs pass ``p`` while every earlier pass changed its field (:func:`runs`) and stops at the
