@@ -1,6 +1,6 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.batch`): the
+"""Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.stack`): the
 per-window measurement of :mod:`tracking.identify_kernels` on one frame of an image stack, rounds of
 claims that give each blob to one dot, the subtraction of waiting neighbours and the wide search's merge;
 one prior repeated for every pair and the peaks of the first round (whose median sets the relative peak
@@ -72,7 +72,7 @@ def start_identification(
 
 
 @wp.kernel
-def measure_batch(
+def measure_stack(
     images: wp.array3d(dtype=wp.float64),
     ids: wp.array(dtype=wp.int32),
     per_frame: int,

@@ -3,7 +3,7 @@
 """Warp kernels of the model fit: the pixel-integrated dot model, its rendering and its joint fit.
 
 Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfit` (one thread per dot;
-``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.batch`.
+``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.stack`.
 Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 
 The last section holds the model fit of a stack of pairs (:func:`model_starts` ... :func:`take_model`):
@@ -681,7 +681,7 @@ def largest_peak(
 
 
 @wp.kernel
-def fit_step_batch(
+def fit_step_stack(
     references: wp.array3d(dtype=wp.float64),
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
@@ -728,7 +728,7 @@ def fit_step_batch(
 
 
 @wp.kernel
-def moment_shift_batch(
+def moment_shift_stack(
     references: wp.array3d(dtype=wp.float64),
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),

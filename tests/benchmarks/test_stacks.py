@@ -31,7 +31,7 @@ SMALL_CONFIG = {
 }
 # Two pairs, two noise levels, every default method: 12 score items, 8 of them tracked.
 SMALL = replace(REGRESS, name="small", snapshots=(1, 3), noise_percent=(0.0, 3.0), config=SMALL_CONFIG)
-# Predictor columns: float32 correlations summed in another order by the two paths (tests/tracking/test_batch.py).
+# Predictor columns: float32 correlations summed in another order by the two paths (tests/tracking/test_stack.py).
 PREDICTOR = ("u_pred", "v_pred", "pred_correlation")
 
 

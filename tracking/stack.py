@@ -9,9 +9,9 @@ with its own noise, saturation, background, dot diameter and median peak), with 
 ``track_pair``'s to floating-point rounding (the tests compare them dot by dot).
 
 Where a step depends on data (a pair's identification ending early, its predictor's pyramid ending at
-a coarser pass, the wide search of the dots the first one missed), the batch runs the step for every
+a coarser pass, the wide search of the dots the first one missed), the stack runs the step for every
 pair and leaves the pairs it no longer concerns untouched, so the number of launches does not depend on
-B. The host waits for the device a few times per batch (the image checks, the predictor's pass schedule,
+B. The host waits for the device a few times per stack (the image checks, the predictor's pass schedule,
 the count of missed dots, the fit's fixed-point scale), never per pair.
 """
 
@@ -53,7 +53,7 @@ from .settings import (
 from .sorting import median_network
 from .workspace import hold_freed_memory
 
-__all__ = ["batch_support", "pairs_per_call", "track_pairs"]
+__all__ = ["pairs_per_call", "stack_support", "track_pairs"]
 
 #: Device memory that :func:`track_pairs` takes per pair beyond its two images, per pixel and per prior
 #: dot: 77-85 B/px was measured on an H200 (2026-11-22; 256 to 1024 px images, 1,280 to 20,480 dots,
@@ -69,10 +69,10 @@ MEMORY_SHARE = 0.8
 _Z_STEP = 1000.0
 
 
-def batch_support(settings: TrackingSettings) -> str | None:
+def stack_support(settings: TrackingSettings) -> str | None:
     """Why :func:`track_pairs` cannot run these settings (then use ``track_pair``), or None when it can."""
     if settings.centroid != "model" or settings.correction != "model":
-        return "the batch runs the default estimators only (centroid and correction 'model')"
+        return "the stack runs the default estimators only (centroid and correction 'model')"
     return None
 
 
@@ -122,7 +122,7 @@ class _Pairs:
         return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
 
 
-class _Batch:
+class _Stack:
     """Device arrays of one group of B pairs with N prior dots each."""
 
     def __init__(self, refs, grads, prior, stats, geometry, settings, device):
@@ -215,7 +215,7 @@ class _Batch:
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
         for it in range(1, s.max_iterations + 1):
             self.launch(
-                ck.measure_batch,
+                ck.measure_stack,
                 n_ids,
                 [
                     self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
@@ -320,7 +320,7 @@ class _Batch:
                 [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, self.H, self.W, models],
             )
             self.launch(
-                fk.fit_step_batch,
+                fk.fit_step_stack,
                 rows,
                 [
                     self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
@@ -347,7 +347,7 @@ class _Batch:
         self.launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, self.H, self.W, models])
         shift = wp.empty(rows, dtype=wp.vec3d, device=self.device)
         self.launch(
-            fk.moment_shift_batch,
+            fk.moment_shift_stack,
             rows,
             [
                 self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
@@ -385,7 +385,7 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
         Predicted reference-image positions of the pattern's dots (x = column, y = row), one set for all
         pairs or one per pair.
     settings : TrackingSettings, optional
-        Defaults to ``TrackingSettings()``; :func:`batch_support` says which the batch runs.
+        Defaults to ``TrackingSettings()``; :func:`stack_support` says which the stack runs.
     device : str or None, optional
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -399,7 +399,7 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     ------
     synthbos.SynthbosError
         Stacks of different shapes or not 3-D, images all zero or with non-finite pixels (the pair is
-        named), a prior of the wrong shape or entirely outside the image, settings the batch does not run.
+        named), a prior of the wrong shape or entirely outside the image, settings the stack does not run.
 
     Notes
     -----
@@ -408,7 +408,7 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     images when they come as NumPy stacks.
     """
     settings = TrackingSettings() if settings is None else settings
-    why = batch_support(settings)
+    why = stack_support(settings)
     if why is not None:
         raise SynthbosError(f"track_pairs cannot run these settings: {why}")
     init_warp()
@@ -487,7 +487,7 @@ def _pairs_of(stack, sel):
 class _HostTable:
     """The (M,) ``TRACK_DTYPE`` array that the device's table is copied into, its pages touched by a host
     thread as soon as it is made, while the device works: first-touch page faults on the ~230 MB of a
-    400-pair batch cost tens of milliseconds, and the host only waits for the device meanwhile. (A
+    400-pair stack cost tens of milliseconds, and the host only waits for the device meanwhile. (A
     page-locked buffer copies faster but takes longer to allocate and to free than the copy saves.)"""
 
     def __init__(self, rows):
@@ -533,51 +533,51 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         wp.launch(ck.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
     else:
         on_device = arr(prior.reshape(M, 2), wp.vec2d)
-    batch = _Batch(refs, grads, on_device, stats, geometry, s, device)
-    r = batch.identify(refs, 0, batch.prior, batch.all_ids, M, wide=False)
+    stack = _Stack(refs, grads, on_device, stats, geometry, s, device)
+    r = stack.identify(refs, 0, stack.prior, stack.all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
-    batch.launch(pk.reference_or_prior, M, [r["x"], r["y"], batch.prior, base])
+    stack.launch(pk.reference_or_prior, M, [r["x"], r["y"], stack.prior, base])
     if use_pred:
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
-        batch.launch(pk.predicted_position, M, [base, uv_pred, pred_g])
-        g = batch.identify(grads, 1, pred_g, batch.all_ids, M, wide=False)
+        stack.launch(pk.predicted_position, M, [base, uv_pred, pred_g])
+        g = stack.identify(grads, 1, pred_g, stack.all_ids, M, wide=False)
         count = wp.zeros(1, dtype=wp.int32, device=device)
         miss = wp.empty(M, dtype=wp.int32, device=device)
         has_miss = wp.zeros(B, dtype=wp.int32, device=device)
-        batch.launch(pk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
+        stack.launch(pk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
         n_miss = int(count.numpy()[0])
         if n_miss:
-            g2 = batch.identify(grads, 1, pred_g, miss, n_miss, wide=True)
-            batch.launch(
+            g2 = stack.identify(grads, 1, pred_g, miss, n_miss, wide=True)
+            stack.launch(
                 ck.merge_wide,
                 n_miss,
                 [miss, *(g2[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags")),
                  *(g[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags"))],
             )  # fmt: skip
             key = wp.empty(M, dtype=wp.int32, device=device)
-            w = 2 * batch.geometry.half_g + 1
-            batch.launch(
+            w = 2 * stack.geometry.half_g + 1
+            stack.launch(
                 ck.claim_shared_blobs,
                 M,
-                [N, has_miss, g["x"], g["y"], g["root"], pred_g, w, batch.hp, batch.wpad, key, batch.claim_dist],
+                [N, has_miss, g["x"], g["y"], g["root"], pred_g, w, stack.hp, stack.wpad, key, stack.claim_dist],
             )
-            batch.launch(ck.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, batch.claim_dist, batch.claim_id])
-            batch.launch(
+            stack.launch(ck.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, stack.claim_dist, stack.claim_id])
+            stack.launch(
                 ck.drop_shared_losers,
                 M,
-                [key, batch.claim_id, g["x"], g["y"], g["eta"], g["i0"], g["iteration"], g["flags"]],
+                [key, stack.claim_id, g["x"], g["y"], g["eta"], g["i0"], g["iteration"], g["flags"]],
             )
-            batch.launch(ck.release_claims, M, [key, batch.claim_dist, batch.claim_id])
+            stack.launch(ck.release_claims, M, [key, stack.claim_dist, stack.claim_id])
     else:
-        g = batch.identify(grads, 1, base, batch.all_ids, M, wide=True)
+        g = stack.identify(grads, 1, base, stack.all_ids, M, wide=True)
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
         quality = wp.empty(M, dtype=wp.float64, device=device)
 
-    params, ok, shared, live, moved = batch.fit(r, g)
+    params, ok, shared, live, moved = stack.fit(r, g)
     for row0, found in ((0, r), (M, g)):
-        batch.launch(
+        stack.launch(
             fk.take_model,
             M,
             [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
@@ -587,7 +587,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     uv = wp.empty(M, dtype=wp.vec2d, device=device)
     good = wp.empty(M, dtype=wp.int32, device=device)
     query = wp.empty(M, dtype=wp.int32, device=device)
-    batch.launch(
+    stack.launch(
         tk.first_status,
         M,
         [
@@ -597,14 +597,14 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     )  # fmt: skip
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
     matched = wp.empty(M, dtype=wp.int32, device=device)
-    batch.launch(
+    stack.launch(
         tk.second_status,
         M,
-        [confirmed, query, N, H, W, batch.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
+        [confirmed, query, N, H, W, stack.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
     )
     outlier = _outliers(xy, uv, matched, B, N, s, device)
     table = wp.empty(M, dtype=tk.TrackRow, device=device)
-    batch.launch(
+    stack.launch(
         tk.write_table,
         M,
         [
