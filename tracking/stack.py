@@ -17,9 +17,6 @@ the count of missed dots, the fit's fixed-point scale), never per pair.
 
 from __future__ import annotations
 
-import mmap
-import threading
-
 import numpy as np
 import warp as wp
 
@@ -29,12 +26,10 @@ from synthbos.device import init_warp
 from . import claim_kernels as ck
 from . import fit_kernels as fk
 from . import predict_kernels as pk
-from . import stats_kernels as sk
-from . import table_kernels as tk
 from .dotfit import _fixed_point_scale, fit_window_half
 from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
-from .frame_stats import frame_statistics
+from .frame_stats import frame_statistics, segment_medians
 from .moment_kernels import MAX_SHIFT_PX
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import pooling_block, predict_displacement_stack, predictor_passes
@@ -51,6 +46,7 @@ from .settings import (
     window_sizes,
 )
 from .sorting import median_network
+from .table import HostTable, edge_cut, predictor_check, table_rows
 from .workspace import hold_freed_memory
 
 __all__ = ["pairs_per_call", "stack_support", "track_pairs"]
@@ -227,7 +223,7 @@ class _Stack:
                 values = self.zeros(M, wp.float64)
                 valid = self.zeros(M, wp.int32)
                 self.launch(ck.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
-                ref_peak = self.segment_median(values, valid, self.N, self.B)
+                ref_peak = segment_medians(values, valid, length=self.N, segments=self.B, device=self.device)
             self.launch(
                 ck.accept_blobs,
                 n_ids,
@@ -260,20 +256,6 @@ class _Stack:
                 )  # fmt: skip
         return out
 
-    def segment_median(self, values, valid, length, segments):
-        """NumPy's median of each run of ``length`` values where ``valid`` (NaN for none), on the device."""
-        n = segments * length
-        keys = wp.empty(2 * n, dtype=wp.float32, device=self.device)
-        order = wp.empty(2 * n, dtype=wp.int32, device=self.device)
-        count = self.zeros(segments, wp.int32)
-        self.launch(sk.segment_keys, n, [values, valid, length, keys, order, count])
-        starts = self.arr(np.arange(segments, dtype=np.int32) * length, wp.int32)
-        ends = self.arr((np.arange(segments, dtype=np.int32) + 1) * length, wp.int32)
-        wp.utils.segmented_sort_pairs(keys, order, n, starts, ends)
-        median = wp.empty(segments, dtype=wp.float64, device=self.device)
-        self.launch(sk.segment_median, segments, [keys, order, values, count, length, median])
-        return median
-
     # --- the model fit ----------------------------------------------------------------------------
 
     def fit(self, r, g):
@@ -283,7 +265,7 @@ class _Stack:
         values = wp.empty(2 * M, dtype=wp.float64, device=self.device)
         valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
         self.launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
-        med = self.segment_median(values, valid, 2 * N, B).numpy()
+        med = segment_medians(values, valid, length=2 * N, segments=B, device=self.device).numpy()
         sigma0 = self.arr(start_width(med, self.eta0_host), wp.float64)
         rows = 2 * M
         start = wp.empty((rows, 5), dtype=wp.float64, device=self.device)
@@ -484,37 +466,12 @@ def _pairs_of(stack, sel):
     return wp.array(stack.numpy()[sel], dtype=wp.float64, device=stack.device)
 
 
-class _HostTable:
-    """The (M,) ``TRACK_DTYPE`` array that the device's table is copied into, its pages touched by a host
-    thread as soon as it is made, while the device works: first-touch page faults on the ~230 MB of a
-    400-pair stack cost tens of milliseconds, and the host only waits for the device meanwhile. (A
-    page-locked buffer copies faster but takes longer to allocate and to free than the copy saves.)"""
-
-    def __init__(self, rows):
-        self.out = np.empty(rows, dtype=TRACK_DTYPE)
-        self.toucher = threading.Thread(target=_touch_pages, args=(self.out.view(np.uint8),), daemon=True)
-        self.toucher.start()
-
-    def fetch(self, table):
-        """Copy the device's (M,) ``TrackRow`` table into :attr:`out` and return it."""
-        self.toucher.join()
-        if len(self.out):
-            view = wp.array(ptr=self.out.ctypes.data, dtype=tk.TrackRow, shape=(len(self.out),), device="cpu")
-            wp.copy(view, table)
-            wp.synchronize_device(table.device)
-        return self.out
-
-
-def _touch_pages(flat):
-    flat[:: mmap.PAGESIZE] = 0
-
-
 def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     B, H, W = refs.shape
     N = prior.shape[-2]
     M = B * N
     s = settings
-    host_table = _HostTable(M) if wp.get_device(device).is_cuda else None
+    host_table = HostTable(M) if wp.get_device(device).is_cuda else None
 
     def arr(a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
@@ -582,36 +539,15 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
             M,
             [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
         )
-    status = wp.empty(M, dtype=wp.int32, device=device)
-    xy = wp.empty(M, dtype=wp.vec2d, device=device)
-    uv = wp.empty(M, dtype=wp.vec2d, device=device)
-    good = wp.empty(M, dtype=wp.int32, device=device)
-    query = wp.empty(M, dtype=wp.int32, device=device)
-    stack.launch(
-        tk.first_status,
-        M,
-        [
-            r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
-            float(s.predictor_tolerance), float(s.predictor_min_correlation), status, xy, uv, good, query,
-        ],
-    )  # fmt: skip
+    status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, use_pred=use_pred, settings=s, device=device)
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
-    matched = wp.empty(M, dtype=wp.int32, device=device)
-    stack.launch(
-        tk.second_status,
-        M,
-        [confirmed, query, N, H, W, stack.diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
-    )
+    matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=stack.diameter,
+                       device=device)
     outlier = _outliers(xy, uv, matched, B, N, s, device)
-    table = wp.empty(M, dtype=tk.TrackRow, device=device)
-    stack.launch(
-        tk.write_table,
-        M,
-        [
-            r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
-            shared, M, uv_pred, quality, int(use_pred), float(s.cc_threshold), status, N, table,
-        ],
-    )  # fmt: skip
+    table = table_rows(
+        r, g, matched, outlier, shared, uv_pred, quality, status, use_pred=use_pred, settings=s, per_frame=N,
+        device=device,
+    )
     if host_table is not None:
         return host_table.fetch(table).reshape(B, N)
     return table.numpy().view(TRACK_DTYPE).reshape(B, N)

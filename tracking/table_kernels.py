@@ -1,6 +1,6 @@
 """Warp kernels of the table: the status bits of a stack of pairs' dots and their rows of the table.
 
-Kernels and ``@wp.func`` steps only; :mod:`tracking.stack` launches them (:func:`first_status` before the
+Kernels and ``@wp.func`` steps only; the host code is :mod:`tracking.table` (:func:`first_status` before the
 neighbours confirm the predictor's mismatches, :func:`second_status` after, :func:`write_table` after the
 outlier test) and copies the table back. Dots are held flat: dot ``i`` of a call belongs to pair
 ``i // per_frame``. Status bits and rule constants come from :mod:`tracking.kernel_constants`, which reads
