@@ -186,6 +186,7 @@ STACK_KERNELS = (
     "synthbos.tracking.predict_kernels",
     "synthbos.tracking.stats_kernels",
     "synthbos.tracking.table_kernels",
+    "synthbos.tracking.wide_search_kernels",
 )
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 

@@ -202,6 +202,7 @@ def test_the_kernel_modules_import_the_vocabulary_not_the_orchestrator():
         "predict_kernels",
         "stats_kernels",
         "table_kernels",
+        "wide_search_kernels",
     ):
         assert "synthbos.tracking.pipeline" not in graph[f"synthbos.tracking.{kernels}"]
     assert not (graph["synthbos.tracking.settings"] - {"synthbos", "synthbos.errors", "synthbos.values"})

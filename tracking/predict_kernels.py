@@ -3,8 +3,8 @@
 """Warp kernels of the stacked correlation predictor (host code: :func:`tracking.predict.predict_displacement_stack`):
 which pairs run, tile grids and fields, the deformation, peak fits, the median test and the end of a pass; the tile
 correlation is in :mod:`tracking.predict_fft_kernels`. The last section hands the prediction over to
-identification: the positions to search from, the dots inside each pair's image (which set its passes)
-and the dots the narrow search missed (left to the wide search).
+identification: the positions to search from and the dots inside each pair's image (which set its
+passes).
 
 Kernels and ``@wp.func`` steps only. Each kernel does one step of a pass of
 :func:`tracking.predict.predict_displacement` for every pair of a stack at once (threads indexed by pair
@@ -630,7 +630,7 @@ def values_at_dots(
         quality[b, q] = nan
 
 
-# --- the hand-over to identification: positions, dots inside, the dots left to the wide search --------
+# --- the hand-over to identification: the positions to search from, the dots inside each image ------
 
 
 @wp.kernel
@@ -679,21 +679,3 @@ def predicted_position(
     if not wp.isfinite(dv):
         dv = wp.float64(0.0)
     pred[i] = wp.vec2d(base[i][0] + du, base[i][1] + dv)
-
-
-@wp.kernel
-def list_misses(
-    x_g: wp.array(dtype=wp.float64),
-    x_r: wp.array(dtype=wp.float64),
-    per_frame: int,
-    count: wp.array(dtype=wp.int32),
-    ids: wp.array(dtype=wp.int32),
-    pair_has_miss: wp.array(dtype=wp.int32),
-):
-    """Dots found in the reference image but not by the narrow window in the gradient image (any order:
-    each is measured on its own)."""
-    i = wp.tid()
-    if wp.isfinite(x_r[i]) and not wp.isfinite(x_g[i]):
-        slot = wp.atomic_add(count, 0, 1)
-        ids[slot] = i
-        pair_has_miss[i // per_frame] = 1

@@ -47,6 +47,7 @@ from .settings import (
 )
 from .sorting import median_network
 from .table import HostTable, edge_cut, predictor_check, table_rows
+from .wide_search import wide_search_stack
 from .workspace import hold_freed_memory
 
 __all__ = ["pairs_per_call", "stack_support", "track_pairs"]
@@ -500,33 +501,17 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
         stack.launch(pk.predicted_position, M, [base, uv_pred, pred_g])
         g = stack.identify(grads, 1, pred_g, stack.all_ids, M, wide=False)
-        count = wp.zeros(1, dtype=wp.int32, device=device)
-        miss = wp.empty(M, dtype=wp.int32, device=device)
-        has_miss = wp.zeros(B, dtype=wp.int32, device=device)
-        stack.launch(pk.list_misses, M, [g["x"], r["x"], N, count, miss, has_miss])
-        n_miss = int(count.numpy()[0])
-        if n_miss:
-            g2 = stack.identify(grads, 1, pred_g, miss, n_miss, wide=True)
-            stack.launch(
-                ck.merge_wide,
-                n_miss,
-                [miss, *(g2[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags")),
-                 *(g[k] for k in ("x", "y", "eta", "i0", "iteration", "root", "flags"))],
-            )  # fmt: skip
-            key = wp.empty(M, dtype=wp.int32, device=device)
-            w = 2 * stack.geometry.half_g + 1
-            stack.launch(
-                ck.claim_shared_blobs,
-                M,
-                [N, has_miss, g["x"], g["y"], g["root"], pred_g, w, stack.hp, stack.wpad, key, stack.claim_dist],
-            )
-            stack.launch(ck.claim_shared_nearest, M, [g["x"], g["y"], pred_g, key, stack.claim_dist, stack.claim_id])
-            stack.launch(
-                ck.drop_shared_losers,
-                M,
-                [key, stack.claim_id, g["x"], g["y"], g["eta"], g["i0"], g["iteration"], g["flags"]],
-            )
-            stack.launch(ck.release_claims, M, [key, stack.claim_dist, stack.claim_id])
+        wide_search_stack(
+            lambda ids, n_ids: stack.identify(grads, 1, pred_g, ids, n_ids, wide=True),
+            r,
+            g,
+            pred_g,
+            per_frame=N,
+            pairs=B,
+            window=2 * stack.geometry.half_g + 1,
+            board=(stack.hp, stack.wpad, stack.claim_dist, stack.claim_id),
+            device=device,
+        )
     else:
         g = stack.identify(grads, 1, base, stack.all_ids, M, wide=True)
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)

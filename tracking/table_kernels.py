@@ -1,10 +1,11 @@
 """Warp kernels of the table: the status bits of a stack of pairs' dots and their rows of the table.
 
-Kernels and ``@wp.func`` steps only; the host code is :mod:`tracking.table` (:func:`first_status` before the
-neighbours confirm the predictor's mismatches, :func:`second_status` after, :func:`write_table` after the
-outlier test) and copies the table back. Dots are held flat: dot ``i`` of a call belongs to pair
-``i // per_frame``. Status bits and rule constants come from :mod:`tracking.kernel_constants`, which reads
-them from :mod:`tracking.settings`, their one home; :class:`TrackRow` is one row of ``TRACK_DTYPE``.
+Kernels and ``@wp.func`` steps only; the host code, :mod:`tracking.table`, launches them
+(:func:`first_status` before the neighbours confirm the predictor's mismatches, :func:`second_status`
+after, :func:`write_table` after the outlier test) and copies the table back. Dots are held flat: dot
+``i`` of a call belongs to pair ``i // per_frame``. Status bits and rule constants come from
+:mod:`tracking.kernel_constants`, which reads them from :mod:`tracking.settings`, their one home;
+:class:`TrackRow` is one row of ``TRACK_DTYPE``.
 """
 
 import warp as wp
