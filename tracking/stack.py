@@ -24,25 +24,19 @@ from synthbos import SynthbosError
 from synthbos.device import init_warp
 
 from . import claim_kernels as ck
-from . import fit_kernels as fk
 from . import predict_kernels as pk
-from .dotfit import _fixed_point_scale, fit_window_half
-from .ellipse import ellipse_step
-from .fit_kernels import render_dots_kernel
+from .dotfit import fit_stack, fit_window_half
 from .frame_stats import frame_statistics, segment_medians
-from .moment_kernels import MAX_SHIFT_PX
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import pooling_block, predict_displacement_stack, predictor_passes
 from .settings import (
     DIAMETER_PER_WIDTH,
-    FIT_MAX_MOVE_PX,
     SEARCH_MARGIN_PX,
     SMALL_WINDOW,
     TRACK_DTYPE,
     TrackingSettings,
     prior_inside,
     residual_reach,
-    start_width,
     window_sizes,
 )
 from .sorting import median_network
@@ -257,91 +251,6 @@ class _Stack:
                 )  # fmt: skip
         return out
 
-    # --- the model fit ----------------------------------------------------------------------------
-
-    def fit(self, r, g):
-        """``tracking.pipeline._fit_models`` for every pair: params, ok and shared_xy of the 2M rows
-        (reference dots, then gradient dots)."""
-        s, geo, M, N, B = self.settings, self.geometry, self.M, self.N, self.B
-        values = wp.empty(2 * M, dtype=wp.float64, device=self.device)
-        valid = wp.empty(2 * M, dtype=wp.int32, device=self.device)
-        self.launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid])
-        med = segment_medians(values, valid, length=2 * N, segments=B, device=self.device).numpy()
-        sigma0 = self.arr(start_width(med, self.eta0_host), wp.float64)
-        rows = 2 * M
-        start = wp.empty((rows, 5), dtype=wp.float64, device=self.device)
-        live = wp.empty(rows, dtype=wp.int32, device=self.device)
-        frame = wp.empty(rows, dtype=wp.int32, device=self.device)
-        partner = wp.empty(rows, dtype=wp.int32, device=self.device)
-        for row0, found, fb in ((0, r, 0), (M, g, 1)):
-            self.launch(
-                fk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame]
-            )
-        self.launch(fk.pair_partners, M, [live, M, partner])
-        half, render_half = geo.fit_half, geo.render_half
-        models = wp.empty(2 * 2 * B * self.H * self.W, dtype=wp.int64, device=self.device)
-        layer = 2 * B * self.H * self.W
-        cur = wp.clone(start)
-        nxt = wp.empty_like(start)
-        ok = self.zeros(rows, wp.int32)
-        shared = self.full((rows, 2), np.nan, wp.float64)
-        prof = wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=self.device)
-        peak = self.zeros(1, wp.float64)
-        sat = self.stats["sat_frames"]
-        for it in range(s.fit_iterations):
-            last = it == s.fit_iterations - 1
-            peak.zero_()
-            self.launch(fk.largest_peak, rows, [cur, live, peak])
-            scale = _fixed_point_scale(float(peak.numpy()[0]))
-            if last:
-                models.zero_()
-            else:
-                models[:layer].zero_()
-            self.launch(
-                render_dots_kernel,
-                rows,
-                [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, self.H, self.W, models],
-            )
-            self.launch(
-                fk.fit_step_stack,
-                rows,
-                [
-                    self.refs, self.grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, self.eta0,
-                    half, render_half, int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
-                ],
-            )  # fmt: skip
-            cur, nxt = nxt, cur
-        moved = self.zeros(rows, wp.int32)
-        if s.distortion != "none":
-            self.moment_step(cur, frame, partner, live, models[:layer], prof, shared, moved)
-        return cur, ok, shared, live, moved
-
-    def moment_step(self, params, frame, partner, live, models, prof, shared, moved):
-        """``tracking.dotfit.moment_shifts`` of every row, in place: the model image of every dot at the
-        fitted parameters is drawn again (with their profiles), then each row moves to its first moment
-        (with ``distortion="ellipse"``, a moving gradient-image row to its elliptical moment,
-        :func:`tracking.ellipse.ellipse_step`)."""
-        rows = params.shape[0]
-        peak = self.zeros(1, wp.float64)
-        self.launch(fk.largest_peak, rows, [params, live, peak])
-        scale = _fixed_point_scale(float(peak.numpy()[0]))
-        models.zero_()
-        half = self.geometry.render_half
-        self.launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, self.H, self.W, models])
-        shift = wp.empty(rows, dtype=wp.vec3d, device=self.device)
-        self.launch(
-            fk.moment_shift_stack,
-            rows,
-            [
-                self.refs, self.grads, models, 1.0 / scale, params, frame, partner, live, self.stats["sat_frames"],
-                self.stats["noise_frames"], half, float(self.settings.distortion_chi2), MAX_SHIFT_PX, prof, shift,
-            ],
-        )  # fmt: skip
-        if self.settings.distortion == "ellipse":
-            ellipse_step(self.grads, models, scale, params, frame, partner, prof, shift, half=half,
-                         max_shift=MAX_SHIFT_PX, device=self.device)  # fmt: skip
-        self.launch(fk.apply_moment_shift, rows, [shift, partner, params, shared, moved])
-
 
 def _frame_statistics(images, name, settings, device, first):
     """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
@@ -517,13 +426,10 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
         quality = wp.empty(M, dtype=wp.float64, device=device)
 
-    params, ok, shared, live, moved = stack.fit(r, g)
-    for row0, found in ((0, r), (M, g)):
-        stack.launch(
-            fk.take_model,
-            M,
-            [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
-        )
+    shared = fit_stack(
+        refs, grads, r, g, eta0=stack.eta0_host, sat_frames=stats["sat_frames"], noise_frames=stats["noise_frames"],
+        fit_half=stack.geometry.fit_half, render_half=stack.geometry.render_half, settings=s, device=device,
+    )  # fmt: skip
     status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, use_pred=use_pred, settings=s, device=device)
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
     matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=stack.diameter,
