@@ -13,6 +13,12 @@ a coarser pass, the wide search of the dots the first one missed), the stack run
 pair and leaves the pairs it no longer concerns untouched, so the number of launches does not depend on
 B. The host waits for the device a few times per stack (the image checks, the predictor's pass schedule,
 the count of missed dots, the fit's fixed-point scale), never per pair.
+
+This module only orchestrates; each step lives in its room: the frame statistics in
+:mod:`tracking.frame_stats`, identification in :mod:`tracking.identify` (``StackIdentification``),
+the predictor in :mod:`tracking.predict` (``predict_displacement_stack``), the wide search in
+:mod:`tracking.wide_search`, the model fit in :mod:`tracking.dotfit` (``fit_stack``), the neighbour
+tests in :mod:`tracking.neighbours` and the table in :mod:`tracking.table`.
 """
 
 from __future__ import annotations
@@ -26,20 +32,16 @@ from synthbos.device import init_warp
 from . import claim_kernels as ck
 from . import predict_kernels as pk
 from .dotfit import fit_stack, fit_window_half
-from .frame_stats import frame_statistics, segment_medians
+from .frame_stats import frame_statistics
+from .identify import StackIdentification
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import pooling_block, predict_displacement_stack, predictor_passes
 from .settings import (
-    DIAMETER_PER_WIDTH,
-    SEARCH_MARGIN_PX,
-    SMALL_WINDOW,
     TRACK_DTYPE,
     TrackingSettings,
     prior_inside,
-    residual_reach,
     window_sizes,
 )
-from .sorting import median_network
 from .table import HostTable, edge_cut, predictor_check, table_rows
 from .wide_search import wide_search_stack
 from .workspace import hold_freed_memory
@@ -55,9 +57,6 @@ BYTES_PER_DOT = 512
 #: tracked in turns (:func:`pairs_per_call`).
 MEMORY_SHARE = 0.8
 
-
-#: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
-_Z_STEP = 1000.0
 
 
 def stack_support(settings: TrackingSettings) -> str | None:
@@ -111,145 +110,6 @@ class _Pairs:
 
     def key(self):
         return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
-
-
-class _Stack:
-    """Device arrays of one group of B pairs with N prior dots each."""
-
-    def __init__(self, refs, grads, prior, stats, geometry, settings, device):
-        self.device = device
-        self.settings = settings
-        self.refs, self.grads = refs, grads
-        self.B, self.H, self.W = refs.shape
-        self.N = prior.shape[0] // self.B
-        self.M = prior.shape[0]
-        self.prior = prior
-        self.stats = stats
-        d = np.array([g.d for g in geometry])
-        self.diameter = self.arr(d, wp.float64)
-        self.eta0_host = d / DIAMETER_PER_WIDTH
-        self.eta0 = self.arr(self.eta0_host, wp.float64)
-        g0 = geometry[0]
-        self.geometry = g0
-        self.all_ids = self.arr(np.arange(self.M, dtype=np.int32), wp.int32)
-        w_max = 2 * g0.half_g + 1
-        self.hp, self.wpad = self.H + 4 * w_max, self.W + 4 * w_max
-        cells = self.B * self.hp * self.wpad
-        self.claim_dist = wp.full(cells, np.inf, dtype=wp.float64, device=device)
-        self.claim_id = wp.full(cells, np.iinfo(np.int32).max, dtype=wp.int32, device=device)
-        self.residual = wp.empty_like(refs)
-        self.grid = wp.HashGrid(128, 128, 64, device=device)
-
-    def arr(self, a, dtype):
-        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
-
-    def zeros(self, shape, dtype):
-        return wp.zeros(shape, dtype=dtype, device=self.device)
-
-    def full(self, shape, value, dtype):
-        return wp.full(shape, value, dtype=dtype, device=self.device)
-
-    def launch(self, kernel, dim, inputs):
-        if dim:
-            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
-
-    # --- identification ---------------------------------------------------------------------------
-
-    def identify(self, image, which, pred, ids, n_ids, *, wide):
-        """``tracking.identify.identify_near_predictions`` for the dots ``ids`` (``n_ids`` of them) of every
-        pair, on the reference (``which`` 0) or gradient (1) images; fresh per-dot result arrays."""
-        s, g, M = self.settings, self.geometry, self.M
-        half = g.half_g if wide else g.half_r
-        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
-        radius = search if wide else s.prior_radius
-        w = 2 * half + 1
-        st = self.stats
-        out = {
-            "x": self.full(M, np.nan, wp.float64),
-            "y": self.full(M, np.nan, wp.float64),
-            "eta": self.full(M, np.nan, wp.float64),
-            "i0": self.full(M, np.nan, wp.float64),
-            "iteration": self.zeros(M, wp.int32),
-            "flags": self.zeros(M, wp.int32),
-            "root": self.zeros((M, 2), wp.int32),
-        }
-        if n_ids == 0:
-            return out
-        origin = self.zeros((M, 2), wp.int32)
-        todo = self.zeros(M, wp.int32)
-        subtracted = self.zeros(M, wp.int32)
-        self.launch(ck.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
-        wp.copy(self.residual, image)
-        active = self.full(self.B, 1, wp.int32)
-        won = self.zeros(self.B, wp.int32)
-        rows = 1 if wp.get_device(self.device).is_cpu else n_ids
-        ww = w * w if w != SMALL_WINDOW else 1  # the 7 x 7 window is measured in registers
-        scratch = [
-            wp.empty((rows, ww), dtype=wp.float64, device=self.device),
-            wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
-            self.arr(median_network(4 * (w - 1)), wp.int32),
-            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
-            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
-            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
-            wp.empty((1, 1, 1), dtype=wp.float64, device=self.device),
-        ]
-        out_int = wp.empty((n_ids, 3), dtype=wp.int32, device=self.device)
-        out_float = wp.empty((n_ids, 3), dtype=wp.float64, device=self.device)
-        cross = wp.empty((n_ids, 5), dtype=wp.float64, device=self.device)
-        key = wp.empty(n_ids, dtype=wp.int32, device=self.device)
-        noise, fill, sat = st["noise"][which], st["fill"][which], st["sat"][which]
-        floor = st["floor"][which]
-        ref_peak = None
-        reach_px = residual_reach(half, self.eta0_host)
-        reach = self.arr(reach_px, wp.float64)
-        wa, wi, wd = (float(v) for v in s.weights)
-        points = wp.empty(M, dtype=wp.vec3, device=self.device)
-        for it in range(1, s.max_iterations + 1):
-            self.launch(
-                ck.measure_stack,
-                n_ids,
-                [
-                    self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
-                    float(radius), float(s.threshold_fraction), wa, wi, wd, int(s.background == "minimum"),
-                    *scratch, out_int, out_float, cross,
-                ],
-            )  # fmt: skip
-            if ref_peak is None:
-                values = self.zeros(M, wp.float64)
-                valid = self.zeros(M, wp.int32)
-                self.launch(ck.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
-                ref_peak = segment_medians(values, valid, length=self.N, segments=self.B, device=self.device)
-            self.launch(
-                ck.accept_blobs,
-                n_ids,
-                [
-                    ids, self.N, out_int, out_float, origin, noise, ref_peak, float(s.detection_snr),
-                    float(s.min_relative_peak), w, self.hp, self.wpad, key, self.claim_dist,
-                ],
-            )  # fmt: skip
-            self.launch(ck.claim_nearest, n_ids, [ids, out_float, key, self.claim_dist, self.claim_id])
-            self.launch(
-                ck.take_blobs,
-                n_ids,
-                [
-                    ids, self.N, it, out_int, out_float, cross, origin, key, self.claim_id, self.eta0, w,
-                    out["x"], out["y"], out["eta"], out["i0"], out["iteration"], out["root"], out["flags"], todo, won,
-                ],
-            )  # fmt: skip
-            self.launch(ck.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
-            self.launch(ck.next_round, self.B, [won, active])
-            if it < s.max_iterations:
-                self.launch(ck.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
-                self.grid.build(points, float(np.max(reach_px)) + 1.0)
-                self.launch(
-                    ck.subtract_near_waiting,
-                    n_ids,
-                    [
-                        self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
-                        out["i0"], self.eta0, reach, subtracted, self.residual,
-                    ],
-                )  # fmt: skip
-        return out
 
 
 def _frame_statistics(images, name, settings, device, first):
@@ -400,40 +260,41 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         wp.launch(ck.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
     else:
         on_device = arr(prior.reshape(M, 2), wp.vec2d)
-    stack = _Stack(refs, grads, on_device, stats, geometry, s, device)
-    r = stack.identify(refs, 0, stack.prior, stack.all_ids, M, wide=False)
+    ident = StackIdentification(refs, stats, geometry, s, per_frame=N, device=device)
+    all_ids = arr(np.arange(M, dtype=np.int32), wp.int32)
+    r = ident.identify(refs, 0, on_device, all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
-    stack.launch(pk.reference_or_prior, M, [r["x"], r["y"], stack.prior, base])
+    wp.launch(pk.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
     if use_pred:
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
-        stack.launch(pk.predicted_position, M, [base, uv_pred, pred_g])
-        g = stack.identify(grads, 1, pred_g, stack.all_ids, M, wide=False)
+        wp.launch(pk.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
+        g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False)
         wide_search_stack(
-            lambda ids, n_ids: stack.identify(grads, 1, pred_g, ids, n_ids, wide=True),
+            lambda ids, n_ids: ident.identify(grads, 1, pred_g, ids, n_ids, wide=True),
             r,
             g,
             pred_g,
             per_frame=N,
             pairs=B,
-            window=2 * stack.geometry.half_g + 1,
-            board=(stack.hp, stack.wpad, stack.claim_dist, stack.claim_id),
+            window=2 * geometry[0].half_g + 1,
+            board=ident.board,
             device=device,
         )
     else:
-        g = stack.identify(grads, 1, base, stack.all_ids, M, wide=True)
+        g = ident.identify(grads, 1, base, all_ids, M, wide=True)
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
         quality = wp.empty(M, dtype=wp.float64, device=device)
 
     shared = fit_stack(
-        refs, grads, r, g, eta0=stack.eta0_host, sat_frames=stats["sat_frames"], noise_frames=stats["noise_frames"],
-        fit_half=stack.geometry.fit_half, render_half=stack.geometry.render_half, settings=s, device=device,
+        refs, grads, r, g, eta0=ident.eta0_host, sat_frames=stats["sat_frames"], noise_frames=stats["noise_frames"],
+        fit_half=geometry[0].fit_half, render_half=geometry[0].render_half, settings=s, device=device,
     )  # fmt: skip
     status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, use_pred=use_pred, settings=s, device=device)
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
-    matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=stack.diameter,
-                       device=device)
+    diameter = arr([pair.d for pair in geometry], wp.float64)
+    matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=diameter, device=device)
     outlier = _outliers(xy, uv, matched, B, N, s, device)
     table = table_rows(
         r, g, matched, outlier, shared, uv_pred, quality, status, use_pred=use_pred, settings=s, per_frame=N,
