@@ -1,9 +1,11 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.stack`): the
-per-window measurement of :mod:`tracking.identify_kernels` on one frame of an image stack, rounds of
-claims that give each blob to one dot, the subtraction of waiting neighbours; one prior repeated for every
-pair and the peaks of the first round (whose median sets the relative peak threshold).
+"""Warp kernels of identification over a stack of pairs: rounds of claims that give each blob to one dot.
+
+Host code: :class:`tracking.identify.StackIdentification`. The per-window measurement of
+:mod:`tracking.identify_kernels` on one frame of an image stack, rounds of claims that give each blob to
+one dot, the subtraction of waiting neighbours; one prior repeated for every pair and the peaks of the
+first round (whose median sets the relative peak threshold).
 
 Dots are held flat: dot ``i`` of a call belongs to frame ``i // per_frame``. Status bits and rule
 constants come from :mod:`tracking.kernel_constants`.

@@ -1,8 +1,10 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of the neighbour tests: the local linear fit of scattered vectors from each point's
-nearest neighbours (one thread per point; host code in :mod:`tracking.neighbours`), and its stacked form
-for many image pairs in every launch, which reuses the search and the fit.
+nearest neighbours.
+
+One thread per point (host code in :mod:`tracking.neighbours`), and a stacked form for many image pairs
+in every launch, which reuses the search and the fit.
 
 The stacked form's arrays are laid out per pair: a ``(B, N)`` array holds dot ``i`` of pair ``b`` at
 ``[b, i]``, its flat view at the dot's global index ``g = b * N + i``. A dot's ``role`` says what it is to

@@ -1,8 +1,10 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of the stacked correlation predictor (host code: :func:`tracking.predict.predict_displacement_stack`):
-which pairs run, tile grids and fields, the deformation, peak fits, the median test and the end of a pass; the tile
-correlation is in :mod:`tracking.predict_fft_kernels`. The last section hands the prediction over to
+"""Warp kernels of the correlation predictor for a stack of pairs: the steps of each pass.
+
+Host code: :func:`tracking.predict.predict_displacement_stack`. Which pairs run, tile grids and fields,
+the deformation, peak fits, the median test and the end of a pass; the tile correlation is in
+:mod:`tracking.predict_fft_kernels`. The last section hands the prediction over to
 identification: the positions to search from and the dots inside each pair's image (which set its
 passes).
 
