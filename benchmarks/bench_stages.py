@@ -102,7 +102,7 @@ def time_stages(device: str, *, rays_per_dot: int, scale_to: int, repeats: int =
     The render is timed at ``rays_per_dot``; when that differs from ``scale_to`` its time is also given
     scaled: fixed part (the render at 2 rays per dot) + (measured - fixed) x (scale_to - 2) / (rays - 2).
 
-    ``batch`` > 0 also times ``tracking.batch.track_pairs`` on ``batch`` noisy copies of the pair (each its
+    ``batch`` > 0 also times ``tracking.stack.track_pairs`` on ``batch`` noisy copies of the pair (each its
     own noise seed), images on the device in and host tables out, as the stage ``tracking, batched``: the
     time per pair (the batch's time / ``batch``); ``tracking_batch`` in the result gives the batch's time
     and dots/s, also from NumPy images (their upload included).
@@ -183,7 +183,7 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     images on the device); dots per second, and the largest difference from ``track_pair`` on the first
     copy."""
     from synthbos.tracking import TrackingSettings, track_pair
-    from synthbos.tracking.batch import track_pairs
+    from synthbos.tracking.stack import track_pairs
 
     noisy = [noisy_pair(pair, noise_percent=noise_percent, seeds=(100 + 2 * k, 101 + 2 * k)) for k in range(batch)]
     refs = np.stack([np.asarray(r, dtype=np.float64) for r, _ in noisy])
@@ -266,7 +266,7 @@ def main(argv=None):
                              "in CPU worker processes: the scheduling before the GPU pipeline)")
     parser.add_argument("--workers", type=int, default=None, help="--workers of the paper --full runs")
     parser.add_argument("--batch", type=int, default=0,
-                        help="also time tracking.batch.track_pairs on this many noisy copies of the pair on CUDA "
+                        help="also time tracking.stack.track_pairs on this many noisy copies of the pair on CUDA "
                              "devices (dots/s)")
     parser.add_argument("--cpu-batch", type=int, default=4, help="pairs of the batched tracking on the CPU")
     parser.add_argument("--json", help="write the table (and the paper --full time) here as JSON")

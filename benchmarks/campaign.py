@@ -53,7 +53,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
 
     ``stack``: pairs per stack of tracking items (``stacks``; ``scheduling.run_pipeline``): the
     pipeline tracks the noisy images of every noise level of up to ``stack`` pairs with one
-    ``tracking.batch.track_pairs`` call, in the process that drives the device. None: stacks of
+    ``tracking.stack.track_pairs`` call, in the process that drives the device. None: stacks of
     ``stacks.DEFAULT_STACK`` pairs when processing on a GPU, and item by item in the worker processes on
     the CPU, where they spread the pairs over the cores; 0: item by item. A ``stack`` > 0 on the CPU
     runs the pipeline (unless ``pipeline`` is False, which is refused), so the CPU runs the same

@@ -452,7 +452,7 @@ def _add_stack_option(p, *, cpu_only=False) -> None:
              else f"default: {DEFAULT_STACK} when processing on a GPU, 0 on the CPU")
     p.add_argument("--stack", type=_stack_count, default=None, metavar="N",
                    help="track the tracking items in stacks: the noisy images of every noise level of up to N "
-                        "pairs in one batched call on the processing device (tracking.batch.track_pairs), the "
+                        "pairs in one batched call on the processing device (tracking.stack.track_pairs), the "
                         f"results equal to rounding; 0: item by item in the worker processes ({where})")
 
 

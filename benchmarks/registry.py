@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.batch import batch_support
+from synthbos.tracking.stack import stack_support
 
 import synthbos
 from synthbos import SynthbosError
@@ -132,18 +132,18 @@ def _tracker(columns: tuple[str, str], name: str):
 
 
 def stack_settings(name: str, overrides: dict):
-    """The settings with which a stack (``tracking.batch.track_pairs``) tracks the items of method ``name``,
+    """The settings with which a stack (``tracking.stack.track_pairs``) tracks the items of method ``name``,
     or None where they are tracked one by one (``track_pair``).
 
     Stacks hold the built-in trackers with a prior, whose result is two columns of one ``track_pair``
     table (``tracking``, ``tracking-cc``), with settings that ``track_pairs`` runs
-    (``tracking.batch.batch_support``: the default estimators; the paper's procedure is not one of them).
+    (``tracking.stack.stack_support``: the default estimators; the paper's procedure is not one of them).
     """
     m = get_method(name)
     if name not in BUILT_IN or not m.uses_prior or getattr(m.run, "columns", None) is None:
         return None
     settings = m.settings(overrides)
-    return settings if batch_support(settings) is None else None
+    return settings if stack_support(settings) is None else None
 
 
 def stacked_result(name: str, table, settings) -> MethodResult:
@@ -176,16 +176,17 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
 )
-#: the Warp modules that ``tracking.batch.track_pairs`` launches (a campaign that tracks stacks: scheduling)
+#: the Warp modules that ``tracking.stack.track_pairs`` launches (a campaign that tracks stacks: scheduling)
 STACK_KERNELS = (
-    "synthbos.tracking.batch_kernels",
     "synthbos.tracking.claim_kernels",
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
-    "synthbos.tracking.neighbour_batch_kernels",
+    "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
     "synthbos.tracking.stats_kernels",
+    "synthbos.tracking.table_kernels",
+    "synthbos.tracking.wide_search_kernels",
 )
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 

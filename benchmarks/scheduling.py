@@ -12,7 +12,7 @@ file), so the device never waits for the host and no worker initialises CUDA; a 
 next pair meanwhile. Both give
 byte-identical files: every item computes the same thing from the same seeds, only where differs.
 The pipeline can also track the tracking items in stacks of several pairs (``stacks``: one
-``tracking.batch.track_pairs`` call per stack, the default on a GPU), whose results equal the
+``tracking.stack.track_pairs`` call per stack, the default on a GPU), whose results equal the
 item-by-item ones to floating-point rounding.
 
 Worker processes die with the campaign: each asks Linux to send it SIGKILL when its parent exits

@@ -1,4 +1,4 @@
-"""Stacks: a campaign's tracking items tracked many noisy image pairs at a time (``tracking.batch.track_pairs``).
+"""Stacks: a campaign's tracking items tracked many noisy image pairs at a time (``tracking.stack.track_pairs``).
 
 On a GPU, ``track_pairs`` covers the dots of every pair of a stack with each kernel launch (0.34 ms per
 pair in stacks of 400 on an H200 against 23 ms for one ``track_pair``, docs/benchmarks.md), so a
@@ -21,7 +21,7 @@ the same table; the score files agree to 1e-9 px (``tests/benchmarks/test_stacks
 from __future__ import annotations
 
 import numpy as np
-from synthbos.tracking.batch import pairs_per_call, track_pairs
+from synthbos.tracking.stack import pairs_per_call, track_pairs
 
 from synthbos import SynthbosError
 

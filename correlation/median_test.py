@@ -23,7 +23,7 @@ Tile field of the tracker's correlation predictor (the up to eight neighbouring 
     significance step use :func:`nan_median` (:func:`median_sorted_wp`).
 Scattered dots of the tracker's outlier test (the ``k`` nearest dots)
     Host ``tracking.pipeline`` (the outlier test and the confirmation of the predictor), device
-    ``tracking.neighbour_batch_kernels.outlier_flags_kernel`` and ``confirm_flags_kernel``: ``U_m`` is
+    ``tracking.neighbour_kernels.outlier_flags_kernel`` and ``confirm_flags_kernel``: ``U_m`` is
     a local linear fit's value at the dot and ``r_m`` the median distance of the neighbours' vectors
     from the fit (``tracking.neighbours``, ``tracking.neighbour_kernels.plane_fit``); the distance ``|uv - U_m|``
     is compared with :func:`residual_limit` (:func:`residual_limit_wp`).

@@ -190,7 +190,6 @@ def test_arrows_point_one_way(importer, forbidden):
 def test_the_kernel_modules_import_the_vocabulary_not_the_orchestrator():
     graph = import_graph()
     for kernels in (
-        "batch_kernels",
         "claim_kernels",
         "deform_kernels",
         "ellipse_kernels",
@@ -201,6 +200,9 @@ def test_the_kernel_modules_import_the_vocabulary_not_the_orchestrator():
         "neighbour_kernels",
         "predict_fft_kernels",
         "predict_kernels",
+        "stats_kernels",
+        "table_kernels",
+        "wide_search_kernels",
     ):
         assert "synthbos.tracking.pipeline" not in graph[f"synthbos.tracking.{kernels}"]
     assert not (graph["synthbos.tracking.settings"] - {"synthbos", "synthbos.errors", "synthbos.values"})

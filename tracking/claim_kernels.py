@@ -1,8 +1,11 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of identification over a stack of pairs (host code: :mod:`tracking.batch`): the
-per-window measurement of :mod:`tracking.identify_kernels` on one frame of an image stack, rounds of
-claims that give each blob to one dot, the subtraction of waiting neighbours and the wide search's merge.
+"""Warp kernels of identification over a stack of pairs: rounds of claims that give each blob to one dot.
+
+Host code: :class:`tracking.identify.StackIdentification`. The per-window measurement of
+:mod:`tracking.identify_kernels` on one frame of an image stack, rounds of claims that give each blob to
+one dot, the subtraction of waiting neighbours; one prior repeated for every pair and the peaks of the
+first round (whose median sets the relative peak threshold).
 
 Dots are held flat: dot ``i`` of a call belongs to frame ``i // per_frame``. Status bits and rule
 constants come from :mod:`tracking.kernel_constants`.
@@ -70,7 +73,7 @@ def start_identification(
 
 
 @wp.kernel
-def measure_batch(
+def measure_stack(
     images: wp.array3d(dtype=wp.float64),
     ids: wp.array(dtype=wp.int32),
     per_frame: int,
@@ -359,102 +362,27 @@ def subtract_near_waiting(
                     wp.atomic_sub(residual, f, rr, cc, a * gy * wp.exp(-(tx * tx) * inv))
 
 
+# --- a stack's priors and the first round's peaks ----------------------------------------------------
+
+
 @wp.kernel
-def merge_wide(
+def repeat_rows(one: wp.array(dtype=wp.vec2d), per_frame: int, out: wp.array(dtype=wp.vec2d)):
+    """One set of positions for every pair: ``out[i] = one[i % per_frame]``."""
+    i = wp.tid()
+    out[i] = one[i % per_frame]
+
+
+@wp.kernel
+def measured_peaks(
     ids: wp.array(dtype=wp.int32),
-    x2: wp.array(dtype=wp.float64),
-    y2: wp.array(dtype=wp.float64),
-    eta2: wp.array(dtype=wp.float64),
-    i02: wp.array(dtype=wp.float64),
-    iteration2: wp.array(dtype=wp.int32),
-    root2: wp.array2d(dtype=wp.int32),
-    flags2: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    eta: wp.array(dtype=wp.float64),
-    i0: wp.array(dtype=wp.float64),
-    iteration: wp.array(dtype=wp.int32),
-    root: wp.array2d(dtype=wp.int32),
-    flags: wp.array(dtype=wp.int32),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
 ):
-    """The wide window's result replaces the narrow one's for the dots it looked for (flags add up)."""
-    i = ids[wp.tid()]
-    x[i] = x2[i]
-    y[i] = y2[i]
-    eta[i] = eta2[i]
-    i0[i] = i02[i]
-    iteration[i] = iteration2[i]
-    root[i, 0] = root2[i, 0]
-    root[i, 1] = root2[i, 1]
-    flags[i] = flags[i] | flags2[i]
-
-
-@wp.func
-def distance_to(x: wp.float64, y: wp.float64, p: wp.vec2d) -> wp.float64:
-    dx = x - p[0]
-    dy = y - p[1]
-    return wp.sqrt(dx * dx + dy * dy)
-
-
-@wp.kernel
-def claim_shared_blobs(
-    per_frame: int,
-    pair_has_miss: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    root: wp.array2d(dtype=wp.int32),
-    pred: wp.array(dtype=wp.vec2d),
-    w: int,
-    hp: int,
-    wp_: int,
-    key: wp.array(dtype=wp.int32),
-    claim_dist: wp.array(dtype=wp.float64),
-):
-    """``_drop_shared_blobs``, first half: the distance of the dot nearest its prediction on each blob."""
-    i = wp.tid()
-    f = i // per_frame
-    key[i] = -1
-    if pair_has_miss[f] == 0 or not wp.isfinite(x[i]):
-        return
-    k = claim_key(f, root[i, 1], root[i, 0], w, hp, wp_)
-    key[i] = k
-    wp.atomic_min(claim_dist, k, distance_to(x[i], y[i], pred[i]))
-
-
-@wp.kernel
-def claim_shared_nearest(
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    pred: wp.array(dtype=wp.vec2d),
-    key: wp.array(dtype=wp.int32),
-    claim_dist: wp.array(dtype=wp.float64),
-    claim_id: wp.array(dtype=wp.int32),
-):
-    i = wp.tid()
-    k = key[i]
-    if k >= 0 and distance_to(x[i], y[i], pred[i]) == claim_dist[k]:
-        wp.atomic_min(claim_id, k, i)
-
-
-@wp.kernel
-def drop_shared_losers(
-    key: wp.array(dtype=wp.int32),
-    claim_id: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    eta: wp.array(dtype=wp.float64),
-    i0: wp.array(dtype=wp.float64),
-    iteration: wp.array(dtype=wp.int32),
-    flags: wp.array(dtype=wp.int32),
-):
-    """``_drop_shared_blobs``, second half: the others on a blob are not found (AMBIGUOUS)."""
-    i = wp.tid()
-    k = key[i]
-    if k >= 0 and claim_id[k] != i:
-        nan = wp.float64(wp.nan)
-        x[i] = nan
-        y[i] = nan
-        eta[i] = nan
-        i0[i] = nan
-        iteration[i] = 0
-        flags[i] = flags[i] | AMBIGUOUS
+    """The peaks of the blobs chosen in a call's first round, at their dots' places."""
+    t = wp.tid()
+    i = ids[t]
+    if out_int[t, 0] >= 0:
+        values[i] = out_float[t, 1]
+        valid[i] = 1

@@ -13,7 +13,8 @@ problem of all dots). At zero noise the fit converges to the exact positions; un
 the maximum-likelihood estimate and reaches the Cramer-Rao bound (:mod:`tracking.crlb`).
 
 :func:`fit_dots` runs the iteration with Warp kernels (one thread per dot); :func:`tracking.reference.fit_dots_numpy` is
-the array-program reference that defines the result.
+the array-program reference that defines the result. :func:`fit_stack` runs ``track_pair``'s model fit
+(the joint fit, the first-moment step, the fit's results taken) for every pair of a stack on one device.
 """
 
 from __future__ import annotations
@@ -21,20 +22,23 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import fit_kernels as fk
 from .ellipse import ellipse_step
 from .fit_kernels import fit_dot_step_kernel, render_dots_kernel
+from .frame_stats import segment_medians
 from .moment_kernels import (
     MAX_SHIFT_PX,
     moment_moves_kernel,
     moment_shift_kernel,
 )
-from .settings import FIT_MAX_MOVE_PX
+from .settings import FIT_MAX_MOVE_PX, start_width
 from .workspace import scratch
 
 __all__ = [
     "PARAMS",
     "erf_from_gauss",
     "fit_dots",
+    "fit_stack",
     "fit_window_half",
     "integrated_profile",
     "moment_shifts",
@@ -457,3 +461,145 @@ def moment_shifts(
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied
+
+
+# --- a stack of pairs on one Warp device ------------------------------------------------------------
+
+
+def _launch(kernel, dim, inputs, device):
+    if dim:
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+
+
+def fit_stack(refs, grads, r, g, *, eta0, sat_frames, noise_frames, fit_half, render_half, settings, device):
+    """``tracking.pipeline._fit_models`` and ``_take_model`` for every pair of a stack, on one device.
+
+    Parameters
+    ----------
+    refs, grads : (B, H, W) float64 Warp arrays
+        The image pairs.
+    r, g : dict of (M,) Warp arrays
+        The reference and gradient images' dots of the ``M = B N`` prior rows (``"x"``, ``"y"``,
+        ``"eta"``, ``"i0"``, ``"flags"``; NaN where not found): the fit's position, width and peak replace
+        theirs in place, and the flags gain FIT_FALLBACK and DISTORTED.
+    eta0 : (B,) float64 array
+        Each pair's nominal dot width (px).
+    sat_frames, noise_frames : (2 B,) float64 Warp arrays
+        Saturation level and noise of frame ``2 b`` (pair b's reference image) and ``2 b + 1`` (its
+        gradient image).
+    fit_half, render_half : int, keyword-only
+        Half-sizes of the fit's and the model's windows (:func:`fit_window_half`, shared by the stack).
+    settings : TrackingSettings, keyword-only
+        ``fit_iterations``, ``distortion``, ``distortion_chi2``.
+    device : warp.context.Device or str, keyword-only
+
+    Returns
+    -------
+    (2 M, 2) float64 Warp array
+        Each row's position refitted with its pair's common peak and width (the model correction),
+        reference rows first; NaN where it has none.
+    """
+    params, ok, shared, live, moved = _fit_rows(refs, grads, r, g, eta0, sat_frames, noise_frames, fit_half,
+                                                render_half, settings, device)  # fmt: skip
+    m = r["x"].shape[0]
+    for row0, found in ((0, r), (m, g)):
+        _launch(
+            fk.take_model,
+            m,
+            [params, ok, moved, live, row0, found["x"], found["y"], found["eta"], found["i0"], found["flags"]],
+            device,
+        )
+    return shared
+
+
+def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half, s, device):
+    """The joint fit of the 2 M rows (reference dots, then gradient dots) and the first-moment step:
+    params, ok, shared_xy, live and moved of every row."""
+    B, H, W = refs.shape
+    M = r["x"].shape[0]
+    N = M // B
+    eta0 = wp.array(np.ascontiguousarray(eta0_host), dtype=wp.float64, device=device)
+    values = wp.empty(2 * M, dtype=wp.float64, device=device)
+    valid = wp.empty(2 * M, dtype=wp.int32, device=device)
+    _launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid], device)
+    med = segment_medians(values, valid, length=2 * N, segments=B, device=device).numpy()
+    sigma0 = wp.array(np.ascontiguousarray(start_width(med, eta0_host)), dtype=wp.float64, device=device)
+    rows = 2 * M
+    start = wp.empty((rows, 5), dtype=wp.float64, device=device)
+    live = wp.empty(rows, dtype=wp.int32, device=device)
+    frame = wp.empty(rows, dtype=wp.int32, device=device)
+    partner = wp.empty(rows, dtype=wp.int32, device=device)
+    for row0, found, fb in ((0, r, 0), (M, g, 1)):
+        _launch(
+            fk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame],
+            device,
+        )
+    _launch(fk.pair_partners, M, [live, M, partner], device)
+    models = wp.empty(2 * 2 * B * H * W, dtype=wp.int64, device=device)
+    layer = 2 * B * H * W
+    cur = wp.clone(start)
+    nxt = wp.empty_like(start)
+    ok = wp.zeros(rows, dtype=wp.int32, device=device)
+    shared = wp.full((rows, 2), np.nan, dtype=wp.float64, device=device)
+    prof = wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
+    peak = wp.zeros(1, dtype=wp.float64, device=device)
+    for it in range(s.fit_iterations):
+        last = it == s.fit_iterations - 1
+        peak.zero_()
+        _launch(fk.largest_peak, rows, [cur, live, peak], device)
+        scale = _fixed_point_scale(float(peak.numpy()[0]))
+        if last:
+            models.zero_()
+        else:
+            models[:layer].zero_()
+        _launch(
+            render_dots_kernel,
+            rows,
+            [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, H, W, models],
+            device,
+        )
+        _launch(
+            fk.fit_step_stack,
+            rows,
+            [
+                refs, grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, eta0, half, render_half,
+                int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
+            ],
+            device,
+        )  # fmt: skip
+        cur, nxt = nxt, cur
+    moved = wp.zeros(rows, dtype=wp.int32, device=device)
+    if s.distortion != "none":
+        rows_of = (cur, frame, partner, live)
+        _moment_step_stack(refs, grads, rows_of, models[:layer], prof, shared, moved, sat, noise_frames, render_half,
+                           s, device)  # fmt: skip
+    return cur, ok, shared, live, moved
+
+
+def _moment_step_stack(refs, grads, rows_of, models, prof, shared, moved, sat, noise_frames, half, s, device):
+    """:func:`moment_shifts` of every row, in place: the model image of every dot at the fitted parameters
+    is drawn again (with their profiles), then each row moves to its first moment (with
+    ``distortion="ellipse"``, a moving gradient-image row to its elliptical moment,
+    :func:`tracking.ellipse.ellipse_step`). ``half`` is the model's half-size."""
+    params, frame, partner, live = rows_of
+    H, W = refs.shape[1:]
+    rows = params.shape[0]
+    peak = wp.zeros(1, dtype=wp.float64, device=device)
+    _launch(fk.largest_peak, rows, [params, live, peak], device)
+    scale = _fixed_point_scale(float(peak.numpy()[0]))
+    models.zero_()
+    _launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, H, W, models], device)
+    shift = wp.empty(rows, dtype=wp.vec3d, device=device)
+    _launch(
+        fk.moment_shift_stack,
+        rows,
+        [
+            refs, grads, models, 1.0 / scale, params, frame, partner, live, sat, noise_frames, half,
+            float(s.distortion_chi2), MAX_SHIFT_PX, prof, shift,
+        ],
+        device,
+    )  # fmt: skip
+    if s.distortion == "ellipse":
+        ellipse_step(grads, models, scale, params, frame, partner, prof, shift, half=half, max_shift=MAX_SHIFT_PX,
+                     device=device)  # fmt: skip
+    _launch(fk.apply_moment_shift, rows, [shift, partner, params, shared, moved], device)

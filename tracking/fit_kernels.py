@@ -3,11 +3,19 @@
 """Warp kernels of the model fit: the pixel-integrated dot model, its rendering and its joint fit.
 
 Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfit` (one thread per dot;
-``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.batch`.
+``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.stack`.
 Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
+
+The last section holds the model fit of a stack of pairs (:func:`model_starts` ... :func:`take_model`):
+rows ``0 ... M - 1`` are the reference-image dots of every pair, ``M ... 2 M - 1`` their gradient-image
+dots, and row ``i``'s model frame ``2 b`` (``2 b + 1``) is pair ``b``'s reference (gradient) image; the
+step is :func:`fit_dot_step`, the first-moment step :mod:`tracking.moment_kernels`' ``moment_shift``.
 """
 
 import warp as wp
+
+from .kernel_constants import DISTORTED, FIT_FALLBACK, MODEL_HI, MODEL_LO
+from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
 
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
@@ -587,3 +595,223 @@ def fit_dot_step_kernel(
             image1, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
             common, max_move, smin, smax, prof, out, ok, shared_xy,
         )  # fmt: skip
+
+
+# --- the model fit of a stack of pairs: starts, partners, steps, first moments and the results -------
+
+
+@wp.kernel
+def interleave_pairs(
+    first: wp.array(dtype=wp.float64),
+    second: wp.array(dtype=wp.float64),
+    x_first: wp.array(dtype=wp.float64),
+    x_second: wp.array(dtype=wp.float64),
+    per_frame: int,
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+):
+    """Pair b's segment of ``2 per_frame`` values: its dots' ``first`` then ``second`` (taking part where
+    the matching ``x`` is finite)."""
+    i = wp.tid()
+    b = i // per_frame
+    j = i % per_frame
+    at = b * 2 * per_frame + j
+    values[at] = first[i]
+    valid[at] = int(wp.isfinite(x_first[i]))
+    values[at + per_frame] = second[i]
+    valid[at + per_frame] = int(wp.isfinite(x_second[i]))
+
+
+@wp.kernel
+def model_starts(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    per_frame: int,
+    sigma0: wp.array(dtype=wp.float64),
+    frame_base: int,
+    frame_step: int,
+    row0: int,
+    params: wp.array2d(dtype=wp.float64),
+    live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+):
+    """Starting parameters ``(x, y, I0 (1 + 1 / (12 s0^2)), s0, 0)`` of every found dot (``_model_start``);
+    rows of dots not found get a harmless dot of no intensity (drawn as zero, never used)."""
+    i = wp.tid()
+    b = i // per_frame
+    s0 = sigma0[b]
+    j = row0 + i
+    frame[j] = frame_base + frame_step * b
+    if wp.isfinite(x[i]):
+        params[j, 0] = x[i]
+        params[j, 1] = y[i]
+        params[j, 2] = i0[i] * (wp.float64(1.0) + wp.float64(1.0) / (wp.float64(12.0) * s0 * s0))
+        params[j, 3] = s0
+        params[j, 4] = wp.float64(0.0)
+        live[j] = 1
+    else:
+        params[j, 0] = wp.float64(0.0)
+        params[j, 1] = wp.float64(0.0)
+        params[j, 2] = wp.float64(0.0)
+        params[j, 3] = s0
+        params[j, 4] = wp.float64(0.0)
+        live[j] = 0
+
+
+@wp.kernel
+def pair_partners(live: wp.array(dtype=wp.int32), n: int, partner: wp.array(dtype=wp.int32)):
+    """Row ``i`` (reference) and ``n + i`` (gradient) are one dot's pair where both were found."""
+    i = wp.tid()
+    if live[i] != 0 and live[n + i] != 0:
+        partner[i] = n + i
+        partner[n + i] = i
+    else:
+        partner[i] = -1
+        partner[n + i] = -1
+
+
+@wp.kernel
+def largest_peak(
+    params: wp.array2d(dtype=wp.float64), live: wp.array(dtype=wp.int32), peak: wp.array(dtype=wp.float64)
+):
+    i = wp.tid()
+    if live[i] != 0:
+        wp.atomic_max(peak, 0, wp.abs(params[i, 2]))
+
+
+@wp.kernel
+def fit_step_stack(
+    references: wp.array3d(dtype=wp.float64),
+    gradients: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    start: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    half: int,
+    render_half: int,
+    common: int,
+    max_move: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    out: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+):
+    """``fit_dot_step`` of row i; model frame ``2 b`` is pair b's reference image, ``2 b + 1`` its gradient
+    image; the width's range is ``MODEL_WIDTH_RANGE`` eta0 of the pair."""
+    i = wp.tid()
+    if live[i] == 0:
+        for k in range(5):
+            out[i, k] = params[i, k]
+        return
+    f = frame[i]
+    b = f // 2
+    e0 = eta0[b]
+    has_partner = int(partner[i] >= 0)
+    lo = MODEL_LO * e0
+    hi = MODEL_HI * e0
+    if f % 2 == 0:
+        fit_dot_step(
+            references[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, lo, hi, prof, out, ok, shared_xy,
+        )  # fmt: skip
+    else:
+        fit_dot_step(
+            gradients[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
+            common, max_move, lo, hi, prof, out, ok, shared_xy,
+        )  # fmt: skip
+
+
+@wp.kernel
+def moment_shift_stack(
+    references: wp.array3d(dtype=wp.float64),
+    gradients: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    inv_scale: wp.float64,
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    noise: wp.array(dtype=wp.float64),
+    half: int,
+    chi2: wp.float64,
+    max_shift: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    shift: wp.array(dtype=wp.vec3d),
+):
+    """``moment_shift`` of row i (model frame ``2 b``: pair b's reference image, ``2 b + 1`` its gradient
+    image; ``noise`` per frame); ``apply_moment_shift`` then moves the rows."""
+    i = wp.tid()
+    shift[i] = wp.vec3d()
+    if live[i] == 0:
+        return
+    f = frame[i]
+    b = f // 2
+    bg = reference_background(params, partner, i, f % 2 == 1)
+    s2 = reference_spread2(params, partner, i)
+    if f % 2 == 0:
+        shift[i] = moment_shift(
+            references[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+    else:
+        shift[i] = moment_shift(
+            gradients[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+
+
+@wp.kernel
+def apply_moment_shift(
+    shift: wp.array(dtype=wp.vec3d),
+    partner: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    moved: wp.array(dtype=wp.int32),
+):
+    """``tracking.pipeline._fit_models``' first-moment step, in place: where row i ``moves``, its position
+    and its common-shape position move by its shift."""
+    i = wp.tid()
+    moved[i] = 0
+    if moves(shift, partner, i):
+        d = shift[i]
+        params[i, 0] = params[i, 0] + d[0]
+        params[i, 1] = params[i, 1] + d[1]
+        shared_xy[i, 0] = shared_xy[i, 0] + d[0]
+        shared_xy[i, 1] = shared_xy[i, 1] + d[1]
+        moved[i] = 1
+
+
+@wp.kernel
+def take_model(
+    params: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    moved: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    row0: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta: wp.array(dtype=wp.float64),
+    i0: wp.array(dtype=wp.float64),
+    flags: wp.array(dtype=wp.int32),
+):
+    """``_take_model``: the fit's position, width and peak (a refused last step flagged FIT_FALLBACK, a
+    dot moved to its first moment DISTORTED)."""
+    i = wp.tid()
+    j = row0 + i
+    if live[j] == 0 or not wp.isfinite(params[j, 0]):
+        return
+    x[i] = params[j, 0]
+    y[i] = params[j, 1]
+    eta[i] = params[j, 3]
+    i0[i] = params[j, 2]
+    if ok[j] == 0:
+        flags[i] = flags[i] | FIT_FALLBACK
+    if moved[j] != 0:
+        flags[i] = flags[i] | DISTORTED

@@ -15,10 +15,19 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-from .stats_kernels import band_lags, band_moments, column_lags, column_pass, frame_moments, frame_results
+from .stats_kernels import (
+    band_lags,
+    band_moments,
+    column_lags,
+    column_pass,
+    frame_moments,
+    frame_results,
+    segment_keys,
+    segment_median,
+)
 from .workspace import on_device
 
-__all__ = ["FRAME_STATISTICS", "frame_statistics"]
+__all__ = ["FRAME_STATISTICS", "frame_statistics", "segment_medians"]
 
 FRAME_STATISTICS = ("lo", "hi", "bad", "saturation", "fill", "noise", "diameter")
 
@@ -157,3 +166,41 @@ def frame_statistics(images, *, device=None):
     return out
 
 
+def segment_medians(values, valid, *, length, segments, device):
+    """NumPy's median of each run of ``length`` values where ``valid`` (NaN for none), on the device.
+
+    Parameters
+    ----------
+    values : (segments * length,) float64 Warp array
+        The values, segment after segment (a stack's per-pair runs).
+    valid : (segments * length,) int32 Warp array
+        Nonzero where a value takes part.
+    length, segments : int, keyword-only
+        Values per segment and the number of segments.
+    device : warp.context.Device or str, keyword-only
+        The arrays' device.
+
+    Returns
+    -------
+    (segments,) float64 Warp array
+        Each segment's median (the mean of the middle two for an even count), NaN where none takes part.
+
+    Notes
+    -----
+    The values are sorted per segment by float32 keys (Warp's segmented radix sort); the k-th value is
+    then found among those that share its key (``stats_kernels.order_statistic``), so the median is
+    NumPy's to the bit.
+    """
+    n = segments * length
+    keys = wp.empty(2 * n, dtype=wp.float32, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    count = wp.zeros(segments, dtype=wp.int32, device=device)
+    if n:
+        wp.launch(segment_keys, dim=n, inputs=[values, valid, length, keys, order, count], device=device)
+    starts = wp.array(np.arange(segments, dtype=np.int32) * length, dtype=wp.int32, device=device)
+    ends = wp.array((np.arange(segments, dtype=np.int32) + 1) * length, dtype=wp.int32, device=device)
+    wp.utils.segmented_sort_pairs(keys, order, n, starts, ends)
+    median = wp.empty(segments, dtype=wp.float64, device=device)
+    if segments:
+        wp.launch(segment_median, dim=segments, inputs=[keys, order, values, count, length, median], device=device)
+    return median

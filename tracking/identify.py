@@ -13,23 +13,30 @@ measurement (:func:`tracking.windows.measure_windows`, a Warp kernel) iterated o
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from . import claim_kernels as ck
 from .centroid import fit_centroids, gaussian3_from_samples
-from .frame_stats import partial_median
+from .frame_stats import partial_median, segment_medians
 from .residual import subtract_gaussians
 from .settings import (
+    DIAMETER_PER_WIDTH,
     RESIDUAL_STAMP_WIDTHS,
     RESIDUAL_WIDTH_CLIP,
+    SEARCH_MARGIN_PX,
+    SMALL_WINDOW,
     THREE_POINT_WIDTH_RANGE,
     WILD_FIT_PX,
     DotStatus,
     residual_reach,
 )
+from .sorting import median_network
 from .windows import measure_windows
 
 __all__ = [
+    "StackIdentification",
     "blob_properties",
     "blob_score",
     "dynamic_threshold_identification",
@@ -492,3 +499,171 @@ def _subtract_found(residual, out, subtracted, missing, half, eta0):
         np.clip(out["eta"][idx], clip_lo * eta0, clip_hi * eta0),
         radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)),
     )
+
+
+# --- a stack of pairs on one Warp device ------------------------------------------------------------
+
+#: Frames of the hash grid that finds the dots near those still missing are this far apart along z (px).
+_Z_STEP = 1000.0
+
+
+class StackIdentification:
+    """Identification (Eq. 1, Eq. 2) of a stack of B pairs of one group, N prior dots each, on one Warp
+    device: :func:`identify_near_predictions` for the dots of every pair in each launch, its rounds of
+    claims on one claim board (kernels in :mod:`tracking.claim_kernels`).
+
+    Parameters
+    ----------
+    refs : (B, H, W) float64 Warp array
+        The reference images (their shape and device; the images searched are given to :meth:`identify`).
+    stats : dict
+        Per pair and image (index 0 the reference, 1 the gradient image), as Warp arrays of B values:
+        ``"noise"``, ``"fill"``, ``"sat"`` and ``"floor"`` (the noise threshold).
+    geometry : sequence of objects
+        Each pair's ``d`` (dot diameter, px); the first one's window half-sizes ``half_r``, ``half_g`` and
+        ``map_half`` are shared by the group.
+    settings : TrackingSettings
+    per_frame : int, keyword-only
+        The prior's dots per pair, N.
+    device : str, keyword-only
+
+    Attributes
+    ----------
+    eta0_host : (B,) float64 array
+        Each pair's nominal dot width (px).
+    board : tuple
+        The claim board ``(hp, wpad, claim_dist, claim_id)`` (padded frame height and width, each blob's
+        claimed distance and dot), left released after each call.
+    """
+
+    def __init__(self, refs, stats, geometry, settings, *, per_frame, device):
+        self.device = device
+        self.settings = settings
+        self.B, self.H, self.W = refs.shape
+        self.N = per_frame
+        self.M = self.B * per_frame
+        self.stats = stats
+        d = np.array([g.d for g in geometry])
+        self.eta0_host = d / DIAMETER_PER_WIDTH
+        self.eta0 = self.arr(self.eta0_host, wp.float64)
+        g0 = geometry[0]
+        self.geometry = g0
+        w_max = 2 * g0.half_g + 1
+        self.hp, self.wpad = self.H + 4 * w_max, self.W + 4 * w_max
+        cells = self.B * self.hp * self.wpad
+        self.claim_dist = wp.full(cells, np.inf, dtype=wp.float64, device=device)
+        self.claim_id = wp.full(cells, np.iinfo(np.int32).max, dtype=wp.int32, device=device)
+        self.board = (self.hp, self.wpad, self.claim_dist, self.claim_id)
+        self.residual = wp.empty_like(refs)
+        self.grid = wp.HashGrid(128, 128, 64, device=device)
+
+    def arr(self, a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+    def zeros(self, shape, dtype):
+        return wp.zeros(shape, dtype=dtype, device=self.device)
+
+    def full(self, shape, value, dtype):
+        return wp.full(shape, value, dtype=dtype, device=self.device)
+
+    def launch(self, kernel, dim, inputs):
+        if dim:
+            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def identify(self, image, which, pred, ids, n_ids, *, wide):
+        """:func:`identify_near_predictions` for the dots ``ids`` (an int32 Warp array, ``n_ids`` of them)
+        of every pair, around ``pred`` (``wp.vec2d``, one per prior row), in ``image`` (the reference
+        images with ``which`` 0, the gradient images with 1), with the wide window if ``wide``: fresh
+        (M,) per-dot Warp arrays ``x``, ``y``, ``eta``, ``i0``, ``iteration``, ``root`` and ``flags``."""
+        s, g, M = self.settings, self.geometry, self.M
+        half = g.half_g if wide else g.half_r
+        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
+        radius = search if wide else s.prior_radius
+        w = 2 * half + 1
+        st = self.stats
+        out = {
+            "x": self.full(M, np.nan, wp.float64),
+            "y": self.full(M, np.nan, wp.float64),
+            "eta": self.full(M, np.nan, wp.float64),
+            "i0": self.full(M, np.nan, wp.float64),
+            "iteration": self.zeros(M, wp.int32),
+            "flags": self.zeros(M, wp.int32),
+            "root": self.zeros((M, 2), wp.int32),
+        }
+        if n_ids == 0:
+            return out
+        origin = self.zeros((M, 2), wp.int32)
+        todo = self.zeros(M, wp.int32)
+        subtracted = self.zeros(M, wp.int32)
+        self.launch(ck.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
+        wp.copy(self.residual, image)
+        active = self.full(self.B, 1, wp.int32)
+        won = self.zeros(self.B, wp.int32)
+        rows = 1 if wp.get_device(self.device).is_cpu else n_ids
+        ww = w * w if w != SMALL_WINDOW else 1  # the 7 x 7 window is measured in registers
+        scratch = [
+            wp.empty((rows, ww), dtype=wp.float64, device=self.device),
+            wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
+            self.arr(median_network(4 * (w - 1)), wp.int32),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((rows, ww), dtype=wp.int32, device=self.device),
+            wp.empty((1, 1, 1), dtype=wp.float64, device=self.device),
+        ]
+        out_int = wp.empty((n_ids, 3), dtype=wp.int32, device=self.device)
+        out_float = wp.empty((n_ids, 3), dtype=wp.float64, device=self.device)
+        cross = wp.empty((n_ids, 5), dtype=wp.float64, device=self.device)
+        key = wp.empty(n_ids, dtype=wp.int32, device=self.device)
+        noise, fill, sat = st["noise"][which], st["fill"][which], st["sat"][which]
+        floor = st["floor"][which]
+        ref_peak = None
+        reach_px = residual_reach(half, self.eta0_host)
+        reach = self.arr(reach_px, wp.float64)
+        wa, wi, wd = (float(v) for v in s.weights)
+        points = wp.empty(M, dtype=wp.vec3, device=self.device)
+        for it in range(1, s.max_iterations + 1):
+            self.launch(
+                ck.measure_stack,
+                n_ids,
+                [
+                    self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
+                    float(radius), float(s.threshold_fraction), wa, wi, wd, int(s.background == "minimum"),
+                    *scratch, out_int, out_float, cross,
+                ],
+            )  # fmt: skip
+            if ref_peak is None:
+                values = self.zeros(M, wp.float64)
+                valid = self.zeros(M, wp.int32)
+                self.launch(ck.measured_peaks, n_ids, [ids, out_int, out_float, values, valid])
+                ref_peak = segment_medians(values, valid, length=self.N, segments=self.B, device=self.device)
+            self.launch(
+                ck.accept_blobs,
+                n_ids,
+                [
+                    ids, self.N, out_int, out_float, origin, noise, ref_peak, float(s.detection_snr),
+                    float(s.min_relative_peak), w, self.hp, self.wpad, key, self.claim_dist,
+                ],
+            )  # fmt: skip
+            self.launch(ck.claim_nearest, n_ids, [ids, out_float, key, self.claim_dist, self.claim_id])
+            self.launch(
+                ck.take_blobs,
+                n_ids,
+                [
+                    ids, self.N, it, out_int, out_float, cross, origin, key, self.claim_id, self.eta0, w,
+                    out["x"], out["y"], out["eta"], out["i0"], out["iteration"], out["root"], out["flags"], todo, won,
+                ],
+            )  # fmt: skip
+            self.launch(ck.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
+            self.launch(ck.next_round, self.B, [won, active])
+            if it < s.max_iterations:
+                self.launch(ck.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
+                self.grid.build(points, float(np.max(reach_px)) + 1.0)
+                self.launch(
+                    ck.subtract_near_waiting,
+                    n_ids,
+                    [
+                        self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
+                        out["i0"], self.eta0, reach, subtracted, self.residual,
+                    ],
+                )  # fmt: skip
+        return out

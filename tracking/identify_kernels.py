@@ -3,7 +3,7 @@
 """Warp kernels of identification: one thread measures the window around one predicted dot.
 
 Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.windows` (one pair) and
-:mod:`tracking.batch` (a stack of pairs, through :mod:`tracking.claim_kernels`). The NumPy reference
+:mod:`tracking.stack` (a stack of pairs, through :mod:`tracking.claim_kernels`). The NumPy reference
 ``tracking.reference.measure_windows_numpy`` defines what the kernels compute. Windows are held flat, pixel ``p`` of a
 ``w x w`` window at row ``p // w``, column ``p % w``.
 """

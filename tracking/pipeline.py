@@ -70,6 +70,7 @@ from .settings import (  # noqa: F401  (re-exported)
     start_width,
     window_sizes,
 )
+from .wide_search import drop_shared_blobs, merge_wide
 
 __all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
 
@@ -178,23 +179,6 @@ def _take_model(found, fit):
     found["i0"] = np.where(has, params[:, 2], found["i0"])
     found["flags"][has & ~fit["ok"]] |= DotStatus.FIT_FALLBACK
     found["flags"][has & fit["moved"]] |= DotStatus.DISTORTED
-
-
-def _drop_shared_blobs(found, pred):
-    """Where two dots ended up on one blob (peak pixel), keep the one nearer its prediction."""
-    ok = np.flatnonzero(np.isfinite(found["x"]))
-    if ok.size < 2:
-        return
-    key = found["root"][ok, 1] * (found["root"][ok, 0].max() + 1) + found["root"][ok, 0]
-    dist = np.hypot(found["x"][ok] - pred[ok, 0], found["y"][ok] - pred[ok, 1])
-    order = np.lexsort((dist, key))
-    dup = np.zeros(len(ok), dtype=bool)
-    dup[order[1:]] = key[order][1:] == key[order][:-1]
-    lose = ok[dup]
-    for name in ("x", "y", "eta", "i0"):
-        found[name][lose] = np.nan
-    found["iteration"][lose] = 0
-    found["flags"][lose] |= DotStatus.AMBIGUOUS
 
 
 def _auto_threshold(image, settings, noise):
@@ -574,13 +558,8 @@ def _dots_from_prior(run, prior):
     # Dots the prediction missed get the paper's wide window, around the prediction.
     miss = np.flatnonzero(~np.isfinite(g["x"]) & found_r)
     if miss.size:
-        g2 = _find(run, run.frame_g, pred_g[miss], wide=True)
-        for key in g:
-            if key == "flags":
-                g[key][miss] |= g2[key]
-            else:
-                g[key][miss] = g2[key]
-        _drop_shared_blobs(g, pred_g)
+        merge_wide(g, _find(run, run.frame_g, pred_g[miss], wide=True), miss)
+        drop_shared_blobs(g, pred_g)
     return r, g, (pred_uv, pred_q)
 
 

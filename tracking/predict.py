@@ -16,6 +16,17 @@ dot, as the identification looks for the dot in a window around it and the match
 and a three-point Gaussian peak fit of the residual (a few hundredths of a pixel for 3 px dots) are
 enough, and side-by-side tiles (no overlap) sample the field finely enough once the pyramid reaches
 tiles a few times the field's scale of variation.
+
+:func:`predict_displacement_stack` runs :func:`predict_displacement` (without a mask) for a stack of B pairs
+on one Warp device: every pass is a fixed sequence of launches of :mod:`tracking.predict_kernels` over all
+pairs (the tile correlation in :mod:`tracking.predict_tiles`), the images, fields and results stay on the
+device, and nothing waits for the host (the host only loops over the passes). The pyramid still ends pair
+by pair: a pair whose field a pass changed little is left alone by the later passes (the kernels read
+which pairs run from the per-pair, per-pass ``changed`` flags), and its displacement and significance are
+computed from the planes of the pass at which it stopped, as the host does for it alone. The host function
+is the reference: the correlations differ by float32 rounding (Warp's tile FFTs or direct DFTs there,
+SciPy's pocketfft here), which can at times flip a whole-pixel rounding of the deformation or a tie of the
+peak search; otherwise the steps are the same arithmetic.
 """
 
 from __future__ import annotations
@@ -27,9 +38,11 @@ from scipy import ndimage
 from synthbos.correlation.median_test import median_scale, nan_median, residual_limit
 from synthbos.correlation.peak import three_point_offset
 
+from . import predict_kernels as pk
 from .deform_kernels import deform_nearest_kernel
+from .predict_tiles import correlate_tiles
 from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
-from .workspace import scratch
+from .workspace import on_device, scratch
 
 __all__ = [
     "PREDICTOR_WINDOWS",
@@ -37,6 +50,7 @@ __all__ = [
     "local_normalized_correlation",
     "pooling_block",
     "predict_displacement",
+    "predict_displacement_stack",
     "predictor_passes",
 ]
 
@@ -701,3 +715,124 @@ def _pass_grid(h, w, size, *, sparse):
         # their side apart (about a quarter of them)
         return _sparse_tile_grid(h, size), _sparse_tile_grid(w, size)
     return _tile_grid(h, size), _tile_grid(w, size)
+
+
+# --- a stack of pairs on one Warp device ------------------------------------------------------------
+
+
+def _grid(shape, size, sparse):
+    """The :class:`predict_kernels.TileGrid` of a pass (``predict_displacement``'s tile grids)."""
+    h, w = shape
+    ys = _sparse_tile_grid(h, size) if sparse else _tile_grid(h, size)
+    xs = _sparse_tile_grid(w, size) if sparse else _tile_grid(w, size)
+    g = pk.TileGrid()
+    g.top, g.left = int(ys[0]), int(xs[0])
+    g.row_step = int(ys[1] - ys[0]) if len(ys) > 1 else size
+    g.col_step = int(xs[1] - xs[0]) if len(xs) > 1 else size
+    g.size, g.ny, g.nx = int(size), len(ys), len(xs)
+    return g
+
+
+def predict_displacement_stack(references, gradients, xy, *, sizes, min_dots_per_box=20.0, density, device=None):
+    """Predict each dot's displacement in each of B image pairs, and say how far to trust it.
+
+    :func:`predict_displacement` (``mask=None``) for every pair, all pairs in each
+    launch.
+
+    Parameters
+    ----------
+    references, gradients : (B, H, W) float64 Warp arrays (or NumPy arrays, uploaded)
+        The image pairs.
+    xy : (B, N) ``wp.vec2d`` Warp array (or (B, N, 2) NumPy array)
+        Reference-image positions (x = column, y = row) at which to predict; non-finite rows give NaN.
+    sizes : sequence of int, keyword-only
+        Tile size of each pass, as :func:`tracking.predict.predictor_passes` gives it for the pairs'
+        shape and number of dots inside the image (shared by all pairs of the stack).
+    min_dots_per_box : float, keyword-only
+        As for ``predict_displacement``.
+    density : float, keyword-only
+        Dots per px^2, as ``predictor_passes`` gives it: sets the block over which the significance is
+        pooled (:func:`tracking.predict.pooling_block`).
+    device : str, optional
+        Warp device (Warp's default when None).
+
+    Returns
+    -------
+    uv : (B, N) ``wp.vec2d`` Warp array
+        Predicted displacement (u, v) in pixels, as ``predict_displacement``.
+    quality : (B, N) float64 Warp array
+        Its significance, as ``predict_displacement``.
+
+    Notes
+    -----
+    Every pass is launched for the whole stack (17 launches, 18 where the correlation is by direct DFTs:
+    :func:`correlate_tiles`); a pair that stopped at an earlier pass is skipped by every kernel. Nothing
+    is copied back to the host.
+    """
+    device = wp.get_device(device)
+    refs = on_device(references, wp.float64, 3, device, "references")
+    grads = on_device(gradients, wp.float64, 3, device, "gradients")
+    pts = on_device(xy, wp.vec2d, 2, device, "xy")
+    if refs.shape != grads.shape:
+        raise ValueError(f"references {refs.shape} and gradients {grads.shape} differ in shape")
+    nb, h, w = refs.shape
+    if pts.shape[0] != nb:
+        raise ValueError(f"xy holds {pts.shape[0]} pairs, the images {nb}")
+    n_dots = pts.shape[1]
+    sizes = [int(s) for s in sizes]
+    if not sizes or n_dots == 0 or nb == 0:
+        return (
+            wp.zeros((nb, n_dots), dtype=wp.vec2d, device=device),
+            wp.zeros((nb, n_dots), dtype=wp.float64, device=device),
+        )
+    grids = [_grid((h, w), s, p == 0 and len(sizes) > 1 and _sparse_grid(h, w, s)) for p, s in enumerate(sizes)]
+
+    def launch(kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+
+    changed = wp.zeros((nb, len(sizes)), dtype=wp.int32, device=device)
+    uv = wp.empty((nb, n_dots), dtype=wp.vec2d, device=device)
+    quality = wp.empty((nb, n_dots), dtype=wp.float64, device=device)
+    none = wp.empty((1, 1, 1), dtype=wp.float64, device=device)  # the first pass's coarser field: not read
+    coarse = None  # (grid, u, v) of the previous pass
+    for p, (size, g) in enumerate(zip(sizes, grids, strict=True)):
+        last = int(p == len(sizes) - 1)
+        rows, cols = g.ny * size, g.nx * size
+        run = size if device.is_cpu else 1  # pixels per thread of the deformation: fewer, longer threads on the CPU
+        per_tile = (nb, g.ny, g.nx)
+
+        def tiles(dtype=wp.float64, shape=per_tile):
+            return wp.empty(shape, dtype=dtype, device=device)
+
+        # the gradient image moved back by the coarser field, tile by tile
+        moved, weight, shift = (tiles(t, (nb, rows, cols)) for t in (wp.float32, wp.float32, wp.vec2f))
+        cg, cu, cv = coarse if coarse is not None else (g, none, none)
+        launch(pk.deform_tiles, (nb, rows, -(-cols // run)), [grads, changed, p, g, int(coarse is not None), cg, cu,
+                                                             cv, run, moved, weight, shift])  # fmt: skip
+
+        # correlation planes and their peaks
+        planes, peak, norm, count, energy, base = correlate_tiles(refs, moved, weight, shift, changed, p, g, device)
+
+        # the field: peak fits, the normalised median test, holes filled from the nearest tile
+        res_u, res_v, raw_u, raw_v, rep_u, rep_v, field_u, field_v = (tiles() for _ in range(8))
+        scaled, usable, feature, stack = (tiles(t) for t in (wp.float32, wp.int32, wp.int32, wp.int32))
+        launch(pk.fit_tiles, per_tile, [planes, peak, norm, count, base, changed, p, g, res_u, res_v, raw_u, raw_v,
+                                        scaled, usable])  # fmt: skip
+        launch(pk.replace_outliers, per_tile, [raw_u, raw_v, changed, p, rep_u, rep_v])
+        launch(pk.nearest_in_columns, (nb, g.nx), [rep_u, changed, p, last, 0, feature])
+        launch(pk.nearest_in_rows, (nb, g.ny), [rep_u, rep_v, feature, stack, changed, p, last, 0, field_u, field_v])
+        launch(pk.field_change, per_tile, [field_u, field_v, g, int(coarse is not None), cg, cu, cv, p, changed])
+
+        # pairs that stop here: the significance from this pass's planes, the values at the dots
+        med_u, med_v, fill_u, fill_v, coefficient = (tiles() for _ in range(5))
+        terms = tiles(wp.vec4d)
+        launch(pk.neighbour_medians, per_tile, [res_u, res_v, changed, p, last, med_u, med_v])
+        launch(pk.nearest_in_columns, (nb, g.nx), [med_u, changed, p, last, 1, feature])
+        launch(pk.nearest_in_rows, (nb, g.ny), [med_u, med_v, feature, stack, changed, p, last, 1, fill_u, fill_v])
+        launch(pk.tile_coefficients, per_tile, [planes, fill_u, fill_v, scaled, usable, energy, changed, p, last, g,
+                                                terms])  # fmt: skip
+        k = pooling_block(density, size, min_dots_per_box)
+        launch(pk.pool_coefficients, per_tile, [terms, k, changed, p, last, coefficient])
+        launch(pk.values_at_dots, (nb, n_dots), [pts, field_u, field_v, coefficient, g, changed, p, last, uv, quality])
+        coarse = (g, field_u, field_v)
+    return uv, quality

@@ -1,7 +1,8 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
-"""Warp kernels of the batched correlation predictor's tile correlation (host code:
-:mod:`tracking.predict_batch`): the centred tiles, their spectra (FFT blocks or a direct DFT), the
+"""Warp kernels of the correlation predictor's tile correlation for a stack of pairs.
+
+Host code: :mod:`tracking.predict_tiles`. The centred tiles, their spectra (FFT blocks or a direct DFT), the
 cross-spectrum's inverse and the search of each plane's peak. Tiles and passes as in
 :mod:`tracking.predict_kernels`.
 """

@@ -16,6 +16,9 @@ differences, then its ``n_fill`` sub-sampled pixels, so that after sorting by va
 segment, the ``k``-th smallest value of a segment sits at a known index. NaN never enters the buffer (it
 is written as +inf and the segment flagged), so the sort's placement of NaN does not matter.
 
+The last section takes the median of each segment of a flat array (a stack's per-pair medians: the
+first round's peaks, the fit's starting widths), sorted by float32 keys.
+
 Floating-point contraction is off in this module: the quartile's interpolation and the median's mean
 must round as NumPy's separate multiply and add do.
 """
@@ -314,3 +317,89 @@ def frame_results(
         s2 = wp.float64(3.0) / (wp.float64(2.0) * wp.log(r1 / r2))
         d = wp.float64(4.0) * wp.sqrt(s2) / wp.sqrt(wp.float64(2.0))
     diameter[f] = d
+
+
+# --- medians of segments (a stack's per-pair medians) ---------------------------------------------
+
+
+@wp.kernel
+def segment_keys(
+    values: wp.array(dtype=wp.float64),
+    valid: wp.array(dtype=wp.int32),
+    length: int,
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """Sort keys (the values rounded to float32, +inf where not taking part) and the count per segment."""
+    i = wp.tid()
+    order[i] = i
+    if valid[i] != 0:
+        keys[i] = wp.float32(values[i])
+        wp.atomic_add(count, i // length, 1)
+    else:
+        keys[i] = wp.float32(wp.inf)
+
+
+@wp.func
+def order_statistic(
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
+    base: int,
+    count: int,
+    k: int,
+) -> wp.float64:
+    """The k-th smallest (from 0) float64 value of a segment sorted by its float32 keys: rounding to float32
+    keeps the order but for values that round alike, so the k-th lies among those sharing its key."""
+    key = keys[base + k]
+    g0 = k
+    while g0 > 0 and keys[base + g0 - 1] == key:
+        g0 -= 1
+    g1 = k + 1
+    while g1 < count and keys[base + g1] == key:
+        g1 += 1
+    lo = values[order[base + g0]]
+    hi = lo
+    for p in range(g0 + 1, g1):
+        v = values[order[base + p]]
+        lo = wp.min(lo, v)
+        hi = wp.max(hi, v)
+    if lo == hi:
+        return lo
+    want = k - g0
+    for p in range(g0, g1):
+        v = values[order[base + p]]
+        rank = int(0)
+        for q in range(g0, g1):
+            u = values[order[base + q]]
+            if u < v or (u == v and q < p):
+                rank += 1
+        if rank == want:
+            return v
+    return lo
+
+
+@wp.kernel
+def segment_median(
+    keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
+    count: wp.array(dtype=wp.int32),
+    length: int,
+    median: wp.array(dtype=wp.float64),
+):
+    """NumPy's median of each segment's values taking part (the mean of the middle two for an even count;
+    NaN for none)."""
+    s = wp.tid()
+    c = count[s]
+    if c == 0:
+        median[s] = wp.float64(wp.nan)
+        return
+    base = s * length
+    k = c // 2
+    upper = order_statistic(keys, order, values, base, c, k)
+    if c % 2 == 1:
+        median[s] = upper
+    else:
+        median[s] = (order_statistic(keys, order, values, base, c, k - 1) + upper) / wp.float64(2.0)

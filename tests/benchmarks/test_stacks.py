@@ -31,7 +31,7 @@ SMALL_CONFIG = {
 }
 # Two pairs, two noise levels, every default method: 12 score items, 8 of them tracked.
 SMALL = replace(REGRESS, name="small", snapshots=(1, 3), noise_percent=(0.0, 3.0), config=SMALL_CONFIG)
-# Predictor columns: float32 correlations summed in another order by the two paths (tests/tracking/test_batch.py).
+# Predictor columns: float32 correlations summed in another order by the two paths (tests/tracking/test_stack.py).
 PREDICTOR = ("u_pred", "v_pred", "pred_correlation")
 
 
@@ -192,6 +192,32 @@ def test_an_error_in_a_stacked_run_loses_only_unwritten_items(stacked, tmp_path,
 
 def _items(device, methods=("correlation", "tracking", "tracking-cc", "tracking-paper")):
     return [("p.h5", m, 1.0, (1, 2), f"{m}.npz", {}, device) for m in methods]
+
+
+def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
+    """STACK_KERNELS (the modules a stacked campaign builds ahead) names every Python module whose Warp
+    kernels ``track_pairs`` launches, and no other (the modules were renamed by step: a stale name would
+    build nothing, a missing one would compile during the work)."""
+    import warp as wp
+    from synthbos.raytrace.dots import draw_dots
+    from synthbos.tracking.stack import track_pairs
+
+    launched = set()
+    for name in ("launch", "launch_tiled"):
+        original = getattr(wp, name)
+
+        def spy(kernel, *args, _original=original, **kwargs):
+            launched.add(kernel.func.__module__)
+            return _original(kernel, *args, **kwargs)
+
+        monkeypatch.setattr(wp, name, spy)
+    rng = np.random.default_rng(4)
+    shape = (64, 64)
+    xy = rng.uniform(4.0, 60.0, (60, 2))
+    refs = np.stack([draw_dots(shape, xy, 3.0), draw_dots(shape, xy, 3.0)])
+    grads = np.stack([draw_dots(shape, xy + 0.7, 3.0), draw_dots(shape, xy - 0.4, 3.0)])
+    track_pairs(refs, grads, prior_xy=xy + 0.2, device="cpu")
+    assert launched == set(STACK_KERNELS)
 
 
 def test_stacks_hold_the_trackers_with_the_default_estimators_and_load_their_kernels():

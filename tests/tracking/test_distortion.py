@@ -13,9 +13,9 @@ from _synth import distorted_dots, dot_pattern, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.batch import track_pairs
 from synthbos.tracking.dotfit import fit_dots, fit_window_half, moment_shifts
 from synthbos.tracking.reference import moment_shifts_numpy
+from synthbos.tracking.stack import track_pairs
 
 SHAPE = (128, 128)
 

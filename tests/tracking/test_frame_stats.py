@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
-from synthbos.tracking.frame_stats import FRAME_STATISTICS, frame_statistics
+from synthbos.tracking.frame_stats import FRAME_STATISTICS, frame_statistics, segment_medians
 from synthbos.tracking.reference import frame_statistics_numpy
 
 from synthbos import SynthbosError
@@ -118,3 +118,29 @@ def test_frame_statistics_graph_capture(device):
         out = frame_statistics(img)
     wp.capture_launch(capture.graph)
     _check({name: arr.numpy() for name, arr in out.items()}, frame_statistics_numpy(stack))
+
+
+def test_segment_medians_are_numpys(device):
+    """Each segment's median of the values taking part, as NumPy's (the mean of the middle two for an even
+    count, NaN for none), to the bit: values that round to one float32 key (ties of the sort) among them."""
+    rng = np.random.default_rng(3)
+    length, segments = 37, 6
+    values = rng.normal(1.0, 0.3, (segments, length))
+    values[1, :20] = 1.0 + rng.integers(0, 4, 20) * 1e-12  # distinct float64 values, one float32 key
+    values[2, :] = 0.5  # all equal
+    valid = rng.random((segments, length)) < 0.7
+    valid[3] = False  # none takes part
+    valid[4] = False
+    valid[4, [5, 9]] = True  # an even count of two
+    valid[1, :20] = True
+    got = segment_medians(
+        wp.array(values.ravel(), dtype=wp.float64, device=device),
+        wp.array(valid.ravel().astype(np.int32), dtype=wp.int32, device=device),
+        length=length,
+        segments=segments,
+        device=device,
+    ).numpy()
+    want = np.array([np.median(v[m]) if m.any() else np.nan for v, m in zip(values, valid, strict=True)])
+    assert np.isnan(got[3]) and np.isnan(want[3])
+    assert_array_equal(got, want)
+    assert got[4] == (values[4, 5] + values[4, 9]) / 2

@@ -1,4 +1,4 @@
-"""The batched neighbour validation against the tracker's per-pair functions, pair by pair."""
+"""The stacked neighbour tests (tracking.neighbours, *_stack) against the tracker's per-pair functions, pair by pair."""
 
 import dataclasses
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import warp as wp
 from _synth import smooth_displacement
-from synthbos.tracking.neighbours import neighbour_fit
-from synthbos.tracking.neighbours_batch import (
-    confirmed_by_neighbours_batch,
-    neighbour_fit_batch,
-    neighbour_outliers_batch,
+from synthbos.tracking.neighbours import (
+    confirmed_by_neighbours_stack,
+    neighbour_fit,
+    neighbour_fit_stack,
+    neighbour_outliers_stack,
 )
 from synthbos.tracking.pipeline import TrackingSettings, _confirmed_by_neighbours, _neighbour_outliers
 
@@ -84,7 +84,7 @@ def test_fit_is_the_hosts_to_the_bit(device, exclude_self):
     points = present & (rng.random(present.shape) < 0.8)
     points[3] = present[3]  # k points: no fit
     queries = present & (rng.random(present.shape) < 0.7)
-    value, spread = neighbour_fit_batch(xy, uv, points, queries, k=k, exclude_self=exclude_self, device=device)
+    value, spread = neighbour_fit_stack(xy, uv, points, queries, k=k, exclude_self=exclude_self, device=device)
     value, spread = value.numpy(), spread.numpy()
     for b in range(len(points)):
         p, q = np.flatnonzero(points[b]), np.flatnonzero(queries[b])
@@ -112,8 +112,8 @@ def test_degenerate_boxes(device):
     uv = 0.05 * rng.standard_normal((3, n, 2))
     uv[:, ::40] += 3.0
     valid = np.ones((3, n), dtype=bool)
-    value, spread = neighbour_fit_batch(xy, uv, valid, valid, k=12, exclude_self=True, device=device)
-    bad = neighbour_outliers_batch(xy, uv, valid, **_options(SETTINGS), device=device).numpy()
+    value, spread = neighbour_fit_stack(xy, uv, valid, valid, k=12, exclude_self=True, device=device)
+    bad = neighbour_outliers_stack(xy, uv, valid, **_options(SETTINGS), device=device).numpy()
     for b in range(3):
         a = neighbour_fit(xy[b], uv[b], xy[b], np.arange(n), k=12, device=device)
         np.testing.assert_array_equal(value.numpy()[b], a[0])
@@ -133,7 +133,7 @@ def test_outliers_match_the_host_pair_by_pair(device):
     uv = xyg - xy
     valid = present & (rng.random(present.shape) < 0.9)
     valid[5:8] = present[5:8]  # exactly k + 2, k + 3, k + 4 valid dots
-    bad = neighbour_outliers_batch(xy, uv, valid, **_options(SETTINGS), device=device)
+    bad = neighbour_outliers_stack(xy, uv, valid, **_options(SETTINGS), device=device)
     assert isinstance(bad, wp.array) and bad.dtype == wp.int32 and bad.shape == valid.shape
     bad = bad.numpy()
     expected = _host_outliers(xy, uv, valid, SETTINGS, device)
@@ -175,7 +175,7 @@ def test_confirmed_match_the_host_pair_by_pair(device):
         q = query.copy()
         if overlap:  # some good dots queried too (but not in pairs 1, 3 and 5)
             q[[0, 2, 4, 6]] |= good[[0, 2, 4, 6]] & (rng.random((4, good.shape[1])) < 0.2)
-        ok = confirmed_by_neighbours_batch(xy, uv, good, q, **_options(SETTINGS, confirm=True), device=device)
+        ok = confirmed_by_neighbours_stack(xy, uv, good, q, **_options(SETTINGS, confirm=True), device=device)
         assert isinstance(ok, wp.array) and ok.dtype == wp.int32
         ok = ok.numpy()
         expected = _host_confirmed(xy, xyg, good, q, SETTINGS, device)
@@ -210,13 +210,13 @@ def test_ties_on_an_exact_grid(device, k):
     xyg = xy + uv
     uv = xyg - xy
     valid = present & (rng.random(present.shape) < 0.95)
-    bad = neighbour_outliers_batch(xy, uv, valid, **_options(settings), device=device).numpy()
+    bad = neighbour_outliers_stack(xy, uv, valid, **_options(settings), device=device).numpy()
     expected = _host_outliers(xy, uv, valid, settings, device)
     assert (bad == expected).all(), np.argwhere(bad != expected)
     assert expected.sum() > 0
     good = valid & ~wrong & (rng.random(valid.shape) < 0.85)
     query = present & ~good
-    ok = confirmed_by_neighbours_batch(xy, uv, good, query, **_options(settings, confirm=True), device=device)
+    ok = confirmed_by_neighbours_stack(xy, uv, good, query, **_options(settings, confirm=True), device=device)
     expected = _host_confirmed(xy, xyg, good, query, settings, device)
     assert (ok.numpy() == expected).all()
     assert 0 < expected.sum() < query.sum()
@@ -230,17 +230,17 @@ def test_device_arrays_in_and_disabled_test(device):
     uv = xyg - xy
     valid = present & (rng.random(present.shape) < 0.9)
     opts = _options(SETTINGS)
-    a = neighbour_outliers_batch(xy, uv, valid, **opts, device=device).numpy()
+    a = neighbour_outliers_stack(xy, uv, valid, **opts, device=device).numpy()
     args = [wp.array(v, dtype=wp.vec2d, device=device) for v in (xy, uv)]
-    b = neighbour_outliers_batch(*args, wp.array(valid.astype(np.int32), device=device), **opts)
+    b = neighbour_outliers_stack(*args, wp.array(valid.astype(np.int32), device=device), **opts)
     assert str(b.device) == str(wp.get_device(device))
     assert (b.numpy() == a).all() and a.sum() > 0
-    off = neighbour_outliers_batch(xy, uv, valid, **{**opts, "threshold": np.inf}, device=device)
+    off = neighbour_outliers_stack(xy, uv, valid, **{**opts, "threshold": np.inf}, device=device)
     assert not off.numpy().any()
     good, query = valid & (rng.random(valid.shape) < 0.8), valid
-    c = confirmed_by_neighbours_batch(
+    c = confirmed_by_neighbours_stack(
         xy, uv, good, query, **{**_options(SETTINGS, confirm=True), "threshold": np.inf}, device=device
     )
     assert not c.numpy().any()
-    empty = neighbour_outliers_batch(np.zeros((0, 5, 2)), np.zeros((0, 5, 2)), np.zeros((0, 5)), **opts, device=device)
+    empty = neighbour_outliers_stack(np.zeros((0, 5, 2)), np.zeros((0, 5, 2)), np.zeros((0, 5)), **opts, device=device)
     assert empty.shape == (0, 5)

@@ -1,4 +1,4 @@
-"""The batched, device-resident correlation predictor against the host one, pair by pair.
+"""The stacked, device-resident correlation predictor against the host one, pair by pair.
 
 Every pair of a batch must give what :func:`predict_displacement` gives for it alone, to float32
 rounding of the correlations (the batch correlates by Warp's tile FFT or directly, the host by SciPy's
@@ -14,8 +14,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import predict
 from synthbos.tracking import predict_kernels as pk
-from synthbos.tracking.predict import dots_inside, predict_displacement, predictor_passes
-from synthbos.tracking.predict_batch import correlate_tiles, predict_displacement_batch, uses_tile_fft
+from synthbos.tracking.predict import dots_inside, predict_displacement, predict_displacement_stack, predictor_passes
+from synthbos.tracking.predict_tiles import correlate_tiles, uses_tile_fft
 
 D = 3.0
 NOISE = 0.01
@@ -76,7 +76,7 @@ def _compare(refs, grads, xy, device, *, window_sizes=predict.PREDICTOR_WINDOWS,
         args = (
             wp.array(a, dtype=t, device=device) for a, t in zip(args, (wp.float64, wp.float64, wp.vec2d), strict=True)
         )
-    uv, quality = predict_displacement_batch(
+    uv, quality = predict_displacement_stack(
         *args,
         sizes=sizes,
         density=density,
@@ -198,10 +198,10 @@ def test_fill_and_median_test_kernels(device):
 
 def test_empty_schedule_gives_zeros(device):
     refs, grads, xy = _pairs(7, (64, 64), ["uniform"])
-    uv, q = predict_displacement_batch(refs, grads, xy, sizes=[], density=0.02, device=device)
+    uv, q = predict_displacement_stack(refs, grads, xy, sizes=[], density=0.02, device=device)
     assert_allclose(uv.numpy(), 0.0)
     assert_allclose(q.numpy(), 0.0)
-    uv, q = predict_displacement_batch(refs, grads, xy[:, :0], sizes=[32], density=0.02, device=device)
+    uv, q = predict_displacement_stack(refs, grads, xy[:, :0], sizes=[32], density=0.02, device=device)
     assert uv.shape == (1, 0) and q.shape == (1, 0)
 
 

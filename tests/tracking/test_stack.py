@@ -1,4 +1,4 @@
-"""Batched tracking (tracking.batch.track_pairs) against track_pair, pair by pair and dot by dot."""
+"""Stacked tracking (tracking.stack.track_pairs) against track_pair, pair by pair and dot by dot."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from _synth import dot_pattern, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import TrackingSettings, track_pair
-from synthbos.tracking.batch import track_pairs
+from synthbos.tracking.stack import track_pairs
 
 from synthbos import SynthbosError
 
@@ -108,7 +108,7 @@ def test_track_pairs_in_turns(device, monkeypatch):
     table as in one turn (the fit's fixed-point scale depends on the batch: rounding apart), from NumPy
     or Warp stacks, and errors name the pair in the whole stack."""
     import warp as wp
-    from synthbos.tracking import batch
+    from synthbos.tracking import stack
 
     refs, grads, prior = _batch(seed=9)
     refs, grads, prior = np.concatenate([refs, refs[:1]]), np.concatenate([grads, grads[:1]]), prior[[0, 1, 2, 3, 0]]
@@ -119,7 +119,7 @@ def test_track_pairs_in_turns(device, monkeypatch):
         asked.append((shape, dots, on_device))
         return 3
 
-    monkeypatch.setattr(batch, "pairs_per_call", three)
+    monkeypatch.setattr(stack, "pairs_per_call", three)
     in_turns = track_pairs(refs, grads, prior_xy=prior, device=device)
     assert asked == [(SHAPE, prior.shape[1], False)]
     for b in range(len(refs)):
@@ -135,6 +135,6 @@ def test_track_pairs_in_turns(device, monkeypatch):
 
 
 def test_pairs_per_call_on_the_cpu_is_unbounded():
-    from synthbos.tracking.batch import pairs_per_call
+    from synthbos.tracking.stack import pairs_per_call
 
     assert pairs_per_call((512, 512), 5120, "cpu") is None

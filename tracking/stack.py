@@ -1,0 +1,369 @@
+"""Dot tracking of many image pairs at once, every step on one Warp device.
+
+:func:`track_pairs` is :func:`tracking.track_pair` with a prior for a stack of B pairs of one shape: the
+images go up once, every kernel launch covers the dots of all pairs, and the table comes back once. It
+computes what ``track_pair`` computes for each pair alone (the same identification rounds, blob claims,
+predictor, wide second search, joint model fit, predictor check, edge cut and outlier test, each pair
+with its own noise, saturation, background, dot diameter and median peak), with its default estimators
+(``centroid="model"``, ``correction="model"``) and without a mask; the results agree with
+``track_pair``'s to floating-point rounding (the tests compare them dot by dot).
+
+Where a step depends on data (a pair's identification ending early, its predictor's pyramid ending at
+a coarser pass, the wide search of the dots the first one missed), the stack runs the step for every
+pair and leaves the pairs it no longer concerns untouched, so the number of launches does not depend on
+B. The host waits for the device a few times per stack (the image checks, the predictor's pass schedule,
+the count of missed dots, the fit's fixed-point scale), never per pair.
+
+This module only orchestrates; each step lives in its room: the frame statistics in
+:mod:`tracking.frame_stats`, identification in :mod:`tracking.identify` (``StackIdentification``),
+the predictor in :mod:`tracking.predict` (``predict_displacement_stack``), the wide search in
+:mod:`tracking.wide_search`, the model fit in :mod:`tracking.dotfit` (``fit_stack``), the neighbour
+tests in :mod:`tracking.neighbours` and the table in :mod:`tracking.table`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from synthbos import SynthbosError
+from synthbos.device import init_warp
+
+from . import claim_kernels as ck
+from . import predict_kernels as pk
+from .dotfit import fit_stack, fit_window_half
+from .frame_stats import frame_statistics
+from .identify import StackIdentification
+from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
+from .predict import pooling_block, predict_displacement_stack, predictor_passes
+from .settings import (
+    TRACK_DTYPE,
+    TrackingSettings,
+    prior_inside,
+    window_sizes,
+)
+from .table import HostTable, edge_cut, predictor_check, table_rows
+from .wide_search import wide_search_stack
+from .workspace import hold_freed_memory
+
+__all__ = ["pairs_per_call", "stack_support", "track_pairs"]
+
+#: Device memory that :func:`track_pairs` takes per pair beyond its two images, per pixel and per prior
+#: dot: 77-85 B/px was measured on an H200 (2026-11-22; 256 to 1024 px images, 1,280 to 20,480 dots,
+#: 25 to 400 pairs), and about 120 B per dot; these leave a margin.
+BYTES_PER_PIXEL = 96
+BYTES_PER_DOT = 512
+#: The share of a GPU's free memory that one turn of :func:`track_pairs` may fill: more pairs are
+#: tracked in turns (:func:`pairs_per_call`).
+MEMORY_SHARE = 0.8
+
+
+
+def stack_support(settings: TrackingSettings) -> str | None:
+    """Why :func:`track_pairs` cannot run these settings (then use ``track_pair``), or None when it can."""
+    if settings.centroid != "model" or settings.correction != "model":
+        return "the stack runs the default estimators only (centroid and correction 'model')"
+    return None
+
+
+def _stack_shape(a, name):
+    """The (B, H, W) shape of an image stack (a Warp array or anything NumPy takes), checked 3-D."""
+    shape = tuple(a.shape) if isinstance(a, wp.array) else np.shape(a)
+    if len(shape) != 3:
+        raise SynthbosError(f"{name} images must be a (pairs, height, width) stack, got shape {shape}")
+    return shape
+
+
+def pairs_per_call(shape, dots, device, *, on_device=True):
+    """How many pairs of ``shape`` (H, W) with ``dots`` prior dots :func:`track_pairs` tracks at once on
+    ``device``: all on the CPU (None); on a GPU as many as fill ``MEMORY_SHARE`` of its free memory at
+    ``BYTES_PER_PIXEL`` and ``BYTES_PER_DOT`` each (plus the images' upload unless ``on_device``), at
+    least one."""
+    dev = wp.get_device(device)
+    if not dev.is_cuda:
+        return None
+    h, w = shape
+    per_pair = BYTES_PER_PIXEL * h * w + BYTES_PER_DOT * dots + (0 if on_device else 2 * 8 * h * w)
+    return max(1, int(MEMORY_SHARE * dev.free_memory) // per_pair)
+
+
+def _upload(a, name, device):
+    """A (B, H, W) float64 Warp array on ``device`` from a stack :func:`_stack_shape` checked (a Warp
+    array or anything NumPy takes)."""
+    if isinstance(a, wp.array):
+        if a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)):
+            return a
+        a = a.numpy()
+    a = np.asarray(a)
+    if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        raise SynthbosError(f"{name} images must hold real numbers, got dtype {a.dtype}")
+    return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
+
+
+class _Pairs:
+    """Per-pair geometry of one group of pairs (pairs of one group share every integer size)."""
+
+    def __init__(self, d, settings):
+        self.d = d
+        self.eta0, self.half_r, self.half_g, self.map_half = window_sizes(d, settings)
+        self.fit_half, self.render_half = fit_window_half(self.eta0)
+
+    def key(self):
+        return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
+
+
+def _frame_statistics(images, name, settings, device, first):
+    """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
+    kernel takes it) and dot diameter, computed on the device; the image checks of ``track_pair`` (the
+    pairs named from ``first``)."""
+    st = {k: v.numpy() for k, v in frame_statistics(images, device=device).items()}
+    for b, why in enumerate(st["bad"]):
+        if why == 1:
+            raise SynthbosError(f"pair {first + b}'s {name} image contains non-finite pixels (NaN or inf)")
+        if why == 2:
+            raise SynthbosError(f"pair {first + b}'s {name} image is all zero")
+    sat = st["saturation"] if settings.saturation_level is None else np.full(len(st["bad"]), settings.saturation_level)
+    return {"noise": st["noise"], "fill": st["fill"], "sat": np.minimum(sat, 1e300), "diameter": st["diameter"]}
+
+
+def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings | None = None, device=None):
+    """Track every prior dot from the reference to the gradient image of each of B pairs.
+
+    Parameters
+    ----------
+    references, gradients : (B, H, W) arrays or Warp arrays
+        The image pairs (any real dtype; Warp float64 arrays on ``device`` are used without a copy).
+    prior_xy : (N, 2) or (B, N, 2) array
+        Predicted reference-image positions of the pattern's dots (x = column, y = row), one set for all
+        pairs or one per pair.
+    settings : TrackingSettings, optional
+        Defaults to ``TrackingSettings()``; :func:`stack_support` says which the stack runs.
+    device : str or None, optional
+        Warp device ("cpu", "cuda:0"); Warp's default when None.
+
+    Returns
+    -------
+    (B, N) numpy structured array of dtype ``TRACK_DTYPE``
+        Row ``[b, i]`` is ``track_pair(references[b], gradients[b], prior_xy=prior[b], settings=settings)``'s
+        row i.
+
+    Raises
+    ------
+    synthbos.SynthbosError
+        Stacks of different shapes or not 3-D, images all zero or with non-finite pixels (the pair is
+        named), a prior of the wrong shape or entirely outside the image, settings the stack does not run.
+
+    Notes
+    -----
+    On a GPU, the pairs are tracked in turns of as many as its free memory holds
+    (:func:`pairs_per_call`, some 28 MB per 512 x 512 pair of 5,120 dots); each turn uploads its own
+    images when they come as NumPy stacks.
+    """
+    settings = TrackingSettings() if settings is None else settings
+    why = stack_support(settings)
+    if why is not None:
+        raise SynthbosError(f"track_pairs cannot run these settings: {why}")
+    init_warp()
+    device = str(wp.get_device(device))
+    hold_freed_memory(device)
+    shape_r, shape_g = _stack_shape(references, "reference"), _stack_shape(gradients, "gradient")
+    if shape_r != shape_g:
+        raise SynthbosError(f"reference and gradient stacks differ in shape: {shape_r} and {shape_g}")
+    B, H, W = shape_r
+    if B == 0:
+        return np.zeros((0, 0), dtype=TRACK_DTYPE)
+    if min(H, W) < 8:
+        raise SynthbosError(f"images are too small ({H}x{W}), need at least 8x8")
+    prior = np.asarray(prior_xy, dtype=np.float64)
+    shared = prior.ndim == 2  # one prior for all pairs: checked and uploaded once, repeated on the device
+    if not (prior.ndim in (2, 3) and prior.shape[-1] == 2 and (shared or prior.shape[0] == B)):
+        raise SynthbosError(f"prior positions must be an Nx2 or {B}xNx2 array, got shape {prior.shape}")
+    inside = prior_inside(prior, (H, W))
+    if not inside.any(axis=-1).all():
+        b = 0 if shared else int(np.flatnonzero(~inside.any(axis=1))[0])
+        raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
+    on_device = all(isinstance(a, wp.array) and a.device == wp.get_device(device) for a in (references, gradients))
+    turn = pairs_per_call((H, W), prior.shape[-2], device, on_device=on_device) or B
+    if turn >= B:
+        return _track_turn(references, gradients, prior, settings, device, 0)
+    turns = [(a, min(a + turn, B)) for a in range(0, B, turn)]
+    return np.concatenate([
+        _track_turn(references[a:b], gradients[a:b], prior if shared else prior[a:b], settings, device, a)
+        for a, b in turns
+    ])  # fmt: skip
+
+
+def _track_turn(references, gradients, prior, settings, device, first):
+    """:func:`track_pairs` of pairs ``first ...`` (the pairs its errors name), checked, in one turn."""
+    refs = _upload(references, "reference", device)
+    grads = _upload(gradients, "gradient", device)
+    B = refs.shape[0]
+    st_r = _frame_statistics(refs, "reference", settings, device, first)
+    st_g = _frame_statistics(grads, "gradient", settings, device, first)
+    d = np.full(B, float(settings.diameter)) if settings.diameter is not None else st_r["diameter"]
+    bad = ~(np.isfinite(d) & (d > 0))
+    if bad.any():
+        raise SynthbosError(
+            f"cannot estimate the dot diameter from pair {first + int(np.flatnonzero(bad)[0])}'s reference image; "
+            "give it in settings"
+        )
+    geometry = [_Pairs(float(di), settings) for di in d]
+    groups: dict = {}
+    for b, g in enumerate(geometry):
+        groups.setdefault(g.key(), []).append(b)
+    if len(groups) == 1:  # (the usual case: one diameter for all)
+        return _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device)
+    out = np.zeros((B, prior.shape[-2]), dtype=TRACK_DTYPE)
+    for members in groups.values():
+        sel = np.array(members)
+        out[sel] = _track_group(
+            _pairs_of(refs, sel),
+            _pairs_of(grads, sel),
+            prior if prior.ndim == 2 else prior[sel],
+            {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_r.items()},
+            {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_g.items()},
+            [geometry[b] for b in sel],
+            settings,
+            device,
+        )
+    return out
+
+
+def _pairs_of(stack, sel):
+    """The pairs ``sel`` of a (B, H, W) Warp stack (the stack itself when it holds no others)."""
+    if len(sel) == stack.shape[0]:
+        return stack
+    return wp.array(stack.numpy()[sel], dtype=wp.float64, device=stack.device)
+
+
+def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
+    B, H, W = refs.shape
+    N = prior.shape[-2]
+    M = B * N
+    s = settings
+    host_table = HostTable(M) if wp.get_device(device).is_cuda else None
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    stats = {
+        "noise": [arr(st["noise"], wp.float64) for st in (st_r, st_g)],
+        "fill": [arr(st["fill"], wp.float64) for st in (st_r, st_g)],
+        "sat": [arr(st["sat"], wp.float64) for st in (st_r, st_g)],
+        "floor": [arr(s.noise_threshold * st["noise"], wp.float64) for st in (st_r, st_g)],
+        "sat_frames": arr(np.stack([st_r["sat"], st_g["sat"]], axis=1).ravel(), wp.float64),
+        "noise_frames": arr(np.stack([st_r["noise"], st_g["noise"]], axis=1).ravel(), wp.float64),
+    }
+    if prior.ndim == 2:  # one set for all pairs, repeated on the device
+        one = arr(prior, wp.vec2d)
+        on_device = wp.empty(M, dtype=wp.vec2d, device=device)
+        wp.launch(ck.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
+    else:
+        on_device = arr(prior.reshape(M, 2), wp.vec2d)
+    ident = StackIdentification(refs, stats, geometry, s, per_frame=N, device=device)
+    all_ids = arr(np.arange(M, dtype=np.int32), wp.int32)
+    r = ident.identify(refs, 0, on_device, all_ids, M, wide=False)
+    use_pred = s.predictor == "correlation"
+    base = wp.empty(M, dtype=wp.vec2d, device=device)
+    wp.launch(pk.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
+    if use_pred:
+        uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
+        pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
+        wp.launch(pk.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
+        g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False)
+        wide_search_stack(
+            lambda ids, n_ids: ident.identify(grads, 1, pred_g, ids, n_ids, wide=True),
+            r,
+            g,
+            pred_g,
+            per_frame=N,
+            pairs=B,
+            window=2 * geometry[0].half_g + 1,
+            board=ident.board,
+            device=device,
+        )
+    else:
+        g = ident.identify(grads, 1, base, all_ids, M, wide=True)
+        uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
+        quality = wp.empty(M, dtype=wp.float64, device=device)
+
+    shared = fit_stack(
+        refs, grads, r, g, eta0=ident.eta0_host, sat_frames=stats["sat_frames"], noise_frames=stats["noise_frames"],
+        fit_half=geometry[0].fit_half, render_half=geometry[0].render_half, settings=s, device=device,
+    )  # fmt: skip
+    status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, use_pred=use_pred, settings=s, device=device)
+    confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
+    diameter = arr([pair.d for pair in geometry], wp.float64)
+    matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=diameter, device=device)
+    outlier = _outliers(xy, uv, matched, B, N, s, device)
+    table = table_rows(
+        r, g, matched, outlier, shared, uv_pred, quality, status, use_pred=use_pred, settings=s, per_frame=N,
+        device=device,
+    )
+    if host_table is not None:
+        return host_table.fetch(table).reshape(B, N)
+    return table.numpy().view(TRACK_DTYPE).reshape(B, N)
+
+
+def _predict(refs, grads, base, B, N, settings, device):
+    """The correlation predictor of every pair (:func:`tracking.predict.predict_displacement_stack`), at ``base``.
+
+    Pairs whose pass schedule differs (it depends on the number of dots inside the image) are run in
+    groups; usually all pairs share one.
+    """
+    H, W = refs.shape[1:]
+    count = wp.zeros(B, dtype=wp.int32, device=device)
+    wp.launch(pk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
+    plans = {}
+    for b, n_in in enumerate(count.numpy()):
+        sizes, density = predictor_passes((H, W), int(n_in), settings.predictor_windows)
+        key = (tuple(sizes), tuple(pooling_block(density, z) for z in sizes))
+        plans.setdefault(key, (sizes, density, []))[2].append(b)
+    xy = base.reshape((B, N))
+    if len(plans) == 1:
+        ((sizes, density, _),) = plans.values()
+        uv, q = predict_displacement_stack(refs, grads, xy, sizes=sizes, density=density, device=device)
+        return uv.reshape((B * N,)), q.reshape((B * N,))
+    uv = np.empty((B, N, 2))
+    q = np.empty((B, N))
+    host_xy = xy.numpy()
+    for sizes, density, members in plans.values():
+        sel = np.array(members)
+        uv_sel, q_sel = predict_displacement_stack(
+            _pairs_of(refs, sel), _pairs_of(grads, sel), host_xy[sel], sizes=sizes, density=density, device=device
+        )
+        uv[sel], q[sel] = uv_sel.numpy(), q_sel.numpy()
+    return (
+        wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
+        wp.array(q.ravel(), dtype=wp.float64, device=device),
+    )
+
+
+def _confirmed(xy, uv, good, query, B, N, settings, device):
+    """``_confirmed_by_neighbours`` of every pair (:mod:`tracking.neighbours`)."""
+    ok = confirmed_by_neighbours_stack(
+        xy.reshape((B, N)),
+        uv.reshape((B, N)),
+        good.reshape((B, N)),
+        query.reshape((B, N)),
+        k=settings.outlier_neighbours,
+        threshold=settings.outlier_threshold,
+        epsilon=settings.outlier_epsilon,
+        tolerance=settings.predictor_tolerance,
+        device=device,
+    )
+    return ok.reshape((B * N,))
+
+
+def _outliers(xy, uv, matched, B, N, settings, device):
+    """``_neighbour_outliers`` of every pair's matched dots (:mod:`tracking.neighbours`)."""
+    bad = neighbour_outliers_stack(
+        xy.reshape((B, N)),
+        uv.reshape((B, N)),
+        matched.reshape((B, N)),
+        k=settings.outlier_neighbours,
+        threshold=settings.outlier_threshold,
+        epsilon=settings.outlier_epsilon,
+        device=device,
+    )
+    return bad.reshape((B * N,))

@@ -1,0 +1,134 @@
+"""The table: a stack of pairs' status bits and their rows of ``TRACK_DTYPE``, on one Warp device.
+
+The last steps of :func:`tracking.stack.track_pairs`, as ``track_pair`` takes them for one pair
+(:mod:`tracking.pipeline`): :func:`predictor_check` sets the found bits and the predictor's mismatch and
+weakness, and says which dots vouch for their neighbours and which mismatches the neighbours may
+overrule (:func:`tracking.neighbours.confirmed_by_neighbours_stack`); :func:`edge_cut` keeps the
+mismatches the neighbours confirm and cuts the dots whose disk leaves the image differently in the two
+images; :func:`table_rows` writes each row with the outlier test's verdict
+(:func:`tracking.neighbours.neighbour_outliers_stack`), the displacements and the model correction.
+:class:`HostTable` copies the table back. The kernels are in :mod:`tracking.table_kernels`; the status
+bits and rule constants in :mod:`tracking.settings`.
+"""
+
+from __future__ import annotations
+
+import mmap
+import threading
+
+import numpy as np
+import warp as wp
+
+from . import table_kernels as tk
+from .settings import TRACK_DTYPE
+
+__all__ = ["HostTable", "edge_cut", "predictor_check", "table_rows"]
+
+
+def _launch(kernel, dim, inputs, device):
+    if dim:
+        wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+
+
+def predictor_check(r, g, uv_pred, quality, *, use_pred, settings, device):
+    """Status bits up to the predictor's check, for the M dots of a stack (flat).
+
+    Parameters
+    ----------
+    r, g : dict of (M,) Warp arrays
+        The reference and gradient images' dots (``"x"``, ``"y"``, ``"flags"``: NaN where not found).
+    uv_pred : (M,) wp.vec2d Warp array
+        The predicted displacements (read only with ``use_pred``).
+    quality : (M,) float64 Warp array
+        Their significance (likewise).
+    use_pred : bool, keyword-only
+        Whether the correlation predictor ran.
+    settings : TrackingSettings, keyword-only
+        ``predictor_tolerance`` and ``predictor_min_correlation``.
+    device : warp.context.Device or str, keyword-only
+
+    Returns
+    -------
+    status : (M,) int32 Warp array
+        The bits so far.
+    xy, uv : (M,) wp.vec2d Warp arrays
+        Reference positions and displacements.
+    good, query : (M,) int32 Warp arrays
+        The dots that vouch for their neighbours, and those whose mismatch the neighbours may overrule.
+    """
+    m = r["x"].shape[0]
+    status = wp.empty(m, dtype=wp.int32, device=device)
+    xy = wp.empty(m, dtype=wp.vec2d, device=device)
+    uv = wp.empty(m, dtype=wp.vec2d, device=device)
+    good = wp.empty(m, dtype=wp.int32, device=device)
+    query = wp.empty(m, dtype=wp.int32, device=device)
+    _launch(
+        tk.first_status,
+        m,
+        [
+            r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
+            float(settings.predictor_tolerance), float(settings.predictor_min_correlation), status, xy, uv, good,
+            query,
+        ],
+        device,
+    )  # fmt: skip
+    return status, xy, uv, good, query
+
+
+def edge_cut(confirmed, query, status, r, g, *, per_frame, shape, diameter, device):
+    """Keep the mismatches the neighbours confirm, then cut the dots at the edge (``EDGE_CUT_PX``), in
+    ``status``; return the (M,) int32 Warp array of the dots matched so far (those the outlier test takes).
+    ``diameter`` is the (B,) dot diameter of each pair, ``shape`` the images' (H, W)."""
+    m = status.shape[0]
+    h, w = shape
+    matched = wp.empty(m, dtype=wp.int32, device=device)
+    _launch(
+        tk.second_status,
+        m,
+        [confirmed, query, per_frame, h, w, diameter, r["x"], r["y"], g["x"], g["y"], status, matched],
+        device,
+    )
+    return matched
+
+
+def table_rows(r, g, matched, outlier, shared, uv_pred, quality, status, *, use_pred, settings, per_frame, device):
+    """The (M,) ``TrackRow`` Warp array of the table: the outlier test's verdict, MATCHED, the
+    displacements and the model correction (``shared``: the (2 M, 2) positions refitted with each pair's
+    common peak and width, reference rows first); ``per_frame`` is the prior's dots per pair."""
+    m = status.shape[0]
+    table = wp.empty(m, dtype=tk.TrackRow, device=device)
+    _launch(
+        tk.write_table,
+        m,
+        [
+            r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
+            shared, m, uv_pred, quality, int(use_pred), float(settings.cc_threshold), status, per_frame, table,
+        ],
+        device,
+    )  # fmt: skip
+    return table
+
+
+class HostTable:
+    """The (M,) ``TRACK_DTYPE`` array that the device's table is copied into, its pages touched by a host
+    thread as soon as it is made, while the device works: first-touch page faults on the ~230 MB of a
+    400-pair stack cost tens of milliseconds, and the host only waits for the device meanwhile. (A
+    page-locked buffer copies faster but takes longer to allocate and to free than the copy saves.)"""
+
+    def __init__(self, rows):
+        self.out = np.empty(rows, dtype=TRACK_DTYPE)
+        self.toucher = threading.Thread(target=_touch_pages, args=(self.out.view(np.uint8),), daemon=True)
+        self.toucher.start()
+
+    def fetch(self, table):
+        """Copy the device's (M,) ``TrackRow`` table into :attr:`out` and return it."""
+        self.toucher.join()
+        if len(self.out):
+            view = wp.array(ptr=self.out.ctypes.data, dtype=tk.TrackRow, shape=(len(self.out),), device="cpu")
+            wp.copy(view, table)
+            wp.synchronize_device(table.device)
+        return self.out
+
+
+def _touch_pages(flat):
+    flat[:: mmap.PAGESIZE] = 0
