@@ -122,6 +122,21 @@ def _fixed_point_scale(peak: float) -> float:
     return float(2.0**50 / (16.0 * max(peak, 1e-300)))
 
 
+def _frame_scales(peaks, frames_per_peak: int, device):
+    """The fixed-point scale of every frame on ``device``: :func:`_fixed_point_scale` of each peak (one per
+    pair of a stack, or one for all the frames of a single fit), repeated for its ``frames_per_peak``
+    frames. A pair's scale depends on its own dots only, so a pair's bits do not depend on its stack.
+
+    Examples
+    --------
+    >>> _frame_scales([2.0**40, 2.0**44], 2, "cpu").numpy().tolist()
+    [64.0, 64.0, 4.0, 4.0]
+    """
+    scales = [_fixed_point_scale(float(p)) for p in np.ravel(peaks)]
+    return wp.array(np.repeat(np.asarray(scales, dtype=np.float64), frames_per_peak), dtype=wp.float64,
+                    device=device)
+
+
 def _image_list(images):
     """The images as a list of 2-D float64 arrays (no copy where they already are)."""
     if isinstance(images, np.ndarray) and images.ndim == 2:
@@ -283,7 +298,7 @@ def fit_dots(
         last = it == iterations - 1
         if it:
             peak = float(np.max(np.abs(cur.numpy()[:, 2])))
-        scale = _fixed_point_scale(peak)
+        scales = _frame_scales([peak], len(stack), device)
         (models if last else models[0]).zero_()
         wp.launch(
             render_dots_kernel,
@@ -296,7 +311,7 @@ def fit_dots(
                 int(last),
                 int(it == 0),
                 prof,
-                scale,
+                scales,
                 *stack[0].shape,
                 models.flatten(),
             ],
@@ -309,7 +324,7 @@ def fit_dots(
                 img0,
                 img1,
                 models.flatten(),
-                1.0 / scale,
+                scales,
                 cur,
                 start,
                 fr,
@@ -440,9 +455,9 @@ def moment_shifts(
     models = scratch("moment_models", (k, *stack[0].shape), wp.int64, device)
     models.zero_()
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
-    scale = _fixed_point_scale(float(np.max(np.abs(p[:, 2]))))
+    scales = _frame_scales([np.max(np.abs(p[:, 2]))], k, device)
     h, w = stack[0].shape
-    wp.launch(render_dots_kernel, dim=n, inputs=[pw, fr, pa, int(half), 0, 1, prof, scale, h, w, models.flatten()],
+    wp.launch(render_dots_kernel, dim=n, inputs=[pw, fr, pa, int(half), 0, 1, prof, scales, h, w, models.flatten()],
               device=device)  # fmt: skip
     sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
     sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
@@ -450,13 +465,13 @@ def moment_shifts(
     wp.launch(
         moment_shift_kernel,
         dim=n,
-        inputs=[img0, img1, models.flatten(), 1.0 / scale, pw, fr, pa, sat, sig, int(half), float(chi2),
+        inputs=[img0, img1, models.flatten(), scales, pw, fr, pa, sat, sig, int(half), float(chi2),
                 float(max_shift), prof, out],
         device=device,
     )  # fmt: skip
     moved = wp.empty(n, dtype=wp.int32, device=device)
     if ellipse:
-        ellipse_step(img1.reshape((1, h, w)), models.flatten(), scale, pw, fr, pa, prof, out, half=int(half),
+        ellipse_step(img1.reshape((1, h, w)), models.flatten(), scales, pw, fr, pa, prof, out, half=int(half),
                      max_shift=float(max_shift), device=device)  # fmt: skip
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
@@ -542,12 +557,12 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     ok = wp.zeros(rows, dtype=wp.int32, device=device)
     shared = wp.full((rows, 2), np.nan, dtype=wp.float64, device=device)
     prof = wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
-    peak = wp.zeros(1, dtype=wp.float64, device=device)
+    peak = wp.zeros(B, dtype=wp.float64, device=device)
     for it in range(s.fit_iterations):
         last = it == s.fit_iterations - 1
         peak.zero_()
-        _launch(fk.largest_peak, rows, [cur, live, peak], device)
-        scale = _fixed_point_scale(float(peak.numpy()[0]))
+        _launch(fk.largest_peak, rows, [cur, live, frame, peak], device)
+        scales = _frame_scales(peak.numpy(), 2, device)
         if last:
             models.zero_()
         else:
@@ -555,14 +570,14 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
         _launch(
             render_dots_kernel,
             rows,
-            [cur, frame, partner, render_half, int(last), int(it == 0), prof, scale, H, W, models],
+            [cur, frame, partner, render_half, int(last), int(it == 0), prof, scales, H, W, models],
             device,
         )
         _launch(
             fk.fit_step_stack,
             rows,
             [
-                refs, grads, models, 1.0 / scale, cur, start, frame, partner, live, sat, eta0, half, render_half,
+                refs, grads, models, scales, cur, start, frame, partner, live, sat, eta0, half, render_half,
                 int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
             ],
             device,
@@ -584,22 +599,22 @@ def _moment_step_stack(refs, grads, rows_of, models, prof, shared, moved, sat, n
     params, frame, partner, live = rows_of
     H, W = refs.shape[1:]
     rows = params.shape[0]
-    peak = wp.zeros(1, dtype=wp.float64, device=device)
-    _launch(fk.largest_peak, rows, [params, live, peak], device)
-    scale = _fixed_point_scale(float(peak.numpy()[0]))
+    peak = wp.zeros(refs.shape[0], dtype=wp.float64, device=device)
+    _launch(fk.largest_peak, rows, [params, live, frame, peak], device)
+    scales = _frame_scales(peak.numpy(), 2, device)
     models.zero_()
-    _launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scale, H, W, models], device)
+    _launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scales, H, W, models], device)
     shift = wp.empty(rows, dtype=wp.vec3d, device=device)
     _launch(
         fk.moment_shift_stack,
         rows,
         [
-            refs, grads, models, 1.0 / scale, params, frame, partner, live, sat, noise_frames, half,
+            refs, grads, models, scales, params, frame, partner, live, sat, noise_frames, half,
             float(s.distortion_chi2), MAX_SHIFT_PX, prof, shift,
         ],
         device,
     )  # fmt: skip
     if s.distortion == "ellipse":
-        ellipse_step(grads, models, scale, params, frame, partner, prof, shift, half=half, max_shift=MAX_SHIFT_PX,
+        ellipse_step(grads, models, scales, params, frame, partner, prof, shift, half=half, max_shift=MAX_SHIFT_PX,
                      device=device)  # fmt: skip
     _launch(fk.apply_moment_shift, rows, [shift, partner, params, shared, moved], device)

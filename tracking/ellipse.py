@@ -24,7 +24,7 @@ from .settings import ELLIPSE_MOMENT_ITERATIONS, ELLIPSE_SWEEPS
 __all__ = ["ellipse_step"]
 
 
-def ellipse_step(gradients, models, scale, params, frame, partner, prof, shift, *, half, max_shift, device=None):
+def ellipse_step(gradients, models, scales, params, frame, partner, prof, shift, *, half, max_shift, device=None):
     """Replace the first-moment shifts of the gradient-image dots that move by their elliptical moments.
 
     Parameters
@@ -32,10 +32,10 @@ def ellipse_step(gradients, models, scale, params, frame, partner, prof, shift, 
     gradients : Warp float64 array (B, H, W)
         The gradient image of each pair; row i's image is ``gradients[frame[i] // 2]``.
     models : Warp int64 array, flat ``[frames, H, W]``
-        The fixed-point model image (units of ``1 / scale``) of every row's symmetric model at ``params``,
-        as ``render_dots_kernel`` drew it with profiles ``prof``: overwritten.
-    scale : float
-        Its fixed-point units per intensity.
+        The fixed-point model image (units of ``1 / scales[f]`` in frame f) of every row's symmetric model at
+        ``params``, as ``render_dots_kernel`` drew it with profiles ``prof``: overwritten.
+    scales : Warp float64 array (frames,)
+        Its fixed-point units per intensity, per frame.
     params : Warp float64 array (N, 5)
         Fitted parameters of every row (frames ``f``: image ``f % 2`` of pair ``f // 2``).
     frame, partner : Warp int32 arrays (N,)
@@ -69,12 +69,12 @@ def ellipse_step(gradients, models, scale, params, frame, partner, prof, shift, 
     height, width = gradients.shape[1], gradients.shape[2]
 
     def draw(symmetric, sign):
-        inputs = [params, frame, active, ell, prof, symmetric, sign, half, scale, height, width, models]
+        inputs = [params, frame, active, ell, prof, symmetric, sign, half, scales, height, width, models]
         wp.launch(ellipse_render, dim=rows, inputs=inputs, device=device)
 
     draw(1, -1)  # the moving rows' symmetric models out: the model image of the others
     others = wp.clone(models)
-    step_inputs = [gradients, models, 1.0 / scale, params, frame, partner, active, half, ell]
+    step_inputs = [gradients, models, scales, params, frame, partner, active, half, ell]
     for kernel, times in ((ellipse_fit_kernel, ELLIPSE_SWEEPS), (ellipse_moment_kernel, ELLIPSE_MOMENT_ITERATIONS)):
         for _ in range(times):
             wp.copy(models, others)

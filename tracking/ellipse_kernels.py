@@ -117,7 +117,7 @@ def ellipse_render(
     symmetric: int,
     sign: int,
     half: int,
-    scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     height: int,
     width: int,
     models: wp.array(dtype=wp.int64),
@@ -129,6 +129,7 @@ def ellipse_render(
     i = wp.tid()
     if active[i] == 0:
         return
+    scale = scales[frame[i]]
     n = 2 * half + 1
     ox = int(wp.rint(params[i, 0])) - half
     oy = int(wp.rint(params[i, 1])) - half
@@ -282,7 +283,7 @@ def ellipse_finish(
 def ellipse_fit_kernel(
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
@@ -296,14 +297,14 @@ def ellipse_fit_kernel(
         return
     f = frame[i]
     b = reference_background(params, partner, i, True)
-    ellipse_fit_step(gradients[f // 2], models, inv_scale, f, params, i, half, b, ell)
+    ellipse_fit_step(gradients[f // 2], models, wp.float64(1.0) / scales[f], f, params, i, half, b, ell)
 
 
 @wp.kernel
 def ellipse_moment_kernel(
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
@@ -318,5 +319,5 @@ def ellipse_moment_kernel(
         return
     f = frame[i]
     b = reference_background(params, partner, i, True)
-    if not ellipse_moment(gradients[f // 2], models, inv_scale, f, params, i, half, b, ell):
+    if not ellipse_moment(gradients[f // 2], models, wp.float64(1.0) / scales[f], f, params, i, half, b, ell):
         active[i] = 2

@@ -151,7 +151,7 @@ def render_dots_kernel(
     common: int,
     profiles: int,
     prof: wp.array3d(dtype=wp.float64),
-    scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     height: int,
     width: int,
     models: wp.array(dtype=wp.int64),
@@ -162,10 +162,12 @@ def render_dots_kernel(
     if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
     holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit),
     they are computed here first, from ``params``.
-    The images are fixed point (units of ``1 / scale``) added with integer atomics, so overlapping
+    The images are fixed point (units of ``1 / scales[f]`` for frame f: one scale per pair, so a pair's
+    bits do not depend on the other pairs of a stack) added with integer atomics, so overlapping
     dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
     """
     i = wp.tid()
+    scale = scales[frame[i]]
     if profiles != 0:
         dot_profiles(params, i, half, prof)
     n = 2 * half + 1
@@ -563,7 +565,7 @@ def fit_dot_step_kernel(
     image0: wp.array2d(dtype=wp.float64),
     image1: wp.array2d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
@@ -581,9 +583,10 @@ def fit_dot_step_kernel(
     shared_xy: wp.array2d(dtype=wp.float64),
 ):
     """``fit_dot_step`` of dot i; ``image0``, ``image1``: the images of frames 0 and 1 (the same array
-    twice for a single image)."""
+    twice for a single image); ``scales``: the model images' fixed-point units per intensity, per frame."""
     i = wp.tid()
     f = frame[i]
+    inv_scale = wp.float64(1.0) / scales[f]
     has_partner = int(partner[i] >= 0)
     if f == 0:
         fit_dot_step(
@@ -673,11 +676,15 @@ def pair_partners(live: wp.array(dtype=wp.int32), n: int, partner: wp.array(dtyp
 
 @wp.kernel
 def largest_peak(
-    params: wp.array2d(dtype=wp.float64), live: wp.array(dtype=wp.int32), peak: wp.array(dtype=wp.float64)
+    params: wp.array2d(dtype=wp.float64),
+    live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+    peak: wp.array(dtype=wp.float64),
 ):
+    """The largest |peak| of each pair's live rows (``peak[b]``, pair b: frames 2 b and 2 b + 1)."""
     i = wp.tid()
     if live[i] != 0:
-        wp.atomic_max(peak, 0, wp.abs(params[i, 2]))
+        wp.atomic_max(peak, frame[i] // 2, wp.abs(params[i, 2]))
 
 
 @wp.kernel
@@ -685,7 +692,7 @@ def fit_step_stack(
     references: wp.array3d(dtype=wp.float64),
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     start: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
@@ -710,6 +717,7 @@ def fit_step_stack(
             out[i, k] = params[i, k]
         return
     f = frame[i]
+    inv_scale = wp.float64(1.0) / scales[f]
     b = f // 2
     e0 = eta0[b]
     has_partner = int(partner[i] >= 0)
@@ -732,7 +740,7 @@ def moment_shift_stack(
     references: wp.array3d(dtype=wp.float64),
     gradients: wp.array3d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
@@ -752,6 +760,7 @@ def moment_shift_stack(
     if live[i] == 0:
         return
     f = frame[i]
+    inv_scale = wp.float64(1.0) / scales[f]
     b = f // 2
     bg = reference_background(params, partner, i, f % 2 == 1)
     s2 = reference_spread2(params, partner, i)

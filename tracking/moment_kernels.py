@@ -176,7 +176,7 @@ def moment_shift_kernel(
     image0: wp.array2d(dtype=wp.float64),
     image1: wp.array2d(dtype=wp.float64),
     models: wp.array(dtype=wp.int64),
-    inv_scale: wp.float64,
+    scales: wp.array(dtype=wp.float64),
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
@@ -192,6 +192,7 @@ def moment_shift_kernel(
     of frames 0 (the reference) and 1 (the gradient; the same array twice for a single image)."""
     i = wp.tid()
     f = frame[i]
+    inv_scale = wp.float64(1.0) / scales[f]
     b = reference_background(params, partner, i, f == 1)
     s2 = reference_spread2(params, partner, i)
     if f == 0:

@@ -12,7 +12,8 @@ Where a step depends on data (a pair's identification ending early, its predicto
 a coarser pass, the wide search of the dots the first one missed), the stack runs the step for every
 pair and leaves the pairs it no longer concerns untouched, so the number of launches does not depend on
 B. The host waits for the device a few times per stack (the image checks, the predictor's pass schedule,
-the count of missed dots, the fit's fixed-point scale), never per pair.
+the count of missed dots, the largest peak of each pair for the fit's fixed-point scales), never per
+pair.
 
 This module only orchestrates; each step lives in its room: the frame statistics in
 :mod:`tracking.frame_stats`, identification in :mod:`tracking.identify` (``StackIdentification``),
