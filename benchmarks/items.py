@@ -112,8 +112,8 @@ def score_result(pair, method: str, res) -> dict:
     The scoring runs with one thread in the BLAS and OpenMP libraries (``threadpoolctl``), as a campaign's
     worker processes run it: its linear algebra is thousands of 2 x 2 and 3 x 3 solves (the barycentric
     transforms of a triangulation, the gradient fits), for which a pool of threads per call only costs
-    (a tracking item took 1.9 s in a process with two BLAS threads on a busy two-core machine, 0.08 s with
-    one; 2026-11-27). The numbers are the same either way.
+    (``bench_stages`` scored a tracking item in 0.59-1.9 s with two BLAS threads on a busy two-core machine,
+    in 0.08 s with one; 2026-11-27, docs/benchmarks.md). The numbers are the same either way.
     """
     with _blas_controller().limit(limits=1):
         return _score_result(pair, method, res)
