@@ -16,8 +16,10 @@ The scoring runs with one BLAS thread (:func:`score_result`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import threading
 import tomllib
 
 import numpy as np
@@ -115,7 +117,7 @@ def score_result(pair, method: str, res) -> dict:
     (``bench_stages`` scored a tracking item in 0.59-1.9 s with two BLAS threads on a busy two-core machine,
     in 0.08 s with one; 2026-11-27, docs/benchmarks.md). The numbers are the same either way.
     """
-    with _blas_controller().limit(limits=1):
+    with _one_blas_thread():
         return _score_result(pair, method, res)
 
 
@@ -123,6 +125,28 @@ def score_result(pair, method: str, res) -> dict:
 def _blas_controller() -> ThreadpoolController:
     """The process's BLAS and OpenMP libraries (those loaded once this module and its imports are)."""
     return ThreadpoolController()
+
+
+_blas_lock = threading.Lock()
+_blas_hold = {"users": 0, "limiter": None}  # scorings in progress in this process, and their limiter
+
+
+@contextlib.contextmanager
+def _one_blas_thread():
+    """One BLAS/OpenMP thread while any thread of the process scores; the setting before is back once the
+    last one is done (the libraries keep one setting per process, so concurrent scorings share it)."""
+    with _blas_lock:
+        if _blas_hold["users"] == 0:
+            _blas_hold["limiter"] = _blas_controller().limit(limits=1)
+        _blas_hold["users"] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_hold["users"] -= 1
+            if _blas_hold["users"] == 0:
+                _blas_hold["limiter"].restore_original_limits()
+                _blas_hold["limiter"] = None
 
 
 def _score_result(pair, method: str, res) -> dict:

@@ -7,6 +7,7 @@ the truths remembered per pair (``items``: the truth at a method's points and it
 they depend on. The references below are the implementations they replaced, kept here only.
 """
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -272,4 +273,48 @@ def test_score_result_runs_with_one_blas_thread(monkeypatch):
         items.score_result(pair, "tracking", tracked(pair, "tracking"))
         after = [lib["num_threads"] for lib in threadpool_info()]
     assert len(seen) == 1 and seen[0] and all(n == 1 for n in seen[0])
+    assert after == before
+
+
+def test_concurrent_scorings_all_run_with_one_thread_and_restore_the_setting(monkeypatch):
+    """Two threads score at once, the first leaving while the second is still inside: the second keeps one
+    BLAS thread to its end, and the setting before both is back after the last."""
+    first_in, second_in, first_done = threading.Event(), threading.Event(), threading.Event()
+    seen, errors = {}, []
+    real = scoring.split_threshold
+
+    def spy(theory_px):
+        name = threading.current_thread().name
+        if name == "first":
+            first_in.set()
+            assert second_in.wait(30)  # the second is inside too before the first goes on
+        else:
+            second_in.set()
+            assert first_done.wait(30)  # the first has left
+        seen[name] = [lib["num_threads"] for lib in threadpool_info()]
+        return real(theory_px)
+
+    monkeypatch.setattr(scoring, "split_threshold", spy)
+    pair = synthetic_pair()
+    res = tracked(pair, "tracking")
+
+    def score():
+        try:
+            items.score_result(pair, "tracking", res)
+        except Exception as err:  # reported below, in the test's thread
+            errors.append(err)
+
+    # the process's own setting (a limit set by this thread would bind the others' settings, OpenBLAS 0.3.30)
+    before = [lib["num_threads"] for lib in threadpool_info()]
+    first = threading.Thread(target=score, name="first")
+    second = threading.Thread(target=score, name="second")
+    first.start()
+    assert first_in.wait(30)
+    second.start()
+    first.join(60)
+    first_done.set()
+    second.join(60)
+    after = [lib["num_threads"] for lib in threadpool_info()]
+    assert not errors and not first.is_alive() and not second.is_alive()
+    assert seen["second"] and all(n == 1 for n in seen["first"] + seen["second"])
     assert after == before
