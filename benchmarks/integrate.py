@@ -73,6 +73,7 @@ from synthbos.integration import (
 from synthbos.raytrace.pairfile import name_dimensions
 
 from synthbos import SynthbosError, atomic_output
+from synthbos.memo import RecentResults
 from synthbos.values import numbers, optional_number
 
 from . import scoring
@@ -400,9 +401,15 @@ def truth_on_grid(pair, grid: GradientGrid):
         raise SynthbosError("the pair file has no density truth (rendered before /dots/density_cone_kg_m3 existed)")
     ok = pair.valid & np.all(np.isfinite(pair.reference_px), axis=1)
     x, y = pair.reference_px[ok, 0], pair.reference_px[ok, 1]
-    both = scattered_to_grid(x, y, np.stack([pair.density_cone_kg_m3[ok], pair.density_chief_kg_m3[ok]], 1),
-                             grid.x_px, grid.y_px)
-    return both[..., 0], both[..., 1]
+    values = np.stack([pair.density_cone_kg_m3[ok], pair.density_chief_kg_m3[ok]], 1)
+    x_px, y_px = np.asarray(grid.x_px, np.float64), np.asarray(grid.y_px, np.float64)
+    # the same for every item of a pair measured on the same grid (a correlation's, or tracking and
+    # tracking-cc on the same dots): remembered by the contents of the dots, the truths and the grid
+    both = _truths_on_grid.get([x, y, values, x_px, y_px], lambda: scattered_to_grid(x, y, values, x_px, y_px))
+    return both[..., 0].copy(), both[..., 1].copy()
+
+
+_truths_on_grid = RecentResults(8)
 
 
 DENSITY_SOLVER = "lsq"  # the solver campaigns score every method with

@@ -8,22 +8,28 @@ that processes on a GPU can run the halves in different processes (``scheduling.
 
 The host half's costly steps that depend only on the pair, or repeat from item to item (the truth's
 Delaunay triangulation, the dots' neighbours for the gradient fits, the LU factors of a least-squares
-domain met before), are remembered in each process (``synthbos.memo``), so a worker that scores several
-items of a pair does them once; the scores are byte-identical either way.
+domain met before, the truth at a method's points and its gradient at the dots, the density truths on an
+integration grid), are remembered in each process (``synthbos.memo``, by the contents of every input),
+so a worker that scores several items of a pair does them once; the scores are byte-identical either way.
+The scoring runs with one BLAS thread (:func:`score_result`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import threading
 import tomllib
 
 import numpy as np
 from synthbos.raytrace import add_noise, load_config, read_pair, render_pair, write_pair
 from synthbos.raytrace.camera import camera_from_config
 from synthbos.raytrace.pairfile import in_cone_spread_px
+from threadpoolctl import ThreadpoolController
 
 from synthbos.device import init_warp
+from synthbos.memo import RecentResults
 
 from . import scoring
 from .integrate import score_density
@@ -102,15 +108,56 @@ def score_result(pair, method: str, res) -> dict:
         ``measured`` / ``expected`` (for the yield), ``spread`` (the in-cone spread at each scored point, px,
         NaN where the pair holds no ray covariance; see ``scoring``); and the density errors of the method's result
         integrated by ``integrate.DENSITY_SOLVER`` against both truths (``integrate.score_density``).
+
+    Notes
+    -----
+    The scoring runs with one thread in the BLAS and OpenMP libraries (``threadpoolctl``), as a campaign's
+    worker processes run it: its linear algebra is thousands of 2 x 2 and 3 x 3 solves (the barycentric
+    transforms of a triangulation, the gradient fits), for which a pool of threads per call only costs
+    (``bench_stages`` scored a tracking item in 0.59-1.9 s with two BLAS threads on a busy two-core machine,
+    in 0.08 s with one; 2026-11-27, docs/benchmarks.md). The numbers are the same either way.
     """
+    with _one_blas_thread():
+        return _score_result(pair, method, res)
+
+
+@functools.cache
+def _blas_controller() -> ThreadpoolController:
+    """The process's BLAS and OpenMP libraries (those loaded once this module and its imports are)."""
+    return ThreadpoolController()
+
+
+_blas_lock = threading.Lock()
+_blas_hold = {"users": 0, "limiter": None}  # scorings in progress in this process, and their limiter
+
+
+@contextlib.contextmanager
+def _one_blas_thread():
+    """One BLAS/OpenMP thread while any thread of the process scores; the setting before is back once the
+    last one is done (the libraries keep one setting per process, so concurrent scorings share it)."""
+    with _blas_lock:
+        if _blas_hold["users"] == 0:
+            _blas_hold["limiter"] = _blas_controller().limit(limits=1)
+        _blas_hold["users"] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_hold["users"] -= 1
+            if _blas_hold["users"] == 0:
+                _blas_hold["limiter"].restore_original_limits()
+                _blas_hold["limiter"] = None
+
+
+def _score_result(pair, method: str, res) -> dict:
+    """:func:`score_result`, in the calling thread's BLAS set-up."""
     m = get_method(method)
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     threshold = scoring.split_threshold(pair.theory_px[valid])
     spread = _spread(pair)
     uv = res.uv
     if m.kind == GRID or (m.kind == DOTS and not m.uses_prior):  # the truth interpolated to its points
-        truth = scoring.interpolate_truth(pair.reference_px[valid], pair.displacement_px[valid], res.xy)
-        spread = scoring.interpolate_dots(pair.reference_px[valid], spread[valid], res.xy)
+        truth, spread = _truth_at_points(pair.reference_px[valid], pair.displacement_px[valid], spread[valid], res.xy)
         keep = np.all(np.isfinite(truth), axis=1)
         measured = keep & res.valid
     else:  # at the rendered dots: tracked (one row per prior dot), or sampled from a dense field
@@ -132,7 +179,10 @@ def score_result(pair, method: str, res) -> dict:
     else:
         points = res.xy if m.kind == DOTS and not m.uses_prior else pair.reference_px
         at = np.where(measured[:, None], points, np.nan)
-        g_meas, g_true = scoring.scattered_gradient(at, np.stack([uv, truth]))
+        # each field is fitted as on its own (``scattered_gradient``): the truth's fit, the same for every
+        # item of a pair that measured the same dots, is remembered
+        g_meas = scoring.scattered_gradient(at, uv)
+        g_true = _true_gradients.get([at, truth], lambda: _read_only(scoring.scattered_gradient(at, truth)))
     err = scoring.vector_errors(uv, truth)
     grad_err = np.sqrt(np.sum((g_meas - g_true) ** 2, axis=(1, 2)))
     return score_density(pair, res) | {
@@ -144,6 +194,29 @@ def score_result(pair, method: str, res) -> dict:
         "measured": np.int64(measured[keep].sum()),
         "expected": np.int64(keep.sum()),
     }
+
+
+#: The truth's displacement gradient at the dots, by dot positions and true displacements (the pair's, at
+#: the dots an item measured: the same for most items of a pair).
+_true_gradients = RecentResults(8)
+#: The truth and the in-cone spread at a method's points (a correlation grid: the same for every item of a pair).
+_truths_at_points = RecentResults(8)
+
+
+def _truth_at_points(dot_xy, dot_disp, dot_spread, points_xy):
+    """The dots' displacements and in-cone spreads interpolated to ``points_xy`` (``scoring.interpolate_truth``
+    and ``scoring.interpolate_dots``), remembered by the contents of all four (read-only arrays)."""
+    def compute():
+        truth = scoring.interpolate_truth(dot_xy, dot_disp, points_xy)
+        return _read_only(truth), _read_only(scoring.interpolate_dots(dot_xy, dot_spread, points_xy))
+
+    return _truths_at_points.get([dot_xy, dot_disp, dot_spread, points_xy], compute)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a``, marked read-only: it is remembered and shared by the items that ask for it again."""
+    a.flags.writeable = False
+    return a
 
 
 def _spread(pair) -> np.ndarray:

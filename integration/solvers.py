@@ -21,8 +21,9 @@ The constant of integration is free in the first two unless nodes are known; :fu
 fixes it from a reference value over a region.
 
 The sparse system depends only on the domain (and the weights): a campaign integrates many results on
-the same domain, so the LU factors of the last few matrices are remembered (``synthbos.memo``) and a
-repeated matrix costs only the triangular solves. The factors are SuperLU's with ``spsolve``'s
+the same domain, so the last few systems (the matrix, the domain's connected parts) and their LU factors
+are remembered (``synthbos.memo``) and a repeated domain costs only the right-hand side and the
+triangular solves. The factors are SuperLU's with ``spsolve``'s
 options, so the solution is bit for bit ``scipy.sparse.linalg.spsolve``'s.
 """
 
@@ -218,37 +219,57 @@ def lsq_integrate(gx, gy, *, dx, dy, mask=None, known=None, sigma_x=None, sigma_
     else:
         w = np.ones(len(d))
     n = ny * nx
-    # Weighted graph Laplacian (A^T W A) and right-hand side A^T W d, A: +1 at b, -1 at a per edge.
-    lap = sparse.coo_matrix(
-        (np.concatenate([w, w, -w, -w]), (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))),
-        shape=(n, n),
-    ).tocsr()
+    # right-hand side A^T W d of the normal equations, A: +1 at b, -1 at a per edge
     rhs = np.bincount(b, w * d, minlength=n) - np.bincount(a, w * d, minlength=n)
-    # Connected parts of the domain; a part without a known node gets one node pinned (then mean zero).
-    adj = sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
-    _, labels = csgraph.connected_components(adj, directed=False)
     fixed = is_known.ravel() & mask.ravel()
-    degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
-    inside = mask.ravel() & ((degree > 0) | fixed)  # a node joined to nothing stays unknown
-    free_parts = np.setdiff1d(np.unique(labels[inside]), np.unique(labels[fixed]))
-    order = np.flatnonzero(inside)
-    parts, first = np.unique(labels[order], return_index=True)
-    pinned = np.zeros(n, dtype=bool)
-    pinned[order[first[np.isin(parts, free_parts)]]] = True
+    domain = mask.ravel()
+    labels, inside, free_parts, hold, solve, sub, coupling = _systems.get(
+        [a, b, w, domain, fixed], lambda: _system(a, b, w, n, domain, fixed), extra=n)
     values = np.where(fixed, known.ravel(), 0.0)
-    hold = fixed | pinned
-    solve = inside & ~hold
     phi = np.full(n, np.nan)
     phi[hold] = values[hold]
     if solve.any():
-        sub = lap[solve][:, solve]
-        r = rhs[solve] - lap[solve][:, hold] @ values[hold]
-        phi[solve] = _spsolve(sub.tocsc(), r)
+        r = rhs[solve] - coupling @ values[hold]
+        phi[solve] = _spsolve(sub, r)
     for part in free_parts:
         sel = labels == part
         sel &= inside
         phi[sel] = np.nan if unreferenced == "nan" and fixed.any() else phi[sel] - phi[sel].mean()
     return phi.reshape(ny, nx)
+
+
+#: The normal equations' matrix and the domain's parts for the last few edge sets, weights and masks
+#: (a campaign's items integrate on the same few domains).
+_systems = RecentResults(4)
+
+
+def _system(a, b, w, n, mask, fixed):
+    """What :func:`lsq_integrate` solves on the edges ``a -> b`` (weights ``w``) of a grid of ``n`` nodes,
+    whatever the increments: each node's connected part, the nodes inside the domain, the parts without a
+    known node (each gets one node pinned, then mean zero), the held and the solved nodes, the weighted
+    graph Laplacian (A^T W A) on the solved nodes (CSC, canonical) and its columns of the held nodes."""
+    lap = sparse.coo_matrix(
+        (np.concatenate([w, w, -w, -w]), (np.concatenate([a, b, a, b]), np.concatenate([a, b, b, a]))),
+        shape=(n, n),
+    ).tocsr()
+    adj = sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    _, labels = csgraph.connected_components(adj, directed=False)
+    degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
+    inside = mask & ((degree > 0) | fixed)  # a node joined to nothing stays unknown
+    free_parts = np.setdiff1d(np.unique(labels[inside]), np.unique(labels[fixed]))
+    order = np.flatnonzero(inside)
+    parts, first = np.unique(labels[order], return_index=True)
+    pinned = np.zeros(n, dtype=bool)
+    pinned[order[first[np.isin(parts, free_parts)]]] = True
+    hold = fixed | pinned
+    solve = inside & ~hold
+    rows = lap[solve]
+    sub = rows[:, solve].tocsc()
+    sub.sum_duplicates()  # canonical once, before it is shared (``_spsolve`` would do it on each call)
+    coupling = rows[:, hold]
+    for v in (labels, inside, free_parts, hold, solve):
+        v.flags.writeable = False
+    return labels, inside, free_parts, hold, solve, sub, coupling
 
 
 def _spsolve(a, r):

@@ -1,10 +1,13 @@
 """The cheaper scoring returns exactly what the straightforward implementation returned.
 
 Campaign scores are stored numbers checked byte for byte by ``synthbos regress``: the triangulation
-cache (``integration.triangulate``) and the shared neighbour search of ``scoring.scattered_gradient``
-must not change a bit. The references below are the implementations they replaced, kept here only.
+cache (``integration.triangulate``), the shared neighbour search of ``scoring.scattered_gradient``, and
+the truths remembered per pair (``items``: the truth at a method's points and its gradient at the dots;
+``integrate.truth_on_grid``) must not change a bit, and must never serve a pair that differs in anything
+they depend on. The references below are the implementations they replaced, kept here only.
 """
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +18,9 @@ from scipy.spatial import cKDTree
 from synthbos.benchmarks import integrate, items, scoring
 from synthbos.benchmarks.registry import MethodResult
 from synthbos.integration import grid_for_points, scattered_to_grid, triangulate
+from threadpoolctl import threadpool_info, threadpool_limits
+
+from synthbos.memo import forget_all
 
 
 def reference_scattered_to_grid(x, y, values, grid_x, grid_y):
@@ -174,11 +180,141 @@ def test_score_result_is_unchanged(method, monkeypatch):
     new = [items.score_result(pair, method, res) for _ in range(2)]  # cold, then warm caches
     monkeypatch.setattr(integrate, "scattered_to_grid", reference_scattered_to_grid)
     monkeypatch.setattr(scoring, "interpolate_truth", reference_interpolate_truth)
-    monkeypatch.setattr(scoring, "scattered_gradient",
-                        lambda xy, disp: np.stack([reference_scattered_gradient(xy, d) for d in disp]))
+    monkeypatch.setattr(scoring, "scattered_gradient", lambda xy, disp: (
+        reference_scattered_gradient(xy, disp) if np.ndim(disp) == 2
+        else np.stack([reference_scattered_gradient(xy, d) for d in disp])))
+    forget_all()
     old = items.score_result(pair, method, res)
     assert old["density_error_cone"].size > 100 and np.isfinite(old["grad_error"]).sum() > 100
     for scores in new:
         assert scores.keys() == old.keys()
         for key in old:
             assert_identical(scores[key], old[key])
+
+
+def with_covariances(pair, seed=3):
+    """``pair`` with ray covariances (reference and gradient image), so that its dots have in-cone spreads."""
+    rng = np.random.default_rng(seed)
+    n = len(pair.reference_px)
+    ref = np.stack([np.full(n, 0.01), np.full(n, 0.01), np.zeros(n)], axis=1)
+    grad = ref + np.stack([rng.uniform(0, 0.2, n), rng.uniform(0, 0.2, n), rng.uniform(-0.01, 0.01, n)], axis=1)
+    return SimpleNamespace(**vars(pair), ray_covariance_reference_px2=ref, ray_covariance_px2=grad)
+
+
+def changed(pair, name, dot, delta):
+    """A copy of ``pair`` whose array ``name`` has ``delta`` added at row ``dot`` (the others shared)."""
+    arr = getattr(pair, name).copy()
+    arr[dot] += delta
+    return SimpleNamespace(**{**vars(pair), name: arr})
+
+
+@pytest.mark.parametrize("method", ["correlation", "tracking"])
+def test_remembered_truths_are_never_served_for_a_changed_pair(method):
+    """Score a pair (its truths remembered), then the same pair with one dot's position, displacement,
+    density truth or ray covariance changed: every score equals a score from cold caches, and differs
+    from the first pair's where that input enters."""
+    forget_all()
+    pair = with_covariances(synthetic_pair())
+    res = correlated(pair) if method == "correlation" else tracked(pair, method)
+    first = items.score_result(pair, method, res)
+    dot = int(np.argmin(np.sum((np.nan_to_num(pair.reference_px, nan=-1e9) - 96.0) ** 2, axis=1)))  # mid-image
+    assert pair.valid[dot] and np.isfinite(pair.displacement_px[dot]).all()
+    changes = {"reference_px": ([0.3, -0.2], "grad_error" if method == "tracking" else "error"),
+               "displacement_px": ([0.2, 0.1], "error"),
+               "density_cone_kg_m3": (0.01, "density_truth_cone"),
+               "density_chief_kg_m3": (0.01, "density_truth_chief"),
+               "ray_covariance_px2": ([0.3, 0.3, 0.0], "spread")}
+    for name, (delta, moved) in changes.items():
+        other = changed(pair, name, dot, delta)
+        items.score_result(pair, method, res)  # the first pair's truths are the latest remembered
+        warm = items.score_result(other, method, res)
+        forget_all()
+        cold = items.score_result(other, method, res)
+        for key in cold:
+            assert_identical(warm[key], cold[key])
+        a, b = np.asarray(first[moved]), np.asarray(warm[moved])
+        assert a.shape != b.shape or not np.array_equal(a, b, equal_nan=True), (name, moved)
+
+
+def test_truth_on_grid_gives_each_caller_its_own_arrays():
+    """The density truths on a grid are remembered; a caller that writes into its copy changes nothing
+    for the next, and another grid is interpolated afresh."""
+    forget_all()
+    pair = synthetic_pair()
+    grid = integrate.gradient_grid(tracked(pair, "tracking"), integrate.geometry_from_pair(pair))
+    cone, chief = integrate.truth_on_grid(pair, grid)
+    keep = cone.copy(), chief.copy()
+    cone[:] = 0.0
+    chief[:] = 0.0
+    again = integrate.truth_on_grid(pair, grid)
+    assert_identical(again[0], keep[0])
+    assert_identical(again[1], keep[1])
+    ok = pair.valid & np.all(np.isfinite(pair.reference_px), axis=1)
+    shifted = SimpleNamespace(**{**vars(grid), "x_px": grid.x_px + 0.5})
+    expect = reference_scattered_to_grid(pair.reference_px[ok, 0], pair.reference_px[ok, 1],
+                                         pair.density_cone_kg_m3[ok], shifted.x_px, shifted.y_px)
+    assert_identical(integrate.truth_on_grid(pair, shifted)[0], expect)
+
+
+def test_score_result_runs_with_one_blas_thread(monkeypatch):
+    """Inside the scoring every BLAS / OpenMP library of the process runs one thread; the caller's
+    setting is back afterwards."""
+    seen = []
+    real = scoring.split_threshold
+
+    def spy(theory_px):
+        seen.append([lib["num_threads"] for lib in threadpool_info()])
+        return real(theory_px)
+
+    monkeypatch.setattr(scoring, "split_threshold", spy)
+    pair = synthetic_pair()
+    with threadpool_limits(limits=2):
+        before = [lib["num_threads"] for lib in threadpool_info()]
+        items.score_result(pair, "tracking", tracked(pair, "tracking"))
+        after = [lib["num_threads"] for lib in threadpool_info()]
+    assert len(seen) == 1 and seen[0] and all(n == 1 for n in seen[0])
+    assert after == before
+
+
+def test_concurrent_scorings_all_run_with_one_thread_and_restore_the_setting(monkeypatch):
+    """Two threads score at once, the first leaving while the second is still inside: the second keeps one
+    BLAS thread to its end, and the setting before both is back after the last."""
+    first_in, second_in, first_done = threading.Event(), threading.Event(), threading.Event()
+    seen, errors = {}, []
+    real = scoring.split_threshold
+
+    def spy(theory_px):
+        name = threading.current_thread().name
+        if name == "first":
+            first_in.set()
+            assert second_in.wait(30)  # the second is inside too before the first goes on
+        else:
+            second_in.set()
+            assert first_done.wait(30)  # the first has left
+        seen[name] = [lib["num_threads"] for lib in threadpool_info()]
+        return real(theory_px)
+
+    monkeypatch.setattr(scoring, "split_threshold", spy)
+    pair = synthetic_pair()
+    res = tracked(pair, "tracking")
+
+    def score():
+        try:
+            items.score_result(pair, "tracking", res)
+        except Exception as err:  # reported below, in the test's thread
+            errors.append(err)
+
+    # the process's own setting (a limit set by this thread would bind the others' settings, OpenBLAS 0.3.30)
+    before = [lib["num_threads"] for lib in threadpool_info()]
+    first = threading.Thread(target=score, name="first")
+    second = threading.Thread(target=score, name="second")
+    first.start()
+    assert first_in.wait(30)
+    second.start()
+    first.join(60)
+    first_done.set()
+    second.join(60)
+    after = [lib["num_threads"] for lib in threadpool_info()]
+    assert not errors and not first.is_alive() and not second.is_alive()
+    assert seen["second"] and all(n == 1 for n in seen["first"] + seen["second"])
+    assert after == before

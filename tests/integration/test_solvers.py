@@ -18,6 +18,7 @@ from synthbos.integration import (
 )
 
 from synthbos import SynthbosError
+from synthbos.memo import forget_all
 
 NY, NX = 80, 112
 DX, DY = 0.25e-3, 0.3e-3  # metres: unequal spacings on purpose
@@ -228,3 +229,8 @@ def test_remembered_factors_solve_bit_for_bit_like_spsolve(monkeypatch):
     for g, w in zip(got, want + want, strict=True):
         assert np.isfinite(w).sum() > 1000
         assert g.tobytes() == w.tobytes()
+    # the systems (matrix, the domain's parts) are remembered by edges, weights, mask and known nodes:
+    # each run above, solved after others, equals the same run solved with nothing remembered
+    for kw, g in zip(runs, got, strict=False):
+        forget_all()
+        assert lsq_integrate(**kw).tobytes() == g.tobytes()
