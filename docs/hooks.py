@@ -65,7 +65,9 @@ RENDER_KEYS = {
                            "the stop at its sampled point",
     "rays.field": "how the volume is stored and read on the device (exact: float32, float32_vec, texture_nearest)",
     "rays.dot_order": '"morton" or "pattern": the order in which threads take the dots (never changes a bit)',
-    "rays.rays_per_group": "consecutive threads take this many rays of one dot (never changes a bit)",
+    "rays.rays_per_group": "consecutive threads take this many chunks of rays of one dot (never changes a bit)",
+    "rays.rays_per_thread": "rays of one dot each thread traces, adding their sums once; \"auto\": 8 for planar media "
+                            "and straight rays, 1 through 3-D media (never changes a bit)",
     "rays.block_dim": "threads per CUDA block (never changes a bit)",
     "rays.max_registers": "0 (the compiler's choice), 64 or 80 registers per CUDA thread (never changes a bit)",
     "rays.stepping": '"cells" (RK4 steps end at node planes) or "fixed" (equal steps of step_mm)',
@@ -108,7 +110,7 @@ UNITS = [  # key suffix -> unit, longest first
 ]
 NAMED_UNITS = {"pixels": "px", "per_dot": "rays", "chunk": "rays", "ray_steps": "ray-steps",
                "steps_per_ray": "steps", "block_dim": "threads", "max_registers": "registers",
-               "rays_per_group": "rays", "peak_intensity": "image units"}
+               "rays_per_group": "chunks", "rays_per_thread": "rays", "peak_intensity": "image units"}
 
 
 def unit_of(key: str) -> str:
