@@ -38,8 +38,9 @@ from tqdm.auto import tqdm
 
 from synthbos.device import load_kernels, shared_by_threads
 
-__all__ = ["PIPELINE_WORKER_DEVICE", "campaign_kernels", "default_workers", "die_with_parent", "pair_tasks",
-           "run_items", "run_pipeline", "same_image_runs", "worker_kernels"]
+__all__ = ["PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers", "die_with_parent",
+           "pair_tasks", "render_kernels", "run_items", "run_pipeline", "same_image_runs", "score_kernels",
+           "worker_kernels"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
@@ -158,27 +159,44 @@ def _start_workers(pool, n: int, ready) -> None:
 
 def worker_kernels(scores, *, worker_device=None) -> list[tuple[str, str]]:
     """The ``(kernel module, device)`` pairs that the worker processes of :func:`run_pipeline` launch: those
-    of the methods that are not device resident (``Method.kernels``), on their processing devices."""
+    of the methods that are not device resident (``Method.kernels_on``), on their processing devices."""
+    return score_kernels(split_by_residency(scores, worker_device=worker_device)[1])
+
+
+def score_kernels(scores) -> list[tuple[str, str]]:
+    """The ``(kernel module, device)`` pairs that the score items ``scores`` launch: their methods'
+    (``Method.kernels_on``), on their processing devices (the items' last entry)."""
     from .registry import get_method
 
-    there = split_by_residency(scores, worker_device=worker_device)[1]
-    return sorted({(name, str(args[-1])) for args in there for name in get_method(args[1]).kernels
-                   if args[-1] is not None})
+    return sorted({(name, str(args[-1])) for args in scores if args[-1] is not None
+                   for name in get_method(args[1]).kernels_on(args[-1])})
+
+
+def render_kernels(renders) -> list[tuple[str, str]]:
+    """The ``(kernel module, device)`` pairs that the render items ``renders`` launch
+    (``raytrace.render_modules`` of each item's configuration, on its device)."""
+    from synthbos.raytrace.render import render_modules  # here: scheduling stays free of the algorithm packages
+
+    return sorted({(name, str(args[2])) for args in renders if args[2] is not None
+                   for name in render_modules(args[0], device=args[2])})
 
 
 def campaign_kernels(renders, scores, *, worker_device=None) -> list[tuple[str, str]]:
     """Every ``(kernel module, device)`` pair that :func:`run_pipeline` launches: the renderer's on each
     render device, the device-resident methods' here and :func:`worker_kernels`."""
-    from .registry import get_method
-
     here, _ = split_by_residency(scores, worker_device=worker_device)
-    pairs = {("synthbos.raytrace.kernels", str(args[2])) for args in renders if args[2] is not None}
-    pairs |= {(name, str(args[-1])) for args in here for name in get_method(args[1]).kernels if args[-1] is not None}
-    return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device)))
+    return sorted(set(render_kernels(renders)) | set(score_kernels(here))
+                  | set(worker_kernels(scores, worker_device=worker_device)))
 
 
-def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
-    """Run every ``args`` tuple of ``items`` through ``fn``, in a process pool when ``workers > 1``."""
+def run_items(items, fn, *, workers: int, desc: str, progress: bool, kernels=()) -> None:
+    """Run every ``args`` tuple of ``items`` through ``fn``, in a process pool when ``workers > 1``.
+
+    ``kernels``: the ``(kernel module, device)`` pairs the items launch. With a pool, its processes
+    build (or find in Warp's kernel cache) one module each first, all of them before any item starts:
+    on a first run, each module is compiled once, the cores side by side, instead of by every process
+    that launches it, at the same time (see :func:`build_in_pool`).
+    """
     if not items:
         return
     bar = tqdm(total=len(items), desc=desc, unit="item", disable=not progress)
@@ -189,6 +207,7 @@ def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
                 bar.update(1)
             return
         with _pool(workers) as pool:
+            build_in_pool(pool, kernels)
             futures = [pool.submit(fn, *args) for args in items]
             try:
                 for fut in as_completed(futures):
@@ -198,6 +217,20 @@ def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
                 for fut in futures:
                     fut.cancel()
                 raise
+
+
+def build_in_pool(pool, kernels) -> None:
+    """Build the Warp modules of the ``(kernel module, device)`` pairs ``kernels`` in the processes of
+    ``pool``, one task per module (an idle process takes the next), and wait for all of them.
+
+    Warp compiles a module when a process first launches one of its kernels, and processes that start
+    alike all compile the same one at once: on two cores, the renderer's twice side by side, and the
+    cores idle at the end. A module built here is compiled by one process; the others find it in Warp's
+    kernel cache. Warm, each task only finds its module there (the processes that launch it later find
+    it too, as they would anyway).
+    """
+    for fut in [pool.submit(load_kernels, [pair], max_workers=1) for pair in kernels]:
+        fut.result()
 
 
 def pair_tasks(renders, scores):

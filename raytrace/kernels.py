@@ -858,25 +858,66 @@ def deposit_spots(
     deposit_gaussian(image, sen, px[i], energy[i])
 
 
-# ``render_rays`` held to at most 80 or 64 registers a thread on CUDA (``rays.max_registers``): with
-# 256-thread blocks, 3 or 4 blocks per SM instead of 2 for kernels above 80 registers, at the price of
-# spills to local memory. Each in its own module, compiled only when first launched.
-render_rays_80 = wp.kernel(
-    render_rays.func, name="render_rays_80", cuda_max_registers=80, module="unique", enable_backward=False
-)
-render_rays_64 = wp.kernel(
-    render_rays.func, name="render_rays_64", cuda_max_registers=64, module="unique", enable_backward=False
-)
-MAX_REGISTERS = {0: render_rays, 80: render_rays_80, 64: render_rays_64}
+# ``render_rays`` for each medium struct, held to at most 80 or 64 registers a thread on CUDA or not
+# (``rays.max_registers``: with 256-thread blocks, 3 or 4 blocks per SM instead of 2 for kernels above 80
+# registers, at the price of spills to local memory), each in a Warp module of its own (named by
+# ``render_module``): a run compiles only the media it launches, on a first run two of the 21 (the
+# paper's medium and the reference image's). The generic ``render_rays`` itself is compiled for none.
+MEDIA = (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels)
+REGISTER_CAPS = (0, 80, 64)  # 0: no cap
 
-# The media ``render_rays`` is compiled for (one module build covers them all); ``trace_to_exit``
-# serves the tests of the float32 medium.
-for _medium in (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels):
-    wp.overload(render_rays, {"medium": _medium})
-    wp.overload(render_rays_80, {"medium": _medium})
-    wp.overload(render_rays_64, {"medium": _medium})
-wp.overload(trace_to_exit, {"medium": Medium})
-# the truths read the exact float32 nodes, packed (``Medium``) or with 128-bit loads (``MediumVec``)
-for _medium in (Medium, MediumVec):
+
+def render_module(medium: type, max_registers: int = 0) -> str:
+    """The name of the Warp module that holds ``render_rays`` for the struct ``medium`` held to
+    ``max_registers`` registers (0: no cap)."""
+    return f"{__name__}.render_{medium.__name__}" + (f"_r{max_registers}" if max_registers else "")
+
+
+_RENDER = {}
+for _medium in MEDIA:
+    for _cap in REGISTER_CAPS:
+        wp.set_module_options({"enable_backward": False}, module=render_module(_medium, _cap))
+        _RENDER[_medium, _cap] = wp.kernel(
+            render_rays.func, name=f"render_rays_{_medium.__name__}" + (f"_r{_cap}" if _cap else ""),
+            module=render_module(_medium, _cap), cuda_max_registers=_cap or None, enable_backward=False,
+        )
+        wp.overload(_RENDER[_medium, _cap], {"medium": _medium})
+
+
+def render_kernel(medium, max_registers: int = 0):
+    """``render_rays`` for ``medium`` (one of the structs of ``MEDIA``, or an instance of one), held to
+    ``max_registers`` registers (one of ``REGISTER_CAPS``; 0: no cap)."""
+    struct = next(m for m in MEDIA if medium is m or isinstance(medium, m.instance_type))
+    return _RENDER[struct, max_registers]
+
+
+# The truths read the exact float32 nodes, packed (``Medium``) or with 128-bit loads (``MediumVec``): their
+# two kernels per medium in a Warp module of their own (``truth_module``), as ``render_rays``. This
+# module's own overloads, and ``trace_to_exit`` on the float32 medium, serve the tests.
+TRUTH_MEDIA = (Medium, MediumVec)
+
+
+def truth_module(medium: type) -> str:
+    """The name of the Warp module that holds the truths' kernels for the struct ``medium``."""
+    return f"{__name__}.truth_{medium.__name__}"
+
+
+_TRUTH = {}
+for _medium in TRUTH_MEDIA:
+    wp.set_module_options({"enable_backward": False}, module=truth_module(_medium))
+    for _kernel in (integrate_grad_n, integrate_cone):
+        _TRUTH[_kernel.key, _medium] = wp.kernel(
+            _kernel.func, name=f"{_kernel.key}_{_medium.__name__}", module=truth_module(_medium),
+            enable_backward=False,
+        )
+        wp.overload(_TRUTH[_kernel.key, _medium], {"medium": _medium})
     wp.overload(integrate_grad_n, {"medium": _medium})
     wp.overload(integrate_cone, {"medium": _medium})
+wp.overload(trace_to_exit, {"medium": Medium})
+
+
+def truth_kernel(kernel, medium):
+    """``kernel`` (``integrate_grad_n`` or ``integrate_cone``) for ``medium`` (one of the structs of
+    ``TRUTH_MEDIA``, or an instance of one), in its medium's module."""
+    struct = next(m for m in TRUTH_MEDIA if medium is m or isinstance(medium, m.instance_type))
+    return _TRUTH[kernel.key, struct]

@@ -21,13 +21,13 @@ from synthbos.device import check_device, init_warp
 from . import checks, kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import MediumData, medium_from_config, straight_to_warp, to_warp
+from .medium import EXACT_FIELDS, MediumData, medium_from_config, medium_struct, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
 __all__ = [
     "RenderPlan", "central_moments", "chief_ray_truth", "cone_truth", "moment_scales", "morton_order", "plan_render",
-    "render_pair", "trace_rays",
+    "render_modules", "render_pair", "trace_rays",
 ]
 
 _INT32_MAX = 2**31 - 1
@@ -217,7 +217,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
-    kernel = kernels.MAX_REGISTERS[plan.max_registers if wp.get_device(device).is_cuda else 0]
+    kernel = kernels.render_kernel(medium, plan.max_registers if wp.get_device(device).is_cuda else 0)
     rays_per_launch = max(1, plan.cfg["rays"]["chunk"] // n)
     group = min(plan.rays_per_group, rays_per_launch)  # at most every ray of a launch: dot-major order
     if rays_per_launch > group:
@@ -374,7 +374,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
     out_nm1 = wp.zeros(plan.n_dots, dtype=float, device=device)
-    wp.launch(kernels.integrate_grad_n, dim=plan.n_dots,
+    wp.launch(kernels.truth_kernel(kernels.integrate_grad_n, medium), dim=plan.n_dots,
               inputs=[medium, cam, dots, _n_samples(plan, samples_per_step)],
               outputs=[out, out_nm1], device=device)
     k = plan.medium.gladstone_dale
@@ -413,12 +413,34 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
     order = wp.array(plan.launch_order, dtype=wp.int32, device=device)
     group = max(1, min(int(group), chunks))
-    wp.launch(kernels.integrate_cone, dim=-(-chunks // group) * group * n,
+    wp.launch(kernels.truth_kernel(kernels.integrate_cone, medium), dim=-(-chunks // group) * group * n,
               inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
                       plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), order, group],
               outputs=[out], device=device)
     sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
     return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale
+
+
+def render_modules(config=None, *, device=None) -> list[str]:
+    """The Warp modules :func:`render_pair` launches for ``config`` on ``device``: ``render_rays`` for the
+    configuration's medium (``rays.field``) and for the reference image's, and the truths' kernels.
+
+    Each is a module of its own (``kernels.render_module``, ``kernels.truth_module``), so a campaign
+    can build the ones it needs, and only those, before its work starts.
+
+    Examples
+    --------
+    >>> render_modules(device="cpu")  # the defaults: float32 nodes read with 128-bit loads
+    ['synthbos.raytrace.kernels.render_MediumStraight', 'synthbos.raytrace.kernels.render_MediumVec', \
+'synthbos.raytrace.kernels.truth_MediumVec']
+    """
+    rays = load_config(config)["rays"]
+    init_warp()
+    cap = rays["max_registers"] if wp.get_device(check_device(device)).is_cuda else 0
+    struct = medium_struct(rays["field"])
+    truth = struct if rays["field"] in EXACT_FIELDS and struct in kernels.TRUTH_MEDIA else kernels.MediumVec
+    return sorted({kernels.render_module(struct, cap), kernels.render_module(kernels.MediumStraight, cap),
+                   kernels.truth_module(truth)})
 
 
 def render_pair(config=None, *, device=None, progress=False) -> Pair:
