@@ -21,7 +21,15 @@ from synthbos.device import check_device
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .items import render_item, score_item
 from .registry import check_available, get_method
-from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, run_items, run_pipeline
+from .scheduling import (
+    PIPELINE_WORKER_DEVICE,
+    default_workers,
+    render_kernels,
+    run_items,
+    run_pipeline,
+    score_kernels,
+    worker_pool,
+)
 from .spec import CampaignSpec
 from .stacks import check_stack
 from .storage import check_folder, pair_path, score_path, write_tables
@@ -183,8 +191,12 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                   process_device=process_device, stack=stack)
     else:
         workers = workers or default_workers()
-        run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress)
-        run_items(scores, score_item, workers=workers, desc="process", progress=progress)
+        processing = score_kernels(scores)
+        with worker_pool(workers) as pool:  # the same processes render and then score: kernels built once
+            run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress,
+                      kernels=render_kernels(renders), pool=None if on_gpu else pool, build_after=processing)
+            run_items(scores, score_item, workers=workers, desc="process", progress=progress, kernels=processing,
+                      pool=pool)
     t1 = time.perf_counter()
     timings["render and process"] = t1 - t0
     rows = write_summary(spec, folder)

@@ -112,6 +112,10 @@ class Method:
     kernels : tuple of str
         The modules of the Warp kernels its run launches: a campaign's worker processes that will run
         it load them as they start.
+    cpu_kernels : tuple of str or None
+        The modules its run launches when it processes on the CPU, where that is fewer than ``kernels``
+        (a Warp path taken on CUDA devices only); None: ``kernels``. A CPU campaign builds them before
+        its work starts (``scheduling.run_items``), so list none the run may not launch there.
     requires : tuple of str
         Modules its run imports that synthbos does not install by default (``synthbos methods`` tells
         whether they are there).
@@ -134,8 +138,14 @@ class Method:
     in_default_campaign: bool = True
     device_resident: bool = False
     kernels: tuple[str, ...] = ()
+    cpu_kernels: tuple[str, ...] | None = None
     requires: tuple[str, ...] = ()
     source: str = ""
+
+    def kernels_on(self, device) -> tuple[str, ...]:
+        """The modules of the Warp kernels its run launches on ``device`` ("cpu", "cuda:0"; None: the CPU)."""
+        on_cpu = device is None or not str(device).startswith("cuda")
+        return self.cpu_kernels if on_cpu and self.cpu_kernels is not None else self.kernels
 
     def settings(self, overrides: dict | None = None):
         """The settings object with ``overrides`` (field -> value) applied; unknown fields are refused."""

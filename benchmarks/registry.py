@@ -188,6 +188,9 @@ STACK_KERNELS = (
     "synthbos.tracking.table_kernels",
     "synthbos.tracking.wide_search_kernels",
 )
+# those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
+# where a coarser pass left a field, and is built on its first launch
+_TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,
@@ -198,23 +201,24 @@ BUILT_IN: dict[str, Method] = {
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
                settings_key="correlation", device_resident=True,
-               kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels")),
+               kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels"),
+               cpu_kernels=("synthbos.correlation.kernels",)),  # the Warp pass runs on CUDA only
         Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
                label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,
-               settings_key="tracking", kernels=_TRACKING_KERNELS),
+               settings_key="tracking", kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS),
         Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
                label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
-               uses_prior=True, settings_key="tracking", kernels=_TRACKING_KERNELS),
+               uses_prior=True, settings_key="tracking", kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS),
         # The exact procedure of Rajendran, Bane & Vlachos (2019): three-point Gaussian centroids and the
         # correlation of the segmented dot maps, kept so the paper's comparison can be run as published.
         Method("tracking-paper", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking-paper"),
                label="tracking, paper's procedure", color="#E69F00", linestyle=":", marker="v",
                uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
-               kernels=_TRACKING_KERNELS, in_default_campaign=False),
+               kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS, in_default_campaign=False),
         Method("tracking-cc-paper", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc-paper"),
                label="tracking + cc, paper's procedure", color="#CC79A7", linestyle=(0, (3, 1, 1, 1, 1, 1)),
                marker="D", uses_prior=True, settings_key="tracking", make_settings=TrackingSettings.paper,
-               kernels=_TRACKING_KERNELS, in_default_campaign=False),
+               kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS, in_default_campaign=False),
         # Two families from other libraries (``pip install "synthbos[methods]"``), for comparison.
         _checked(Method("optical-flow", DENSE, OpticalFlowSettings, run_optical_flow,
                         label="optical flow (TV-L1, scikit-image)", color="#56B4E9", linestyle=(0, (5, 2)),

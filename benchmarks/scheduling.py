@@ -24,6 +24,7 @@ write more files (and the multiprocessing resource tracker, whose pipe the worke
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import importlib
 import os
@@ -32,6 +33,7 @@ import signal
 import sys
 import threading
 import time
+import weakref
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from multiprocessing import get_all_start_methods, get_context
@@ -41,8 +43,9 @@ from tqdm.auto import tqdm
 
 from synthbos.device import load_kernels, shared_by_threads
 
-__all__ = ["PIPELINE_WORKER_DEVICE", "campaign_kernels", "default_workers", "die_with_parent", "pair_tasks",
-           "run_items", "run_pipeline", "same_image_runs", "split_items", "worker_kernels"]
+__all__ = ["PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers", "die_with_parent",
+           "pair_tasks", "render_kernels", "run_items", "run_pipeline", "same_image_runs", "score_kernels",
+           "split_items", "submit_builds", "worker_kernels", "worker_pool"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
@@ -161,49 +164,109 @@ def _start_workers(pool, n: int, ready) -> None:
 
 def worker_kernels(scores, *, worker_device=None, stack=0) -> list[tuple[str, str]]:
     """The ``(kernel module, device)`` pairs that the worker processes of :func:`run_pipeline` launch: those
-    of the methods that are not device resident (``Method.kernels``) nor tracked in stacks (with
+    of the methods that are not device resident (``Method.kernels_on``) nor tracked in stacks (with
     ``stack``), on their processing devices."""
+    return score_kernels(split_items(scores, worker_device=worker_device, stack=stack)[2])
+
+
+def score_kernels(scores) -> list[tuple[str, str]]:
+    """The ``(kernel module, device)`` pairs that the score items ``scores`` launch: their methods'
+    (``Method.kernels_on``), on their processing devices (the items' last entry)."""
     from .registry import get_method
 
-    there = split_items(scores, worker_device=worker_device, stack=stack)[2]
-    return sorted({(name, str(args[-1])) for args in there for name in get_method(args[1]).kernels
-                   if args[-1] is not None})
+    return sorted({(name, str(args[-1])) for args in scores if args[-1] is not None
+                   for name in get_method(args[1]).kernels_on(args[-1])})
+
+
+def render_kernels(renders) -> list[tuple[str, str]]:
+    """The ``(kernel module, device)`` pairs that the render items ``renders`` launch
+    (``raytrace.render_modules`` of each item's configuration, on its device)."""
+    from synthbos.raytrace.render import render_modules  # here: scheduling stays free of the algorithm packages
+
+    return sorted({(name, str(args[2])) for args in renders if args[2] is not None
+                   for name in render_modules(args[0], device=args[2])})
 
 
 def campaign_kernels(renders, scores, *, worker_device=None, stack=0) -> list[tuple[str, str]]:
     """Every ``(kernel module, device)`` pair that :func:`run_pipeline` launches: the renderer's on each
     render device, the device-resident methods' here, ``track_pairs``'s here (with ``stack``: stacked
     tracking) and :func:`worker_kernels`."""
-    from .registry import STACK_KERNELS, get_method
+    from .registry import STACK_KERNELS
 
     here, stacked, _ = split_items(scores, worker_device=worker_device, stack=stack)
-    pairs = {("synthbos.raytrace.kernels", str(args[2])) for args in renders if args[2] is not None}
-    pairs |= {(name, str(args[-1])) for args in here for name in get_method(args[1]).kernels if args[-1] is not None}
+    pairs = set(render_kernels(renders)) | set(score_kernels(here))
     pairs |= {(name, str(args[-1])) for args in stacked for name in STACK_KERNELS}
     return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device, stack=stack)))
 
 
-def run_items(items, fn, *, workers: int, desc: str, progress: bool) -> None:
-    """Run every ``args`` tuple of ``items`` through ``fn``, in a process pool when ``workers > 1``."""
+def run_items(items, fn, *, workers: int, desc: str, progress: bool, kernels=(), pool=None, build_after=()) -> None:
+    """Run every ``args`` tuple of ``items`` through ``fn``, in a process pool when ``workers > 1``.
+
+    ``kernels``: the ``(kernel module, device)`` pairs the items launch. With a pool, its processes
+    build (or find in Warp's kernel cache) one module each first, all of them before any item starts:
+    on a first run, each module is compiled once, the cores side by side, instead of by every process
+    that launches it, at the same time (see :func:`build_in_pool`).
+    ``pool``: a pool of :func:`worker_pool` to run them in, kept open for the next call (each process
+    that compiles builds Warp's precompiled headers once, about 1.6 s on a core); None: a pool of its
+    own. ``build_after``: such pairs that the pool's processes build after the last item is handed out,
+    for the next call's items, while the last items finish (tasks nobody waits for here: the next
+    call's ``kernels`` waits for them).
+    """
     if not items:
         return
     bar = tqdm(total=len(items), desc=desc, unit="item", disable=not progress)
     with bar:
-        if workers <= 1:
+        if pool is None and workers <= 1:
             for args in items:
                 fn(*args)
                 bar.update(1)
             return
-        with _pool(workers) as pool:
+        with contextlib.nullcontext(pool) if pool is not None else _pool(workers) as pool:
+            build_in_pool(pool, kernels)
             futures = [pool.submit(fn, *args) for args in items]
+            later = submit_builds(pool, build_after)
             try:
                 for fut in as_completed(futures):
                     fut.result()
                     bar.update(1)
             except BaseException:
-                for fut in futures:
+                for fut in futures + later:
                     fut.cancel()
                 raise
+
+
+def worker_pool(workers: int):
+    """A pool of ``workers`` processes for several calls of :func:`run_items` (their ``pool``), or a
+    context giving None where ``workers <= 1`` (the items then run in this process)."""
+    return _pool(workers) if workers > 1 else contextlib.nullcontext()
+
+
+def build_in_pool(pool, kernels) -> None:
+    """Build the Warp modules of the ``(kernel module, device)`` pairs ``kernels`` in the processes of
+    ``pool``, one task per module (an idle process takes the next), and wait for all of them.
+
+    Warp compiles a module when a process first launches one of its kernels, and processes that start
+    alike all compile the same one at once: on two cores, the renderer's twice side by side, and the
+    cores idle at the end. A module built here is compiled by one process; the others find it in Warp's
+    kernel cache. Warm, each task only finds its module there (the processes that launch it later find
+    it too, as they would anyway).
+    """
+    for fut in submit_builds(pool, kernels):
+        fut.result()
+
+
+_BUILDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # pool -> {(module, device): its build task}
+
+
+def submit_builds(pool, kernels) -> list:
+    """Hand ``pool`` a build task (``load_kernels``) for each ``(kernel module, device)`` pair of ``kernels``
+    that it was not handed before; return the tasks of all of them, earlier ones included (a module in
+    the middle of its build is not built a second time beside it)."""
+    builds = _BUILDS.setdefault(pool, {})
+    for pair in kernels:
+        if tuple(pair) not in builds:
+            builds[tuple(pair)] = pool.submit(load_kernels, [tuple(pair)], max_workers=1)
+    return [builds[tuple(pair)] for pair in kernels]
 
 
 def pair_tasks(renders, scores):

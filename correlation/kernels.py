@@ -12,6 +12,7 @@ import warp as wp
 
 wp.config.quiet = True  # no banner or module-load lines from library code
 wp.config.log_level = wp.LOG_WARNING
+wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 
 @wp.func

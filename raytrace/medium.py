@@ -21,7 +21,7 @@ from .checks import check_density
 
 __all__ = [
     "EXACT_FIELDS", "FIELDS", "MAX_INDEX", "MediumData", "half_scale", "is_planar", "medium_from_config",
-    "medium_from_density",
+    "medium_from_density", "medium_struct",
     "straight_to_warp", "to_warp",
 ]
 
@@ -130,6 +130,21 @@ def straight_to_warp(medium: MediumData) -> kernels.MediumStraight:
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
     m.centre = wp.vec3(*medium.centre)
     return m
+
+
+def medium_struct(field: str):
+    """The struct of ``raytrace.kernels`` that :func:`to_warp` gives for ``field`` (one of ``FIELDS``).
+
+    Examples
+    --------
+    >>> medium_struct("float32_vec").key
+    'MediumVec'
+    """
+    if field not in FIELDS:
+        raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
+    return {"float32": kernels.Medium, "float32_vec": kernels.MediumVec, "float16": kernels.MediumHalf,
+            "float16_nodes": kernels.MediumHalfNodes, "texture": kernels.MediumTexture,
+            "texture16": kernels.MediumTexture, "texture_nearest": kernels.MediumTexels}[field]
 
 
 def to_warp(medium: MediumData, *, device=None, field="float32"):

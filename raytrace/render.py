@@ -18,16 +18,16 @@ import synthbos
 from synthbos import SynthbosError
 from synthbos.device import check_device, init_warp
 
-from . import checks, kernels
+from . import checks, kernels, truth_kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import MediumData, is_planar, medium_from_config, straight_to_warp, to_warp
+from .medium import EXACT_FIELDS, MediumData, is_planar, medium_from_config, medium_struct, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
 __all__ = [
     "RenderPlan", "central_moments", "chief_ray_truth", "cone_truth", "moment_scales", "morton_order", "plan_render",
-    "render_pair", "trace_rays",
+    "render_modules", "render_pair", "trace_rays",
 ]
 
 _INT32_MAX = 2**31 - 1
@@ -218,7 +218,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
-    kernel = kernels.MAX_REGISTERS[plan.max_registers if wp.get_device(device).is_cuda else 0]
+    kernel = kernels.render_kernel(medium, plan.max_registers if wp.get_device(device).is_cuda else 0)
     per_thread = rays_per_thread(plan, active=active)
     rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
     # at most every chunk of a launch in a group: dot-major order
@@ -357,7 +357,7 @@ def fixed_to_image(fixed):
 def _eq4_px(plan: RenderPlan, integral):
     """Eq. 4 in pixels from its integral of grad n dz: dX = -(M Z_D / n0) * integral / pitch.
 
-    ``integral`` is ``kernels.straight_ray_integrals``'s: each depth weighted by its lever arm z / Z_D
+    ``integral`` is ``truth_kernels.straight_ray_integrals``'s: each depth weighted by its lever arm z / Z_D
     and the ray's obliquity, which is Eq. 4's plain integral where grad n does not vary along the ray.
     """
     m, z_d = plan.camera.magnification, plan.medium.centre[2]
@@ -390,7 +390,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium
     theory_px : (N, 2) float64
         Eq. 4: dX = -(M Z_D / n0) * integral of grad n dz along the chief ray, in pixels, each depth z
         weighted by its own lever arm z / Z_D and the ray's obliquity (see
-        ``kernels.straight_ray_integrals``): the displacement of a pinhole camera's dot in the
+        ``truth_kernels.straight_ray_integrals``): the displacement of a pinhole camera's dot in the
         weak-deflection limit, for 3-D fields too.
     density : (N,) float64
         The density averaged over the volume's depth along the chief ray, kg/m^3 (the volume's edge
@@ -402,7 +402,7 @@ def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     out = wp.zeros(plan.n_dots, dtype=wp.vec2, device=device)
     out_nm1 = wp.zeros(plan.n_dots, dtype=float, device=device)
-    wp.launch(kernels.integrate_grad_n, dim=plan.n_dots,
+    wp.launch(truth_kernels.truth_kernel(truth_kernels.integrate_grad_n, medium), dim=plan.n_dots,
               inputs=[medium, cam, dots, _n_samples(plan, samples_per_step)],
               outputs=[out, out_nm1], device=device)
     k = plan.medium.gladstone_dale
@@ -418,7 +418,7 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     tends to when deflections are weak: the camera's finite aperture averages the flow over the cone.
     Along each ray a deflection at distance z from the target counts with its own lever arm z (not
     the mid-plane's Z_D) and the ray's slope u adds -u dn/dz and the factor 1 + |u|^2 (see
-    ``kernels.straight_ray_integrals``); on a 3-D field (a sinusoid along (1, 0, 1), 256 x 256 px)
+    ``truth_kernels.straight_ray_integrals``); on a 3-D field (a sinusoid along (1, 0, 1), 256 x 256 px)
     Eq. 4 with one Z_D for every depth left 5.5 % RMS between traced and cone truth, the lever arms
     alone 0.9 %, both 0.11 %.
     ``medium``: the plan's medium already on ``device`` (see :func:`truth_medium`), uploaded if None.
@@ -441,12 +441,34 @@ def cone_truth(plan: RenderPlan, *, device=None, rays_per_thread=64, samples_per
     out = wp.zeros((chunks, n), dtype=wp.vec3, device=device)
     order = wp.array(plan.launch_order, dtype=wp.int32, device=device)
     group = max(1, min(int(group), chunks))
-    wp.launch(kernels.integrate_cone, dim=-(-chunks // group) * group * n,
+    wp.launch(truth_kernels.truth_kernel(truth_kernels.integrate_cone, medium), dim=-(-chunks // group) * group * n,
               inputs=[medium, cam, dots, plan.dot_radius, plan.rays_per_dot, rays_per_thread,
                       plan.cfg["rays"]["seed"], _n_samples(plan, samples_per_step), order, group],
               outputs=[out], device=device)
     sums = out.numpy().astype(np.float64).sum(axis=0) / plan.rays_per_dot  # fixed order: deterministic
     return _eq4_px(plan, sums[:, :2]), sums[:, 2] / plan.medium.gladstone_dale
+
+
+def render_modules(config=None, *, device=None) -> list[str]:
+    """The Warp modules :func:`render_pair` launches for ``config`` on ``device``: ``render_rays`` for the
+    configuration's medium (``rays.field``) and for the reference image's, and the truths' kernels.
+
+    Each is a module of its own (``kernels.render_module``, ``truth_kernels.truth_module``), so a campaign
+    can build the ones it needs, and only those, before its work starts.
+
+    Examples
+    --------
+    >>> render_modules(device="cpu")  # the defaults: float32 nodes read with 128-bit loads
+    ['synthbos.raytrace.kernels.render_MediumStraight', 'synthbos.raytrace.kernels.render_MediumVec', \
+'synthbos.raytrace.truth_kernels.truth_MediumVec']
+    """
+    rays = load_config(config)["rays"]
+    init_warp()
+    cap = rays["max_registers"] if wp.get_device(check_device(device)).is_cuda else 0
+    struct = medium_struct(rays["field"])
+    truth = struct if rays["field"] in EXACT_FIELDS and struct in truth_kernels.TRUTH_MEDIA else kernels.MediumVec
+    return sorted({kernels.render_module(struct, cap), kernels.render_module(kernels.MediumStraight, cap),
+                   truth_kernels.truth_module(truth)})
 
 
 def render_pair(config=None, *, device=None, progress=False) -> Pair:

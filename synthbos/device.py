@@ -127,16 +127,28 @@ def graph_capture_allowed() -> bool:
 
 
 def _warp_modules(name: str) -> list:
-    """The Warp modules of Python module ``name``: its own and those of its ``module="unique"`` kernels."""
+    """The Warp modules ``name`` stands for: those of Python module ``name`` (its own and those of its
+    ``module="unique"`` kernels), or the one Warp module that a Python module declares under a name of
+    its own, ``<Python module>.<part>`` (the renderer's, one per medium: ``raytrace.kernels.render_module``).
+    """
     from warp._src.context import user_modules  # Warp's registry of modules (no public listing)
 
-    importlib.import_module(name)
+    try:
+        importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name != name:
+            raise
+        importlib.import_module(name.rpartition(".")[0])  # declares its parts as it is imported
+        if name not in user_modules:
+            raise
+        return [user_modules[name]]
 
     def kernels(m):
         return m.kernels.values() if isinstance(m.kernels, dict) else m.kernels
 
     return [m for m in list(user_modules.values())
-            if m.name == name or any(getattr(k.func, "__module__", None) == name for k in kernels(m))]
+            if m.name == name or (not m.name.startswith(name + ".")
+                                  and any(getattr(k.func, "__module__", None) == name for k in kernels(m)))]
 
 
 def load_kernels(pairs, *, max_workers=None) -> None:

@@ -35,3 +35,20 @@ def test_no_graph_capture_while_threads_share_the_devices():
             assert not graph_capture_allowed()
         assert not _graph_replay(Cuda())
     assert graph_capture_allowed()
+
+
+def test_a_kernel_module_part_is_found_by_its_own_name_and_not_with_its_python_module():
+    from synthbos.raytrace import kernels
+
+    from synthbos.device import _warp_modules
+
+    part = kernels.render_module(kernels.MediumHalf)
+    assert [m.name for m in _warp_modules(part)] == [part]
+    whole = [m.name for m in _warp_modules("synthbos.raytrace.kernels")]
+    assert whole == ["synthbos.raytrace.kernels"]  # its 21 render modules and 2 truth modules are parts
+    try:
+        _warp_modules("synthbos.raytrace.kernels.render_NoSuchMedium")
+    except ModuleNotFoundError as err:
+        assert "render_NoSuchMedium" in str(err)
+    else:
+        raise AssertionError("an unknown part was found")

@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 from _small import small_config
 from numpy.testing import assert_allclose
-from synthbos.raytrace import kernels, read_pair, reference, write_pair
+from synthbos.raytrace import read_pair, reference, truth_kernels, write_pair
 from synthbos.raytrace.medium import to_warp
 from synthbos.raytrace.render import _camera_struct, chief_ray_truth, cone_truth, plan_render, render_pair
 
@@ -56,7 +56,7 @@ def test_chief_ray_integrals_match_numpy(device):
     dots = wp.array(plan.target_xy.astype(np.float32), dtype=wp.vec2, device=device)
     out = wp.zeros((1, plan.n_dots), dtype=wp.vec3, device=device)
     backwards = wp.array(np.arange(plan.n_dots, dtype=np.int32)[::-1].copy(), dtype=wp.int32, device=device)
-    wp.launch(kernels.integrate_cone, dim=plan.n_dots,
+    wp.launch(truth_kernels.integrate_cone, dim=plan.n_dots,
               inputs=[med, cam, dots, 0.0, 1, 1, 0, n_samples, backwards, 1], outputs=[out], device=device)
     assert_allclose(out.numpy()[0, :, :2], integral, atol=1e-5 * np.abs(integral).max())
     assert_allclose(out.numpy()[0, :, 2], nm1, rtol=1e-6)

@@ -1,0 +1,62 @@
+"""The renderer's kernels live in one Warp module per medium (``kernels.render_module``,
+``truth_kernels.truth_module``): a render launches exactly the modules ``render_modules`` names, so a
+first run compiles only those."""
+
+import numpy as np
+import pytest
+import warp as wp
+from _small import small_config
+from synthbos.raytrace import kernels, truth_kernels
+from synthbos.raytrace.config import load_config
+from synthbos.raytrace.medium import FIELDS, medium_from_config, medium_struct, to_warp
+from synthbos.raytrace.render import render_modules, render_pair
+
+from synthbos import SynthbosError
+
+
+def test_every_field_uploads_the_struct_medium_struct_names():
+    medium = medium_from_config(load_config(small_config()))
+    for field in FIELDS:
+        struct = medium_struct(field)
+        assert struct in kernels.MEDIA
+        assert isinstance(to_warp(medium, device="cpu", field=field), struct.instance_type), field
+        assert kernels.render_kernel(to_warp(medium, device="cpu", field=field)) is kernels.render_kernel(struct)
+    with pytest.raises(SynthbosError, match=r"rays\.field"):
+        medium_struct("float64")
+
+
+def test_each_medium_and_register_cap_has_a_module_of_its_own():
+    names = {kernels.render_kernel(m, cap).module.name for m in kernels.MEDIA for cap in kernels.REGISTER_CAPS}
+    assert len(names) == len(kernels.MEDIA) * len(kernels.REGISTER_CAPS)
+    assert kernels.render_kernel(kernels.MediumHalf, 80).module.name == kernels.render_module(kernels.MediumHalf, 80)
+    for m in truth_kernels.TRUTH_MEDIA:
+        for k in (truth_kernels.integrate_grad_n, truth_kernels.integrate_cone):
+            assert truth_kernels.truth_kernel(k, m).module.name == truth_kernels.truth_module(m)
+    assert kernels.render_kernel(kernels.MediumVec).module is not kernels.render_rays.module
+
+
+def test_render_modules_follow_the_field_the_truth_and_the_device():
+    base, truth = "synthbos.raytrace.kernels.", "synthbos.raytrace.truth_kernels."
+    assert render_modules(small_config(rays={"field": "float16", "max_registers": 80}), device="cpu") == [
+        base + "render_MediumHalf", base + "render_MediumStraight", truth + "truth_MediumVec"]
+    assert render_modules(small_config(rays={"field": "float32"}), device="cpu") == [
+        base + "render_Medium", base + "render_MediumStraight", truth + "truth_Medium"]
+    if wp.is_cuda_available():
+        assert render_modules(small_config(rays={"max_registers": 80}), device="cuda:0") == [
+            base + "render_MediumStraight_r80", base + "render_MediumVec_r80", truth + "truth_MediumVec"]
+
+
+@pytest.mark.parametrize("field", ["float32_vec", "float32"])
+def test_a_render_launches_exactly_the_modules_render_modules_names(device, field, monkeypatch):
+    cfg = small_config(rays={"field": field, "per_dot": 20}, camera={"pixels": [48, 48]})
+    launched = set()
+    launch = wp.launch
+
+    def recording(kernel, *args, **kwargs):
+        launched.add(kernel.module.name)
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", recording)
+    pair = render_pair(cfg, device=device)
+    assert launched == set(render_modules(cfg, device=device))
+    assert np.isfinite(pair.displacement_px[pair.valid]).all() and pair.valid.any()
