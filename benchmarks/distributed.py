@@ -142,8 +142,9 @@ def visible_gpus() -> list[str]:
     """The CUDA devices this process may use, as ``CUDA_VISIBLE_DEVICES`` entries (indices or UUIDs)."""
     import warp as wp
 
-    wp.config.quiet = True
-    wp.init()
+    from synthbos.device import init_warp
+
+    init_warp()
     n = wp.get_cuda_device_count()
     listed = [d.strip() for d in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if d.strip()]
     if "CUDA_VISIBLE_DEVICES" in os.environ:

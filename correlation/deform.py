@@ -22,10 +22,11 @@ INTERPOLATORS = ("cubic", "keys", "lanczos")
 def _warp():
     import warp as wp
 
+    from synthbos.device import init_warp
+
     from . import kernels
 
-    wp.config.quiet = True
-    wp.init()
+    init_warp()
     return wp, kernels
 
 

@@ -19,12 +19,13 @@ from typing import Any
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .flags import VectorFlag
 from .kernels import sample_image
 from .median_test import median_scale_wp, median_wp, normalised_residual_wp, vec8d
 
-wp.config.quiet = True
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})
 
 #: The :class:`correlation.flags.VectorFlag` bits, as the kernels read them.

@@ -22,7 +22,9 @@ from typing import Any
 
 import warp as wp
 
-wp.config.log_level = wp.LOG_WARNING  # no banner or module-load lines from library code
+from synthbos.device import quiet_warp
+
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 LENS_THIN = wp.constant(0)

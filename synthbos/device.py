@@ -54,12 +54,37 @@ def _filtered_native_stderr(drop: str):
                 sys.stderr.flush()
 
 
-def init_warp() -> None:
-    """Initialise Warp once, quietly: no greeting, no module-load lines, no missing-driver warning."""
+#: Set (to anything but "" or "0") to have Warp print every module's build and load with its time, in
+#: every synthbos process: how to find what holds a first run up (``SYNTHBOS_WARP_VERBOSE=1 synthbos ...``).
+VERBOSE_ENV = "SYNTHBOS_WARP_VERBOSE"
+
+
+def quiet_warp() -> None:
+    """Warp's messages for synthbos: warnings and errors only (no greeting, no module-load lines), unless
+    ``SYNTHBOS_WARP_VERBOSE`` asks for every module's build and load time. Every kernel module calls it
+    as it is imported, since importing Warp resets nothing but a module may be imported first.
+
+    Examples
+    --------
+    >>> quiet_warp()
+    >>> wp.config.log_level == wp.LOG_WARNING or bool(os.environ.get(VERBOSE_ENV, "").strip("0"))
+    True
+    """
+    if os.environ.get(VERBOSE_ENV, "").strip("0"):
+        wp.config.verbose = True
+        wp.config.quiet = False
+        if hasattr(wp, "LOG_INFO"):
+            wp.config.log_level = wp.LOG_INFO
+        return
+    wp.config.quiet = True
     if hasattr(wp, "LOG_WARNING"):
         wp.config.log_level = wp.LOG_WARNING
-    else:  # Warp releases before log levels
-        wp.config.quiet = True
+
+
+def init_warp() -> None:
+    """Initialise Warp once, quietly (:func:`quiet_warp`): no greeting, no module-load lines, no
+    missing-driver warning."""
+    quiet_warp()
     global _initialised
     if _initialised:
         return

@@ -52,3 +52,21 @@ def test_a_kernel_module_part_is_found_by_its_own_name_and_not_with_its_python_m
         assert "render_NoSuchMedium" in str(err)
     else:
         raise AssertionError("an unknown part was found")
+
+
+def test_warp_verbose_on_request_only():
+    """``SYNTHBOS_WARP_VERBOSE=1`` makes Warp print every module's load with its time (how to find what
+    holds a first run up); without it synthbos keeps Warp quiet."""
+    import subprocess
+    import sys
+
+    code = ("import synthbos.tracking.stats_kernels as k, warp as wp; "
+            "wp.force_load(device='cpu', modules=[wp.get_module(k.__name__)])")
+    out = {}
+    for flag in ("1", ""):
+        env = {**os.environ, "SYNTHBOS_WARP_VERBOSE": flag}
+        run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        out[flag] = run.stdout + run.stderr
+    assert "Module synthbos.tracking.stats_kernels" in out["1"] and " took " in out["1"]
+    assert "Module synthbos.tracking.stats_kernels" not in out[""] and "Warp 1." not in out[""]

@@ -14,6 +14,8 @@ constants come from :mod:`tracking.kernel_constants`.
 import warp as wp
 from synthbos.correlation.pass_kernels import three_point_offset
 
+from synthbos.device import quiet_warp
+
 from .identify_kernels import measure_window
 from .kernel_constants import (
     AMBIGUOUS,
@@ -30,8 +32,7 @@ from .kernel_constants import (
     WIDTH_LO,
 )
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

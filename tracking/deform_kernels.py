@@ -7,8 +7,9 @@ tile field, one thread per pixel.
 
 import warp as wp
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+from synthbos.device import quiet_warp
+
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

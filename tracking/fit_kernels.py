@@ -14,11 +14,12 @@ step is :func:`fit_dot_step`, the first-moment step :mod:`tracking.moment_kernel
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .kernel_constants import DISTORTED, FIT_FALLBACK, MODEL_HI, MODEL_LO
 from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

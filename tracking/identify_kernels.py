@@ -10,11 +10,12 @@ Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.windo
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .settings import SMALL_WINDOW
 from .sorting import median_network
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

@@ -6,6 +6,8 @@ Float64 constants, since a literal in a kernel may be float32.
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .settings import (
     DIAMETER_PER_WIDTH,
     EDGE_CUT_PX,
@@ -21,8 +23,7 @@ from .settings import (
     DotStatus,
 )
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

@@ -10,10 +10,11 @@ cross-spectrum's inverse and the search of each plane's peak. Tiles and passes a
 import warp as wp
 from synthbos.correlation.pass_kernels import centred_complex, cross_spectrum, real_part, real_square, same, weighted
 
+from synthbos.device import quiet_warp
+
 from .predict_kernels import TileGrid, row_runs, runs
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 

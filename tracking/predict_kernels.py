@@ -26,10 +26,11 @@ import warp as wp
 from synthbos.correlation.median_test import median_scale_wp, median_sorted_wp, residual_limit_wp, vec8d
 from synthbos.correlation.pass_kernels import three_point_offset
 
+from synthbos.device import quiet_warp
+
 from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 #: The pass's field must change no tile by more than this (px) for a pair to stop.

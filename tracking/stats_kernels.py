@@ -25,8 +25,9 @@ must round as NumPy's separate multiply and add do.
 
 import warp as wp
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+from synthbos.device import quiet_warp
+
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 # Bits of the per-column and per-frame flags.

@@ -10,6 +10,8 @@ after, :func:`write_table` after the outlier test) and copies the table back. Do
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .kernel_constants import (
     CC_FLAGGED,
     CC_VALID,
@@ -26,8 +28,7 @@ from .kernel_constants import (
     PREDICTOR_WEAK,
 )
 
-wp.config.quiet = True
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})
 
 

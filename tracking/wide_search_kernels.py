@@ -10,11 +10,12 @@ board of identification (:mod:`tracking.claim_kernels`: ``claim_key``, ``release
 
 import warp as wp
 
+from synthbos.device import quiet_warp
+
 from .claim_kernels import claim_key
 from .kernel_constants import AMBIGUOUS
 
-wp.config.quiet = True  # no banner or module-load lines from library code
-wp.config.log_level = wp.LOG_WARNING
+quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 
