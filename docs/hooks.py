@@ -65,7 +65,8 @@ RENDER_KEYS = {
                            "the stop at its sampled point",
     "rays.field": "how the volume is stored and read on the device (exact: float32, float32_vec, texture_nearest)",
     "rays.dot_order": '"morton" or "pattern": the order in which threads take the dots (never changes a bit)',
-    "rays.rays_per_group": "consecutive threads take this many chunks of rays of one dot (never changes a bit)",
+    "rays.rays_per_group": "consecutive threads take this many chunks of rays of one dot; \"auto\": 8 for planar "
+                           "media and straight rays, 64 through 3-D media (never changes a bit)",
     "rays.rays_per_thread": "rays of one dot each thread traces, adding their sums once; \"auto\": 8 for planar media "
                             "and straight rays, 1 through 3-D media (never changes a bit)",
     "rays.block_dim": "threads per CUDA block (never changes a bit)",

@@ -41,10 +41,11 @@ Keys
   trilinear filter, with 8-bit weights on CUDA); dot_order = "pattern" | "morton" (the
   order in which threads take the dots); rays_per_thread = "auto" | n (each thread traces this many
   consecutive rays of one dot and adds their sums to the dot's once; "auto": 8 for straight rays and
-  planar media, 1 through a 3-D medium); rays_per_group (consecutive threads take this many
+  planar media, 1 through a 3-D medium); rays_per_group = "auto" | n (consecutive threads take this many
   chunks of rays of one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
   or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
-  Defaults: field "float32_vec", dot_order "morton", rays_per_group 8, rays_per_thread "auto", block_dim 256,
+  Defaults: field "float32_vec", dot_order "morton", rays_per_group "auto" (8 for planar media and straight
+  rays, 64 through a 3-D medium), rays_per_thread "auto", block_dim 256,
   max_registers 64
   (the fastest exact choice on an H200: see docs/benchmarks.md, renderer speed; the CPU ignores max_registers).
 [sensor]
@@ -90,7 +91,7 @@ _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
         "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32_vec", "dot_order": "morton",
-        "rays_per_group": 8, "rays_per_thread": "auto", "block_dim": 256, "max_registers": 64, "stepping": "cells",
+        "rays_per_group": "auto", "rays_per_thread": "auto", "block_dim": 256, "max_registers": 64, "stepping": "cells",
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
@@ -199,7 +200,8 @@ def _validate(cfg):
     rays["field"] = _choice("rays.field", rays["field"], FIELDS)
     rays["stepping"] = _choice("rays.stepping", rays["stepping"], ("fixed", "cells"))
     rays["dot_order"] = _choice("rays.dot_order", rays["dot_order"], ("pattern", "morton"))
-    rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
+    if rays["rays_per_group"] != "auto":
+        rays["rays_per_group"] = _num("rays.rays_per_group", rays["rays_per_group"])
     if rays["rays_per_thread"] != "auto":
         rays["rays_per_thread"] = _num("rays.rays_per_thread", rays["rays_per_thread"])
     rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])

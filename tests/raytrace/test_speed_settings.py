@@ -88,7 +88,7 @@ def test_default_speed_settings_are_an_exact_field():
     from synthbos.raytrace.config import load_config
 
     rays = load_config(small_config())["rays"]
-    assert rays["field"] in EXACT_FIELDS and rays["dot_order"] == "morton" and rays["rays_per_group"] == 8
+    assert rays["field"] in EXACT_FIELDS and rays["dot_order"] == "morton" and rays["rays_per_group"] == "auto"
 
 
 def test_float16_pairs_and_nodes_agree_bitwise(device):
@@ -127,7 +127,8 @@ def test_speed_settings_are_checked():
     for rays, word in [({"field": "float8"}, "rays.field"), ({"dot_order": "hilbert"}, "rays.dot_order"),
                        ({"rays_per_group": 0}, "rays.rays_per_group"),
                        ({"rays_per_thread": 0}, "rays.rays_per_thread"),
-                       ({"rays_per_thread": "fast"}, "rays.rays_per_thread"), ({"block_dim": 4096}, "rays.block_dim"),
+                       ({"rays_per_thread": "fast"}, "rays.rays_per_thread"),
+                       ({"rays_per_group": "many"}, "rays.rays_per_group"), ({"block_dim": 4096}, "rays.block_dim"),
                        ({"max_registers": 48}, "rays.max_registers")]:
         with pytest.raises(SynthbosError, match=word):
             plan_render(small_config(rays=rays))
