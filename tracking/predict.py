@@ -40,7 +40,7 @@ from synthbos.correlation.peak import three_point_offset
 
 from . import predict_kernels as pk
 from .deform_kernels import deform_nearest_kernel
-from .predict_tiles import correlate_tiles
+from .predict_tiles import correlate_tiles, prepare_kernels
 from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
 from .workspace import on_device, scratch
 
@@ -58,6 +58,7 @@ __all__ = [
 #: tile) and more; the 32 and 16 px passes (the last one twice) follow fields that vary over a few tens of
 #: pixels (0.2 px per px in the tests). The pyramid ends at the first pass that changes little.
 PREDICTOR_WINDOWS = (64, 32, 16, 16)
+prepare_kernels(PREDICTOR_WINDOWS)  # the stacked predictor's tile kernels, so a campaign compiles them up front
 
 #: The samples of a correlation plane around its peak that the three-point fits read (row, column offsets).
 _CROSS = ((-1, 0), (0, -1), (0, 0), (0, 1), (1, 0))

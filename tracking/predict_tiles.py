@@ -47,6 +47,24 @@ def _kernel(what, size):
     return _kernels[key]
 
 
+def prepare_kernels(sizes) -> None:
+    """Create the tile kernels of the passes of ``sizes`` now, uncompiled. Each is a Warp module of its
+    own, made on first use; made at import for the default passes, a campaign's
+    ``synthbos.device.load_kernels`` finds them among ``predict_fft_kernels``' modules and compiles them
+    with the others, in parallel, instead of one after another inside the first stack's predictor.
+
+    Examples
+    --------
+    >>> prepare_kernels([64, 16])
+    >>> ("fft", 64) in _kernels and ("centre", 16) in _kernels and ("fft", 16) not in _kernels
+    True
+    """
+    for size in sorted({int(s) for s in sizes}):
+        _kernel("centre", size)
+        if uses_tile_fft(size):
+            _kernel("fft", size)
+
+
 def _twiddle(size, device):
     """exp(-2 pi i m / size), m = 0 ... size - 1, as float32 pairs on ``device`` (uploaded once)."""
     key = (size, str(device))

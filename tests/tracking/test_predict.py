@@ -230,3 +230,19 @@ def test_tile_correlation_and_peak(device, n):
                         for dy in range(n)])  # fmt: skip
         assert_allclose(got[b, i, j], ref, atol=1e-5 * np.abs(ref).max())
         assert peak.numpy()[b, i, j] == np.argmax(got[b, i, j]) == (n // 2 + 2) * n + n // 2 - 3
+
+
+def test_the_default_passes_tile_kernels_are_among_the_modules_a_campaign_compiles():
+    """The stacked predictor's tile kernels (a Warp module each) exist from import for the default passes,
+    so ``load_kernels`` of ``predict_fft_kernels`` (a stacked campaign's list) compiles them up front."""
+    from synthbos.tracking import predict_tiles
+    from synthbos.tracking.predict import PREDICTOR_WINDOWS
+
+    from synthbos.device import _warp_modules
+
+    names = {m.name for m in _warp_modules("synthbos.tracking.predict_fft_kernels")}
+    for size in set(PREDICTOR_WINDOWS):
+        kernels = [predict_tiles._kernel("centre", size)]
+        if predict_tiles.uses_tile_fft(size):
+            kernels += list(predict_tiles._kernel("fft", size))
+        assert {k.module.name for k in kernels} <= names, size
