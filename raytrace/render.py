@@ -219,10 +219,9 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
     kernel = kernels.render_kernel(medium, plan.max_registers if wp.get_device(device).is_cuda else 0)
-    per_thread = rays_per_thread(plan, active=active)
+    per_thread, group = launch_shape(plan, active=active)
     rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
-    # at most every chunk of a launch in a group: dot-major order
-    group = min(rays_per_group(plan, active=active), -(-rays_per_launch // per_thread))
+    group = min(group, -(-rays_per_launch // per_thread))  # at most every chunk of a launch: dot-major order
     if rays_per_launch > group * per_thread:
         rays_per_launch -= rays_per_launch % (group * per_thread)  # whole groups, except in the last launch
     for start in range(0, plan.rays_per_dot, rays_per_launch):
@@ -250,51 +249,36 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     return fixed_to_image(image.numpy()), mean, ok, int(tir.numpy().sum()), cov, third
 
 
-#: ``rays.rays_per_thread = "auto"``: this many rays a thread where every ray of a launch takes about
-#: the same path length in steps (straight rays; planar media, whose cell steps are few and alike), one
-#: through a truly 3-D medium, where a thread's rays cross different numbers of node planes and the
-#: longer ones hold up the warp (measured on an H100, 2026-11-27: slice 1.26e9 -> 1.49e9 pair rays/s at
-#: 8 rays a thread; a 256 x 256 x 64 Gaussian 4.10e8 -> 3.88e8 at 4, 2.74e8 at 16).
-AUTO_RAYS_PER_THREAD = 8
+#: ``rays.rays_per_thread`` and ``rays.rays_per_group`` = "auto": (rays a thread, chunks a group) where
+#: every ray of a launch takes about the same number of steps (straight rays; planar media, whose cell
+#: steps are few and alike), and through a truly 3-D medium, where a thread's rays cross different
+#: numbers of node planes (the longest holds its warp up: one ray a thread) and a warp whose rays read
+#: nearby nodes gains (more chunks a group). Measured on an H100, 2026-11-27: the slice 1.26e9 -> 1.49e9
+#: pair rays/s at 8 rays a thread, 1.47e9 at 8 chunks a group against 1.39e9 at 32; a 256 x 256 x 64
+#: Gaussian 4.10e8 at 1 ray a thread, 3.88e8 at 4, 2.74e8 at 16, and 4.04e8 at 8 chunks a group, 4.42e8
+#: at 32, 4.48e8 at 64.
+AUTO_LAUNCH_ALIKE = (8, 8)
+AUTO_LAUNCH_3D = (1, 64)
 
 
-def rays_per_thread(plan: RenderPlan, *, active: bool) -> int:
-    """How many consecutive rays of one dot a thread of ``render_rays`` traces (``rays.rays_per_thread``).
-
-    Examples
-    --------
-    >>> plan = plan_render({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 4}})
-    >>> rays_per_thread(plan, active=True), rays_per_thread(plan, active=False)  # the slice is planar
-    (8, 8)
-    """
-    if plan.rays_per_thread != "auto":
-        return int(plan.rays_per_thread)
-    if not active or is_planar(plan.medium.field):
-        return AUTO_RAYS_PER_THREAD
-    return 1
-
-
-#: ``rays.rays_per_group = "auto"``: this many chunks of one dot's rays on consecutive threads through a
-#: truly 3-D medium, where a warp whose rays read nearby nodes gains (a 256 x 256 x 64 Gaussian on an
-#: H100, 2026-11-27: 4.04e8 pair rays/s at 8, 4.42e8 at 32, 4.48e8 at 64), and ``AUTO_GROUP`` for planar
-#: media and straight rays (the slice: 1.47e9 at 8, 1.39e9 at 32).
-AUTO_GROUP, AUTO_GROUP_3D = 8, 64
-
-
-def rays_per_group(plan: RenderPlan, *, active: bool) -> int:
-    """How many chunks of one dot's rays consecutive threads of ``render_rays`` take (``rays.rays_per_group``).
+def launch_shape(plan: RenderPlan, *, active: bool) -> tuple[int, int]:
+    """How ``render_rays`` splits a launch: the consecutive rays of one dot each thread traces
+    (``rays.rays_per_thread``) and the chunks of one dot's rays consecutive threads take
+    (``rays.rays_per_group``), "auto" resolved by the medium.
 
     Examples
     --------
     >>> plan = plan_render({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 4}})
-    >>> rays_per_group(plan, active=True)  # the slice is planar
-    8
+    >>> launch_shape(plan, active=True), launch_shape(plan, active=False)  # the slice is planar
+    ((8, 8), (8, 8))
+    >>> blob = plan_render({"camera": {"pixels": [64, 64]}, "rays": {"per_dot": 4},
+    ...                     "volume": {"source": "gaussian", "grid": [16, 16, 8]}})
+    >>> launch_shape(blob, active=True), launch_shape(blob, active=False)  # a 3-D medium; straight rays
+    ((1, 64), (8, 8))
     """
-    if plan.rays_per_group != "auto":
-        return int(plan.rays_per_group)
-    if not active or is_planar(plan.medium.field):
-        return AUTO_GROUP
-    return AUTO_GROUP_3D
+    auto = AUTO_LAUNCH_ALIKE if not active or is_planar(plan.medium.field) else AUTO_LAUNCH_3D
+    settings = (plan.rays_per_thread, plan.rays_per_group)
+    return tuple(a if v == "auto" else int(v) for a, v in zip(auto, settings, strict=True))
 
 
 def moment_scales(rays_per_dot: int) -> tuple[float, float]:
