@@ -37,13 +37,21 @@ def uses_tile_fft(size):
 
 
 def _kernel(what, size):
-    """The pass's ``"centre"`` kernel, or its three ``"fft"`` kernels, built once per size."""
+    """The pass's ``"centre"`` kernel, or its three ``"fft"`` kernels, built once per size.
+
+    Each is a Warp module of its own, whose default block size is set to its GPU launch's, so that
+    compiling it ahead of the launch (``synthbos.device.load_kernels``, Warp's ``force_load``) builds the
+    variant the launch uses (Warp's default of 256 threads is no block size for a tile FFT of 32 samples).
+    """
     key = (what, size)
     if key not in _kernels:
         if what == "centre":
-            _kernels[key] = fk.make_centre_tiles(size)
+            made, threads = fk.make_centre_tiles(size), _cuda_threads("centre", size)
         else:
-            _kernels[key] = fk.make_tile_fft_steps(size, _fft_rows(size))
+            made, threads = fk.make_tile_fft_steps(size, _fft_rows(size)), _cuda_threads("fft", size)
+        for kernel in made if isinstance(made, tuple) else (made,):
+            kernel.module.options["block_dim"] = threads
+        _kernels[key] = made
     return _kernels[key]
 
 
@@ -79,15 +87,27 @@ def _fft_rows(size):
     return min(size, FFT_ROWS)
 
 
+def _cuda_threads(what, size):
+    """Threads per block of a pass's kernels on a GPU: the centring kernel's a few samples each, the
+    tile-FFT kernels' two samples of a row each (Warp's tile FFT wants at least two).
+
+    Examples
+    --------
+    >>> _cuda_threads("centre", 64), _cuda_threads("fft", 64), _cuda_threads("fft", 32)
+    (256, 32, 16)
+    """
+    return min(256, max(size * size // 4, 1)) if what == "centre" else size // 2
+
+
 def _centre_threads(size, device):
-    """Threads per block of the centring kernel: a few samples each on a GPU; one on the CPU."""
-    return 1 if device.is_cpu else min(256, max(size * size // 4, 1))
+    """Threads per block of the centring kernel: :func:`_cuda_threads` on a GPU; one on the CPU."""
+    return 1 if device.is_cpu else _cuda_threads("centre", size)
 
 
 def _fft_threads(size, device):
-    """Threads per block of the tile-FFT kernels: two samples of a row each on a GPU (Warp's tile FFT
-    wants at least two); one on the CPU, whose sequential FFT is the fastest there."""
-    return 1 if device.is_cpu else size // 2
+    """Threads per block of the tile-FFT kernels: :func:`_cuda_threads` on a GPU; one on the CPU, whose
+    sequential FFT is the fastest there."""
+    return 1 if device.is_cpu else _cuda_threads("fft", size)
 
 
 def _search_block(size, first):

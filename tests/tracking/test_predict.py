@@ -246,3 +246,7 @@ def test_the_default_passes_tile_kernels_are_among_the_modules_a_campaign_compil
         if predict_tiles.uses_tile_fft(size):
             kernels += list(predict_tiles._kernel("fft", size))
         assert {k.module.name for k in kernels} <= names, size
+        # compiled ahead of the launch, each is built for its GPU launch's block size (Warp's default
+        # 256 threads failed the 32-sample tile FFT's build on an H100, 2026-11-27)
+        threads = [predict_tiles._cuda_threads("centre", size)] + [size // 2] * (len(kernels) - 1)
+        assert [k.module.options["block_dim"] for k in kernels] == threads, size
