@@ -50,9 +50,6 @@ PARALLEL_SWEEPS = 4
 MAX_SWEEPS = 100
 #: Plans kept per process (one per image shape, settings, device and thread).
 PLAN_CACHE_SIZE = 4
-#: Block size of the kernels whose threads each loop over an image line (B-spline prefilter, image
-#: statistics): few threads, spread over many multiprocessors.
-LOOP_BLOCK = 32
 #: Record each plan's launches into a CUDA graph at its second pair and replay it (CUDA devices);
 #: False launches every kernel from Python (for per-kernel profiles).
 USE_CUDA_GRAPH = True
@@ -234,8 +231,10 @@ class _Plan:
         h, w = self.shape
         if self.prefilter:
             for img, coef in zip(self.img, self.coef, strict=True):
-                self._launch(self.k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], LOOP_BLOCK)
-                self._launch(self.k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], LOOP_BLOCK)
+                self._launch(self.k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp],
+                             self.k.LOOP_BLOCK)
+                self._launch(self.k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef],
+                             self.k.LOOP_BLOCK)
 
     def windows(self, step, previous, field):
         """The images to cut the step's windows from (the first, the second, the pixel weights) and their
@@ -355,9 +354,9 @@ class _Plan:
             raw = self._raw(idx, dtype)
             raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
             stats, summary = self.col_stats[idx], self.summary[idx]
-            self._launch(k.column_stats, w, [raw, stats], LOOP_BLOCK)
+            self._launch(k.column_stats, w, [raw, stats], k.LOOP_BLOCK)
             self._launch(k.combine_stats, 1, [stats, float(h * w), summary])
-            self._launch(k.column_moments, w, [raw, summary, stats], LOOP_BLOCK)
+            self._launch(k.column_moments, w, [raw, summary, stats], k.LOOP_BLOCK)
             self._launch(k.combine_moments, 1, [stats, float(h * w), summary])
             raws.append(raw)
         summary = self.summary.numpy()

@@ -40,7 +40,13 @@ FLAG_ISOLATED = wp.constant(int(VectorFlag.ISOLATED))
 PEAK_TINY = wp.constant(wp.float64(1.0e-12))
 #: The largest float64, the peak ratio of a plane whose only positive value is its peak.
 FLOAT64_MAX = wp.constant(wp.float64(1.7976931348623157e308))
-
+#: Block size of the kernels whose threads each loop over an image line (B-spline prefilter, image
+#: statistics): few threads, spread over many multiprocessors; the others take Warp's default, 256.
+LOOP_BLOCK = 32
+#: The block sizes this module's kernels are launched with on a GPU: a Warp module is compiled once per
+#: block size, and ``synthbos.device.load_kernels`` builds each ahead of the campaign (a first GPU
+#: campaign otherwise compiled the ``LOOP_BLOCK`` variant inside its first pair, one module alone).
+BLOCK_DIMS = (256, LOOP_BLOCK)
 
 
 # ---------------------------------------------------------------- cubic B-spline prefilter (Unser 1999)
@@ -200,6 +206,16 @@ def normalise_image(
     i, j = wp.tid()
     y = (wp.float64(image[i, j]) - summary[0]) / summary[1]
     out[i, j] = wp.float32(y / summary[5])
+
+
+#: The dtypes images go up as (``device_pass``: float32 where it holds every value, else float64). Both
+#: overloads of the three image kernels are declared at import: an overload made at a launch changes
+#: the module's content, and with it its hash, so every process that met a new dtype compiled the whole
+#: module again (6 times in a first GPU campaign, 6-8 s each, 2026-11-27).
+IMAGE_DTYPES = (wp.float32, wp.float64)
+for _kernel in (column_stats, column_moments, normalise_image):
+    for _dtype in IMAGE_DTYPES:
+        wp.overload(_kernel, {"image": wp.array2d(dtype=_dtype)})
 
 
 # ---------------------------------------------------------------- predictor: separable spline weights

@@ -70,3 +70,40 @@ def test_warp_verbose_on_request_only():
         out[flag] = run.stdout + run.stderr
     assert "Module synthbos.tracking.stats_kernels" in out["1"] and " took " in out["1"]
     assert "Module synthbos.tracking.stats_kernels" not in out[""] and "Warp 1." not in out[""]
+
+
+def test_a_kernel_module_declares_the_block_sizes_a_gpu_launches_it_with():
+    """``load_kernels`` builds each block size a module declares (Warp compiles a module once per block
+    size); modules that declare none, and the Python module's other Warp modules, take the default."""
+    from synthbos.correlation import pass_kernels
+
+    from synthbos.device import _block_dims, _warp_modules
+
+    (own,) = [m for m in _warp_modules("synthbos.correlation.pass_kernels") if m.name == pass_kernels.__name__]
+    assert _block_dims(pass_kernels.__name__, own) == (256, pass_kernels.LOOP_BLOCK) == (256, 32)
+    (fit,) = _warp_modules("synthbos.tracking.fit_kernels")
+    assert _block_dims("synthbos.tracking.fit_kernels", fit) == (None,)
+
+
+def test_image_dtypes_do_not_change_the_correlation_kernels():
+    """Launching the image kernels on float32 and float64 images (how the device engine uploads them)
+    leaves the kernel module's content, and so its hash, as import made it: an overload made at a launch
+    changed it, and every GPU worker that met a new dtype compiled the whole module again."""
+    import subprocess
+    import sys
+
+    code = """
+import warp as wp
+from synthbos.device import init_warp
+init_warp()
+from synthbos.correlation import pass_kernels as pk
+from warp._src.context import user_modules
+m = user_modules[pk.__name__]
+before = m.get_module_hash(1)
+stats = wp.zeros((4, 4), dtype=wp.float64, device="cpu")
+for dtype in (wp.float32, wp.float64):
+    wp.launch(pk.column_stats, 4, [wp.ones((4, 4), dtype=dtype, device="cpu"), stats], device="cpu")
+print(m.get_module_hash(1) == before)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "True", out.stdout + out.stderr
