@@ -201,7 +201,8 @@ BUILT_IN: dict[str, Method] = {
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
                settings_key="correlation", device_resident=True,
-               kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels"),
+               kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels",
+                        "synthbos.correlation.line_kernels"),
                cpu_kernels=("synthbos.correlation.kernels",)),  # the Warp pass runs on CUDA only
         Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
                label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,

@@ -59,7 +59,6 @@ _METHOD_CODES = {"gaussian": 0, "parabolic": 1, "centroid": 2}
 
 _plans: OrderedDict = OrderedDict()
 _plans_lock = threading.Lock()
-_window_kernels: dict = {}
 
 
 def _warp():
@@ -67,10 +66,10 @@ def _warp():
 
     from synthbos.device import init_warp
 
-    from . import pass_kernels
+    from . import line_kernels, pass_kernels
 
     init_warp()
-    return wp, pass_kernels
+    return wp, pass_kernels, line_kernels
 
 
 def device_supports(settings):
@@ -83,13 +82,6 @@ def device_supports(settings):
         if s < 4 or s & (s - 1):
             return f"window size {s} px is not a power of two >= 4 (tile FFT)"
     return None
-
-
-def _correlate_kernel(wp, k, n, rpc):
-    key = (n, bool(rpc))
-    if key not in _window_kernels:
-        _window_kernels[key] = k.make_correlate_windows(n, bool(rpc))
-    return _window_kernels[key]
 
 
 def _graph_replay(device):
@@ -111,8 +103,8 @@ class _Plan:
     """
 
     def __init__(self, shape, settings, device):
-        wp, k = _warp()
-        self.wp, self.k = wp, k
+        wp, k, lk = _warp()
+        self.wp, self.k, self.lines = wp, k, lk
         self.device = device
         self.settings = settings
         self.shape = shape
@@ -159,7 +151,7 @@ class _Plan:
             "zero": zeros((ny, nx), f32),
             "planes": zeros((ny * nx * size, size), f32),
             "norm": zeros(ny * nx, wp.float64),
-            "kernel": _correlate_kernel(wp, k, size, s.rpc),
+            "kernel": k.correlate_windows_kernel(size, s.rpc),
         }
         if s.rpc:
             spectral = rpc_spectral_filter((size, size), s.rpc_diameter, half=False) / size**2
@@ -228,13 +220,11 @@ class _Plan:
 
     def interpolant(self):
         """The cubic B-spline prefilter of both images (Keys and Lanczos sample the images themselves)."""
-        h, w = self.shape
+        h, w, lk = *self.shape, self.lines
         if self.prefilter:
             for img, coef in zip(self.img, self.coef, strict=True):
-                self._launch(self.k.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp],
-                             self.k.LOOP_BLOCK)
-                self._launch(self.k.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef],
-                             self.k.LOOP_BLOCK)
+                self._launch(lk.bspline3_prefilter_lines, h, [img, 1, self.line_rows, self.rows_tmp], lk.LOOP_BLOCK)
+                self._launch(lk.bspline3_prefilter_lines, w, [self.rows_tmp, 0, self.line_cols, coef], lk.LOOP_BLOCK)
 
     def windows(self, step, previous, field):
         """The images to cut the step's windows from (the first, the second, the pixel weights) and their
@@ -344,7 +334,7 @@ class _Plan:
         The one wait for the device before the passes: reading back six numbers per image to raise
         ``raise_for(name, image, nonfinite)`` for images with non-finite pixels or constant ones.
         """
-        wp, k = self.wp, self.k
+        wp, lk = self.wp, self.lines
         h, w = self.shape
         raws = []
         for idx, arr in enumerate(images):
@@ -354,17 +344,17 @@ class _Plan:
             raw = self._raw(idx, dtype)
             raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
             stats, summary = self.col_stats[idx], self.summary[idx]
-            self._launch(k.column_stats, w, [raw, stats], k.LOOP_BLOCK)
-            self._launch(k.combine_stats, 1, [stats, float(h * w), summary])
-            self._launch(k.column_moments, w, [raw, summary, stats], k.LOOP_BLOCK)
-            self._launch(k.combine_moments, 1, [stats, float(h * w), summary])
+            self._launch(lk.column_stats, w, [raw, stats], lk.LOOP_BLOCK)
+            self._launch(lk.combine_stats, 1, [stats, float(h * w), summary], lk.LOOP_BLOCK)
+            self._launch(lk.column_moments, w, [raw, summary, stats], lk.LOOP_BLOCK)
+            self._launch(lk.combine_moments, 1, [stats, float(h * w), summary], lk.LOOP_BLOCK)
             raws.append(raw)
         summary = self.summary.numpy()
         for arr, name, (_, _, lo, hi, bad, _) in zip(images, names, summary, strict=True):
             if bad > 0 or lo == hi:
                 raise raise_for(name, arr, int(bad))
         for idx, raw in enumerate(raws):
-            self._launch(k.normalise_image, self.shape, [raw, self.summary[idx], self.img[idx]])
+            self._launch(lk.normalise_image, self.shape, [raw, self.summary[idx], self.img[idx]], lk.LOOP_BLOCK)
 
     def run(self, images, valid_px, masked, *, names, raise_for):
         """One pair: upload (:meth:`upload`), pixel weights (None: all 1) and the per-pass masked
@@ -471,7 +461,7 @@ def fill_by_interpolation_on_device(u, v, invalid, *, device="cpu"):
 
 def _on_device(launch, u, v, invalid, device):
     """``launch`` (:func:`_launch_replacement` or :func:`_launch_fill`) on arrays copied to ``device``."""
-    wp, k = _warp()
+    wp, k, _ = _warp()
     shape = np.shape(u)
 
     def arr(a, dtype):

@@ -41,7 +41,7 @@ from .flags import (
 from .host_pass import correlate_on_host
 from .pattern import is_periodic
 from .peak import PEAK_METHODS, overlap_weights
-from .rules import SAMPLING_OFFSET  # noqa: F401  (re-exported)
+from .rules import SAMPLING_OFFSET, WINDOW_SIZES  # noqa: F401  (SAMPLING_OFFSET re-exported)
 from .windows import WindowGrid, checked_mask, extract_windows, window_grid  # noqa: F401  (re-exported)
 
 __all__ = [
@@ -220,7 +220,7 @@ class CorrelationSettings:
     ((0.5, 0.5, 0.5), (2, 2, 2))
     """
 
-    window_sizes: tuple = (32, 16)
+    window_sizes: tuple = WINDOW_SIZES
     overlaps: tuple | float | None = None
     iterations: tuple | int | None = None
     subpixel: str = "gaussian"

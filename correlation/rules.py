@@ -3,7 +3,7 @@ engine (:mod:`correlation.device_pass`) both apply: written once, here, below bo
 
 from __future__ import annotations
 
-__all__ = ["CONFIRM_CORRELATION", "EDGE_MARGIN", "SAMPLING_OFFSET", "judges_correlation"]
+__all__ = ["CONFIRM_CORRELATION", "EDGE_MARGIN", "SAMPLING_OFFSET", "WINDOW_SIZES", "judges_correlation"]
 
 #: Deformed windows are sampled on pixel grids moved by this much (px, along x and y). The shift error
 #: of a symmetric interpolation kernel at fractional position f, b(f), is odd about 0 and about 1/2;
@@ -17,6 +17,9 @@ SAMPLING_OFFSET = 0.25
 #: A vector that fails the median test is confirmed (kept) only if its peak correlation coefficient is
 #: at least this fraction of its valid neighbours' median (and the previous iteration measured it alike).
 CONFIRM_CORRELATION = 0.7
+
+#: The default passes' window sizes (px): 32 x 32 px windows, then 16 x 16 px.
+WINDOW_SIZES = (32, 16)
 
 #: Deformed pixels sampled closer than this to the image edge (px) are left out of the correlation.
 EDGE_MARGIN = 2.0

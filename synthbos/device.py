@@ -190,26 +190,15 @@ def load_kernels(pairs, *, max_workers=None) -> None:
     >>> load_kernels([("synthbos.tracking.moment_kernels", "cpu")])
     """
     init_warp()
-    jobs = []  # (device, Warp module, block size or None: the module's default)
+    by_device: dict[str, list] = {}
     for name, device in pairs:
-        cuda = wp.get_device(device).is_cuda
-        for m in _warp_modules(name):
-            for block_dim in _block_dims(name, m) if cuda else (None,):
-                if (str(device), m, block_dim) not in jobs:
-                    jobs.append((str(device), m, block_dim))
+        mods = by_device.setdefault(str(device), [])
+        mods.extend(m for m in _warp_modules(name) if m not in mods)
     workers = max_workers if max_workers is not None else (os.cpu_count() or 1)
-    if workers <= 1 or len(jobs) <= 1:
-        for device, m, block_dim in jobs:
-            wp.force_load(device=device, modules=[m], block_dim=block_dim, max_workers=0)
+    if len(by_device) == 1:
+        (device, mods), = by_device.items()
+        wp.force_load(device=device, modules=mods, max_workers=workers)
         return
-    with ThreadPoolExecutor(workers, thread_name_prefix="synthbos-compile") as pool:  # the compilers release the GIL
-        for fut in [pool.submit(wp.force_load, device=d, modules=[m], block_dim=b, max_workers=0) for d, m, b in jobs]:
+    with ThreadPoolExecutor(len(by_device), thread_name_prefix="synthbos-compile") as pool:  # devices side by side
+        for fut in [pool.submit(wp.force_load, device=d, modules=m, max_workers=workers) for d, m in by_device.items()]:
             fut.result()
-
-
-def _block_dims(name: str, module) -> tuple:
-    """The block sizes a GPU launches Warp module ``module`` of Python module ``name`` with: the Python
-    module's ``BLOCK_DIMS`` where it declares them for its own Warp module (a module is compiled once per
-    block size), else the module's default (None)."""
-    dims = getattr(sys.modules.get(name), "BLOCK_DIMS", None) if module.name == name else None
-    return tuple(dims) if dims else (None,)

@@ -72,17 +72,22 @@ def test_warp_verbose_on_request_only():
     assert "Module synthbos.tracking.stats_kernels" not in out[""] and "Warp 1." not in out[""]
 
 
-def test_a_kernel_module_declares_the_block_sizes_a_gpu_launches_it_with():
-    """``load_kernels`` builds each block size a module declares (Warp compiles a module once per block
-    size); modules that declare none, and the Python module's other Warp modules, take the default."""
-    from synthbos.correlation import pass_kernels
+def test_the_correlation_kernels_are_compiled_ahead_for_the_block_sizes_they_are_launched_with():
+    """Warp compiles a module once per block size, and ``load_kernels`` builds each module's default:
+    the line kernels' default is their launch's ``LOOP_BLOCK`` (in ``pass_kernels``, launched at 256
+    elsewhere, they made a first GPU run compile that whole module twice), and the default passes'
+    window kernels exist from import with their launch's ``n // 2`` threads."""
+    from synthbos.correlation import line_kernels, pass_kernels
+    from synthbos.correlation.rules import WINDOW_SIZES
 
-    from synthbos.device import _block_dims, _warp_modules
+    from synthbos.device import _warp_modules
 
-    (own,) = [m for m in _warp_modules("synthbos.correlation.pass_kernels") if m.name == pass_kernels.__name__]
-    assert _block_dims(pass_kernels.__name__, own) == (256, pass_kernels.LOOP_BLOCK) == (256, 32)
-    (fit,) = _warp_modules("synthbos.tracking.fit_kernels")
-    assert _block_dims("synthbos.tracking.fit_kernels", fit) == (None,)
+    (lines,) = _warp_modules(line_kernels.__name__)
+    assert lines.options["block_dim"] == line_kernels.LOOP_BLOCK == 32
+    names = {m.name for m in _warp_modules(pass_kernels.__name__)}
+    for n in WINDOW_SIZES:
+        kernel = pass_kernels.correlate_windows_kernel(n, False)
+        assert kernel.module.name in names and kernel.module.options["block_dim"] == n // 2
 
 
 def test_image_dtypes_do_not_change_the_correlation_kernels():
@@ -96,7 +101,7 @@ def test_image_dtypes_do_not_change_the_correlation_kernels():
 import warp as wp
 from synthbos.device import init_warp
 init_warp()
-from synthbos.correlation import pass_kernels as pk
+from synthbos.correlation import line_kernels as pk
 from warp._src.context import user_modules
 m = user_modules[pk.__name__]
 before = m.get_module_hash(1)

@@ -141,14 +141,14 @@ def test_prefilter_matches_scipy(device):
     img = rng.random((37, 53)).astype(np.float32)
     from synthbos.correlation.device_pass import _warp
 
-    wp, k = _warp()
+    wp, _, k = _warp()
     src = wp.array(img, dtype=wp.float32, device=device)
     tmp = wp.zeros(img.shape, dtype=wp.float32, device=device)
     out = wp.zeros(img.shape, dtype=wp.float32, device=device)
     rows = wp.zeros((37, 53), dtype=wp.float64, device=device)
     cols = wp.zeros((53, 37), dtype=wp.float64, device=device)
-    wp.launch(k.bspline3_prefilter_lines, dim=37, inputs=[src, 1, rows, tmp], device=device)
-    wp.launch(k.bspline3_prefilter_lines, dim=53, inputs=[tmp, 0, cols, out], device=device)
+    wp.launch(k.bspline3_prefilter_lines, dim=37, inputs=[src, 1, rows, tmp], device=device, block_dim=k.LOOP_BLOCK)
+    wp.launch(k.bspline3_prefilter_lines, dim=53, inputs=[tmp, 0, cols, out], device=device, block_dim=k.LOOP_BLOCK)
     assert_allclose(out.numpy(), bspline3_coefficients(img), atol=2e-6, rtol=0)
 
 
