@@ -182,8 +182,11 @@ def load_kernels(pairs, *, max_workers=None) -> None:
 
     Warp compiles a module on its first launch, one module after another; a campaign calls this before
     its work starts, so that a first run on a machine with an empty kernel cache compiles all of them in
-    parallel (``max_workers`` threads, default one per CPU core: the compilers release the GIL) instead
-    of one by one, and its worker processes find them compiled.
+    parallel (``max_workers`` at a time, default one per CPU core) instead of one by one, and its worker
+    processes find them compiled. Warp generates every module's source under one lock per process, and
+    for a tile FFT that includes building the FFT's device code (5-7 s each), so the CUDA modules
+    missing from the cache are built in as many processes (:func:`_build_in_processes`); the rest, and
+    every CPU module, in threads here (the compilers release the GIL).
 
     Examples
     --------
@@ -193,12 +196,49 @@ def load_kernels(pairs, *, max_workers=None) -> None:
     by_device: dict[str, list] = {}
     for name, device in pairs:
         mods = by_device.setdefault(str(device), [])
-        mods.extend(m for m in _warp_modules(name) if m not in mods)
+        mods.extend((name, m) for m in _warp_modules(name) if m not in [x for _, x in mods])
     workers = max_workers if max_workers is not None else (os.cpu_count() or 1)
+    missing = [(name, d, m.name) for d, mods in by_device.items() if wp.get_device(d).is_cuda
+               for name, m in mods if not _cached(m, d)]
+    if workers > 1 and len(missing) > 1:
+        _build_in_processes(missing, workers)
     if len(by_device) == 1:
         (device, mods), = by_device.items()
-        wp.force_load(device=device, modules=mods, max_workers=workers)
+        wp.force_load(device=device, modules=[m for _, m in mods], max_workers=workers)
         return
     with ThreadPoolExecutor(len(by_device), thread_name_prefix="synthbos-compile") as pool:  # devices side by side
-        for fut in [pool.submit(wp.force_load, device=d, modules=m, max_workers=workers) for d, m in by_device.items()]:
+        for fut in [pool.submit(wp.force_load, device=d, modules=[m for _, m in mods], max_workers=workers)
+                    for d, mods in by_device.items()]:
             fut.result()
+
+
+def _cached(module, device) -> bool:
+    """Whether Warp's kernel cache holds ``module``'s binary for ``device`` at the block size ``force_load``
+    builds (one thread on the CPU, the module's default on a GPU; False where that cannot be told)."""
+    try:
+        dev = wp.get_device(device)
+        block_dim = 1 if dev.is_cpu else module.options["block_dim"]
+        folder = os.path.join(wp.config.kernel_cache_dir, module.get_module_identifier(block_dim))
+        return os.path.exists(os.path.join(folder, module._get_compile_output_name(dev, block_dim=block_dim)))
+    except Exception:  # Warp's internals moved: build as if missing (processes are only the faster way)
+        return False
+
+
+def _build_in_processes(missing, workers: int) -> None:
+    """Build each ``(Python module, device, Warp module name)`` of ``missing`` in a process of a pool of at
+    most ``workers`` (spawned: each imports Warp afresh and generates its modules' sources under its own
+    lock), into Warp's kernel cache; this process then loads them from there."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
+        for fut in [pool.submit(_build_one, *job, wp.config.kernel_cache_dir) for job in missing]:
+            fut.result()
+
+
+def _build_one(name: str, device: str, module_name: str, cache: str) -> None:
+    """Build Warp module ``module_name`` of Python module ``name`` for ``device`` into the kernel cache
+    ``cache`` (a task of :func:`_build_in_processes`)."""
+    init_warp()
+    wp.config.kernel_cache_dir = cache  # after Warp's start, which would add its version to a path given before
+    wp.force_load(device=device, modules=[m for m in _warp_modules(name) if m.name == module_name], max_workers=0)

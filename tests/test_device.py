@@ -112,3 +112,19 @@ print(m.get_module_hash(1) == before)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     assert out.stdout.strip().splitlines()[-1] == "True", out.stdout + out.stderr
+
+
+def test_modules_missing_from_the_cache_are_built_in_other_processes(tmp_path, monkeypatch):
+    """A first GPU run builds the missing modules in a process each (Warp generates the sources of one
+    process's modules one at a time): here on the CPU, one module into an empty cache, which this
+    process then finds there."""
+    import warp as wp
+
+    from synthbos.device import _build_in_processes, _cached, _warp_modules
+
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    name = "synthbos.tracking.wide_search_kernels"
+    (module,) = _warp_modules(name)
+    assert not _cached(module, "cpu")
+    _build_in_processes([(name, "cpu", module.name)], 2)
+    assert _cached(module, "cpu")
