@@ -337,7 +337,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     device resident (``Method.device_resident``: the correlation's Warp path), adds the noise and runs
     the method on the item's processing device (``items.measure_item``); the result goes to a worker
     process that scores it and writes the score file (``items.finish_item``) while this process goes
-    on with the next item. Methods with host work between their kernels (tracking) would hold this
+    on with the next item; the items of a pair measured here, every noise level of it, go to one worker
+    together, which reads the pair file and does the pair's share of the scoring once (``synthbos.memo``).
+    Methods with host work between their kernels (tracking) would hold this
     process up, so workers measure them, on the item's processing device or on ``worker_device`` when
     given (score items end with their processing device). Consecutive items on the
     same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
@@ -507,6 +509,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     make_images(k, pair)
                 prepared = images.get(k, {})
                 to_stack = []  # (noisy images, items) of the pair's runs that stacks track
+                measured = []  # the pair's items measured here, every noise level: one worker scores them all
                 for r, run in enumerate(same_image_runs(items)):
                     here, stacked, there = split_items(run, worker_device=worker_device, stack=stack)
                     noisy = prepared[r].result() if r in prepared else None
@@ -517,9 +520,12 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    batch = [measure_item(pair, *args, images=noisy) for args in here]
-                    # the workers read the pair file: they get the run once it is written
-                    deferred.append((written, path, batch, there, len(here) + len(there)))
+                    measured.extend(measure_item(pair, *args, images=noisy) for args in here)
+                    if there:  # the workers read the pair file: they get the run once it is written
+                        deferred.append((written, path, [], there, len(there)))
+                        submit_ready(block=False)
+                if measured:  # one task: the pair's file read, triangulation and neighbours once, not per run
+                    deferred.append((written, path, measured, [], len(measured)))
                     submit_ready(block=False)
                 if pool is not None and not items:
                     deferred.append((written, path, None, None, 0))
