@@ -23,7 +23,8 @@ def test_methods_name_the_kernels_they_launch_on_each_device():
     corr, track = get_method("correlation"), get_method("tracking")
     assert corr.kernels_on("cpu") == ("synthbos.correlation.kernels",)
     assert corr.kernels_on(None) == corr.kernels_on("cpu")
-    assert corr.kernels_on("cuda:0") == ("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels")
+    assert corr.kernels_on("cuda:0") == ("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels",
+                                         "synthbos.correlation.line_kernels")
     assert "synthbos.tracking.deform_kernels" in track.kernels_on("cuda:0")
     assert "synthbos.tracking.deform_kernels" not in track.kernels_on("cpu")
     assert set(track.kernels_on("cpu")) < set(track.kernels)
