@@ -110,7 +110,7 @@ def _dilate(mask):
 def measure_windows_numpy(
     image,
     origin,
-    local,
+    pred,
     *,
     half,
     map_half,
@@ -131,8 +131,8 @@ def measure_windows_numpy(
         The (residual) image.
     origin : (N, 2) int array
         Column and row of each window's first pixel; windows are ``2 half + 1`` pixels square.
-    local : (N, 2) array
-        Predicted position in window coordinates (x, y).
+    pred : (N, 2) array
+        Predicted position (x, y) in the image; ``pred - origin`` is its place in the window.
     half, map_half : int, keyword-only
         Window and dot-map half-widths.
     radius : float, keyword-only
@@ -158,6 +158,7 @@ def measure_windows_numpy(
         pixels zero, centred on the peak pixel.
     """
     image = np.asarray(image, dtype=np.float64)
+    local = np.asarray(pred, dtype=np.float64) - origin
     n = len(origin)
     w = 2 * half + 1
     c = 2 * map_half + 1
