@@ -208,6 +208,8 @@ def _confirmed_by_neighbours(out, good, query, settings, device):
     (within the outlier test and ``predictor_tolerance``): its neighbours overrule a poor prediction
     (the correlation is least reliable in the windows at the image edge). The stacked test
     (:func:`tracking.neighbours.confirmed_by_neighbours_stack`) on a stack of one."""
+    if not query.any():  # (the usual case: nothing to confirm, nothing to launch)
+        return np.zeros(len(query), dtype=bool)
     xy = np.stack([out["x"], out["y"]], axis=1)
     uv = np.stack([out["x_gradient"], out["y_gradient"]], axis=1) - xy
     ok = confirmed_by_neighbours_stack(xy[None], uv[None], good[None], query[None], **_neighbour_options(settings),
