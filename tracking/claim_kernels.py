@@ -2,9 +2,9 @@
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of identification over a stack of pairs: rounds of claims that give each blob to one dot.
 
-Host code: :class:`tracking.identify.StackIdentification`. The per-window measurement of
-:mod:`tracking.identify_kernels` on one frame of an image stack, rounds of claims that give each blob to
-one dot, the subtraction of waiting neighbours; one prior repeated for every pair and the peaks of the
+Host code: :class:`tracking.identify.StackIdentification`. After the per-window measurement
+(:mod:`tracking.identify_kernels`' ``measure_stack``): rounds of claims that give each blob to one dot,
+the subtraction of waiting neighbours; one prior repeated for every pair and the peaks of the
 first round (whose median sets the relative peak threshold).
 
 Dots are held flat: dot ``i`` of a call belongs to frame ``i // per_frame``. Status bits and rule
@@ -16,7 +16,6 @@ from synthbos.correlation.pass_kernels import three_point_offset
 
 from synthbos.device import quiet_warp
 
-from .identify_kernels import measure_window
 from .kernel_constants import (
     AMBIGUOUS,
     CLIP_HI,
@@ -71,55 +70,6 @@ def start_identification(
     todo[i] = 1
     if ox < 0 or oy < 0 or ox + 2 * half >= width or oy + 2 * half >= height:
         flags[i] = NEAR_BORDER
-
-
-@wp.kernel
-def measure_stack(
-    images: wp.array3d(dtype=wp.float64),
-    ids: wp.array(dtype=wp.int32),
-    per_frame: int,
-    fill: wp.array(dtype=wp.float64),
-    floor: wp.array(dtype=wp.float64),
-    sat: wp.array(dtype=wp.float64),
-    active: wp.array(dtype=wp.int32),
-    origin: wp.array2d(dtype=wp.int32),
-    pred: wp.array(dtype=wp.vec2d),
-    todo: wp.array(dtype=wp.int32),
-    half: int,
-    hc: int,
-    radius: wp.float64,
-    frac: wp.float64,
-    wa: wp.float64,
-    wi: wp.float64,
-    wd: wp.float64,
-    use_min: int,
-    win: wp.array2d(dtype=wp.float64),
-    ring: wp.array2d(dtype=wp.float64),
-    network: wp.array2d(dtype=wp.int32),
-    lab: wp.array2d(dtype=wp.int32),
-    area: wp.array2d(dtype=wp.int32),
-    roots: wp.array2d(dtype=wp.int32),
-    dotmap: wp.array3d(dtype=wp.float64),
-    out_int: wp.array2d(dtype=wp.int32),
-    out_float: wp.array2d(dtype=wp.float64),
-    cross: wp.array2d(dtype=wp.float64),
-):
-    """``measure_window`` of dot ``ids[t]`` on its frame, results in row t; chosen -1 where not measured
-    (found already, outside, or its frame done)."""
-    t = wp.tid()
-    i = ids[t]
-    f = i // per_frame
-    out_int[t, 0] = -1
-    if todo[i] == 0 or active[f] == 0:
-        return
-    ox = origin[i, 0]
-    oy = origin[i, 1]
-    p = pred[i]
-    measure_window(
-        images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
-        floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, 0, out_int, out_float,
-        dotmap, cross,
-    )  # fmt: skip
 
 
 @wp.func

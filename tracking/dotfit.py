@@ -15,23 +15,23 @@ the maximum-likelihood estimate and reaches the Cramer-Rao bound (:mod:`tracking
 :func:`fit_dots` runs the iteration with Warp kernels (one thread per dot); :func:`tracking.reference.fit_dots_numpy` is
 the array-program reference that defines the result. :func:`fit_stack` runs ``track_pair``'s model fit
 (the joint fit, the first-moment step, the fit's results taken) for every pair of a stack on one device.
+One pair and a stack take the same steps (``_fit_steps``, ``_moment_codes``) through the same kernels
+(``tracking.fit_kernels.fit_step_stack``, ``moment_shift_stack``): one pair is a stack of one.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
 from . import fit_kernels as fk
 from .ellipse import ellipse_step
-from .fit_kernels import fit_dot_step_kernel, render_dots_kernel
+from .fit_kernels import render_dots_kernel
 from .frame_stats import segment_medians
-from .moment_kernels import (
-    MAX_SHIFT_PX,
-    moment_moves_kernel,
-    moment_shift_kernel,
-)
-from .settings import FIT_MAX_MOVE_PX, start_width
+from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
+from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, start_width
 from .workspace import scratch
 
 __all__ = [
@@ -182,12 +182,13 @@ def _raster_order(p, frame):
 
 def _device_layout(stack, p, frame, partner, what, device):
     """The images of frames 0 and 1 on ``device`` as they are (no stacked copy; the same one twice for a
-    single image), the dots' raster order and its inverse, and their frames and partners in that order."""
+    single image), each as a stack of one (1, H, W), the dots' raster order and its inverse, and their
+    frames and partners in that order."""
     if len(stack) > 2:
         raise ValueError(f"{what} takes one image or a pair, got {len(stack)}")
     order, back = _raster_order(p, frame)
-    img0 = _on_device(stack[0], wp.float64, device)
-    img1 = _on_device(stack[-1], wp.float64, device)
+    img0 = _on_device(stack[0], wp.float64, device).reshape((1, *stack[0].shape))
+    img1 = _on_device(stack[-1], wp.float64, device).reshape((1, *stack[0].shape))
     fr = _on_device(np.take(frame, order), wp.int32, device)
     po = np.take(partner, order)
     pa = _on_device(np.where(po >= 0, np.take(back, np.maximum(po, 0)), -1), wp.int32, device)
@@ -273,78 +274,103 @@ def fit_dots(
         return p, np.ones(0, dtype=bool), np.zeros((0, 2))
     if render_half < half:
         raise ValueError(f"render_half ({render_half}) must be at least half ({half})")
-    img0, img1, order, back, fr, pa = _device_layout(stack, p, frame, partner, "fit_dots", device)
+    refs, grads, order, back, fr, pa = _device_layout(stack, p, frame, partner, "fit_dots", device)
     sat = wp.array(np.minimum(_saturation(saturation, len(stack)), 1e300), dtype=wp.float64, device=device)
-    # The free model image every step; the common-shape one only for the last step (the only one whose
-    # common-shape positions are kept).
+    width = wp.array(np.asarray([sigma_range], dtype=np.float64), dtype=wp.vec2d, device=device)
     # Working arrays from the thread's workspace (results are copied out at the end). The starting
     # parameters are gathered in the new order straight into ``start`` (np.take gathers rows several
     # times faster than fancy indexing); ``nxt`` needs no start: every step writes all of its rows.
-    models = scratch("fit_models", (2, len(stack), *stack[0].shape), wp.int64, device)
-    cur = scratch("fit_params", (n, 5), wp.float64, device)
-    nxt = scratch("fit_params_next", (n, 5), wp.float64, device)
     start = scratch("fit_start", (n, 5), wp.float64, device)
     if wp.get_device(device).is_cpu:
-        p = np.take(p, order, axis=0, out=start.numpy(), mode="clip")  # (valid indices; "raise" buffers `out`)
+        np.take(p, order, axis=0, out=start.numpy(), mode="clip")  # (valid indices; "raise" buffers `out`)
     else:
-        p = np.take(p, order, axis=0)
-        start.assign(p)
-    cur.assign(start)
-    ok = scratch("fit_ok", (n,), wp.int32, device)
-    shared = scratch("fit_shared", (n, 2), wp.float64, device)
-    prof = scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device)
-    peak = float(np.max(np.abs(p[:, 2])))
+        start.assign(np.take(p, order, axis=0))
+    live = scratch("fit_live", (n,), wp.int32, device)
+    live.fill_(1)
+    rows = _Rows(start, fr, pa, live)
+    bufs = _FitBuffers(
+        scratch("fit_models", (2 * len(stack) * refs.shape[1] * refs.shape[2],), wp.int64, device),
+        scratch("fit_params", (n, 5), wp.float64, device),
+        scratch("fit_params_next", (n, 5), wp.float64, device),
+        scratch("fit_ok", (n,), wp.int32, device),
+        scratch("fit_shared", (n, 2), wp.float64, device),
+        scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device),
+    )
+    cur = _fit_steps(refs, grads, rows, bufs, sat, width, half=half, render_half=render_half, iterations=iterations,
+                     max_move=max_move, device=device)  # fmt: skip
+    ok = bufs.ok.numpy()[back].astype(bool)
+    return np.take(cur.numpy(), back, axis=0), ok, np.take(bufs.shared.numpy(), back, axis=0)
+
+
+class _Rows(NamedTuple):
+    """The rows of a fit: their starting (or fitted) parameters (R, 5), frames, partners (-1: none) and
+    whether each is a dot (a row not live is neither fitted nor drawn into the model images)."""
+
+    params: wp.array
+    frame: wp.array
+    partner: wp.array
+    live: wp.array
+
+
+class _FitBuffers(NamedTuple):
+    """The fit's working arrays: the flat fixed-point model images (two layers of every frame), the
+    parameters of the current and the next step, ``ok``, the common-shape positions and the profiles."""
+
+    models: wp.array
+    cur: wp.array
+    nxt: wp.array
+    ok: wp.array
+    shared: wp.array
+    prof: wp.array
+
+
+def _frame_scales_of(params, live, frame, pairs, device):
+    """:func:`_frame_scales` of each pair's largest live peak, for its two frames."""
+    peak = wp.zeros(pairs, dtype=wp.float64, device=device)
+    _launch(fk.largest_peak, params.shape[0], [params, live, frame, peak], device)
+    return _frame_scales(peak.numpy(), 2, device)
+
+
+def _fit_steps(refs, grads, rows, bufs, sat, width, *, half, render_half, iterations, max_move, device):
+    """The block-Jacobi Gauss-Newton steps of :func:`fit_dots` on the rows of a stack of pairs.
+
+    ``refs``, ``grads``: (B, H, W) float64 Warp arrays (model frame ``2 b``: ``refs[b]``, ``2 b + 1``:
+    ``grads[b]``); ``rows``: :class:`_Rows` (the starting parameters, kept); ``bufs``: :class:`_FitBuffers`
+    (``ok`` and ``shared`` written at the live rows); ``sat``: per frame; ``width``: each pair's width range
+    (vec2d). Returns the parameters of the last step (``bufs.cur`` or ``bufs.nxt``).
+    """
+    H, W = refs.shape[1:]
+    n = rows.params.shape[0]
+    layer = bufs.models.shape[0] // 2
+    cur, nxt = bufs.cur, bufs.nxt
+    cur.assign(rows.params)
     for it in range(iterations):
         last = it == iterations - 1
-        if it:
-            peak = float(np.max(np.abs(cur.numpy()[:, 2])))
-        scales = _frame_scales([peak], len(stack), device)
-        (models if last else models[0]).zero_()
-        wp.launch(
+        scales = _frame_scales_of(cur, rows.live, rows.frame, refs.shape[0], device)
+        # the free model image every step; the common-shape one only for the last step (the only one whose
+        # common-shape positions are kept)
+        if last:
+            bufs.models.zero_()
+        else:
+            bufs.models[:layer].zero_()
+        _launch(
             render_dots_kernel,
-            dim=n,
-            inputs=[
-                cur,
-                fr,
-                pa,
-                int(render_half),
-                int(last),
-                int(it == 0),
-                prof,
-                scales,
-                *stack[0].shape,
-                models.flatten(),
+            n,
+            [cur, rows.frame, rows.partner, int(render_half), int(last), int(it == 0), bufs.prof, scales, H, W,
+             bufs.models],
+            device,
+        )  # fmt: skip
+        _launch(
+            fk.fit_step_stack,
+            n,
+            [
+                refs, grads, bufs.models, scales, cur, rows.params, rows.frame, rows.partner, rows.live, sat, width,
+                int(half), int(render_half), int(last), float(max_move), bufs.prof, nxt, bufs.ok, bufs.shared,
             ],
-            device=device,
-        )
-        wp.launch(
-            fit_dot_step_kernel,
-            dim=n,
-            inputs=[
-                img0,
-                img1,
-                models.flatten(),
-                scales,
-                cur,
-                start,
-                fr,
-                pa,
-                sat,
-                int(half),
-                int(render_half),
-                int(last),
-                float(max_move),
-                float(sigma_range[0]),
-                float(sigma_range[1]),
-                prof,
-                nxt,
-                ok,
-                shared,
-            ],
-            device=device,
-        )
+            device,
+        )  # fmt: skip
         cur, nxt = nxt, cur
-    return np.take(cur.numpy(), back, axis=0), ok.numpy()[back].astype(bool), np.take(shared.numpy(), back, axis=0)
+    return cur
 
 
 def _noise(noise, k):
@@ -450,32 +476,49 @@ def moment_shifts(
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     k = len(stack)
-    img0, img1, order, back, fr, pa = _device_layout(stack, p, frame, partner, "moment_shifts", device)
-    pw = _on_device(np.take(p, order, axis=0), wp.float64, device)
-    models = scratch("moment_models", (k, *stack[0].shape), wp.int64, device)
-    models.zero_()
+    refs, grads, order, back, fr, pa = _device_layout(stack, p, frame, partner, "moment_shifts", device)
+    live = scratch("moment_live", (n,), wp.int32, device)
+    live.fill_(1)
+    rows = _Rows(_on_device(np.take(p, order, axis=0), wp.float64, device), fr, pa, live)
+    models = scratch("moment_models", (k * refs.shape[1] * refs.shape[2],), wp.int64, device)
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
-    scales = _frame_scales([np.max(np.abs(p[:, 2]))], k, device)
-    h, w = stack[0].shape
-    wp.launch(render_dots_kernel, dim=n, inputs=[pw, fr, pa, int(half), 0, 1, prof, scales, h, w, models.flatten()],
-              device=device)  # fmt: skip
     sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
     sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
-    out = wp.empty(n, dtype=wp.vec3d, device=device)
-    wp.launch(
-        moment_shift_kernel,
-        dim=n,
-        inputs=[img0, img1, models.flatten(), scales, pw, fr, pa, sat, sig, int(half), float(chi2),
-                float(max_shift), prof, out],
-        device=device,
-    )  # fmt: skip
+    out = _moment_codes(refs, grads, rows, models, prof, sat, sig, half=int(half), chi2=chi2, max_shift=max_shift,
+                        ellipse=ellipse, device=device)  # fmt: skip
     moved = wp.empty(n, dtype=wp.int32, device=device)
-    if ellipse:
-        ellipse_step(img1.reshape((1, h, w)), models.flatten(), scales, pw, fr, pa, prof, out, half=int(half),
-                     max_shift=float(max_shift), device=device)  # fmt: skip
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied
+
+
+def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, max_shift, ellipse, device):
+    """The first-moment step's shift and code of every row (``moment_shift``; a row not live gets none):
+    the model image of every live row at its parameters is drawn into ``models`` (one layer of every
+    frame, with the profiles into ``prof``), then each row's first moment taken (with ``ellipse``, a
+    gradient-image row that moves takes its elliptical moment, :func:`tracking.ellipse.ellipse_step`).
+    ``refs``, ``grads``, ``rows``, ``sat``: as for :func:`_fit_steps`; ``noise``: per frame; ``half``: the
+    model's half-size. Returns a (R,) vec3d Warp array."""
+    H, W = refs.shape[1:]
+    n = rows.params.shape[0]
+    scales = _frame_scales_of(rows.params, rows.live, rows.frame, refs.shape[0], device)
+    models.zero_()
+    _launch(render_dots_kernel, n, [rows.params, rows.frame, rows.partner, half, 0, 1, prof, scales, H, W, models],
+            device)  # fmt: skip
+    shift = wp.empty(n, dtype=wp.vec3d, device=device)
+    _launch(
+        fk.moment_shift_stack,
+        n,
+        [
+            refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, sat, noise, half,
+            float(chi2), float(max_shift), prof, shift,
+        ],
+        device,
+    )  # fmt: skip
+    if ellipse:
+        ellipse_step(grads, models, scales, rows.params, rows.frame, rows.partner, prof, shift, half=half,
+                     max_shift=float(max_shift), device=device)  # fmt: skip
+    return shift
 
 
 # --- a stack of pairs on one Warp device ------------------------------------------------------------
@@ -533,12 +576,14 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     B, H, W = refs.shape
     M = r["x"].shape[0]
     N = M // B
-    eta0 = wp.array(np.ascontiguousarray(eta0_host), dtype=wp.float64, device=device)
     values = wp.empty(2 * M, dtype=wp.float64, device=device)
     valid = wp.empty(2 * M, dtype=wp.int32, device=device)
     _launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid], device)
     med = segment_medians(values, valid, length=2 * N, segments=B, device=device).numpy()
     sigma0 = wp.array(np.ascontiguousarray(start_width(med, eta0_host)), dtype=wp.float64, device=device)
+    eta0_host = np.asarray(eta0_host, dtype=np.float64)
+    width = np.stack([MODEL_WIDTH_RANGE[0] * eta0_host, MODEL_WIDTH_RANGE[1] * eta0_host], axis=1)
+    width = wp.array(np.ascontiguousarray(width), dtype=wp.vec2d, device=device)
     rows = 2 * M
     start = wp.empty((rows, 5), dtype=wp.float64, device=device)
     live = wp.empty(rows, dtype=wp.int32, device=device)
@@ -550,71 +595,21 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
             device,
         )
     _launch(fk.pair_partners, M, [live, M, partner], device)
-    models = wp.empty(2 * 2 * B * H * W, dtype=wp.int64, device=device)
-    layer = 2 * B * H * W
-    cur = wp.clone(start)
-    nxt = wp.empty_like(start)
-    ok = wp.zeros(rows, dtype=wp.int32, device=device)
-    shared = wp.full((rows, 2), np.nan, dtype=wp.float64, device=device)
-    prof = wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=device)
-    peak = wp.zeros(B, dtype=wp.float64, device=device)
-    for it in range(s.fit_iterations):
-        last = it == s.fit_iterations - 1
-        peak.zero_()
-        _launch(fk.largest_peak, rows, [cur, live, frame, peak], device)
-        scales = _frame_scales(peak.numpy(), 2, device)
-        if last:
-            models.zero_()
-        else:
-            models[:layer].zero_()
-        _launch(
-            render_dots_kernel,
-            rows,
-            [cur, frame, partner, render_half, int(last), int(it == 0), prof, scales, H, W, models],
-            device,
-        )
-        _launch(
-            fk.fit_step_stack,
-            rows,
-            [
-                refs, grads, models, scales, cur, start, frame, partner, live, sat, eta0, half, render_half,
-                int(last), FIT_MAX_MOVE_PX, prof, nxt, ok, shared,
-            ],
-            device,
-        )  # fmt: skip
-        cur, nxt = nxt, cur
+    bufs = _FitBuffers(
+        wp.empty(2 * 2 * B * H * W, dtype=wp.int64, device=device),
+        wp.empty_like(start),
+        wp.empty_like(start),
+        wp.zeros(rows, dtype=wp.int32, device=device),
+        wp.full((rows, 2), np.nan, dtype=wp.float64, device=device),
+        wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=device),
+    )
+    cur = _fit_steps(refs, grads, _Rows(start, frame, partner, live), bufs, sat, width, half=half,
+                     render_half=render_half, iterations=s.fit_iterations, max_move=FIT_MAX_MOVE_PX,
+                     device=device)  # fmt: skip
     moved = wp.zeros(rows, dtype=wp.int32, device=device)
     if s.distortion != "none":
-        rows_of = (cur, frame, partner, live)
-        _moment_step_stack(refs, grads, rows_of, models[:layer], prof, shared, moved, sat, noise_frames, render_half,
-                           s, device)  # fmt: skip
-    return cur, ok, shared, live, moved
-
-
-def _moment_step_stack(refs, grads, rows_of, models, prof, shared, moved, sat, noise_frames, half, s, device):
-    """:func:`moment_shifts` of every row, in place: the model image of every dot at the fitted parameters
-    is drawn again (with their profiles), then each row moves to its first moment (with
-    ``distortion="ellipse"``, a moving gradient-image row to its elliptical moment,
-    :func:`tracking.ellipse.ellipse_step`). ``half`` is the model's half-size."""
-    params, frame, partner, live = rows_of
-    H, W = refs.shape[1:]
-    rows = params.shape[0]
-    peak = wp.zeros(refs.shape[0], dtype=wp.float64, device=device)
-    _launch(fk.largest_peak, rows, [params, live, frame, peak], device)
-    scales = _frame_scales(peak.numpy(), 2, device)
-    models.zero_()
-    _launch(render_dots_kernel, rows, [params, frame, partner, half, 0, 1, prof, scales, H, W, models], device)
-    shift = wp.empty(rows, dtype=wp.vec3d, device=device)
-    _launch(
-        fk.moment_shift_stack,
-        rows,
-        [
-            refs, grads, models, scales, params, frame, partner, live, sat, noise_frames, half,
-            float(s.distortion_chi2), MAX_SHIFT_PX, prof, shift,
-        ],
-        device,
-    )  # fmt: skip
-    if s.distortion == "ellipse":
-        ellipse_step(grads, models, scales, params, frame, partner, prof, shift, half=half, max_shift=MAX_SHIFT_PX,
-                     device=device)  # fmt: skip
-    _launch(fk.apply_moment_shift, rows, [shift, partner, params, shared, moved], device)
+        shift = _moment_codes(refs, grads, _Rows(cur, frame, partner, live), bufs.models[: 2 * B * H * W], bufs.prof,
+                              sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
+                              ellipse=s.distortion == "ellipse", device=device)  # fmt: skip
+        _launch(fk.apply_moment_shift, rows, [shift, partner, cur, bufs.shared, moved], device)
+    return cur, bufs.ok, bufs.shared, live, moved

@@ -6,7 +6,8 @@ Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfi
 ``tracking.reference.fit_dots_numpy`` is the NumPy reference) and :mod:`tracking.stack`.
 Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 
-The last section holds the model fit of a stack of pairs (:func:`model_starts` ... :func:`take_model`):
+The last section holds the model fit of a stack of pairs (:func:`model_starts` ... :func:`take_model`), whose
+step and first-moment kernels also serve one pair or one image (a stack of one):
 rows ``0 ... M - 1`` are the reference-image dots of every pair, ``M ... 2 M - 1`` their gradient-image
 dots, and row ``i``'s model frame ``2 b`` (``2 b + 1``) is pair ``b``'s reference (gradient) image; the
 step is :func:`fit_dot_step`, the first-moment step :mod:`tracking.moment_kernels`' ``moment_shift``.
@@ -16,7 +17,7 @@ import warp as wp
 
 from synthbos.device import quiet_warp
 
-from .kernel_constants import DISTORTED, FIT_FALLBACK, MODEL_HI, MODEL_LO
+from .kernel_constants import DISTORTED, FIT_FALLBACK
 from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
@@ -561,46 +562,6 @@ def fit_dot_step(
         dot_profiles(out, i, render_half, prof)
 
 
-@wp.kernel
-def fit_dot_step_kernel(
-    image0: wp.array2d(dtype=wp.float64),
-    image1: wp.array2d(dtype=wp.float64),
-    models: wp.array(dtype=wp.int64),
-    scales: wp.array(dtype=wp.float64),
-    params: wp.array2d(dtype=wp.float64),
-    start: wp.array2d(dtype=wp.float64),
-    frame: wp.array(dtype=wp.int32),
-    partner: wp.array(dtype=wp.int32),
-    saturation: wp.array(dtype=wp.float64),
-    half: int,
-    render_half: int,
-    common: int,
-    max_move: wp.float64,
-    smin: wp.float64,
-    smax: wp.float64,
-    prof: wp.array3d(dtype=wp.float64),
-    out: wp.array2d(dtype=wp.float64),
-    ok: wp.array(dtype=wp.int32),
-    shared_xy: wp.array2d(dtype=wp.float64),
-):
-    """``fit_dot_step`` of dot i; ``image0``, ``image1``: the images of frames 0 and 1 (the same array
-    twice for a single image); ``scales``: the model images' fixed-point units per intensity, per frame."""
-    i = wp.tid()
-    f = frame[i]
-    inv_scale = wp.float64(1.0) / scales[f]
-    has_partner = int(partner[i] >= 0)
-    if f == 0:
-        fit_dot_step(
-            image0, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
-            common, max_move, smin, smax, prof, out, ok, shared_xy,
-        )  # fmt: skip
-    else:
-        fit_dot_step(
-            image1, models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
-            common, max_move, smin, smax, prof, out, ok, shared_xy,
-        )  # fmt: skip
-
-
 # --- the model fit of a stack of pairs: starts, partners, steps, first moments and the results -------
 
 
@@ -700,7 +661,7 @@ def fit_step_stack(
     partner: wp.array(dtype=wp.int32),
     live: wp.array(dtype=wp.int32),
     saturation: wp.array(dtype=wp.float64),
-    eta0: wp.array(dtype=wp.float64),
+    width_range: wp.array(dtype=wp.vec2d),
     half: int,
     render_half: int,
     common: int,
@@ -710,8 +671,9 @@ def fit_step_stack(
     ok: wp.array(dtype=wp.int32),
     shared_xy: wp.array2d(dtype=wp.float64),
 ):
-    """``fit_dot_step`` of row i; model frame ``2 b`` is pair b's reference image, ``2 b + 1`` its gradient
-    image; the width's range is ``MODEL_WIDTH_RANGE`` eta0 of the pair."""
+    """``fit_dot_step`` of row i (a row not ``live`` keeps its parameters); model frame ``2 b`` is pair b's
+    reference image, ``2 b + 1`` its gradient image (a single image is frame 0 of a stack of one, both
+    arrays the same); a step that takes the width outside ``width_range[b]`` (the pair's) is refused."""
     i = wp.tid()
     if live[i] == 0:
         for k in range(5):
@@ -720,10 +682,9 @@ def fit_step_stack(
     f = frame[i]
     inv_scale = wp.float64(1.0) / scales[f]
     b = f // 2
-    e0 = eta0[b]
     has_partner = int(partner[i] >= 0)
-    lo = MODEL_LO * e0
-    hi = MODEL_HI * e0
+    lo = width_range[b][0]
+    hi = width_range[b][1]
     if f % 2 == 0:
         fit_dot_step(
             references[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,

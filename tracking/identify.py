@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from . import claim_kernels as ck
 from .centroid import fit_centroids, gaussian3_from_samples
 from .frame_stats import partial_median, segment_medians
+from .identify_kernels import measure_stack
 from .residual import subtract_gaussians
 from .settings import (
     DIAMETER_PER_WIDTH,
@@ -367,7 +368,7 @@ def identify_near_predictions(
         m = measure_windows(
             residual,
             origin,
-            (pred if every else pred[sel]) - origin,
+            pred if every else pred[sel],
             half=half,
             map_half=map_half,
             radius=radius,
@@ -623,12 +624,12 @@ class StackIdentification:
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
         for it in range(1, s.max_iterations + 1):
             self.launch(
-                ck.measure_stack,
+                measure_stack,
                 n_ids,
                 [
                     self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
                     float(radius), float(s.threshold_fraction), wa, wi, wd, int(s.background == "minimum"),
-                    *scratch, out_int, out_float, cross,
+                    *scratch, out_int, out_float, cross, 0,
                 ],
             )  # fmt: skip
             if ref_peak is None:

@@ -2,8 +2,9 @@
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of identification: one thread measures the window around one predicted dot.
 
-Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.windows` (one pair) and
-:mod:`tracking.stack` (a stack of pairs, through :mod:`tracking.claim_kernels`). The NumPy reference
+Kernels and ``@wp.func`` steps only; one kernel, :func:`measure_stack`, measures the windows of one pair
+(host code :mod:`tracking.windows`, a stack of one) and of a stack of pairs (``tracking.identify.
+StackIdentification``, whose rounds of claims are :mod:`tracking.claim_kernels`). The NumPy reference
 ``tracking.reference.measure_windows_numpy`` defines what the kernels compute. Windows are held flat, pixel ``p`` of a
 ``w x w`` window at row ``p // w``, column ``p % w``.
 """
@@ -499,7 +500,7 @@ def measure_small_window(
     dotmap: wp.array3d(dtype=wp.float64),
     cross: wp.array2d(dtype=wp.float64),
 ):
-    """``measure_windows_kernel``'s steps for a 7 x 7 window held in local vectors: the same as
+    """``measure_window``'s steps for a 7 x 7 window held in local vectors: the same as
     ``load_window``, ``edge_median``, ``segment_window``, ``choose_blob``, ``count_saturated`` and
     ``cut_dot_map`` / ``cut_cross``, with the same result for finite pixels (its minimum, maximum and edge
     median are plain selects, which NaN pixels would upset)."""
@@ -656,39 +657,53 @@ def measure_window(
 
 
 @wp.kernel
-def measure_windows_kernel(
-    image: wp.array2d(dtype=wp.float64),
-    fill: wp.float64,
+def measure_stack(
+    images: wp.array3d(dtype=wp.float64),
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    fill: wp.array(dtype=wp.float64),
+    floor: wp.array(dtype=wp.float64),
+    sat: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
     origin: wp.array2d(dtype=wp.int32),
-    local: wp.array2d(dtype=wp.float64),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
     half: int,
     hc: int,
     radius: wp.float64,
     frac: wp.float64,
-    floor: wp.float64,
     wa: wp.float64,
     wi: wp.float64,
     wd: wp.float64,
     use_min: int,
-    sat: wp.float64,
     win: wp.array2d(dtype=wp.float64),
     ring: wp.array2d(dtype=wp.float64),
     network: wp.array2d(dtype=wp.int32),
     lab: wp.array2d(dtype=wp.int32),
     area: wp.array2d(dtype=wp.int32),
     roots: wp.array2d(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    full_maps: int,
+    dotmap: wp.array3d(dtype=wp.float64),
     out_int: wp.array2d(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
-    dotmap: wp.array3d(dtype=wp.float64),
     cross: wp.array2d(dtype=wp.float64),
+    full_maps: int,
 ):
-    """``measure_window`` of dot ``i = order[tid]`` (``order``: the windows in the order of their pixels in
-    memory, so that neighbouring threads read neighbouring pixels)."""
-    i = order[wp.tid()]
+    """``measure_window`` of dot ``ids[t]`` on its frame ``f = ids[t] // per_frame`` (``pred``: its
+    prediction in image coordinates; ``fill``, ``floor``, ``sat`` per frame), results in row t (the dot
+    map if ``full_maps``, else its centre cross); chosen -1 where not measured (found already, outside, or
+    its frame done). One pair is a stack of one (``tracking.windows.measure_windows``); a thread order
+    ``ids`` that follows the image's memory lets neighbouring threads read neighbouring pixels."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    out_int[t, 0] = -1
+    if todo[i] == 0 or active[f] == 0:
+        return
+    ox = origin[i, 0]
+    oy = origin[i, 1]
+    p = pred[i]
     measure_window(
-        image, fill, origin[i, 0], origin[i, 1], local[i, 0], local[i, 1], half, hc, radius, frac, floor,
-        wa, wi, wd, use_min, sat, win, ring, network, lab, area, roots, i, full_maps, out_int, out_float,
+        images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
+        floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, full_maps, out_int, out_float,
         dotmap, cross,
     )  # fmt: skip

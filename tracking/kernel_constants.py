@@ -15,7 +15,6 @@ from .settings import (
     ELLIPSE_MARQUARDT,
     ELLIPSE_MAX_STEP,
     ELLIPSE_WIDTH_RANGE,
-    MODEL_WIDTH_RANGE,
     PIXEL_EDGE_PX,
     RESIDUAL_STAMP_WIDTHS,
     RESIDUAL_WIDTH_CLIP,
@@ -52,8 +51,6 @@ WIDTH_HI = wp.constant(wp.float64(THREE_POINT_WIDTH_RANGE[1]))
 CLIP_LO = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[0]))
 CLIP_HI = wp.constant(wp.float64(RESIDUAL_WIDTH_CLIP[1]))
 STAMP_WIDTHS = wp.constant(wp.float64(RESIDUAL_STAMP_WIDTHS))
-MODEL_LO = wp.constant(wp.float64(MODEL_WIDTH_RANGE[0]))
-MODEL_HI = wp.constant(wp.float64(MODEL_WIDTH_RANGE[1]))
 EDGE_CUT_MAX = wp.constant(wp.float64(EDGE_CUT_PX))
 DIAMETER_WIDTHS = wp.constant(wp.float64(DIAMETER_PER_WIDTH))
 ELL_DAMPING = wp.constant(wp.float64(ELLIPSE_DAMPING))

@@ -8,8 +8,9 @@ model fit already gives everything needed to take it in a dense pattern: the mod
 tells which share of each pixel's light belongs to which dot, and the dot's own model carries the
 symmetric part exactly. Only the residual (image less background less every model) is left to weigh.
 
-The host code and the NumPy reference (``tracking.reference.moment_shifts_numpy``, which defines the result) live in
-:mod:`tracking.dotfit`.
+The host code lives in :mod:`tracking.dotfit` (for one pair and for a stack of pairs, both through
+``tracking.fit_kernels.moment_shift_stack``); the NumPy reference, ``tracking.reference.moment_shifts_numpy``,
+defines the result.
 """
 
 import warp as wp
@@ -169,40 +170,6 @@ def reference_spread2(params: wp.array2d(dtype=wp.float64), partner: wp.array(dt
         return wp.float64(0.0)
     extra = params[i, 3] * params[i, 3] - params[j, 3] * params[j, 3]
     return MAX_SHIFT_PER_SPREAD * MAX_SHIFT_PER_SPREAD * wp.max(extra, wp.float64(0.0))
-
-
-@wp.kernel
-def moment_shift_kernel(
-    image0: wp.array2d(dtype=wp.float64),
-    image1: wp.array2d(dtype=wp.float64),
-    models: wp.array(dtype=wp.int64),
-    scales: wp.array(dtype=wp.float64),
-    params: wp.array2d(dtype=wp.float64),
-    frame: wp.array(dtype=wp.int32),
-    partner: wp.array(dtype=wp.int32),
-    saturation: wp.array(dtype=wp.float64),
-    noise: wp.array(dtype=wp.float64),
-    half: int,
-    chi2: wp.float64,
-    max_shift: wp.float64,
-    prof: wp.array3d(dtype=wp.float64),
-    shift: wp.array(dtype=wp.vec3d),
-):
-    """``moment_shift`` of dot i (shift and code; ``moves`` then decides); ``image0``, ``image1``: the images
-    of frames 0 (the reference) and 1 (the gradient; the same array twice for a single image)."""
-    i = wp.tid()
-    f = frame[i]
-    inv_scale = wp.float64(1.0) / scales[f]
-    b = reference_background(params, partner, i, f == 1)
-    s2 = reference_spread2(params, partner, i)
-    if f == 0:
-        shift[i] = moment_shift(
-            image0, models, inv_scale, f, params, i, half, b, s2, saturation[f], noise[f], chi2, max_shift, prof
-        )
-    else:
-        shift[i] = moment_shift(
-            image1, models, inv_scale, f, params, i, half, b, s2, saturation[f], noise[f], chi2, max_shift, prof
-        )
 
 
 @wp.kernel

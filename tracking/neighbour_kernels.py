@@ -1,19 +1,16 @@
 # ruff: noqa: UP018, RUF046
 # (``int(0)`` declares a dynamic Warp variable that a loop may change; a bare ``0`` is a constant to Warp.)
 """Warp kernels of the neighbour tests: the local linear fit of scattered vectors from each point's
-nearest neighbours.
+nearest neighbours, for many image pairs in every launch (one pair: a stack of one; host code in
+:mod:`tracking.neighbours`).
 
-One thread per point (host code in :mod:`tracking.neighbours`), and a stacked form for many image pairs
-in every launch, which reuses the search and the fit.
-
-The stacked form's arrays are laid out per pair: a ``(B, N)`` array holds dot ``i`` of pair ``b`` at
+The arrays are laid out per pair: a ``(B, N)`` array holds dot ``i`` of pair ``b`` at
 ``[b, i]``, its flat view at the dot's global index ``g = b * N + i``. A dot's ``role`` says what it is to
 one neighbour fit: ``POINT`` (one of the fitted points), ``QUERY`` (a place to fit at), both, or neither
-(0). Each pair has the cell grid of ``tracking.neighbours._cell_grid`` over the box of its dots with a
-role; pair ``b``'s cell ``c = row * nx + col`` is ``b * stride + c`` of the stack, so that one exclusive
-scan of all the cells' counts gives every pair's runs at once. The k-nearest search and the fit are those
-of :func:`neighbour_fit_kernel` (the same operations in the same order: the same results to the bit),
-with the grid read per pair.
+(0). Each pair has a cell grid over the box of its dots with a role (``grid_params_kernel``); pair ``b``'s
+cell ``c = row * nx + col`` is ``b * stride + c`` of the stack, so that one exclusive scan of all the
+cells' counts gives every pair's runs at once. The k-nearest search (``nearest_in_grid``) and the fit
+(``plane_fit``) read the grid per pair.
 """
 
 import warp as wp
@@ -105,8 +102,15 @@ def nearest_in_grid(
 ) -> int:
     """The ``k`` nearest points of ``(qx, qy)`` but ``own`` into ``near[base:base + k]`` (squared
     distance, index; ascending, ties to the lower index), from the grid whose cell ``c`` is
-    ``first_cell + c`` of ``cell_start``: growing blocks of cells searched as
-    ``neighbour_fit_kernel`` describes (``scan_cells``); return how many were found."""
+    ``first_cell + c`` of ``cell_start``; return how many were found.
+
+    The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
+    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
+    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
+    ``(2 r + 1)^2`` cells around q's, r = 1, 2, ..., holds every point within the distance from q to its
+    nearest edge that is not the edge of the grid; only the points within that distance are kept
+    (``scan_cells``), and the first block with ``k`` of them has the k nearest (a larger block is searched
+    afresh; the whole grid at the latest)."""
     cx = wp.clamp(int(wp.floor((qx - x0) / cell)), 0, nx - 1)
     cy = wp.clamp(int(wp.floor((qy - y0) / cell)), 0, ny - 1)
     found = int(0)
@@ -167,7 +171,8 @@ def plane_fit(
 ) -> wp.vec3d:
     """Least squares plane ``f = c + G d`` through the vectors of the ``k`` points in ``near[base:]``
     (offsets ``d`` from q): ``(f_u(q), f_v(q), median distance of their vectors from the plane)``, with
-    ``work`` and ``resid`` as scratch rows (see ``neighbour_fit_kernel``)."""
+    ``work`` and ``resid`` as scratch rows of length k (the points' offsets from q and vectors, the
+    squared distances of their vectors from the fit); ``network`` is ``median_network(k)``."""
     kf = wp.float64(k)
     dmx = wp.float64(0.0)
     dmy = wp.float64(0.0)
@@ -246,62 +251,6 @@ def plane_fit(
     return wp.vec3d(fmu - dmx * gxu - dmy * gyu, fmv - dmx * gxv - dmy * gyv, spread)
 
 
-@wp.kernel
-def neighbour_fit_kernel(
-    query_order: wp.array(dtype=wp.int32),
-    xy: wp.array(dtype=wp.vec2d),
-    uv: wp.array(dtype=wp.vec2d),
-    query: wp.array(dtype=wp.vec2d),
-    self_index: wp.array(dtype=wp.int32),
-    cell_start: wp.array(dtype=wp.int32),
-    cell_points: wp.array(dtype=wp.int32),
-    cell_xy: wp.array(dtype=wp.vec2d),
-    x0: wp.float64,
-    y0: wp.float64,
-    cell: wp.float64,
-    nx: int,
-    ny: int,
-    rows: int,
-    near: wp.array(dtype=wp.vec2d),
-    work: wp.array(dtype=wp.vec4d),
-    resid: wp.array(dtype=wp.float64),
-    value: wp.array2d(dtype=wp.float64),
-    spread: wp.array(dtype=wp.float64),
-    neighbours: wp.array2d(dtype=wp.int32),
-    network: wp.array2d(dtype=wp.int32),
-):
-    """Local linear fit of ``uv`` at query point q from its ``k`` nearest points of ``xy`` (its own index
-    ``self_index[q]`` left out; ``k = neighbours.shape[1]``): the fit's value at q and the median distance
-    of the neighbours' vectors from the fit (see ``tracking.reference.neighbour_fit_numpy``);
-    ``neighbours[q]`` gets the ``k`` points' indices, nearest first (ties: the lower index first).
-
-    The points are sorted into square cells of side ``cell`` from ``(x0, y0)`` (``cell_points``
-    ``[cell_start[c]:cell_start[c + 1]]`` lie in cell ``c = row * nx + col``, so a row of cells is one
-    run; ``cell_xy`` holds their positions in that order, read without a gather). The block of
-    ``(2 r + 1)^2`` cells around q's, r = 1, 2, ..., holds every point within the distance from q to its
-    nearest edge that is not the edge of the grid; only the points within that distance are kept, and
-    the first block with ``k`` of them has the k nearest (a larger block is searched afresh; the whole
-    grid at the latest). Thread t takes query ``query_order[t]`` (queries in the order of their cells:
-    neighbouring threads read the same points). ``near`` (the k nearest: squared distance and index),
-    ``work`` (their offsets from q and vectors) and ``resid`` (the squared distances of their vectors from
-    the fit) are scratch rows of length k: query q's start at ``(q % rows) * k``. ``network`` is
-    ``tracking.sorting.median_network(k)``.
-    """
-    q = query_order[wp.tid()]
-    k = neighbours.shape[1]
-    base = wp.max((q % rows) * k, 0)
-    qxy = query[q]
-    nearest_in_grid(
-        qxy[0], qxy[1], self_index[q], 0, x0, y0, cell, nx, ny, cell_start, cell_points, cell_xy, base, k, near
-    )
-    for j in range(k):
-        neighbours[q, j] = int(near[base + j][1])
-    fit = plane_fit(qxy[0], qxy[1], xy, uv, base, k, near, work, resid, network)
-    value[q, 0] = fit[0]
-    value[q, 1] = fit[1]
-    spread[q] = fit[2]
-
-
 # --- the stacked form: many pairs in every launch -------------------------------------------------
 
 POINT = wp.constant(1)
@@ -309,7 +258,7 @@ QUERY = wp.constant(2)
 
 #: Options of the tests' kernels: their own modules, compiled without floating-point contraction, so that
 #: ``sqrt(du * du + dv * dv)`` rounds as NumPy's in the host functions' tests (on a GPU it would become
-#: a fused multiply-add). The fit keeps the default, as the host's ``neighbour_fit_kernel`` has it.
+#: a fused multiply-add). The fit keeps the default.
 _UNFUSED = {"module": "unique", "module_options": {"fuse_fp": False, "enable_backward": False}}
 
 
@@ -382,7 +331,7 @@ def grid_params_kernel(
     side: wp.array(dtype=wp.float64),
     shape: wp.array(dtype=wp.vec2i),
 ):
-    """Pair ``b``'s cell grid, that of ``tracking.neighbours._cell_grid`` (the same operations): square
+    """Pair ``b``'s cell grid: square
     cells holding ``per_cell`` points on average over the box, at least 1/4096 of its longer side. A pair
     with fewer than ``min_points`` points or no query is left out: ``shape[b] = (0, 0)``."""
     b = wp.tid()

@@ -4,20 +4,18 @@ for one set of points or for a stack of pairs' dots on the device.
 The reference of the tracker's outlier tests (a normalised median test on scattered data, Westerweel and
 Scarano 2005, with a local linear reference as in Duncan et al. 2010): for every query point, the least
 squares plane ``f = c + G d`` through the vectors of its ``k`` nearest points and the median distance of
-those vectors from it. :func:`neighbour_fit` is a Warp kernel (one thread per query, the points sorted
-into square cells, growing blocks of cells around the query searched until one holds k points within its
-inner edge); :func:`tracking.reference.neighbour_fit_numpy` is the array-program reference (a k-d tree)
-that defines the result.
+those vectors from it. :func:`tracking.reference.neighbour_fit_numpy` is the array-program reference (a
+k-d tree) that defines the result.
 
-The stacked form (:func:`neighbour_fit_stack`, :func:`neighbour_outliers_stack`,
-:func:`confirmed_by_neighbours_stack`) is ``tracking.pipeline._neighbour_outliers`` and
-``_confirmed_by_neighbours`` for all the pairs of a stack in every launch, with no host round trip (the
-number of launches does not depend on the number of pairs). A pair's dots are the rows of ``(B, N)``
-device arrays and the subsets a test uses are masks; each pair gets the cell grid that
-:func:`neighbour_fit` builds on the host for the same subset (same origin, side and shape), built on the
-device by a counting sort over all pairs' cells (atomics and one exclusive scan), and the same search and
-fit (:mod:`tracking.neighbour_kernels`), so the k nearest points, the fits and so the flags are those of
-the host functions called pair by pair.
+One set of points (:func:`neighbour_fit`, ``track_pair``'s tests) is a stack of one: the fit is
+:func:`neighbour_fit_stack`'s. The stacked form (:func:`neighbour_fit_stack`,
+:func:`neighbour_outliers_stack`, :func:`confirmed_by_neighbours_stack`) is
+``tracking.pipeline._neighbour_outliers`` and ``_confirmed_by_neighbours`` for all the pairs of a stack
+in every launch, with no host round trip (the number of launches does not depend on the number of
+pairs). A pair's dots are the rows of ``(B, N)`` device arrays and the subsets a test uses are masks;
+each pair gets a grid of square cells over the box of its points and queries, built on the device by a
+counting sort over all pairs' cells (atomics and one exclusive scan), searched in growing blocks of cells
+around each query until one holds k points within its inner edge (:mod:`tracking.neighbour_kernels`).
 """
 
 from __future__ import annotations
@@ -30,7 +28,6 @@ import numpy as np
 import warp as wp
 
 from . import neighbour_kernels as nk
-from .neighbour_kernels import neighbour_fit_kernel
 from .windows import median_network
 from .workspace import on_device, scratch
 
@@ -39,37 +36,6 @@ __all__ = ["confirmed_by_neighbours_stack", "neighbour_fit", "neighbour_fit_stac
 #: Points per cell, on average, of the kernel's cell grid.
 _POINTS_PER_CELL = 4.5
 
-
-
-@functools.lru_cache(maxsize=8)
-def _network(k):
-    """``median_network(k)`` made once per k (read only)."""
-    net = median_network(k)
-    net.flags.writeable = False
-    return net
-
-
-def _cell_grid(xy, query, count):
-    """Square cells holding ``count`` points on average over the box of ``xy`` and ``query``: the origin,
-    side and shape, the start of each cell's run in the sorted order (``nx * ny + 1``) and the order."""
-    # each coordinate reduced as one (strided) column: a reduction along an axis of an (n, 2) array or of
-    # its transpose runs a short loop per point and costs some hundred times more
-    boxes = (xy,) if query is xy else (xy, query)
-    lo = np.array([min(float(a[:, c].min()) for a in boxes) for c in range(2)])
-    hi = np.array([max(float(a[:, c].max()) for a in boxes) for c in range(2)])
-    extent = np.maximum(hi - lo, 1e-9)
-    side = float(np.sqrt(extent[0] * extent[1] * count / len(xy)))
-    side = max(side, float(extent.max()) / 4096.0, 1e-9)
-    nx, ny = (int(np.floor(e / side)) + 1 for e in extent)
-    cx = np.clip(np.floor((xy[:, 0] - lo[0]) / side).astype(np.int64), 0, nx - 1)
-    cy = np.clip(np.floor((xy[:, 1] - lo[1]) / side).astype(np.int64), 0, ny - 1)
-    cell = cy * nx + cx
-    # the order within a cell does not matter (ties go to the lower index); 16-bit keys sort by radix
-    key = cell.astype(np.uint16) if nx * ny <= 65536 else cell
-    order = np.argsort(key, kind="stable").astype(np.int32)
-    start = np.zeros(nx * ny + 1, dtype=np.int32)
-    np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
-    return float(lo[0]), float(lo[1]), side, nx, ny, start, order
 
 
 def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, device=None):
@@ -84,7 +50,7 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
     query : (N, 2) array
         Points at which to fit (finite).
     self_index : (N,) int array
-        The query's own row in ``xy`` (left out of its neighbours), or -1.
+        The query's own row in ``xy`` (left out of its neighbours; the query must lie at that point), or -1.
     k : int, keyword-only
         Neighbours per fit.
     return_neighbours : bool, keyword-only
@@ -107,63 +73,44 @@ def neighbour_fit(xy, uv, query, self_index, *, k, return_neighbours=False, devi
     -----
     ``G`` and ``c`` solve the 2x2 normal equations of the offsets and vectors centred on their means,
     ``c = mean f - G mean d``; a ridge of ``1e-6 (k + trace)`` keeps collinear neighbourhoods finite.
+    The fit is :func:`neighbour_fit_stack`'s for a stack of one: the points are its first ``M`` dots, a
+    query that is not one of them a dot of its own after them.
     """
-    same = query is xy  # the points themselves (the outlier test)
     xy = np.ascontiguousarray(xy, dtype=np.float64)
-    query = xy if same else np.ascontiguousarray(query, dtype=np.float64)
-    n = len(query)
+    query = xy if query is xy else np.ascontiguousarray(query, dtype=np.float64)
+    n, m = len(query), len(xy)
     if n == 0:
         return (np.zeros((0, 2)), np.zeros(0)) + ((np.zeros((0, k), dtype=np.int64),) if return_neighbours else ())
-    if len(xy) <= k:
-        raise ValueError(f"neighbour_fit needs more than k = {k} points, got {len(xy)}")
-    x0, y0, side, nx, ny, start, order = _cell_grid(xy, query, _POINTS_PER_CELL)
-    if same:  # already in the order of their cells
-        query_order = order
-    else:
-        qx = np.clip(np.floor((query[:, 0] - x0) / side), 0, nx - 1)
-        qy = np.clip(np.floor((query[:, 1] - y0) / side), 0, ny - 1)
-        query_order = np.argsort(qy * nx + qx).astype(np.int32)
-    # the query's own index where it is one of the points; -1 (never a point's index) otherwise
-    own = np.ascontiguousarray(self_index, dtype=np.int32)
-    rows = 1 if wp.get_device(device).is_cpu else n  # scratch rows: CPU threads run one after another
-
-    def arr(a, dtype):  # CPU: the NumPy array itself, no copy
-        return wp.array(a, dtype=dtype, device=device, copy=False)
-
-    value = wp.empty((n, 2), dtype=wp.float64, device=device)
-    spread = wp.empty(n, dtype=wp.float64, device=device)
-    nb = wp.empty((n, k), dtype=wp.int32, device=device)
-    wp.launch(
-        neighbour_fit_kernel,
-        dim=n,
-        inputs=[
-            arr(query_order, wp.int32),
-            arr(xy, wp.vec2d),
-            arr(np.ascontiguousarray(uv, dtype=np.float64), wp.vec2d),
-            arr(query, wp.vec2d),
-            arr(own, wp.int32),
-            arr(start, wp.int32),
-            arr(order, wp.int32),
-            arr(np.take(xy, order, axis=0), wp.vec2d),  # (take: a row gather ~15 times cheaper than xy[order])
-            x0,
-            y0,
-            side,
-            nx,
-            ny,
-            rows,
-            scratch("neighbour_near", (rows * k,), wp.vec2d, device),
-            scratch("neighbour_work", (rows * k,), wp.vec4d, device),
-            scratch("neighbour_resid", (rows * k,), wp.float64, device),
-            value,
-            spread,
-            nb,
-            arr(_network(k), wp.int32),
-        ],
-        device=device,
-    )
-    if return_neighbours:
-        return value.numpy(), spread.numpy(), nb.numpy()
-    return value.numpy(), spread.numpy()
+    if m <= k:
+        raise ValueError(f"neighbour_fit needs more than k = {k} points, got {m}")
+    own = np.asarray(self_index, dtype=np.int64)
+    mine = own >= 0
+    if query is not xy and not np.array_equal(query[mine], xy[own[mine]]):
+        raise ValueError("neighbour_fit: a query with a self_index must lie at that point of xy")
+    # the dots of the stack of one: the points, then the queries that are not points
+    extra = np.flatnonzero(~mine)
+    row = own.copy()
+    row[extra] = m + np.arange(extra.size)
+    dots = np.concatenate([xy, query[extra]]) if extra.size else xy
+    vectors = np.zeros_like(dots)
+    vectors[:m] = uv
+    points = np.zeros(len(dots), dtype=np.int32)
+    points[:m] = 1
+    queries = np.zeros(len(dots), dtype=np.int32)
+    queries[row] = 1
+    device = _device_of(device)
+    on = functools.partial(on_device, ndim=2, device=device)
+    dots, vectors = on(dots[None], wp.vec2d, name="xy"), on(vectors[None], wp.vec2d, name="uv")
+    role = scratch("nstack_role", dots.shape, wp.int32, device)
+    wp.launch(nk.roles_kernel, dim=dots.shape, inputs=[on(points[None], wp.int32, name="points"),
+              on(queries[None], wp.int32, name="queries"), role], device=device)  # fmt: skip
+    grid = _build_grids(dots, role, min_points=k + 1, sort_queries=True, device=device)
+    value = wp.empty(dots.shape[1], dtype=wp.vec2d, device=device)
+    spread = wp.empty(dots.shape[1], dtype=wp.float64, device=device)
+    near = wp.empty((dots.shape[1], k), dtype=wp.int32, device=device) if return_neighbours else None
+    _fit(dots, vectors, grid, k=int(k), exclude_self=True, neighbours=near, device=device, value=value, spread=spread)
+    out = (value.numpy()[row].reshape(n, 2), spread.numpy()[row])
+    return (*out, near.numpy()[row]) if return_neighbours else out
 
 
 # --- the stacked form: the tests of many pairs in every launch ------------------------------------
@@ -174,7 +121,7 @@ _STATS_STEP = 128
 #: Bytes of fit scratch rows (``near``, ``work``, ``resid``: 56 bytes per neighbour) at most on a GPU;
 #: the fit kernel's threads are capped to fit (each then takes several queries).
 _FIT_SCRATCH_BYTES = 64 << 20
-#: A grid's side is at least 1/4096 of the box's longer side (``tracking.neighbours._cell_grid``).
+#: A grid's side is at least 1/4096 of the box's longer side (``tracking.neighbour_kernels.grid_params_kernel``).
 _MAX_CELLS_PER_ROW = 4097
 
 
@@ -214,9 +161,10 @@ class _Grid(NamedTuple):
 
 
 def _build_grids(xy, role, *, min_points, sort_queries, device):
-    """Each pair's cell grid over its dots with a role (``tracking.neighbours._cell_grid`` of the points
-    and the queries), the points sorted by cell and, with ``sort_queries``, the queries too (else they are
-    the points). Pairs with fewer than ``min_points`` points or no query get none."""
+    """Each pair's cell grid over its dots with a role (the box of the points and the queries, square cells
+    of ``_POINTS_PER_CELL`` points on average: ``grid_params_kernel``), the points sorted by cell and, with
+    ``sort_queries``, the queries too (else they are the points).
+    Pairs with fewer than ``min_points`` points or no query get none."""
     nb, n = role.shape
     stride = _cell_stride(n)
     ncell = nb * stride + 1

@@ -27,7 +27,6 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
-from synthbos.correlation.median_test import residual_limit
 from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
@@ -44,7 +43,7 @@ from .identify import (
     static_threshold_identification,
 )
 from .match import match_multiparametric, match_nearest
-from .neighbours import neighbour_fit
+from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import predict_displacement
 from .register import local_gradients, registration_offsets, spline_coefficients
 
@@ -199,34 +198,23 @@ def _standard_candidates(image, settings, noise):
     return np.stack([props["x"], props["y"]], axis=1)
 
 
-def _neighbour_fit(xy, uv, query, self_index, settings, device, *, return_neighbours=False):
-    """:func:`tracking.neighbours.neighbour_fit` with ``settings.outlier_neighbours``."""
-    k = settings.outlier_neighbours
-    return neighbour_fit(xy, uv, query, self_index, k=k, return_neighbours=return_neighbours, device=device)
+def _neighbour_options(settings):
+    return {"k": settings.outlier_neighbours, "threshold": settings.outlier_threshold,
+            "epsilon": settings.outlier_epsilon}  # fmt: skip
 
 
 def _confirmed_by_neighbours(out, good, query, settings, device):
     """True where a queried dot's displacement agrees with the local linear fit of the ``good`` dots'
     (within the outlier test and ``predictor_tolerance``): its neighbours overrule a poor prediction
-    (the correlation is least reliable in the windows at the image edge)."""
-    ok = np.zeros(len(good), dtype=bool)
-    gi, qi = np.flatnonzero(good), np.flatnonzero(query)
-    k = settings.outlier_neighbours
-    if qi.size == 0 or gi.size <= k + 3 or not np.isfinite(settings.outlier_threshold):
-        return ok
-
-    def xy_uv(i):
-        xy = np.stack([out["x"][i], out["y"][i]], axis=1)
-        return xy, np.stack([out["x_gradient"][i], out["y_gradient"][i]], axis=1) - xy
-
-    gxy, guv = xy_uv(gi)
-    qxy, quv = xy_uv(qi)
-    fit, spread = _neighbour_fit(gxy, guv, qxy, np.full(len(qi), -1), settings, device)
-    r = np.linalg.norm(quv - fit, axis=1)
-    limit = residual_limit(spread, epsilon=settings.outlier_epsilon, threshold=settings.outlier_threshold)
-    limit = np.minimum(limit, settings.predictor_tolerance)
-    ok[qi] = r <= limit
-    return ok
+    (the correlation is least reliable in the windows at the image edge). The stacked test
+    (:func:`tracking.neighbours.confirmed_by_neighbours_stack`) on a stack of one."""
+    if not query.any():  # (the usual case: nothing to confirm, nothing to launch)
+        return np.zeros(len(query), dtype=bool)
+    xy = np.stack([out["x"], out["y"]], axis=1)
+    uv = np.stack([out["x_gradient"], out["y_gradient"]], axis=1) - xy
+    ok = confirmed_by_neighbours_stack(xy[None], uv[None], good[None], query[None], **_neighbour_options(settings),
+                                       tolerance=settings.predictor_tolerance, device=device)  # fmt: skip
+    return ok.numpy()[0].astype(bool)
 
 
 def _neighbour_outliers(xy, uv, settings, device):
@@ -234,30 +222,13 @@ def _neighbour_outliers(xy, uv, settings, device):
     nearest vectors than ``outlier_threshold`` times (their median distance from that fit +
     ``outlier_epsilon``; :mod:`tracking.neighbours`): a normalised median test
     for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as in Duncan
-    et al. 2010 so that smooth gradients do not count as outliers). Two rounds: the second fits only
-    the vectors the first one kept (refitted only where a neighbour was dropped: elsewhere the nearest
-    kept vectors are the same, and so is the fit)."""
-    n = len(xy)
-    neighbours, epsilon, threshold = settings.outlier_neighbours, settings.outlier_epsilon, settings.outlier_threshold
-    if n <= neighbours + 3 or not np.isfinite(threshold):
-        return np.zeros(n, dtype=bool)
-
-    def far(fit, spread):  # |uv - fit| (the root of the sum of the two squares, as np.linalg.norm's) beyond the limit
-        d = uv - fit
-        limit = residual_limit(spread, epsilon=epsilon, threshold=threshold)
-        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) > limit
-
-    own = np.arange(n)
-    fit, spread, near = _neighbour_fit(xy, uv, xy, own, settings, device, return_neighbours=True)
-    bad = far(fit, spread)
-    clean = np.flatnonzero(~bad)
-    if bad.any() and len(clean) > neighbours + 3:
-        where = np.full(n, -1)
-        where[clean] = np.arange(len(clean))
-        redo = np.flatnonzero(bad[near].any(axis=1))
-        fit[redo], spread[redo] = _neighbour_fit(xy[clean], uv[clean], xy[redo], where[redo], settings, device)
-        bad = far(fit, spread)
-    return bad
+    et al. 2010 so that smooth gradients do not count as outliers), in two rounds. The stacked test
+    (:func:`tracking.neighbours.neighbour_outliers_stack`) on a stack of one."""
+    if len(xy) == 0:
+        return np.zeros(0, dtype=bool)
+    valid = np.ones((1, len(xy)), dtype=np.int32)
+    bad = neighbour_outliers_stack(xy[None], uv[None], valid, **_neighbour_options(settings), device=device)
+    return bad.numpy()[0].astype(bool)
 
 
 def _corrections(out, r, g, pi, m, fits, settings):

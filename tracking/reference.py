@@ -11,6 +11,8 @@ every available device. No production module imports this one (``tests/test_impo
 - :func:`moment_shifts_numpy`: :func:`tracking.dotfit.moment_shifts` (with ``ellipse=True`` the elliptical
   moment step, :func:`tracking.ellipse.ellipse_step`);
 - :func:`neighbour_fit_numpy`: :func:`tracking.neighbours.neighbour_fit` (the outlier tests);
+- :func:`neighbour_outliers_numpy`, :func:`confirmed_by_neighbours_numpy`: the two neighbour tests
+  (:func:`tracking.neighbours.neighbour_outliers_stack`, :func:`tracking.neighbours.confirmed_by_neighbours_stack`);
 - :func:`registration_offsets_numpy`: :func:`tracking.register.registration_offsets`.
 """
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.spatial import cKDTree
+from synthbos.correlation.median_test import residual_limit
 
 from .diameter import estimate_dot_diameter
 from .dotfit import _checked, _noise, _saturation, integrated_profile
@@ -46,12 +49,14 @@ from .settings import (
 
 __all__ = [
     "common_shape",
+    "confirmed_by_neighbours_numpy",
     "deform_nearest_numpy",
     "fit_dots_numpy",
     "frame_statistics_numpy",
     "measure_windows_numpy",
     "moment_shifts_numpy",
     "neighbour_fit_numpy",
+    "neighbour_outliers_numpy",
     "registration_offsets_numpy",
     "render_dots",
 ]
@@ -110,7 +115,7 @@ def _dilate(mask):
 def measure_windows_numpy(
     image,
     origin,
-    local,
+    pred,
     *,
     half,
     map_half,
@@ -131,8 +136,8 @@ def measure_windows_numpy(
         The (residual) image.
     origin : (N, 2) int array
         Column and row of each window's first pixel; windows are ``2 half + 1`` pixels square.
-    local : (N, 2) array
-        Predicted position in window coordinates (x, y).
+    pred : (N, 2) array
+        Predicted position (x, y) in the image; ``pred - origin`` is its place in the window.
     half, map_half : int, keyword-only
         Window and dot-map half-widths.
     radius : float, keyword-only
@@ -158,6 +163,7 @@ def measure_windows_numpy(
         pixels zero, centred on the peak pixel.
     """
     image = np.asarray(image, dtype=np.float64)
+    local = np.asarray(pred, dtype=np.float64) - origin
     n = len(origin)
     w = 2 * half + 1
     c = 2 * map_half + 1
@@ -687,3 +693,61 @@ def _register(ref, coef, xy, uv, grads, half):
         step = np.stack([-(ayy * bxr - axy * byr) / safe, -(axx * byr - axy * bxr) / safe], axis=1)
         c[act[solved]] += np.clip(step[solved], -MAX_STEP_PX, MAX_STEP_PX)
     return c, ok
+
+
+def _outliers_of(xy, uv, k, threshold, epsilon, fit):
+    """The outlier flags of one pair's vectors: two rounds, the second refitting only the vectors with a
+    neighbour the first dropped, from the kept ones."""
+    n = len(xy)
+    if n <= k + 3 or not np.isfinite(threshold):
+        return np.zeros(n, dtype=bool)
+
+    def far(value, spread):  # |uv - fit| (the root of the sum of the two squares) beyond the limit
+        d = uv - value
+        return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) > residual_limit(spread, epsilon=epsilon,
+                                                                                threshold=threshold)  # fmt: skip
+
+    value, spread, near = fit(xy, uv, xy, np.arange(n), k=k, return_neighbours=True)
+    bad = far(value, spread)
+    clean = np.flatnonzero(~bad)
+    if bad.any() and len(clean) > k + 3:
+        where = np.full(n, -1)
+        where[clean] = np.arange(len(clean))
+        redo = np.flatnonzero(bad[near].any(axis=1))
+        value[redo], spread[redo] = fit(xy[clean], uv[clean], xy[redo], where[redo], k=k)
+        bad = far(value, spread)
+    return bad
+
+
+def neighbour_outliers_numpy(xy, uv, valid, *, k, threshold, epsilon, fit=neighbour_fit_numpy):
+    """Reference of :func:`tracking.neighbours.neighbour_outliers_stack` (for the tests): (B, N) bool.
+
+    ``fit`` is the local linear fit (:func:`neighbour_fit_numpy`'s parameters); the tests also pass
+    :func:`tracking.neighbours.neighbour_fit`, whose fits are the stacked kernel's to the bit.
+    """
+    xy, uv, valid = np.asarray(xy, dtype=np.float64), np.asarray(uv, dtype=np.float64), np.asarray(valid, bool)
+    bad = np.zeros(valid.shape, dtype=bool)
+    for b in range(len(valid)):
+        s = np.flatnonzero(valid[b])
+        bad[b, s] = _outliers_of(xy[b, s], uv[b, s], int(k), threshold, epsilon, fit)
+    return bad
+
+
+def confirmed_by_neighbours_numpy(xy, uv, good, query, *, k, threshold, epsilon, tolerance,
+                                  fit=neighbour_fit_numpy):  # fmt: skip
+    """Reference of :func:`tracking.neighbours.confirmed_by_neighbours_stack` (for the tests): (B, N) bool.
+
+    ``fit`` as for :func:`neighbour_outliers_numpy`.
+    """
+    xy, uv = np.asarray(xy, dtype=np.float64), np.asarray(uv, dtype=np.float64)
+    good, query = np.asarray(good, bool), np.asarray(query, bool)
+    ok = np.zeros(good.shape, dtype=bool)
+    for b in range(len(good)):
+        gi, qi = np.flatnonzero(good[b]), np.flatnonzero(query[b])
+        if qi.size == 0 or gi.size <= k + 3 or not np.isfinite(threshold):
+            continue
+        value, spread = fit(xy[b, gi], uv[b, gi], xy[b, qi], np.full(len(qi), -1), k=int(k))
+        r = np.linalg.norm(uv[b, qi] - value, axis=1)
+        limit = np.minimum(residual_limit(spread, epsilon=epsilon, threshold=threshold), tolerance)
+        ok[b, qi] = r <= limit
+    return ok

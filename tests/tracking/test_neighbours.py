@@ -1,6 +1,8 @@
-"""The stacked neighbour tests (tracking.neighbours, *_stack) against the tracker's per-pair functions, pair by pair."""
+"""The stacked neighbour tests (tracking.neighbours, *_stack) against their references' rounds, pair by pair
+(with the fit of one pair, ``neighbour_fit``, whose values are the kernel's to the bit)."""
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -12,7 +14,8 @@ from synthbos.tracking.neighbours import (
     neighbour_fit_stack,
     neighbour_outliers_stack,
 )
-from synthbos.tracking.pipeline import TrackingSettings, _confirmed_by_neighbours, _neighbour_outliers
+from synthbos.tracking.reference import confirmed_by_neighbours_numpy, neighbour_outliers_numpy
+from synthbos.tracking.settings import TrackingSettings
 
 SETTINGS = TrackingSettings()  # k = 12, threshold = 3, epsilon = 0.2, tolerance = 1.5
 
@@ -48,21 +51,15 @@ def _batch(rng, sides, counts=None, *, spare=40):
 
 
 def _host_outliers(xy, uv, valid, settings, device):
-    """``_neighbour_outliers`` of each pair's valid dots, at their rows."""
-    bad = np.zeros(valid.shape, dtype=bool)
-    for b in range(len(valid)):
-        s = np.flatnonzero(valid[b])
-        bad[b, s] = _neighbour_outliers(xy[b, s], uv[b, s], settings, device)
-    return bad
+    """The reference's two rounds of the outlier test of each pair's valid dots, at their rows."""
+    fit = functools.partial(neighbour_fit, device=device)
+    return neighbour_outliers_numpy(xy, uv, valid, **_options(settings), fit=fit)
 
 
 def _host_confirmed(xy, xyg, good, query, settings, device):
-    """``_confirmed_by_neighbours`` of each pair, on the per-pair table that ``track_pair`` hands it."""
-    ok = np.zeros(good.shape, dtype=bool)
-    for b in range(len(good)):
-        out = {"x": xy[b, :, 0], "y": xy[b, :, 1], "x_gradient": xyg[b, :, 0], "y_gradient": xyg[b, :, 1]}
-        ok[b] = _confirmed_by_neighbours(out, good[b], query[b], settings, device)
-    return ok
+    """The reference's test of each pair's queried dots against its good dots' fit."""
+    fit = functools.partial(neighbour_fit, device=device)
+    return confirmed_by_neighbours_numpy(xy, xyg - xy, good, query, **_options(settings, confirm=True), fit=fit)
 
 
 def _first_round(xy, uv, settings, device):
@@ -137,6 +134,8 @@ def test_outliers_match_the_host_pair_by_pair(device):
     assert isinstance(bad, wp.array) and bad.dtype == wp.int32 and bad.shape == valid.shape
     bad = bad.numpy()
     expected = _host_outliers(xy, uv, valid, SETTINGS, device)
+    # the reference with its own fit (a k-d tree) flags the same dots
+    assert (neighbour_outliers_numpy(xy, uv, valid, **_options(SETTINGS)) == expected).all()
     assert set(np.unique(bad)) <= {0, 1}
     for b in range(len(valid)):
         assert (bad[b] == expected[b]).all(), f"pair {b}: {np.flatnonzero(bad[b] != expected[b])}"

@@ -278,12 +278,12 @@ def test_window_kernel_matches_numpy_reference(device):
             saturation=0.7,
             fill=0.01,
         )
-        a = measure_windows_numpy(img, origin, pred - origin, **kw)
-        b = measure_windows(img, origin, pred - origin, device=device, **kw)
+        a = measure_windows_numpy(img, origin, pred, **kw)
+        b = measure_windows(img, origin, pred, device=device, **kw)
         for key in a:
             assert_allclose(b[key], a[key], rtol=0, atol=1e-12, err_msg=key)
         # only the maps' centre cross (what the three-point fit reads): peak, left, right, up, down
-        c = measure_windows(img, origin, pred - origin, device=device, full_maps=False, **kw)
+        c = measure_windows(img, origin, pred, device=device, full_maps=False, **kw)
         centre = a["dotmap"][:, [2, 2, 2, 1, 3], [2, 1, 3, 2, 2]]
         assert "dotmap" not in c
         assert_allclose(c["cross"], centre, rtol=0, atol=1e-12)

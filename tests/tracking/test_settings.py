@@ -18,7 +18,6 @@ def test_kernel_constants_are_the_settings_values():
         ((kc.WIDTH_LO, kc.WIDTH_HI), settings.THREE_POINT_WIDTH_RANGE),
         ((kc.CLIP_LO, kc.CLIP_HI), settings.RESIDUAL_WIDTH_CLIP),
         (kc.STAMP_WIDTHS, settings.RESIDUAL_STAMP_WIDTHS),
-        ((kc.MODEL_LO, kc.MODEL_HI), settings.MODEL_WIDTH_RANGE),
         (kc.DIAMETER_WIDTHS, settings.DIAMETER_PER_WIDTH),
         (predict_kernels.RESOLVED, settings.PREDICTOR_RESOLVED_PX),
         (predict_kernels.MIN_VALID_FRACTION, settings.PREDICTOR_MIN_VALID_FRACTION),
