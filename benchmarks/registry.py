@@ -181,6 +181,7 @@ STACK_KERNELS = (
     "synthbos.tracking.claim_kernels",
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
+    "synthbos.tracking.identify_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
