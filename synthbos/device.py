@@ -225,14 +225,20 @@ def _cached(module, device) -> bool:
 
 
 def _build_in_processes(missing, workers: int) -> None:
-    """Build each ``(Python module, device, Warp module name)`` of ``missing`` in a process of a pool of at
-    most ``workers`` (spawned: each imports Warp afresh and generates its modules' sources under its own
-    lock), into Warp's kernel cache; this process then loads them from there."""
-    from concurrent.futures import ProcessPoolExecutor
-    from multiprocessing import get_context
+    """Build each ``(Python module, device, Warp module name)`` of ``missing`` into Warp's kernel cache in
+    a Python process of its own, at most ``workers`` at a time (each imports Warp afresh and generates its
+    module's source under its own lock); this process then loads them from there. The processes run
+    ``python -c``, not ``multiprocessing``, so a user's script without a ``__main__`` guard is not run
+    again in them. A module that fails to build there is built here, where its error is raised."""
+    import subprocess
 
-    with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
-        for fut in [pool.submit(_build_one, *job, wp.config.kernel_cache_dir) for job in missing]:
+    code = "import sys; from synthbos.device import _build_one; _build_one(*sys.argv[1:])"
+
+    def build(job):
+        subprocess.run([sys.executable, "-c", code, *job, wp.config.kernel_cache_dir], check=False)
+
+    with ThreadPoolExecutor(min(workers, len(missing)), thread_name_prefix="synthbos-build") as pool:
+        for fut in [pool.submit(build, job) for job in missing]:
             fut.result()
 
 

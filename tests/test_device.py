@@ -128,3 +128,28 @@ def test_modules_missing_from_the_cache_are_built_in_other_processes(tmp_path, m
     assert not _cached(module, "cpu")
     _build_in_processes([(name, "cpu", module.name)], 2)
     assert _cached(module, "cpu")
+
+
+def test_building_in_other_processes_does_not_run_a_users_script_again(tmp_path):
+    """A user's script without a ``__main__`` guard runs once: the build processes do not import it (as
+    ``multiprocessing``'s spawned processes would, and then start their own build processes)."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "runs.txt"
+    script = tmp_path / "user_script.py"
+    script.write_text(f"""
+import warp as wp
+from synthbos.device import _build_in_processes, _cached, _warp_modules, init_warp
+with open({str(log)!r}, "a") as f:
+    f.write("run\\n")
+init_warp()
+wp.config.kernel_cache_dir = {str(tmp_path / "cache")!r}
+(module,) = _warp_modules("synthbos.tracking.wide_search_kernels")
+_build_in_processes([("synthbos.tracking.wide_search_kernels", "cpu", module.name)], 2)
+print(_cached(module, "cpu"))
+""")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True"]
+    assert log.read_text() == "run\n"
