@@ -224,6 +224,11 @@ def _cached(module, device) -> bool:
         return False
 
 
+#: The longest a build process may take for one module (its largest took 25 s on an H100 host); one that
+#: takes longer is stopped and the module built in the campaign process.
+BUILD_TIMEOUT_S = 600
+
+
 def _build_in_processes(missing, workers: int) -> None:
     """Build each ``(Python module, device, Warp module name)`` of ``missing`` into Warp's kernel cache in
     a Python process of its own, at most ``workers`` at a time (each imports Warp afresh and generates its
@@ -235,7 +240,11 @@ def _build_in_processes(missing, workers: int) -> None:
     code = "import sys; from synthbos.device import _build_one; _build_one(*sys.argv[1:])"
 
     def build(job):
-        subprocess.run([sys.executable, "-c", code, *job, wp.config.kernel_cache_dir], check=False)
+        try:
+            subprocess.run([sys.executable, "-c", code, *job, wp.config.kernel_cache_dir], check=False,
+                           timeout=BUILD_TIMEOUT_S)
+        except subprocess.TimeoutExpired:  # killed: this process builds the module instead
+            pass
 
     with ThreadPoolExecutor(min(workers, len(missing)), thread_name_prefix="synthbos-build") as pool:
         for fut in [pool.submit(build, job) for job in missing]:
