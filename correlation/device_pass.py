@@ -264,7 +264,7 @@ class _Plan:
             ps["kernel"],
             dim=[ny * nx],
             inputs=[*images, *origin, g.step, nx, *outputs],
-            block_dim=max(step.size // 2, 1),
+            block_dim=self.k.window_threads(step.size),
             device=self.device,
         )
         return ps

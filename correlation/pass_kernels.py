@@ -193,7 +193,7 @@ def outside_peak(x: wp.float32, at: wp.int32, peak: wp.int32) -> wp.float32:
 def make_correlate_windows(n: int, rpc: bool):
     """Kernel correlating all ``n`` x ``n`` window pairs of a grid, one tile (block) per window.
 
-    Launch with ``wp.launch_tiled(kernel, dim=[windows], block_dim=n // 2)``: the FFT's constraints
+    Launch with ``wp.launch_tiled(kernel, dim=[windows], block_dim=window_threads(n))``: the FFT's constraints
     (a power-of-two ``n`` divisible by ``block_dim`` without libmathdx, at least two elements per
     thread with it).
     """
@@ -282,14 +282,20 @@ def make_correlate_windows(n: int, rpc: bool):
 _window_kernels: dict = {}  # (n, rpc) -> kernel
 
 
+def window_threads(n: int) -> int:
+    """Threads per block of :func:`make_correlate_windows`'s kernel for ``n`` px windows: two samples of a
+    row each (Warp's tile FFT wants at least two)."""
+    return max(int(n) // 2, 1)
+
+
 def correlate_windows_kernel(n: int, rpc: bool):
     """:func:`make_correlate_windows`'s kernel for ``n`` px windows, made once per process. It is a Warp
-    module of its own, whose default block size is its launch's (``n // 2``), so that compiling it ahead
-    of the launch (``synthbos.device.load_kernels``) builds the variant the launch uses."""
+    module of its own, whose default block size is its launch's (:func:`window_threads`), so that
+    compiling it ahead of the launch (``synthbos.device.load_kernels``) builds the variant the launch uses."""
     key = (int(n), bool(rpc))
     if key not in _window_kernels:
         kernel = make_correlate_windows(*key)
-        kernel.module.options["block_dim"] = max(key[0] // 2, 1)
+        kernel.module.options["block_dim"] = window_threads(key[0])
         _window_kernels[key] = kernel
     return _window_kernels[key]
 

@@ -193,21 +193,22 @@ def load_kernels(pairs, *, max_workers=None) -> None:
     >>> load_kernels([("synthbos.tracking.moment_kernels", "cpu")])
     """
     init_warp()
-    by_device: dict[str, list] = {}
+    by_device: dict[str, dict] = {}  # device -> {Warp module: the Python module that named it first}
     for name, device in pairs:
-        mods = by_device.setdefault(str(device), [])
-        mods.extend((name, m) for m in _warp_modules(name) if m not in [x for _, x in mods])
+        mods = by_device.setdefault(str(device), {})
+        for m in _warp_modules(name):
+            mods.setdefault(m, name)
     workers = max_workers if max_workers is not None else (os.cpu_count() or 1)
     missing = [(name, d, m.name) for d, mods in by_device.items() if wp.get_device(d).is_cuda
-               for name, m in mods if not _cached(m, d)]
+               for m, name in mods.items() if not _cached(m, d)]
     if workers > 1 and len(missing) > 1:
         _build_in_processes(missing, workers)
     if len(by_device) == 1:
         (device, mods), = by_device.items()
-        wp.force_load(device=device, modules=[m for _, m in mods], max_workers=workers)
+        wp.force_load(device=device, modules=list(mods), max_workers=workers)
         return
     with ThreadPoolExecutor(len(by_device), thread_name_prefix="synthbos-compile") as pool:  # devices side by side
-        for fut in [pool.submit(wp.force_load, device=d, modules=[m for _, m in mods], max_workers=workers)
+        for fut in [pool.submit(wp.force_load, device=d, modules=list(mods), max_workers=workers)
                     for d, mods in by_device.items()]:
             fut.result()
 
