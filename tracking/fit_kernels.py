@@ -786,3 +786,85 @@ def take_model(
         flags[i] = flags[i] | FIT_FALLBACK
     if moved[j] != 0:
         flags[i] = flags[i] | DISTORTED
+
+
+@wp.kernel
+def raster_keys(
+    params: wp.array2d(dtype=wp.float64),
+    live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+    h: int,
+    w: int,
+    keys: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+):
+    """Row i's key of the raster order of 4-row bands (frame, band, column; rows not live last) and
+    ``order[i] = i``: sorted, neighbouring threads read neighbouring pixels (``dotfit._raster_order``)."""
+    i = wp.tid()
+    order[i] = i
+    x = params[i, 0]
+    y = params[i, 1]
+    if live[i] == 0 or not (wp.isfinite(x) and wp.isfinite(y)):
+        keys[i] = wp.int64(9223372036854775807)
+        return
+    bands = (h + 3) // 4
+    band = wp.clamp(int(wp.floor(y / wp.float64(4.0))), 0, bands - 1)
+    col = wp.clamp(int(wp.round(x)), 0, w - 1)
+    keys[i] = (wp.int64(frame[i]) * wp.int64(bands) + wp.int64(band)) * wp.int64(w) + wp.int64(col)
+
+
+@wp.kernel
+def gather_rows(
+    order: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    back: wp.array(dtype=wp.int32),
+    params_out: wp.array2d(dtype=wp.float64),
+    live_out: wp.array(dtype=wp.int32),
+    frame_out: wp.array(dtype=wp.int32),
+    partner_out: wp.array(dtype=wp.int32),
+):
+    """Row j of the sorted rows is row ``order[j]``; its partner is renumbered (``back``: the inverse order)."""
+    j = wp.tid()
+    i = order[j]
+    for c in range(5):
+        params_out[j, c] = params[i, c]
+    live_out[j] = live[i]
+    frame_out[j] = frame[i]
+    p = partner[i]
+    if p >= 0:
+        partner_out[j] = back[p]
+    else:
+        partner_out[j] = -1
+
+
+@wp.kernel
+def inverse_order(order: wp.array(dtype=wp.int32), back: wp.array(dtype=wp.int32)):
+    """``back[order[j]] = j``."""
+    j = wp.tid()
+    back[order[j]] = j
+
+
+@wp.kernel
+def scatter_rows(
+    order: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    ok: wp.array(dtype=wp.int32),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    moved: wp.array(dtype=wp.int32),
+    params_out: wp.array2d(dtype=wp.float64),
+    ok_out: wp.array(dtype=wp.int32),
+    shared_out: wp.array2d(dtype=wp.float64),
+    moved_out: wp.array(dtype=wp.int32),
+):
+    """The fit's results of sorted row j back to row ``order[j]``."""
+    j = wp.tid()
+    i = order[j]
+    for c in range(5):
+        params_out[i, c] = params[j, c]
+    ok_out[i] = ok[j]
+    shared_out[i, 0] = shared_xy[j, 0]
+    shared_out[i, 1] = shared_xy[j, 1]
+    moved_out[i] = moved[j]
