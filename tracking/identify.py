@@ -539,6 +539,7 @@ class StackIdentification:
 
     def __init__(self, refs, stats, geometry, settings, *, per_frame, device):
         self.device = device
+        self.on_cpu = wp.get_device(device).is_cpu
         self.settings = settings
         self.B, self.H, self.W = refs.shape
         self.N = per_frame
@@ -560,6 +561,14 @@ class StackIdentification:
 
     def arr(self, a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+    def _waiting(self, ids, n_ids, todo, active):
+        """The CPU's schedule of the next round: the dots of ``ids[:n_ids]`` still to find in pairs still active
+        (an int32 Warp array and their number). The rounds' results do not change: a dot not waiting
+        takes no part in a round (a GPU measures every dot each round without waiting for the host)."""
+        sel = ids.numpy()[:n_ids]
+        sel = sel[(todo.numpy()[sel] != 0) & (active.numpy()[sel // self.N] != 0)]
+        return self.arr(sel, wp.int32), int(sel.size)
 
     def zeros(self, shape, dtype):
         return wp.zeros(shape, dtype=dtype, device=self.device)
@@ -597,7 +606,6 @@ class StackIdentification:
         todo = self.zeros(M, wp.int32)
         subtracted = self.zeros(M, wp.int32)
         self.launch(ck.start_identification, n_ids, [pred, ids, self.H, self.W, half, origin, todo, out["flags"]])
-        wp.copy(self.residual, image)
         active = self.full(self.B, 1, wp.int32)
         won = self.zeros(self.B, wp.int32)
         rows = 1 if wp.get_device(self.device).is_cpu else n_ids
@@ -622,14 +630,15 @@ class StackIdentification:
         reach = self.arr(reach_px, wp.float64)
         wa, wi, wd = (float(v) for v in s.weights)
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
+        every = (ids, n_ids)  # the found dots of every round may leave the residual image
         for it in range(1, s.max_iterations + 1):
             self.launch(
                 measure_stack,
                 n_ids,
                 [
-                    self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,
-                    float(radius), float(s.threshold_fraction), wa, wi, wd, int(s.background == "minimum"),
-                    *scratch, out_int, out_float, cross, 0,
+                    image if it == 1 else self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo,
+                    half, g.map_half, float(radius), float(s.threshold_fraction), wa, wi, wd,
+                    int(s.background == "minimum"), *scratch, out_int, out_float, cross, 0,
                 ],
             )  # fmt: skip
             if ref_peak is None:
@@ -657,13 +666,19 @@ class StackIdentification:
             self.launch(ck.release_claims, n_ids, [key, self.claim_dist, self.claim_id])
             self.launch(ck.next_round, self.B, [won, active])
             if it < s.max_iterations:
+                if self.on_cpu:  # the host reads the device's memory: later rounds measure the dots still to find
+                    ids, n_ids = self._waiting(*every, todo, active)
+                    if n_ids == 0:
+                        break
+                if it == 1:
+                    wp.copy(self.residual, image)
                 self.launch(ck.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
                 self.grid.build(points, float(np.max(reach_px)) + 1.0)
                 self.launch(
                     ck.subtract_near_waiting,
-                    n_ids,
+                    every[1],
                     [
-                        self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
+                        self.grid.id, every[0], self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
                         out["i0"], self.eta0, reach, subtracted, self.residual,
                     ],
                 )  # fmt: skip

@@ -99,7 +99,9 @@ def _upload(a, name, device):
     a = np.asarray(a)
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise SynthbosError(f"{name} images must hold real numbers, got dtype {a.dtype}")
-    return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
+    # on the CPU the stack is read where it lies (no copy; the tracker never writes its images)
+    cpu = wp.get_device(device).is_cpu
+    return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device, copy=not cpu)
 
 
 class _Pairs:
