@@ -596,13 +596,17 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
         )
     _launch(fk.pair_partners, M, [live, M, partner], device)
     order, sorted_rows = _raster_rows(_Rows(start, frame, partner, live), H, W, device)
+    # the model images and profiles (some 50 MB for a 1024 x 1024 pair): on the CPU the thread's workspace,
+    # whose pages stay mapped from one call to the next (on a GPU, the memory pool does that)
+    big = (lambda name, shape, dtype: scratch(name, shape, dtype, device)) if wp.get_device(device).is_cpu else (
+        lambda name, shape, dtype: wp.empty(shape, dtype=dtype, device=device))
     bufs = _FitBuffers(
-        wp.empty(2 * 2 * B * H * W, dtype=wp.int64, device=device),
+        big("fit_models", (2 * 2 * B * H * W,), wp.int64),
         wp.empty_like(start),
         wp.empty_like(start),
         wp.zeros(rows, dtype=wp.int32, device=device),
         wp.full((rows, 2), np.nan, dtype=wp.float64, device=device),
-        wp.empty((rows, 6, 2 * render_half + 1), dtype=wp.float64, device=device),
+        big("fit_profiles", (rows, 6, 2 * render_half + 1), wp.float64),
     )
     cur = _fit_steps(refs, grads, sorted_rows, bufs, sat, width, half=half, render_half=render_half,
                      iterations=s.fit_iterations, max_move=FIT_MAX_MOVE_PX, device=device)  # fmt: skip

@@ -562,6 +562,17 @@ class StackIdentification:
     def arr(self, a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
 
+    def raster_ids(self, pred):
+        """Every prior row (an int32 Warp array of the M rows), ordered by the place of its window
+        (``pred``) in its pair's image, in 8-row bands: the windows are measured and claimed in that
+        order (a third less time than in the prior's order on the CPU); only the speed depends on it."""
+        keys = wp.empty(2 * self.M, dtype=wp.int64, device=self.device)  # (the second half: the sort's scratch)
+        ids = wp.empty(2 * self.M, dtype=wp.int32, device=self.device)
+        self.launch(ck.window_keys, self.M, [pred, self.N, self.H, self.W, keys, ids])
+        if self.M:
+            wp.utils.radix_sort_pairs(keys, ids, self.M)
+        return ids[: self.M]
+
     def _waiting(self, ids, n_ids, todo, active):
         """The CPU's schedule of the next round: the dots of ``ids[:n_ids]`` still to find in pairs still active
         (an int32 Warp array and their number). The rounds' results do not change: a dot not waiting
@@ -580,10 +591,11 @@ class StackIdentification:
         if dim:
             wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def identify(self, image, which, pred, ids, n_ids, *, wide):
+    def identify(self, image, which, pred, ids, n_ids, *, wide, order=None):
         """:func:`identify_near_predictions` for the dots ``ids`` (an int32 Warp array, ``n_ids`` of them)
         of every pair, around ``pred`` (``wp.vec2d``, one per prior row), in ``image`` (the reference
-        images with ``which`` 0, the gradient images with 1), with the wide window if ``wide``: fresh
+        images with ``which`` 0, the gradient images with 1), with the wide window if ``wide``, the
+        windows measured in ``order`` (the same dots; :meth:`raster_ids`) where given: fresh
         (M,) per-dot Warp arrays ``x``, ``y``, ``eta``, ``i0``, ``iteration``, ``root`` and ``flags``."""
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
@@ -602,6 +614,11 @@ class StackIdentification:
         }
         if n_ids == 0:
             return out
+        # the found dots of every round may leave the residual image, in the dots' order (the order of
+        # the sums on the CPU); the windows are measured in ``order`` (:meth:`raster_ids`) where given
+        every = (ids, n_ids)
+        ids = ids if order is None else order
+        measured = (ids, n_ids)
         origin = self.zeros((M, 2), wp.int32)
         todo = self.zeros(M, wp.int32)
         subtracted = self.zeros(M, wp.int32)
@@ -630,7 +647,6 @@ class StackIdentification:
         reach = self.arr(reach_px, wp.float64)
         wa, wi, wd = (float(v) for v in s.weights)
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
-        every = (ids, n_ids)  # the found dots of every round may leave the residual image
         for it in range(1, s.max_iterations + 1):
             self.launch(
                 measure_stack,
@@ -667,7 +683,7 @@ class StackIdentification:
             self.launch(ck.next_round, self.B, [won, active])
             if it < s.max_iterations:
                 if self.on_cpu:  # the host reads the device's memory: later rounds measure the dots still to find
-                    ids, n_ids = self._waiting(*every, todo, active)
+                    ids, n_ids = self._waiting(*measured, todo, active)
                     if n_ids == 0:
                         break
                 if it == 1:
