@@ -26,6 +26,7 @@ from synthbos.benchmarks.timing import best_time, best_times  # noqa: E402
 from synthbos.raytrace.dots import draw_dots  # noqa: E402
 from synthbos.tracking import TrackingSettings, is_valid, track_pair  # noqa: E402
 from synthbos.tracking.crlb import displacement_crlb, position_crlb  # noqa: E402
+from synthbos.tracking.stack import track_pairs  # noqa: E402
 
 from synthbos.device import init_warp  # noqa: E402
 
@@ -135,6 +136,10 @@ def main(argv=None):
                 float(np.percentile(np.abs(ec), 95)),
             )
         )
+    # the default through the stacked tracker, as a stack of one, in this process
+    stack_one = lambda: track_pairs(ref[None], grad[None], prior_xy=xy, settings=procedures[0][1], device="cpu")  # noqa: E731
+    stack_one()
+    stack_rate = n / best_times(stack_one, args.repeat)[1]
     try:
         import trackpy as tp
 
@@ -180,6 +185,10 @@ def main(argv=None):
     print(
         f"default / paper speed: {rows[0][1] / rows[1][1]:.2f}; target 1e5 dots/s for the default: "
         f"{'met' if rows[0][1] >= 1e5 else 'NOT met'} (wall), {'met' if cpu_rates[0] >= 1e5 else 'NOT met'} (CPU)"
+    )
+    print(
+        f"tracking.stack.track_pairs, the default as a stack of one: {stack_rate:.0f} dots/s of CPU time, "
+        f"{stack_rate / cpu_rates[0]:.1%} of track_pair's"
     )
     if len(rows) == 4:
         print(f"speed ratio default / trackpy: {rows[0][1] / rows[3][1]:.2f}")
