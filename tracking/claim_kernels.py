@@ -337,27 +337,3 @@ def measured_peaks(
     if out_int[t, 0] >= 0:
         values[i] = out_float[t, 1]
         valid[i] = 1
-
-
-@wp.kernel
-def window_keys(
-    pred: wp.array(dtype=wp.vec2d),
-    per_frame: int,
-    height: int,
-    width: int,
-    keys: wp.array(dtype=wp.int64),
-    ids: wp.array(dtype=wp.int32),
-):
-    """Dot i's key of the raster order of 8-row bands of its window (pair, band, column; predictions
-    outside the image last) and ``ids[i] = i``: sorted, neighbouring threads read neighbouring pixels
-    (``tracking.windows._band_order``)."""
-    i = wp.tid()
-    ids[i] = i
-    p = pred[i]
-    if not (wp.isfinite(p[0]) and wp.isfinite(p[1])):
-        keys[i] = wp.int64(9223372036854775807)
-        return
-    bands = (height + 7) // 8
-    band = wp.clamp(int(wp.floor(p[1] / wp.float64(8.0))), 0, bands - 1)
-    col = wp.clamp(int(wp.rint(p[0])), 0, width - 1)
-    keys[i] = (wp.int64(i // per_frame) * wp.int64(bands) + wp.int64(band)) * wp.int64(width) + wp.int64(col)

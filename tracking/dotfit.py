@@ -580,7 +580,10 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     valid = wp.empty(2 * M, dtype=wp.int32, device=device)
     _launch(fk.interleave_pairs, M, [r["eta"], g["eta"], r["x"], g["x"], N, values, valid], device)
     med = segment_medians(values, valid, length=2 * N, segments=B, device=device).numpy()
-    sigma0 = wp.array(np.ascontiguousarray(start_width(med, eta0_host)), dtype=wp.float64, device=device)
+    sigma0_host = np.ascontiguousarray(start_width(med, eta0_host), dtype=np.float64)
+    sigma0 = wp.array(sigma0_host, dtype=wp.float64, device=device)
+    # the three-point peak is that of the pixel-broadened dot (pipeline._model_start's factor, as it computes it)
+    factor = wp.array(1.0 + 1.0 / (12.0 * sigma0_host**2), dtype=wp.float64, device=device)
     eta0_host = np.asarray(eta0_host, dtype=np.float64)
     width = np.stack([MODEL_WIDTH_RANGE[0] * eta0_host, MODEL_WIDTH_RANGE[1] * eta0_host], axis=1)
     width = wp.array(np.ascontiguousarray(width), dtype=wp.vec2d, device=device)
@@ -590,10 +593,8 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     frame = wp.empty(rows, dtype=wp.int32, device=device)
     partner = wp.empty(rows, dtype=wp.int32, device=device)
     for row0, found, fb in ((0, r, 0), (M, g, 1)):
-        _launch(
-            fk.model_starts, M, [found["x"], found["y"], found["i0"], N, sigma0, fb, 2, row0, start, live, frame],
-            device,
-        )
+        inputs = [found["x"], found["y"], found["i0"], N, sigma0, factor, fb, 2, row0, start, live, frame]
+        _launch(fk.model_starts, M, inputs, device)
     _launch(fk.pair_partners, M, [live, M, partner], device)
     order, sorted_rows = _raster_rows(_Rows(start, frame, partner, live), H, W, device)
     # the model images and profiles (some 50 MB for a 1024 x 1024 pair): on the CPU the thread's workspace,

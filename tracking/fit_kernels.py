@@ -594,6 +594,7 @@ def model_starts(
     i0: wp.array(dtype=wp.float64),
     per_frame: int,
     sigma0: wp.array(dtype=wp.float64),
+    peak_factor: wp.array(dtype=wp.float64),
     frame_base: int,
     frame_step: int,
     row0: int,
@@ -601,7 +602,8 @@ def model_starts(
     live: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32),
 ):
-    """Starting parameters ``(x, y, I0 (1 + 1 / (12 s0^2)), s0, 0)`` of every found dot (``_model_start``);
+    """Starting parameters ``(x, y, I0 f, s0, 0)`` of every found dot (``_model_start``; ``f = 1 + 1 / (12
+    s0^2)`` per pair, computed on the host as there: a kernel's arithmetic may round it differently);
     rows of dots not found get a harmless dot of no intensity (drawn as zero, never used)."""
     i = wp.tid()
     b = i // per_frame
@@ -611,7 +613,7 @@ def model_starts(
     if wp.isfinite(x[i]):
         params[j, 0] = x[i]
         params[j, 1] = y[i]
-        params[j, 2] = i0[i] * (wp.float64(1.0) + wp.float64(1.0) / (wp.float64(12.0) * s0 * s0))
+        params[j, 2] = i0[i] * peak_factor[b]
         params[j, 3] = s0
         params[j, 4] = wp.float64(0.0)
         live[j] = 1

@@ -291,8 +291,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         on_device = arr(prior.reshape(M, 2), wp.vec2d)
     ident = StackIdentification(refs, stats, geometry, s, per_frame=N, device=device)
     all_ids = arr(np.arange(M, dtype=np.int32), wp.int32)
-    raster = ident.raster_ids(on_device)
-    r = ident.identify(refs, 0, on_device, all_ids, M, wide=False, order=raster)
+    r = ident.identify(refs, 0, on_device, all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
     wp.launch(pk.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
@@ -300,7 +299,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
         wp.launch(pk.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
-        g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False, order=raster)
+        g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False)
         wide_search_stack(
             lambda ids, n_ids: ident.identify(grads, 1, pred_g, ids, n_ids, wide=True),
             r,
@@ -313,7 +312,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
             device=device,
         )
     else:
-        g = ident.identify(grads, 1, base, all_ids, M, wide=True, order=raster)
+        g = ident.identify(grads, 1, base, all_ids, M, wide=True)
         uv_pred = wp.empty(M, dtype=wp.vec2d, device=device)
         quality = wp.empty(M, dtype=wp.float64, device=device)
 
