@@ -69,6 +69,7 @@ from .settings import (  # noqa: F401  (re-exported)
     start_width,
     window_sizes,
 )
+from .stack import stack_support, track_pairs
 from .wide_search import drop_shared_blobs, merge_wide
 
 __all__ = ["TRACK_DTYPE", "DotStatus", "TrackingSettings", "is_valid", "track_pair"]
@@ -407,6 +408,9 @@ def track_pair(
     settings = TrackingSettings() if settings is None else settings
     ref, grad, tops, excluded = _checked_images(reference, gradient, mask)
     prior = None if prior_xy is None else _checked_prior(prior_xy, mapping, ref.shape)
+    if prior is not None and excluded is None and stack_support(settings) is None:
+        # the stacked tracker's variants: one orchestration, this pair a stack of one
+        return track_pairs(ref[None], grad[None], prior_xy=prior, settings=settings, device=device)[0]
     run = _setup(ref, grad, tops, excluded, settings, device)
     if prior is not None:
         r, g, pred = _dots_from_prior(run, prior)

@@ -252,8 +252,9 @@ def test_estimated_diameter_gives_same_result():
 @pytest.mark.parametrize("paper", [False, True])
 def test_each_step_of_a_run_matches_its_reference(device, monkeypatch, paper):
     """A run with a prior, its steps checked against their NumPy references on the run's own inputs
-    (every identification round's windows, the model fit and first-moment step, the neighbour tests),
-    and the run's result against the displacement it was drawn with."""
+    (every identification round's windows, the model fit and first-moment step, the neighbour tests; the
+    default estimators' run is the stacked tracker's, a stack of one), and the run's result against the
+    displacement it was drawn with."""
     rng = np.random.default_rng(20)
     xy = dot_pattern(rng, (128, 128), per_32x32=20, min_distance=D)
     disp = smooth_displacement(xy, (128, 128), 1.5)
@@ -264,7 +265,7 @@ def test_each_step_of_a_run_matches_its_reference(device, monkeypatch, paper):
     ran = {name for name, c in calls.items() if c}
     tests = {"neighbour_outliers_stack", "confirmed_by_neighbours_stack"}
     assert ran == ({"measure_windows", *tests} if paper else
-                   {"measure_windows", "fit_dots", "moment_shifts", *tests})  # fmt: skip
+                   {"measure_windows", "stack.fit_stack", *(f"stack.{t}" for t in tests)})  # fmt: skip
     assert len(calls["measure_windows"]) >= 2  # the residual rounds too
     assert_steps_agree(calls)
     ok = _check_no_nan_in_valid(res)
