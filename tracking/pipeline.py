@@ -1,6 +1,9 @@
 """Dot tracking with prior information and correlation correction (Rajendran, Bane and Vlachos 2019).
 
-:func:`track_pair` takes a reference and a gradient image and returns one row per dot. With a prior
+:func:`track_pair` takes a reference and a gradient image and returns one row per dot. With a prior, no
+mask and the default estimators it is a stack of one for the stacked tracker
+(:func:`tracking.stack.track_pairs`); this module keeps the per-pair path of the variants the stack does not
+run (a mask, standard tracking without a prior, the paper's and the other estimators). With a prior
 (predicted reference-image positions of the manufactured dots) every dot is looked for in a small window
 around its prediction, iterating on a residual image from which the dots found so far are removed;
 without one, dots are identified in each image by dynamic thresholding and paired (standard tracking).
@@ -345,7 +348,7 @@ def track_pair(
     settings : TrackingSettings, optional
         Defaults to ``TrackingSettings()``.
     device : str or None, optional
-        Warp device of the window kernel ("cpu", "cuda:0"); Warp's default when None.
+        Warp device of the kernels ("cpu", "cuda:0"); Warp's default when None.
 
     Returns
     -------
@@ -391,6 +394,10 @@ def track_pair(
     -----
     The result does not depend on a constant added to either image (every background is estimated), so
     dark dots on a bright background are tracked by giving ``max - image`` for both images.
+
+    With a prior, no mask and settings the stacked tracker runs (:func:`tracking.stack.stack_support`:
+    the default estimators), the pair is tracked as a stack of one by :func:`tracking.stack.track_pairs`
+    on ``device``.
 
     Examples
     --------

@@ -1,12 +1,20 @@
-"""Dot tracking of many image pairs at once, every step on one Warp device.
+"""Dot tracking of a stack of image pairs on one device: the orchestration of the method's steps.
 
 :func:`track_pairs` is :func:`tracking.track_pair` with a prior for a stack of B pairs of one shape: the
 images go up once, every kernel launch covers the dots of all pairs, and the table comes back once. It
 computes what ``track_pair`` computes for each pair alone (the same identification rounds, blob claims,
 predictor, wide second search, joint model fit, predictor check, edge cut and outlier test, each pair
 with its own noise, saturation, background, dot diameter and median peak), with its default estimators
-(``centroid="model"``, ``correction="model"``) and without a mask; the results agree with
-``track_pair``'s to floating-point rounding (the tests compare them dot by dot).
+(``centroid="model"``, ``correction="model"``) and without a mask. ``track_pair`` itself calls it for
+those settings, one pair being a stack of one.
+
+On the CPU three steps run their host engines, chosen by device inside the step: the frame statistics
+(``track_pair``'s host functions), identification (``identify_near_predictions`` pair by pair) and the
+predictor (``predict_displacement``, pocketfft), each faster there than its kernels; there the table
+equals ``track_pair``'s bit for bit. On a GPU every step runs its kernels (the predictor's float32
+correlation differs from pocketfft's by rounding: the tests compare the two dot by dot). The model fit
+sorts its rows once into raster order on the device, so that neighbouring threads read neighbouring
+pixels; its fixed-point model images make the result independent of that order.
 
 Where a step depends on data (a pair's identification ending early, its predictor's pyramid ending at
 a coarser pass, the wide search of the dots the first one missed), the stack runs the step for every
