@@ -53,14 +53,24 @@ def _assert_same(batch_table, single_table):
     ids=["default", "no-predictor", "fixed-diameter"],
 )
 def test_track_pairs_equals_track_pair(device, settings):
+    """The stack against ``track_pair``'s per-pair path (which an empty mask keeps a pair on): on the CPU
+    bit for bit (the stack's host engines there are the per-pair path's steps), on a GPU to rounding."""
     refs, grads, prior = _batch()
     tables = track_pairs(refs, grads, prior_xy=prior, settings=settings, device=device)
     assert tables.shape == prior.shape[:2]
     # each row names its prior row, in the batch as in track_pair (compared field by field below)
     assert_array_equal(tables["dot_id"], np.broadcast_to(np.arange(prior.shape[1]), prior.shape[:2]))
+    empty = np.zeros(SHAPE, dtype=bool)
     for b in range(len(refs)):
-        single = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
-        _assert_same(tables[b], single)
+        single = track_pair(refs[b], grads[b], prior_xy=prior[b], mask=empty, settings=settings, device=device)
+        if device == "cpu":
+            assert tables[b].tobytes() == single.tobytes(), b
+        else:
+            _assert_same(tables[b], single)
+        # and track_pair itself, with a prior and these settings, is the stack of one
+        alone = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
+        assert alone.tobytes() == track_pairs(refs[b : b + 1], grads[b : b + 1], prior_xy=prior[b : b + 1],
+                                              settings=settings, device=device)[0].tobytes()  # fmt: skip
     # the batch holds the cases it is meant to: claims lost, later rounds, outliers, misses
     status = tables["status"]
     assert np.count_nonzero(status & 512) > 10
