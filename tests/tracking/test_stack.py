@@ -67,10 +67,15 @@ def test_track_pairs_equals_track_pair(device, settings):
             assert tables[b].tobytes() == single.tobytes(), b
         else:
             _assert_same(tables[b], single)
-        # and track_pair itself, with a prior and these settings, is the stack of one
+        # and track_pair itself, with a prior and these settings, is the stack of one (on a GPU the float
+        # atomics of the residual images may move last bits from run to run)
         alone = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
-        assert alone.tobytes() == track_pairs(refs[b : b + 1], grads[b : b + 1], prior_xy=prior[b : b + 1],
-                                              settings=settings, device=device)[0].tobytes()  # fmt: skip
+        one = track_pairs(refs[b : b + 1], grads[b : b + 1], prior_xy=prior[b : b + 1], settings=settings,
+                          device=device)[0]  # fmt: skip
+        if device == "cpu":
+            assert alone.tobytes() == one.tobytes(), b
+        else:
+            _assert_same(alone, one)
     # the batch holds the cases it is meant to: claims lost, later rounds, outliers, misses
     status = tables["status"]
     assert np.count_nonzero(status & 512) > 10
