@@ -33,7 +33,8 @@ from .openpiv_method import OpenPIVSettings, run_openpiv
 from .optical_flow import OpticalFlowSettings, run_optical_flow
 from .plugins import load_plugins
 
-__all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "STACK_KERNELS", "Method", "MethodResult",
+__all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "STACK_CPU_KERNELS", "STACK_KERNELS", "Method",
+           "MethodResult",
            "check_available", "correlation_result", "default_methods", "forget_plugins", "forget_shared_results",
            "get_method", "method_names", "methods_table", "missing_modules", "settings_dict", "stack_settings",
            "stacked_result", "tracking_result"]
@@ -176,7 +177,8 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
 )
-#: the Warp modules that ``tracking.stack.track_pairs`` launches (a campaign that tracks stacks: scheduling)
+#: the Warp modules that ``tracking.stack.track_pairs`` launches on a GPU (a campaign that tracks stacks:
+#: scheduling)
 STACK_KERNELS = (
     "synthbos.tracking.claim_kernels",
     "synthbos.tracking.ellipse_kernels",
@@ -189,9 +191,20 @@ STACK_KERNELS = (
     "synthbos.tracking.table_kernels",
     "synthbos.tracking.wide_search_kernels",
 )
+#: those it launches on the CPU, where its frame statistics, identification and predictor run their host
+#: engines (the predictor's deformation kernel instead of the tile FFT)
+STACK_CPU_KERNELS = tuple(
+    sorted({*STACK_KERNELS, "synthbos.tracking.deform_kernels"} - {"synthbos.tracking.predict_fft_kernels"})
+)
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
 # where a coarser pass left a field, and is built on its first launch
 _TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
+# track_pair with the default estimators is a stack of one: those of the stack too (on the CPU, deform_kernels
+# again left to its first launch)
+_DEFAULT_KERNELS = tuple(sorted({*_TRACKING_KERNELS, *STACK_KERNELS}))
+_DEFAULT_CPU_KERNELS = tuple(
+    sorted({*_TRACKING_CPU_KERNELS, *STACK_CPU_KERNELS} - {"synthbos.tracking.deform_kernels"})
+)
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,
@@ -207,10 +220,10 @@ BUILT_IN: dict[str, Method] = {
                cpu_kernels=("synthbos.correlation.kernels",)),  # the Warp pass runs on CUDA only
         Method("tracking", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking"),
                label="tracking", color="#D55E00", linestyle="--", marker="s", uses_prior=True,
-               settings_key="tracking", kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS),
+               settings_key="tracking", kernels=_DEFAULT_KERNELS, cpu_kernels=_DEFAULT_CPU_KERNELS),
         Method("tracking-cc", DOTS, TrackingSettings, _tracker(("u_cc", "v_cc"), "tracking-cc"),
                label="tracking + correlation correction", color="#009E73", linestyle="-.", marker="^",
-               uses_prior=True, settings_key="tracking", kernels=_TRACKING_KERNELS, cpu_kernels=_TRACKING_CPU_KERNELS),
+               uses_prior=True, settings_key="tracking", kernels=_DEFAULT_KERNELS, cpu_kernels=_DEFAULT_CPU_KERNELS),
         # The exact procedure of Rajendran, Bane & Vlachos (2019): three-point Gaussian centroids and the
         # correlation of the segmented dot maps, kept so the paper's comparison can be run as published.
         Method("tracking-paper", DOTS, TrackingSettings, _tracker(("u", "v"), "tracking-paper"),

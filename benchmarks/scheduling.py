@@ -191,11 +191,12 @@ def campaign_kernels(renders, scores, *, worker_device=None, stack=0) -> list[tu
     """Every ``(kernel module, device)`` pair that :func:`run_pipeline` launches: the renderer's on each
     render device, the device-resident methods' here, ``track_pairs``'s here (with ``stack``: stacked
     tracking) and :func:`worker_kernels`."""
-    from .registry import STACK_KERNELS
+    from .registry import STACK_CPU_KERNELS, STACK_KERNELS
 
     here, stacked, _ = split_items(scores, worker_device=worker_device, stack=stack)
     pairs = set(render_kernels(renders)) | set(score_kernels(here))
-    pairs |= {(name, str(args[-1])) for args in stacked for name in STACK_KERNELS}
+    pairs |= {(name, str(args[-1])) for args in stacked
+              for name in (STACK_KERNELS if str(args[-1]).startswith("cuda") else STACK_CPU_KERNELS)}
     return sorted(pairs | set(worker_kernels(scores, worker_device=worker_device, stack=stack)))
 
 

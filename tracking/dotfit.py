@@ -617,7 +617,8 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
                               sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
                               ellipse=s.distortion == "ellipse", device=device)  # fmt: skip
         _launch(fk.apply_moment_shift, rows, [shift, sorted_rows.partner, cur, bufs.shared, moved], device)
-    out = (wp.empty_like(start), wp.empty_like(bufs.ok), wp.empty_like(bufs.shared), wp.empty_like(moved))
+    # back in the rows' order (the parameters into ``start``, which the sorted rows copied)
+    out = (start, wp.empty_like(bufs.ok), wp.empty_like(bufs.shared), wp.empty_like(moved))
     _launch(fk.scatter_rows, rows, [order, cur, bufs.ok, bufs.shared, moved, *out], device)
     return out[0], out[1], out[2], live, out[3]
 

@@ -15,7 +15,7 @@ from synthbos.benchmarks import stacks as stacks_module
 from synthbos.benchmarks.campaign import run_campaign
 from synthbos.benchmarks.cli import main
 from synthbos.benchmarks.items import item_images, measure_item
-from synthbos.benchmarks.registry import STACK_KERNELS, stack_settings
+from synthbos.benchmarks.registry import STACK_CPU_KERNELS, STACK_KERNELS, stack_settings
 from synthbos.benchmarks.scheduling import campaign_kernels, same_image_runs, split_items, worker_kernels
 from synthbos.benchmarks.spec import REGRESS
 from synthbos.benchmarks.stacks import DEFAULT_STACK, Stacks, default_stack
@@ -195,9 +195,10 @@ def _items(device, methods=("correlation", "tracking", "tracking-cc", "tracking-
 
 
 def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
-    """STACK_KERNELS (the modules a stacked campaign builds ahead) names every Python module whose Warp
-    kernels ``track_pairs`` launches, and no other (the modules were renamed by step: a stale name would
-    build nothing, a missing one would compile during the work)."""
+    """STACK_CPU_KERNELS (the modules a stacked campaign builds ahead on the CPU; STACK_KERNELS on a GPU,
+    checked by tests/test_cuda_build.py) names every Python module whose Warp kernels ``track_pairs``
+    launches on the CPU, and no other (the modules were renamed by step: a stale name would build nothing,
+    a missing one would compile during the work)."""
     import warp as wp
     from synthbos.raytrace.dots import draw_dots
     from synthbos.tracking.stack import track_pairs
@@ -217,7 +218,7 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
     refs = np.stack([draw_dots(shape, xy, 3.0), draw_dots(shape, xy, 3.0)])
     grads = np.stack([draw_dots(shape, xy + 0.7, 3.0), draw_dots(shape, xy - 0.4, 3.0)])
     track_pairs(refs, grads, prior_xy=xy + 0.2, device="cpu")
-    assert launched == set(STACK_KERNELS)
+    assert launched == set(STACK_CPU_KERNELS)
 
 
 def test_stacks_hold_the_trackers_with_the_default_estimators_and_load_their_kernels():
