@@ -597,17 +597,13 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
         _launch(fk.model_starts, M, inputs, device)
     _launch(fk.pair_partners, M, [live, M, partner], device)
     order, sorted_rows = _raster_rows(_Rows(start, frame, partner, live), H, W, device)
-    # the model images and profiles (some 50 MB for a 1024 x 1024 pair): on the CPU the thread's workspace,
-    # whose pages stay mapped from one call to the next (on a GPU, the memory pool does that)
-    big = (lambda name, shape, dtype: scratch(name, shape, dtype, device)) if wp.get_device(device).is_cpu else (
-        lambda name, shape, dtype: wp.empty(shape, dtype=dtype, device=device))
     bufs = _FitBuffers(
-        big("fit_models", (2 * 2 * B * H * W,), wp.int64),
+        _large("fit_models", (2 * 2 * B * H * W,), wp.int64, device),
         wp.empty_like(start),
         wp.empty_like(start),
         wp.zeros(rows, dtype=wp.int32, device=device),
         wp.full((rows, 2), np.nan, dtype=wp.float64, device=device),
-        big("fit_profiles", (rows, 6, 2 * render_half + 1), wp.float64),
+        _large("fit_profiles", (rows, 6, 2 * render_half + 1), wp.float64, device),
     )
     cur = _fit_steps(refs, grads, sorted_rows, bufs, sat, width, half=half, render_half=render_half,
                      iterations=s.fit_iterations, max_move=FIT_MAX_MOVE_PX, device=device)  # fmt: skip
@@ -623,12 +619,22 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     return out[0], out[1], out[2], live, out[3]
 
 
+def _large(name, shape, dtype, device):
+    """A large working array of the stack's fit (the model images and profiles, some 50 MB for a 1024 x 1024
+    pair): on the CPU the thread's workspace, whose pages stay mapped from one call to the next (fresh
+    pages cost more than some of the kernels there); on a GPU a new array (its memory pool keeps them)."""
+    if wp.get_device(device).is_cpu:
+        return scratch(name, shape, dtype, device)
+    return wp.empty(shape, dtype=dtype, device=device)
+
+
 def _raster_rows(rows, h, w, device):
     """The rows of a stack's fit sorted into raster order (:func:`_raster_order`'s bands of 4 image rows,
     frame by frame; rows not live last), once, on the device: the model and step kernels then read
-    neighbouring pixels in neighbouring threads (a third of the time on the CPU for the rows in the prior's
-    order). Returns the order (sorted row j is row ``order[j]``) and the sorted :class:`_Rows`, partners
-    renumbered. The results do not depend on the order (the model images are fixed-point sums)."""
+    neighbouring pixels in neighbouring threads (on the CPU, 84 ms for the fit's and first-moment step's
+    kernels on the benchmark pair against 122 ms in the prior's order). Returns the order (sorted row j is
+    row ``order[j]``) and the sorted :class:`_Rows`, partners renumbered. The results do not depend on the
+    order (the model images are fixed-point sums)."""
     n = rows.params.shape[0]
     keys = wp.empty(2 * n, dtype=wp.int64, device=device)  # (the second half: the radix sort's scratch)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)

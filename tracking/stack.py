@@ -126,8 +126,8 @@ class _Pairs:
 
 def _frame_statistics(images, name, settings, device, first):
     """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
-    kernel takes it) and dot diameter, computed on the device; the image checks of ``track_pair`` (the
-    pairs named from ``first``)."""
+    kernel takes it) and dot diameter, computed on the device (on the CPU by :func:`_host_statistics`);
+    the image checks of ``track_pair`` (the pairs named from ``first``)."""
     if wp.get_device(device).is_cpu:
         st = _host_statistics(images.numpy(), diameter=name == "reference" and settings.diameter is None)
     else:
