@@ -1,9 +1,9 @@
 """Dot tracking with prior information and correlation correction (Rajendran, Bane and Vlachos 2019).
 
-:func:`track_pair` takes a reference and a gradient image and returns one row per dot. With a prior, no
-mask and the default estimators it is a stack of one for the stacked tracker
-(:func:`tracking.stack.track_pairs`); this module keeps the per-pair path of the variants the stack does not
-run (a mask, standard tracking without a prior, the paper's and the other estimators). With a prior
+:func:`track_pair` takes a reference and a gradient image and returns one row per dot. With a prior and
+the default estimators it is a stack of one for the stacked tracker (:func:`tracking.stack.track_pairs`),
+with or without a mask; this module keeps the per-pair path of the variants the stack does not run
+(standard tracking without a prior, the paper's and the other estimators). With a prior
 (predicted reference-image positions of the manufactured dots) every dot is looked for in a small window
 around its prediction, iterating on a residual image from which the dots found so far are removed;
 without one, dots are identified in each image by dynamic thresholding and paired (standard tracking).
@@ -29,8 +29,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy import ndimage
-from synthbos.correlation.windows import checked_mask
 
 from synthbos import SynthbosError
 
@@ -45,6 +43,7 @@ from .identify import (
     identify_near_predictions,
     static_threshold_identification,
 )
+from .mask import check_mask, mask_reach, masked_fill, touches
 from .match import match_multiparametric, match_nearest
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import predict_displacement
@@ -284,36 +283,8 @@ def _overshoot(x, y, radius, shape):
     return np.stack([ox, oy], axis=1)
 
 
-def _disk(radius):
-    r = int(np.ceil(radius))
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
-    return xx * xx + yy * yy <= radius * radius + 1e-9
 
 
-def _check_mask(mask, shape):
-    m = checked_mask(mask, shape)
-    if m is not None and m.all():
-        raise SynthbosError("the mask excludes every pixel: nothing can be tracked")
-    return m
-
-
-def _masked_fill(image, mask):
-    """The image with its excluded pixels set to the median of the others (no dot is found there)."""
-    out = image.copy()
-    out[mask] = np.median(image[~mask])
-    return out
-
-
-def _touches(mask_near, xy):
-    """True where the rounded position lies on ``mask_near`` (outside the image: False)."""
-    h, w = mask_near.shape
-    fin = np.isfinite(xy).all(axis=1)
-    c = np.rint(np.where(fin, xy[:, 0], -1.0)).astype(np.int64)
-    r = np.rint(np.where(fin, xy[:, 1], -1.0)).astype(np.int64)
-    inside = fin & (c >= 0) & (c < w) & (r >= 0) & (r < h)
-    out = np.zeros(len(xy), dtype=bool)
-    out[inside] = mask_near[r[inside], c[inside]]
-    return out
 
 
 def track_pair(
@@ -395,9 +366,9 @@ def track_pair(
     The result does not depend on a constant added to either image (every background is estimated), so
     dark dots on a bright background are tracked by giving ``max - image`` for both images.
 
-    With a prior, no mask and settings the stacked tracker runs (:func:`tracking.stack.stack_support`:
-    the default estimators), the pair is tracked as a stack of one by :func:`tracking.stack.track_pairs`
-    on ``device``.
+    With a prior and settings the stacked tracker runs (:func:`tracking.stack.stack_support`: the default
+    estimators), the pair is tracked as a stack of one by :func:`tracking.stack.track_pairs` on
+    ``device``, its mask too.
 
     Examples
     --------
@@ -415,9 +386,10 @@ def track_pair(
     settings = TrackingSettings() if settings is None else settings
     ref, grad, tops, excluded = _checked_images(reference, gradient, mask)
     prior = None if prior_xy is None else _checked_prior(prior_xy, mapping, ref.shape)
-    if prior is not None and excluded is None and stack_support(settings) is None:
+    if prior is not None and stack_support(settings) is None:
         # the stacked tracker's variants: one orchestration, this pair a stack of one
-        return track_pairs(ref[None], grad[None], prior_xy=prior, settings=settings, device=device)[0]
+        mask1 = None if excluded is None else excluded[None]
+        return track_pairs(ref[None], grad[None], prior_xy=prior, mask=mask1, settings=settings, device=device)[0]
     run = _setup(ref, grad, tops, excluded, settings, device)
     if prior is not None:
         r, g, pred = _dots_from_prior(run, prior)
@@ -460,9 +432,9 @@ def _checked_images(reference, gradient, mask):
     grad, top_g = _check_image("gradient", gradient)
     if ref.shape != grad.shape:
         raise SynthbosError(f"reference and gradient images differ in shape: {ref.shape} and {grad.shape}")
-    excluded = _check_mask(mask, ref.shape)
+    excluded = check_mask(mask, ref.shape)
     if excluded is not None:
-        ref, grad = _masked_fill(ref, excluded), _masked_fill(grad, excluded)
+        ref, grad = masked_fill(ref, excluded), masked_fill(grad, excluded)
         top_r = top_g = None  # the maxima of the filled images
     return ref, grad, (top_r, top_g), excluded
 
@@ -494,7 +466,7 @@ def _setup(ref, grad, tops, excluded, settings, device):
     search = settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
     near_mask = None
     if excluded is not None:
-        near_mask = ndimage.binary_dilation(excluded, structure=_disk(d / 2.0))
+        near_mask = mask_reach(excluded, d)
     return _Run(
         ref, grad, excluded, settings, device, d, eta0, half_r, half_g, map_half, frame_r, frame_g, search, near_mask
     )
@@ -552,8 +524,8 @@ def _dots_without_prior(run):
     cand_r = _standard_candidates(run.ref, settings, run.frame_r.noise)
     cand_g = _standard_candidates(run.grad, settings, run.frame_g.noise)
     if excluded is not None:
-        cand_r = cand_r[~_touches(excluded, cand_r)]
-        cand_g = cand_g[~_touches(excluded, cand_g)]
+        cand_r = cand_r[~touches(excluded, cand_r)]
+        cand_g = cand_g[~touches(excluded, cand_g)]
     r = _find(run, run.frame_r, cand_r, standard=True)
     g = _find(run, run.frame_g, cand_g, standard=True)
     r = {k: v[np.isfinite(r["x"])] for k, v in r.items()}
@@ -628,10 +600,10 @@ def _table(run, r, g, partner, prior, pred, fits):
     out, status, found_r, found_g, pi = _positions(r, g, partner, with_prior=prior is not None)
     matched = found_r & found_g
     if run.near_mask is not None:
-        hidden = _touches(run.near_mask, np.stack([out["x"], out["y"]], axis=1))
-        hidden |= _touches(run.near_mask, np.stack([out["x_gradient"], out["y_gradient"]], axis=1))
+        hidden = touches(run.near_mask, np.stack([out["x"], out["y"]], axis=1))
+        hidden |= touches(run.near_mask, np.stack([out["x_gradient"], out["y_gradient"]], axis=1))
         if prior is not None:
-            hidden |= _touches(run.near_mask, prior)
+            hidden |= touches(run.near_mask, prior)
         status[hidden] |= DotStatus.MASKED
         matched &= ~hidden
     matched = _predictor_test(out, status, matched, found_r, found_g, pred, settings, device)

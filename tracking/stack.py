@@ -5,8 +5,9 @@ images go up once, every kernel launch covers the dots of all pairs, and the tab
 computes what ``track_pair`` computes for each pair alone (the same identification rounds, blob claims,
 predictor, wide second search, joint model fit, predictor check, edge cut and outlier test, each pair
 with its own noise, saturation, background, dot diameter and median peak), with its default estimators
-(``centroid="model"``, ``correction="model"``) and without a mask. ``track_pair`` itself calls it for
-those settings, one pair being a stack of one.
+(``centroid="model"``, ``correction="model"``), with or without a mask (:mod:`tracking.mask`: the fill in
+the upload, the noise of the pixels kept, the predictor's masked correlation, MASKED in the table).
+``track_pair`` itself calls it for those settings with a prior, one pair being a stack of one.
 
 On the CPU three steps run their host engines, chosen by device inside the step: the frame statistics
 (``track_pair``'s host functions), identification (``identify_near_predictions`` pair by pair) and the
@@ -44,6 +45,7 @@ from .diameter import estimate_dot_diameter
 from .dotfit import fit_stack, fit_window_half
 from .frame_stats import fill_level, frame_statistics, saturation_level
 from .identify import StackIdentification, estimate_noise
+from .mask import check_mask, mask_reach, masked_fill
 from .neighbours import confirmed_by_neighbours_stack, neighbour_outliers_stack
 from .predict import pooling_block, predict_displacement, predict_displacement_stack, predictor_passes
 from .settings import (
@@ -52,7 +54,7 @@ from .settings import (
     prior_inside,
     window_sizes,
 )
-from .table import HostTable, edge_cut, predictor_check, table_rows
+from .table import HostTable, edge_cut, masked_rows, predictor_check, table_rows
 from .wide_search import wide_search_stack
 from .workspace import hold_freed_memory
 
@@ -97,19 +99,22 @@ def pairs_per_call(shape, dots, device, *, on_device=True):
     return max(1, int(MEMORY_SHARE * dev.free_memory) // per_pair)
 
 
-def _upload(a, name, device):
+def _upload(a, name, device, excluded=None):
     """A (B, H, W) float64 Warp array on ``device`` from a stack :func:`_stack_shape` checked (a Warp
-    array or anything NumPy takes)."""
+    array or anything NumPy takes), the pixels ``excluded`` ((B, H, W) bool or None) filled
+    (:func:`tracking.mask.masked_fill`; a pair with non-finite pixels is left to the image check)."""
     if isinstance(a, wp.array):
-        if a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)):
+        if excluded is None and a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)):
             return a
         a = a.numpy()
     a = np.asarray(a)
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise SynthbosError(f"{name} images must hold real numbers, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if excluded is not None:
+        a = np.stack([masked_fill(im, m) if np.isfinite(im).all() else im for im, m in zip(a, excluded, strict=True)])
     # on the CPU the stack is read where it lies (no copy; the tracker never writes its images)
-    cpu = wp.get_device(device).is_cpu
-    return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device, copy=not cpu)
+    return wp.array(a, dtype=wp.float64, device=device, copy=not wp.get_device(device).is_cpu)
 
 
 class _Pairs:
@@ -124,14 +129,19 @@ class _Pairs:
         return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
 
 
-def _frame_statistics(images, name, settings, device, first):
+def _frame_statistics(images, name, settings, device, first, excluded=None):
     """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
     kernel takes it) and dot diameter, computed on the device (on the CPU by :func:`_host_statistics`);
-    the image checks of ``track_pair`` (the pairs named from ``first``)."""
+    the image checks of ``track_pair`` (the pairs named from ``first``). With a mask (``excluded``), the
+    noise of the pixels kept, by the host (the device's sort takes no mask)."""
     if wp.get_device(device).is_cpu:
-        st = _host_statistics(images.numpy(), diameter=name == "reference" and settings.diameter is None)
+        diameter = name == "reference" and settings.diameter is None
+        st = _host_statistics(images.numpy(), diameter=diameter, excluded=excluded)
     else:
         st = {k: v.numpy() for k, v in frame_statistics(images, device=device).items()}
+        if excluded is not None:
+            host = images.numpy()
+            st["noise"] = np.array([estimate_noise(im, excluded=m) for im, m in zip(host, excluded, strict=True)])
     for b, why in enumerate(st["bad"]):
         if why == 1:
             raise SynthbosError(f"pair {first + b}'s {name} image contains non-finite pixels (NaN or inf)")
@@ -141,10 +151,11 @@ def _frame_statistics(images, name, settings, device, first):
     return {"noise": st["noise"], "fill": st["fill"], "sat": np.minimum(sat, 1e300), "diameter": st["diameter"]}
 
 
-def _host_statistics(images, *, diameter):
+def _host_statistics(images, *, diameter, excluded=None):
     """The frame statistics' host engine, for the CPU: ``track_pair``'s host functions frame by frame
     (8 ms against the device sorts' 52 ms on the 1024 x 1024 benchmark pair); the diameter only where it
-    is asked for (NaN otherwise). ``bad``: 1 for non-finite pixels, 2 for an all-zero frame."""
+    is asked for (NaN otherwise); the noise of the pixels not ``excluded`` ((F, H, W) bool or None). ``bad``:
+    1 for non-finite pixels, 2 for an all-zero frame."""
     n = len(images)
     st = {k: np.full(n, np.nan) for k in ("noise", "fill", "saturation", "diameter")}
     st["bad"] = np.zeros(n, dtype=np.int32)
@@ -156,14 +167,17 @@ def _host_statistics(images, *, diameter):
         if lo == 0 and hi == 0:
             st["bad"][f] = 2
             continue
-        st["noise"][f], st["fill"][f] = estimate_noise(image), fill_level(image)
+        st["noise"][f] = estimate_noise(image, excluded=None if excluded is None else excluded[f])
+        st["fill"][f] = fill_level(image)
         st["saturation"][f] = saturation_level(image, None, hi)
         if diameter:
             st["diameter"][f] = estimate_dot_diameter(image)
     return st
 
 
-def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings | None = None, device=None):
+def track_pairs(
+    references, gradients, *, prior_xy, mask=None, settings: TrackingSettings | None = None, device=None
+):
     """Track every prior dot from the reference to the gradient image of each of B pairs.
 
     Parameters
@@ -173,6 +187,10 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     prior_xy : (N, 2) or (B, N, 2) array
         Predicted reference-image positions of the pattern's dots (x = column, y = row), one set for all
         pairs or one per pair.
+    mask : (H, W) or (B, H, W) bool array, optional
+        Pixels to exclude (True), one mask for all pairs or one per pair, as ``track_pair``'s ``mask``:
+        filled with the median of the others, left out of the noise and of the predictor's correlation,
+        and a dot within a dot radius of them is MASKED (:mod:`tracking.mask`).
     settings : TrackingSettings, optional
         Defaults to ``TrackingSettings()``; :func:`stack_support` says which the stack runs.
     device : str or None, optional
@@ -181,20 +199,22 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     Returns
     -------
     (B, N) numpy structured array of dtype ``TRACK_DTYPE``
-        Row ``[b, i]`` is ``track_pair(references[b], gradients[b], prior_xy=prior[b], settings=settings)``'s
-        row i.
+        Row ``[b, i]`` is ``track_pair(references[b], gradients[b], prior_xy=prior[b], mask=mask[b],
+        settings=settings)``'s row i.
 
     Raises
     ------
     synthbos.SynthbosError
         Stacks of different shapes or not 3-D, images all zero or with non-finite pixels (the pair is
-        named), a prior of the wrong shape or entirely outside the image, settings the stack does not run.
+        named), a prior of the wrong shape or entirely outside the image, a mask of the wrong shape or type
+        or one that excludes every pixel, settings the stack does not run.
 
     Notes
     -----
     On a GPU, the pairs are tracked in turns of as many as its free memory holds
     (:func:`pairs_per_call`, some 28 MB per 512 x 512 pair of 5,120 dots); each turn uploads its own
-    images when they come as NumPy stacks.
+    images when they come as NumPy stacks. With a mask, the images are filled on the host and the
+    predictor runs its host engine (the tile correlation takes no mask).
     """
     settings = TrackingSettings() if settings is None else settings
     why = stack_support(settings)
@@ -219,24 +239,38 @@ def track_pairs(references, gradients, *, prior_xy, settings: TrackingSettings |
     if not inside.any(axis=-1).all():
         b = 0 if shared else int(np.flatnonzero(~inside.any(axis=1))[0])
         raise SynthbosError(f"no prior dot of pair {b} lies inside the {H}x{W} image")
+    excluded = _stack_mask(mask, B, (H, W))
     on_device = all(isinstance(a, wp.array) and a.device == wp.get_device(device) for a in (references, gradients))
     turn = pairs_per_call((H, W), prior.shape[-2], device, on_device=on_device) or B
     if turn >= B:
-        return _track_turn(references, gradients, prior, settings, device, 0)
+        return _track_turn(references, gradients, prior, excluded, settings, device, 0)
     turns = [(a, min(a + turn, B)) for a in range(0, B, turn)]
     return np.concatenate([
-        _track_turn(references[a:b], gradients[a:b], prior if shared else prior[a:b], settings, device, a)
+        _track_turn(references[a:b], gradients[a:b], prior if shared else prior[a:b],
+                    None if excluded is None else excluded[a:b], settings, device, a)
         for a, b in turns
     ])  # fmt: skip
 
 
-def _track_turn(references, gradients, prior, settings, device, first):
+def _stack_mask(mask, pairs, shape):
+    """The (B, H, W) bool mask of every pair (:func:`tracking.mask.check_mask` each), or None."""
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.ndim == 2:
+        return np.broadcast_to(check_mask(m, shape), (pairs, *shape))
+    if m.ndim != 3 or m.shape[0] != pairs:
+        raise SynthbosError(f"mask must be an HxW or {pairs}xHxW array, got shape {m.shape}")
+    return np.stack([check_mask(one, shape) for one in m])
+
+
+def _track_turn(references, gradients, prior, excluded, settings, device, first):
     """:func:`track_pairs` of pairs ``first ...`` (the pairs its errors name), checked, in one turn."""
-    refs = _upload(references, "reference", device)
-    grads = _upload(gradients, "gradient", device)
+    refs = _upload(references, "reference", device, excluded)
+    grads = _upload(gradients, "gradient", device, excluded)
     B = refs.shape[0]
-    st_r = _frame_statistics(refs, "reference", settings, device, first)
-    st_g = _frame_statistics(grads, "gradient", settings, device, first)
+    st_r = _frame_statistics(refs, "reference", settings, device, first, excluded)
+    st_g = _frame_statistics(grads, "gradient", settings, device, first, excluded)
     d = np.full(B, float(settings.diameter)) if settings.diameter is not None else st_r["diameter"]
     bad = ~(np.isfinite(d) & (d > 0))
     if bad.any():
@@ -249,7 +283,7 @@ def _track_turn(references, gradients, prior, settings, device, first):
     for b, g in enumerate(geometry):
         groups.setdefault(g.key(), []).append(b)
     if len(groups) == 1:  # (the usual case: one diameter for all)
-        return _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device)
+        return _track_group(refs, grads, prior, excluded, st_r, st_g, geometry, settings, device)
     out = np.zeros((B, prior.shape[-2]), dtype=TRACK_DTYPE)
     for members in groups.values():
         sel = np.array(members)
@@ -257,6 +291,7 @@ def _track_turn(references, gradients, prior, settings, device, first):
             _pairs_of(refs, sel),
             _pairs_of(grads, sel),
             prior if prior.ndim == 2 else prior[sel],
+            None if excluded is None else excluded[sel],
             {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_r.items()},
             {k: (v[sel] if isinstance(v, np.ndarray) else v) for k, v in st_g.items()},
             [geometry[b] for b in sel],
@@ -273,7 +308,7 @@ def _pairs_of(stack, sel):
     return wp.array(stack.numpy()[sel], dtype=wp.float64, device=stack.device)
 
 
-def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
+def _track_group(refs, grads, prior, excluded, st_r, st_g, geometry, settings, device):
     B, H, W = refs.shape
     N = prior.shape[-2]
     M = B * N
@@ -304,7 +339,7 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     base = wp.empty(M, dtype=wp.vec2d, device=device)
     wp.launch(pk.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
     if use_pred:
-        uv_pred, quality = _predict(refs, grads, base, B, N, s, device)
+        uv_pred, quality = _predict(refs, grads, base, B, N, s, device, excluded)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
         wp.launch(pk.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
         g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False)
@@ -328,7 +363,13 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
         refs, grads, r, g, eta0=ident.eta0_host, sat_frames=stats["sat_frames"], noise_frames=stats["noise_frames"],
         fit_half=geometry[0].fit_half, render_half=geometry[0].render_half, settings=s, device=device,
     )  # fmt: skip
-    status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, use_pred=use_pred, settings=s, device=device)
+    near = None if excluded is None else arr(
+        np.stack([mask_reach(m, pair.d) for m, pair in zip(excluded, geometry, strict=True)]).astype(np.int32),
+        wp.int32,
+    )
+    hidden = masked_rows(near, on_device, r, g, per_frame=N, device=device)
+    status, xy, uv, good, query = predictor_check(r, g, uv_pred, quality, hidden, use_pred=use_pred, settings=s,
+                                                  device=device)  # fmt: skip
     confirmed = _confirmed(xy, uv, good, query, B, N, s, device)
     diameter = arr([pair.d for pair in geometry], wp.float64)
     matched = edge_cut(confirmed, query, status, r, g, per_frame=N, shape=(H, W), diameter=diameter, device=device)
@@ -342,14 +383,14 @@ def _track_group(refs, grads, prior, st_r, st_g, geometry, settings, device):
     return table.numpy().view(TRACK_DTYPE).reshape(B, N)
 
 
-def _predict(refs, grads, base, B, N, settings, device):
+def _predict(refs, grads, base, B, N, settings, device, excluded=None):
     """The correlation predictor of every pair (:func:`tracking.predict.predict_displacement_stack`), at ``base``.
 
     Pairs whose pass schedule differs (it depends on the number of dots inside the image) are run in
-    groups; usually all pairs share one.
+    groups; usually all pairs share one. On the CPU, or with a mask (``excluded``), the host engine.
     """
-    if wp.get_device(device).is_cpu:
-        return _predict_on_host(refs, grads, base, B, N, settings, device)
+    if wp.get_device(device).is_cpu or excluded is not None:
+        return _predict_on_host(refs, grads, base, B, N, settings, device, excluded)
     H, W = refs.shape[1:]
     count = wp.zeros(B, dtype=wp.int32, device=device)
     wp.launch(pk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
@@ -378,18 +419,19 @@ def _predict(refs, grads, base, B, N, settings, device):
     )
 
 
-def _predict_on_host(refs, grads, base, B, N, settings, device):
-    """The predictor's host engine, for the CPU: :func:`tracking.predict.predict_displacement` pair by pair
-    (its pocketfft correlation takes an eighth of the time of the tile kernels on the CPU; the Warp arrays
-    are read where they lie)."""
+def _predict_on_host(refs, grads, base, B, N, settings, device, excluded=None):
+    """The predictor's host engine, for the CPU and for masks: :func:`tracking.predict.predict_displacement`
+    pair by pair (its pocketfft correlation takes an eighth of the time of the tile kernels on the CPU;
+    the Warp arrays are read where they lie), the pixels ``excluded`` left out."""
     xy = base.numpy().reshape(B, N, 2)
     uv = np.empty((B, N, 2))
     q = np.empty((B, N))
     ref_np, grad_np = refs.numpy(), grads.numpy()
     for b in range(B):
         uv[b], q[b] = predict_displacement(
-            ref_np[b], grad_np[b], xy[b], window_sizes=settings.predictor_windows, device=device
-        )
+            ref_np[b], grad_np[b], xy[b], window_sizes=settings.predictor_windows,
+            mask=None if excluded is None else excluded[b], device=device,
+        )  # fmt: skip
     return (
         wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
         wp.array(q.ravel(), dtype=wp.float64, device=device),

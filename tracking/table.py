@@ -22,7 +22,7 @@ import warp as wp
 from . import table_kernels as tk
 from .settings import TRACK_DTYPE
 
-__all__ = ["HostTable", "edge_cut", "predictor_check", "table_rows"]
+__all__ = ["HostTable", "edge_cut", "masked_rows", "predictor_check", "table_rows"]
 
 
 def _launch(kernel, dim, inputs, device):
@@ -30,7 +30,19 @@ def _launch(kernel, dim, inputs, device):
         wp.launch(kernel, dim=dim, inputs=inputs, device=device)
 
 
-def predictor_check(r, g, uv_pred, quality, *, use_pred, settings, device):
+def masked_rows(near, prior, r, g, *, per_frame, device):
+    """The (M,) int32 Warp array of the dots a mask hides (MASKED): those whose reference, gradient or
+    prior position lies on their pair's ``near`` ((B, H, W) int32 Warp array, ``mask.mask_reach``); all 0
+    without one (``near`` None)."""
+    m = r["x"].shape[0]
+    if near is None:
+        return wp.zeros(m, dtype=wp.int32, device=device)
+    hidden = wp.empty(m, dtype=wp.int32, device=device)
+    _launch(tk.masked_rows, m, [near, per_frame, prior, r["x"], r["y"], g["x"], g["y"], hidden], device)
+    return hidden
+
+
+def predictor_check(r, g, uv_pred, quality, hidden, *, use_pred, settings, device):
     """Status bits up to the predictor's check, for the M dots of a stack (flat).
 
     Parameters
@@ -41,6 +53,8 @@ def predictor_check(r, g, uv_pred, quality, *, use_pred, settings, device):
         The predicted displacements (read only with ``use_pred``).
     quality : (M,) float64 Warp array
         Their significance (likewise).
+    hidden : (M,) int32 Warp array
+        The dots a mask hides (:func:`masked_rows`): MASKED, never matched.
     use_pred : bool, keyword-only
         Whether the correlation predictor ran.
     settings : TrackingSettings, keyword-only
@@ -67,8 +81,8 @@ def predictor_check(r, g, uv_pred, quality, *, use_pred, settings, device):
         m,
         [
             r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
-            float(settings.predictor_tolerance), float(settings.predictor_min_correlation), status, xy, uv, good,
-            query,
+            float(settings.predictor_tolerance), float(settings.predictor_min_correlation), hidden, status, xy, uv,
+            good, query,
         ],
         device,
     )  # fmt: skip

@@ -20,6 +20,7 @@ from .kernel_constants import (
     EDGE_CUT_MAX,
     FOUND_GRADIENT,
     FOUND_REFERENCE,
+    MASKED,
     MATCHED,
     OUTLIER,
     OUTSIDE_IMAGE,
@@ -79,15 +80,16 @@ def first_status(
     use_pred: int,
     tolerance: wp.float64,
     min_correlation: wp.float64,
+    hidden: wp.array(dtype=wp.int32),
     status: wp.array(dtype=wp.int32),
     xy: wp.array(dtype=wp.vec2d),
     uv: wp.array(dtype=wp.vec2d),
     good: wp.array(dtype=wp.int32),
     query: wp.array(dtype=wp.int32),
 ):
-    """Status bits up to the predictor's check: found, the predictor's mismatch and weakness; the dots that
-    vouch for their neighbours (``good``) and those whose mismatch the neighbours may overrule
-    (``query``)."""
+    """Status bits up to the predictor's check: found, MASKED (``hidden``: :func:`masked_rows`), the
+    predictor's mismatch and weakness; the dots that vouch for their neighbours (``good``) and those whose
+    mismatch the neighbours may overrule (``query``)."""
     i = wp.tid()
     s = flags_r[i] | (flags_g[i] & ~OUTSIDE_IMAGE)
     found_r = wp.isfinite(x_r[i])
@@ -99,6 +101,9 @@ def first_status(
     xy[i] = wp.vec2d(x_r[i], y_r[i])
     uv[i] = wp.vec2d(x_g[i] - x_r[i], y_g[i] - y_r[i])
     matched = found_r and found_g
+    if hidden[i] != 0:
+        s = s | MASKED
+        matched = False
     off = False
     weak = False
     if use_pred != 0:
@@ -113,6 +118,40 @@ def first_status(
     if weak:
         s = s | PREDICTOR_WEAK
     status[i] = s
+
+
+@wp.func
+def touches(near: wp.array3d(dtype=wp.int32), b: int, x: wp.float64, y: wp.float64) -> bool:
+    """Whether the rounded position lies on pair b's ``near`` (outside the image: False; ``mask.touches``)."""
+    if not (wp.isfinite(x) and wp.isfinite(y)):
+        return False
+    c = wp.rint(x)
+    r = wp.rint(y)
+    if c < wp.float64(0.0) or r < wp.float64(0.0):
+        return False
+    if c >= wp.float64(near.shape[2]) or r >= wp.float64(near.shape[1]):
+        return False
+    return near[b, int(r), int(c)] != 0
+
+
+@wp.kernel
+def masked_rows(
+    near: wp.array3d(dtype=wp.int32),
+    per_frame: int,
+    prior: wp.array(dtype=wp.vec2d),
+    x_r: wp.array(dtype=wp.float64),
+    y_r: wp.array(dtype=wp.float64),
+    x_g: wp.array(dtype=wp.float64),
+    y_g: wp.array(dtype=wp.float64),
+    hidden: wp.array(dtype=wp.int32),
+):
+    """The dots whose reference, gradient or prior position lies within a dot radius of pair b's excluded
+    pixels (``near``: ``mask.mask_reach``): MASKED (``track_pair``'s ``_table``)."""
+    i = wp.tid()
+    b = i // per_frame
+    h = touches(near, b, x_r[i], y_r[i]) or touches(near, b, x_g[i], y_g[i])
+    h = h or touches(near, b, prior[i][0], prior[i][1])
+    hidden[i] = int(h)
 
 
 @wp.kernel
@@ -137,7 +176,7 @@ def second_status(
     if query[i] != 0 and confirmed[i] != 0:
         s = s & ~PREDICTOR_MISMATCH
     m = (s & FOUND_REFERENCE) != 0 and (s & FOUND_GRADIENT) != 0
-    m = m and (s & (PREDICTOR_MISMATCH | PREDICTOR_WEAK)) == 0
+    m = m and (s & (PREDICTOR_MISMATCH | PREDICTOR_WEAK | MASKED)) == 0
     if m:
         r = wp.float64(0.5) * diameter[i // per_frame]
         a = overshoot(x_r[i], y_r[i], r, height, width)

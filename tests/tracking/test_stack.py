@@ -5,7 +5,7 @@ import pytest
 from _synth import dot_pattern, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
-from synthbos.tracking import TrackingSettings, track_pair
+from synthbos.tracking import DotStatus, TrackingSettings, pipeline, track_pair
 from synthbos.tracking.stack import track_pairs
 
 from synthbos import SynthbosError
@@ -47,28 +47,27 @@ def _assert_same(batch_table, single_table):
             assert_array_equal(a, b, err_msg=name)
 
 
+def _per_pair(monkeypatch):
+    """``track_pair`` kept on its per-pair path (the variants the stack does not run) for every setting."""
+    monkeypatch.setattr(pipeline, "stack_support", lambda settings: "the test's per-pair path")
+
+
 @pytest.mark.parametrize(
     "settings",
     [TrackingSettings(), TrackingSettings(predictor="none"), TrackingSettings(diameter=3.0, max_iterations=2)],
     ids=["default", "no-predictor", "fixed-diameter"],
 )
-def test_track_pairs_equals_track_pair(device, settings):
-    """The stack against ``track_pair``'s per-pair path (which an empty mask keeps a pair on): on the CPU
-    bit for bit (the stack's host engines there are the per-pair path's steps), on a GPU to rounding."""
+def test_track_pairs_equals_track_pair(device, settings, monkeypatch):
+    """The stack against ``track_pair``'s per-pair path: on the CPU bit for bit (the stack's host engines
+    there are the per-pair path's steps), on a GPU to rounding."""
     refs, grads, prior = _batch()
     tables = track_pairs(refs, grads, prior_xy=prior, settings=settings, device=device)
     assert tables.shape == prior.shape[:2]
     # each row names its prior row, in the batch as in track_pair (compared field by field below)
     assert_array_equal(tables["dot_id"], np.broadcast_to(np.arange(prior.shape[1]), prior.shape[:2]))
-    empty = np.zeros(SHAPE, dtype=bool)
+    # track_pair itself, with a prior and these settings, is the stack of one (on a GPU the float atomics of
+    # the residual images may move last bits from run to run)
     for b in range(len(refs)):
-        single = track_pair(refs[b], grads[b], prior_xy=prior[b], mask=empty, settings=settings, device=device)
-        if device == "cpu":
-            assert tables[b].tobytes() == single.tobytes(), b
-        else:
-            _assert_same(tables[b], single)
-        # and track_pair itself, with a prior and these settings, is the stack of one (on a GPU the float
-        # atomics of the residual images may move last bits from run to run)
         alone = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
         one = track_pairs(refs[b : b + 1], grads[b : b + 1], prior_xy=prior[b : b + 1], settings=settings,
                           device=device)[0]  # fmt: skip
@@ -76,11 +75,44 @@ def test_track_pairs_equals_track_pair(device, settings):
             assert alone.tobytes() == one.tobytes(), b
         else:
             _assert_same(alone, one)
+    _per_pair(monkeypatch)
+    for b in range(len(refs)):
+        single = track_pair(refs[b], grads[b], prior_xy=prior[b], settings=settings, device=device)
+        if device == "cpu":
+            assert tables[b].tobytes() == single.tobytes(), b
+        else:
+            _assert_same(tables[b], single)
     # the batch holds the cases it is meant to: claims lost, later rounds, outliers, misses
     status = tables["status"]
     assert np.count_nonzero(status & 512) > 10
     assert np.count_nonzero(tables["iteration"] > 1) > 10
     assert np.count_nonzero(status & 4) > 1000
+
+
+def test_masks_in_a_stack_equal_track_pairs_per_pair_path(device, monkeypatch):
+    """A mask per pair (a disk, a stripe at the edge, none): the stack against ``track_pair``'s per-pair
+    path with each pair's mask, bit for bit on the CPU; the dots near the excluded pixels are MASKED, none
+    of them matched, and the unmasked pair's table is the one it has without a mask."""
+    refs, grads, prior = _batch()
+    yy, xx = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    masks = np.zeros((4, *SHAPE), dtype=bool)
+    masks[0] = (xx - 40) ** 2 + (yy - 50) ** 2 < 15**2
+    masks[1, :, 110:] = True
+    masks[3] = np.roll(masks[0], 60, axis=1)
+    tables = track_pairs(refs, grads, prior_xy=prior, mask=masks, device=device)
+    masked = (tables["status"] & DotStatus.MASKED) != 0
+    assert masked[[0, 1, 3]].sum(axis=1).min() > 10
+    assert not masked[2].any()
+    assert not (masked & ((tables["status"] & DotStatus.MATCHED) != 0)).any()
+    plain = track_pairs(refs[2:3], grads[2:3], prior_xy=prior[2:3], device=device)[0]
+    _per_pair(monkeypatch)
+    for b in range(len(refs)):
+        single = track_pair(refs[b], grads[b], prior_xy=prior[b], mask=masks[b], device=device)
+        if device == "cpu":
+            assert tables[b].tobytes() == single.tobytes(), b
+        else:
+            _assert_same(tables[b], single)
+    _assert_same(tables[2], plain)
 
 
 def test_a_pairs_table_does_not_depend_on_its_stack(device):
