@@ -105,6 +105,10 @@ def test_masks_in_a_stack_equal_track_pairs_per_pair_path(device, monkeypatch):
     assert not masked[2].any()
     assert not (masked & ((tables["status"] & DotStatus.MATCHED) != 0)).any()
     plain = track_pairs(refs[2:3], grads[2:3], prior_xy=prior[2:3], device=device)[0]
+    # one (H, W) mask for every pair is each pair's
+    shared = track_pairs(refs[:2], grads[:2], prior_xy=prior[:2], mask=masks[0], device=device)
+    _assert_same(shared[0], tables[0])
+    _assert_same(shared[1], track_pairs(refs[1:2], grads[1:2], prior_xy=prior[1:2], mask=masks[:1], device=device)[0])
     _per_pair(monkeypatch)
     for b in range(len(refs)):
         single = track_pair(refs[b], grads[b], prior_xy=prior[b], mask=masks[b], device=device)
@@ -152,6 +156,14 @@ def test_track_pairs_bad_input():
         track_pairs(refs, grads, prior_xy=prior[:2], device="cpu")
     with pytest.raises(SynthbosError, match="default estimators"):
         track_pairs(refs, grads, prior_xy=prior, settings=TrackingSettings.paper(), device="cpu")
+    with pytest.raises(SynthbosError, match=r"mask must be an HxW or 4xHxW"):
+        track_pairs(refs, grads, prior_xy=prior, mask=np.zeros((2, *SHAPE), bool), device="cpu")
+    with pytest.raises(SynthbosError, match="mask has shape"):
+        track_pairs(refs, grads, prior_xy=prior, mask=np.zeros((4, 8, 8), bool), device="cpu")
+    everything = np.zeros((4, *SHAPE), bool)
+    everything[3] = True
+    with pytest.raises(SynthbosError, match="excludes every pixel"):
+        track_pairs(refs, grads, prior_xy=prior, mask=everything, device="cpu")
 
 
 def test_track_pairs_pairs_of_different_dot_sizes(device):
