@@ -38,7 +38,7 @@ __all__ = [
 CENTROID_METHODS = ("gaussian3", "centroid", "gaussian4", "lsq")
 
 #: What the model fit's positions measure on a distorted dot (``TrackingSettings.distortion``).
-DISTORTION_STEPS = ("ellipse", "moment", "none")
+DISTORTION_STEPS = ("ellipse", "kernel", "moment", "none")
 
 #: Pairings of standard tracking (:mod:`tracking.match`).
 MATCH_METHODS = ("nearest", "multiparametric")
@@ -91,6 +91,25 @@ ELLIPSE_WIDTH_RANGE = (0.6, 3.0)
 #: The first moment of the dot's share of the light by those models is then taken this many times, the
 #: model moved to the last moment (and its flux to the last share's) in between.
 ELLIPSE_MOMENT_ITERATIONS = 3
+
+#: The shared-kernel step (``TrackingSettings.distortion`` "kernel", :mod:`tracking.kernel_step`): after the
+#: elliptical step, every dot of a pair that holds a moving dot gets a non-parametric ray-landing kernel of
+#: ``KERNEL_TAPS`` x ``KERNEL_TAPS`` weights on a sub-pixel grid of this step (px) ...
+KERNEL_GRID_STEP = 1.0 / 3.0
+KERNEL_TAPS = 9
+#: ... fitted (weighted ridge least squares) to the ``2 KERNEL_WINDOW_HALF + 1`` square window of pixels
+#: about the dot, weighted ``exp(-r^2 / (2 KERNEL_WINDOW_SIGMA^2))`` (r in px), and shared there by every dot
+#: within ``KERNEL_REACH_PX`` of it (at most ``KERNEL_MAX_NEIGHBOURS`` with itself; more keeps its last one) ...
+KERNEL_WINDOW_HALF = 5
+KERNEL_WINDOW_SIGMA_PX = 3.0
+KERNEL_REACH_PX = 9.0
+KERNEL_MAX_NEIGHBOURS = 32
+#: ... the ridge, this times the normal matrix's mean diagonal, pulling it towards its prior: the elliptical
+#: fit's covariance less the spot's (eigenvalues at least ``KERNEL_PRIOR_MIN_VAR_PX2``) ...
+KERNEL_RIDGE = 0.1
+KERNEL_PRIOR_MIN_VAR_PX2 = 0.01
+#: ... and the kernel fit, the shares of every dot's kernel model and the moment repeated this many times.
+KERNEL_ITERATIONS = 3
 
 #: Standard tracking pairs within, and the wide search looks as far as, ``max_displacement`` plus this (px)
 #: unless ``TrackingSettings.search_radius`` is set.
