@@ -280,28 +280,41 @@ def factor(prof: wp.array3d(dtype=wp.float64), t: int, r0: int, r1: int, w: vec_
 
 
 @wp.func
+def add_kronecker(normal: wp.array3d(dtype=wp.float64), t: int, fy: mat_taps, fx: mat_taps, both: bool):
+    """The lower triangle of ``fy (x) fx`` (and, with ``both``, of its transpose) added to ``normal[t]``."""
+    for b in range(KER_TAPS):
+        for b2 in range(b + 1):
+            y = fy[b, b2]
+            yt = fy[b2, b]
+            for a in range(KER_TAPS):
+                u = b * KER_TAPS + a
+                top = KER_TAPS
+                if b2 == b:
+                    top = a + 1
+                v0 = b2 * KER_TAPS
+                if both:
+                    for a2 in range(top):
+                        normal[t, u, v0 + a2] += y * fx[a, a2] + yt * fx[a2, a]
+                else:
+                    for a2 in range(top):
+                        normal[t, u, v0 + a2] += y * fx[a, a2]
+
+
+@wp.func
 def normal_equations(
-    prof: wp.array3d(dtype=wp.float64), t: int, count: int, wx: vec_window,
-    wy: vec_window, normal: wp.array3d(dtype=wp.float64),
+    prof: wp.array3d(dtype=wp.float64), t: int, count: int, wx: vec_window, wy: vec_window,
+    normal: wp.array3d(dtype=wp.float64),
 ):  # fmt: skip
-    """The lower triangle of the normal matrix ``sum_(j, k) Y_jk (x) X_jk`` into ``normal[t]``."""
+    """The lower triangle of the normal matrix ``sum_(j, k) Y_jk (x) X_jk`` into ``normal[t]`` (the pairs
+    ``k > j`` once, with their transposes: ``Y_kj (x) X_kj = (Y_jk (x) X_jk)^T``)."""
     for u in range(KER_UNKNOWNS):
         for v in range(u + 1):
             normal[t, u, v] = wp.float64(0.0)
     for s in range(count):
-        for r in range(count):
+        for r in range(s, count):
             fx = factor(prof, t, 2 * s * KER_TAPS, 2 * r * KER_TAPS, wx)
             fy = factor(prof, t, (2 * s + 1) * KER_TAPS, (2 * r + 1) * KER_TAPS, wy)
-            for b in range(KER_TAPS):
-                for b2 in range(b + 1):
-                    y = fy[b, b2]
-                    for a in range(KER_TAPS):
-                        u = b * KER_TAPS + a
-                        top = KER_TAPS
-                        if b2 == b:
-                            top = a + 1
-                        for a2 in range(top):
-                            normal[t, u, b2 * KER_TAPS + a2] += y * fx[a, a2]
+            add_kronecker(normal, t, fy, fx, r != s)
 
 
 @wp.func
