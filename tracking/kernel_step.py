@@ -98,8 +98,9 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
     level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
     grid = wp.HashGrid(128, 128, 64, device=device)
+    scratch = _Scratch(m, device)
     for _ in range(KERNEL_ITERATIONS):
-        _fit_kernels(refs, grads, rows, frame, level, state, grid, device)
+        _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
         models.zero_()
         draw = [rows, frame, state.pos, state.flux, state.sigma, state.kern, half, scales, height, width,
                 state.stamp_prof, state.stamp, models]  # fmt: skip
@@ -129,6 +130,20 @@ class _State:
         self.failed = wp.zeros(m, dtype=wp.int32, device=device)
         self.stamp = wp.empty((m, n, n), dtype=wp.float64, device=device)
         self.stamp_prof = wp.empty((m, 2 * KERNEL_TAPS, n), dtype=wp.float64, device=device)
+
+
+class _Scratch:
+    """The kernel fit's per-thread scratch for one chunk of rows: neighbours, their window profiles, the
+    normal matrix and the right side."""
+
+    def __init__(self, m, device):
+        self.chunk = min(m, CHUNK_ROWS["cuda" if wp.get_device(device).is_cuda else "cpu"])
+        taps, window = KERNEL_TAPS, 2 * KERNEL_WINDOW_HALF + 1
+        self.nbr = wp.empty((self.chunk, KERNEL_MAX_NEIGHBOURS), dtype=wp.int32, device=device)
+        self.prof = wp.empty((self.chunk, 2 * KERNEL_MAX_NEIGHBOURS * taps, window), dtype=wp.float64, device=device)
+        self.normal = wp.empty((self.chunk, taps * taps, taps * taps), dtype=wp.float64, device=device)
+        self.rhs = wp.empty((self.chunk, taps * taps), dtype=wp.float64, device=device)
+        self.points = wp.empty(m, dtype=wp.vec3, device=device)
 
 
 def _prior_fit(refs, grads, models, scales, params, frame, partner, part, rows, half, device):
@@ -161,20 +176,14 @@ def _frame_levels(background, frames_of_rows, frames, device):
     return wp.array(level, dtype=wp.float64, device=device)
 
 
-def _fit_kernels(refs, grads, rows, frame, level, state, grid, device):
+def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device):
     """Every row's kernel fit (``kernel_fit``), in chunks; the new kernels replace the old."""
-    m = rows.shape[0]
-    points = wp.empty(m, dtype=wp.vec3, device=device)
-    wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, points], device=device)
-    grid.build(points, KERNEL_REACH_PX + 0.5)
-    chunk = min(m, CHUNK_ROWS["cuda" if wp.get_device(device).is_cuda else "cpu"])
-    taps, window = KERNEL_TAPS, 2 * KERNEL_WINDOW_HALF + 1
-    nbr = wp.empty((chunk, KERNEL_MAX_NEIGHBOURS), dtype=wp.int32, device=device)
-    prof = wp.empty((chunk, 2 * KERNEL_MAX_NEIGHBOURS * taps, window), dtype=wp.float64, device=device)
-    normal = wp.empty((chunk, taps * taps, taps * taps), dtype=wp.float64, device=device)
-    rhs = wp.empty((chunk, taps * taps), dtype=wp.float64, device=device)
+    m, chunk = rows.shape[0], scratch.chunk
+    wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, scratch.points], device=device)
+    grid.build(scratch.points, KERNEL_REACH_PX + 0.5)
     for start in range(0, m, chunk):
         wp.launch(kernel_fit, dim=min(chunk, m - start),
                   inputs=[start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma,
-                          state.prior, state.kern, state.spare, nbr, prof, normal, rhs], device=device)  # fmt: skip
+                          state.prior, state.kern, state.spare, scratch.nbr, scratch.prof, scratch.normal, scratch.rhs],
+                  device=device)  # fmt: skip
     state.kern, state.spare = state.spare, state.kern
