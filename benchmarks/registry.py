@@ -175,6 +175,7 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
+    "synthbos.tracking.kernel_step_kernels",
 )
 #: the Warp modules that ``tracking.stack.track_pairs`` launches (a campaign that tracks stacks: scheduling)
 STACK_KERNELS = (
@@ -182,6 +183,7 @@ STACK_KERNELS = (
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.identify_kernels",
+    "synthbos.tracking.kernel_step_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
@@ -190,8 +192,12 @@ STACK_KERNELS = (
     "synthbos.tracking.wide_search_kernels",
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
-# where a coarser pass left a field, and is built on its first launch
-_TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
+# where a coarser pass left a field, the shared-kernel step (kernel_step_kernels) only with
+# TrackingSettings(distortion="kernel"), and each is built on its first launch
+_TRACKING_CPU_KERNELS = tuple(
+    name for name in _TRACKING_KERNELS
+    if name not in ("synthbos.tracking.deform_kernels", "synthbos.tracking.kernel_step_kernels")
+)  # fmt: skip
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,

@@ -30,6 +30,7 @@ from . import fit_kernels as fk
 from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
 from .frame_stats import segment_medians
+from .kernel_step import kernel_step
 from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
 from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, start_width
 from .workspace import scratch
@@ -390,6 +391,8 @@ def moment_shifts(
     chi2=25.0,
     max_shift=MAX_SHIFT_PX,
     ellipse=False,
+    kernel=False,
+    kernels=None,
     device=None,
 ):
     """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
@@ -436,6 +439,14 @@ def moment_shifts(
         The elliptical moment step (:func:`tracking.ellipse.ellipse_step`): each gradient-image dot that
         moves takes the first moment of its share by elliptical models fitted to the dots that move, not by
         the symmetric ones. Which dots move, and their codes, are the first-moment step's.
+    kernel : bool, keyword-only
+        The shared-kernel step after the elliptical one (:func:`tracking.kernel_step.kernel_step`; implies
+        ``ellipse``): each dot that moves, in either image, takes the first moment of its share by
+        non-parametric kernels fitted to the pixels about every dot of its image and shared by neighbours.
+    kernels : dict, optional, keyword-only
+        With ``kernel``, receives ``rows`` (the rows that took part in the shared-kernel step, ascending),
+        ``kernel`` (their last kernels, (R, 81): index ``9 b + a`` for the y tap b and the x tap a) and
+        ``position`` (their last positions, (R, 2)); left empty where no dot moves.
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -484,19 +495,26 @@ def moment_shifts(
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
     sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
     sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
+    record = {} if kernels is not None else None
     out = _moment_codes(refs, grads, rows, models, prof, sat, sig, half=int(half), chi2=chi2, max_shift=max_shift,
-                        ellipse=ellipse, device=device)  # fmt: skip
+                        ellipse=ellipse, kernel=kernel, record=record, device=device)  # fmt: skip
+    if record:
+        at = np.argsort(order[record["rows"]])
+        kernels.update(rows=order[record["rows"]][at], kernel=record["kernel"][at], position=record["position"][at])
     moved = wp.empty(n, dtype=wp.int32, device=device)
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied
 
 
-def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, max_shift, ellipse, device):
+def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, max_shift, ellipse, kernel, device,
+                  record=None):
     """The first-moment step's shift and code of every row (``moment_shift``; a row not live gets none):
     the model image of every live row at its parameters is drawn into ``models`` (one layer of every
     frame, with the profiles into ``prof``), then each row's first moment taken (with ``ellipse``, a
-    gradient-image row that moves takes its elliptical moment, :func:`tracking.ellipse.ellipse_step`).
+    gradient-image row that moves takes its elliptical moment, :func:`tracking.ellipse.ellipse_step`; with
+    ``kernel``, then every moving row its shared-kernel moment, :func:`tracking.kernel_step.kernel_step`, its
+    kernels into ``record``).
     ``refs``, ``grads``, ``rows``, ``sat``: as for :func:`_fit_steps`; ``noise``: per frame; ``half``: the
     model's half-size. Returns a (R,) vec3d Warp array."""
     H, W = refs.shape[1:]
@@ -515,9 +533,12 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
         ],
         device,
     )  # fmt: skip
-    if ellipse:
+    if ellipse or kernel:
         ellipse_step(grads, models, scales, rows.params, rows.frame, rows.partner, prof, shift, half=half,
                      max_shift=float(max_shift), device=device)  # fmt: skip
+    if kernel:
+        kernel_step(refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, shift, half=half,
+                    max_shift=float(max_shift), record=record, device=device)  # fmt: skip
     return shift
 
 
@@ -610,6 +631,7 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     if s.distortion != "none":
         shift = _moment_codes(refs, grads, _Rows(cur, frame, partner, live), bufs.models[: 2 * B * H * W], bufs.prof,
                               sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
-                              ellipse=s.distortion == "ellipse", device=device)  # fmt: skip
+                              ellipse=s.distortion == "ellipse", kernel=s.distortion == "kernel",
+                              device=device)  # fmt: skip
         _launch(fk.apply_moment_shift, rows, [shift, partner, cur, bufs.shared, moved], device)
     return cur, bufs.ok, bufs.shared, live, moved
