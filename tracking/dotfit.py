@@ -402,12 +402,10 @@ def moment_shifts(
     density, and the mean landing position is what the truth (and BOS) defines. The step weighs what the
     model leaves over: with ``M`` the model image of every dot, ``m_i`` dot i's own model and ``R = I - b_i
     - M`` the residual on dot i's stamp, dot i's share of the light is ``m_i + w R`` with ``w = m_i / M``
-    (``M`` taken as at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak),
-    and its first moment about the model centre ``(x_i, y_i)`` is
+    (``M`` at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak), and its first moment about the model
+    centre ``(x_i, y_i)`` is (the own model, symmetric about the centre, adds nothing to the numerators)
 
-    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``
-
-    (the own model, symmetric about the centre, adds nothing to the numerators).
+    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``.
 
     Parameters
     ----------
@@ -435,18 +433,14 @@ def moment_shifts(
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
         A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
-    ellipse : bool, keyword-only
-        The elliptical moment step (:func:`tracking.ellipse.ellipse_step`): each gradient-image dot that
-        moves takes the first moment of its share by elliptical models fitted to the dots that move, not by
-        the symmetric ones. Which dots move, and their codes, are the first-moment step's.
-    kernel : bool, keyword-only
-        The shared-kernel step after the elliptical one (:func:`tracking.kernel_step.kernel_step`; implies
-        ``ellipse``): each dot that moves, in either image, takes the first moment of its share by
-        non-parametric kernels fitted to the pixels about every dot of its image and shared by neighbours.
+    ellipse, kernel : bool, keyword-only
+        The elliptical moment step (:func:`tracking.ellipse.ellipse_step`: moving gradient-image dots share
+        the light by fitted elliptical models), and after it the shared-kernel step
+        (:func:`tracking.kernel_step.kernel_step`, implies ``ellipse``: moving dots of either image share it
+        by non-parametric kernels shared by neighbours). Which dots move is the first-moment step's.
     kernels : dict, optional, keyword-only
-        With ``kernel``, receives ``rows`` (the rows that took part in the shared-kernel step, ascending),
-        ``kernel`` (their last kernels, (R, 81): index ``9 b + a`` for the y tap b and the x tap a) and
-        ``position`` (their last positions, (R, 2)); left empty where no dot moves.
+        With ``kernel``: receives ``rows`` (those of the step, ascending), ``kernel`` ((R, 81), index
+        ``9 b + a`` for y tap b, x tap a) and ``position`` ((R, 2)); empty where no dot moves.
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
