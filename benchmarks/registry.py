@@ -175,7 +175,6 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
-    "synthbos.tracking.kernel_step_kernels",
 )
 #: the Warp modules that ``tracking.stack.track_pairs`` launches (a campaign that tracks stacks: scheduling)
 STACK_KERNELS = (
@@ -183,7 +182,6 @@ STACK_KERNELS = (
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.identify_kernels",
-    "synthbos.tracking.kernel_step_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
@@ -192,12 +190,10 @@ STACK_KERNELS = (
     "synthbos.tracking.wide_search_kernels",
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
-# where a coarser pass left a field, the shared-kernel step (kernel_step_kernels) only with
-# TrackingSettings(distortion="kernel"), and each is built on its first launch
-_TRACKING_CPU_KERNELS = tuple(
-    name for name in _TRACKING_KERNELS
-    if name not in ("synthbos.tracking.deform_kernels", "synthbos.tracking.kernel_step_kernels")
-)  # fmt: skip
+# where a coarser pass left a field, and is built on its first launch. Neither list holds the shared-kernel
+# step (kernel_step_kernels): it runs only with TrackingSettings(distortion="kernel"), and is built on its
+# first launch, so that a default campaign's first run does not compile it.
+_TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
 _SYNTHBOS = f"synthbos {synthbos.__version__}"
 
 # Okabe-Ito: blue #0072B2, vermillion #D55E00, bluish green #009E73, reddish purple #CC79A7, orange #E69F00,
