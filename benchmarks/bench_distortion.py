@@ -2,7 +2,8 @@
 
 For each case (the default set-up at a reduced size, one embedded snapshot each, and a linear density
 gradient, whose dots are not distorted) one pair is rendered, tracked with each distorted-dot step
-(``TrackingSettings.distortion``: none, the first-moment step, the elliptical moment step) and scored
+(``TrackingSettings.distortion``: none, the first-moment step, the elliptical moment step, the
+shared-kernel step) and scored
 at one noise level:
 
 - the displacement error's 90th and 99th percentiles against the renderer's mean landing positions, and
@@ -22,9 +23,10 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
-from synthbos.raytrace import render_pair
+from synthbos.raytrace import read_pair, render_pair, write_pair
 from synthbos.tracking import TrackingSettings
 
 from .integrate import exact_grid, geometry_from_pair, score_density_grid
@@ -33,7 +35,7 @@ from .scoring import cramer_rao_displacement
 
 METHODS = ("tracking", "tracking-cc")
 #: The distorted-dot steps compared (``TrackingSettings.distortion``); the targets are read on the default's.
-STEPS = ("none", "moment", "ellipse")
+STEPS = ("none", "moment", "ellipse", "kernel")
 DEFAULT_STEP = TrackingSettings().distortion
 #: The targets of issue 25 at zero noise: p90, p99 (px), the share measured and valid, the linear case's
 #: p90 and the density's ratio to its floor.
@@ -146,6 +148,22 @@ def print_targets(rows) -> None:
             )
 
 
+def _pair(config, folder, name, *, device):
+    """The pair of ``config``: rendered, or read from ``folder`` where an earlier run wrote it (the file
+    name holds the case and the set-up; a pair that is not there is rendered and written)."""
+    if folder is None:
+        return render_pair(config, device=device)
+    cam = config["camera"]
+    tag = f"{name.replace(' ', '')}_{cam['pixels'][0]}px_{config['rays']['per_dot']}rays_f{cam['f_number']:g}.h5"
+    path = Path(folder) / tag
+    if path.exists():
+        return read_pair(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pair = render_pair(config, device=device)
+    write_pair(path, pair)
+    return pair
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=256, help="image size, px (default 256)")
@@ -156,6 +174,7 @@ def main(argv=None):
     p.add_argument("--noise", type=float, default=0.0, help="noise, %% of the dot peak (default 0)")
     p.add_argument("--device", default=None, help="Warp device of rendering and tracking")
     p.add_argument("--json", default=None, help="write the rows here")
+    p.add_argument("--pairs", default=None, help="folder of pairs: read where there, else rendered and written")
     args = p.parse_args(argv)
     cases = {f"snapshot {s}": {"snapshot": int(s)} for s in args.snapshots.split(",") if s}
     if args.linear:
@@ -163,9 +182,8 @@ def main(argv=None):
     rows = {}
     for name, case in cases.items():
         t0 = time.perf_counter()
-        pair = render_pair(
-            case_config(size=args.size, rays=args.rays, f_number=args.f_number, **case), device=args.device
-        )
+        config = case_config(size=args.size, rays=args.rays, f_number=args.f_number, **case)
+        pair = _pair(config, args.pairs, name, device=args.device)
         rows[name] = measure_case(pair, noise_percent=args.noise, device=args.device)
         print(f"{name}: {time.perf_counter() - t0:.1f} s", flush=True)
     print(

@@ -33,7 +33,7 @@ from .scheduling import (
 from .spec import CampaignSpec
 from .stacks import check_stack
 from .storage import check_folder, pair_path, score_path, write_tables
-from .tables import summarise
+from .tables import summarise, summary_groups, summary_rows
 
 __all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_spec", "resolve_process_device",
            "run_campaign", "write_summary"]
@@ -174,21 +174,29 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     if pipeline and scheduler is None:
         # The device work here; scoring, the tables and the figures in worker processes. A figure that
         # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
-        jobs = [(write_summary, (spec, str(folder)), None)]
+        # The table's (noise level, method) groups are summarised side by side, one job each.
+        groups = summary_groups(spec)
+        jobs = [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
         jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
-        rows = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
-                            worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
-                            on_items_done=lambda: t_items.append(time.perf_counter()))[0]
+        parts = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
+                             worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
+                             on_items_done=lambda: t_items.append(time.perf_counter()))[:len(groups)]
+        rows = [row for part in parts for row in part]
+        write_tables(rows, folder)
         timings["render and process"] = t_items[0] - t0
         timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
         return rows
     if scheduler is not None:  # Dask: each pair is rendered and scored by one task, on one worker
-        from .distributed import run_pairs
+        from .distributed import campaign_runner
 
-        run_pairs(renders, scores, scheduler=scheduler, device=device, workers=workers, progress=progress,
-                  process_device=process_device, stack=stack)
+        with campaign_runner(scheduler, needed=bool(renders or scores), device=device, workers=workers,
+                             progress=progress, process_device=process_device) as runner:
+            if runner is not None:
+                runner.run_pairs(renders, scores, stack=stack)
+            t1 = time.perf_counter()
+            rows = write_summary(spec, folder, mapper=map if runner is None else runner.map)  # on the cluster
     else:
         workers = workers or default_workers()
         processing = score_kernels(scores)
@@ -197,10 +205,10 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
                       kernels=render_kernels(renders), pool=None if on_gpu else pool, build_after=processing)
             run_items(scores, score_item, workers=workers, desc="process", progress=progress, kernels=processing,
                       pool=pool)
-    t1 = time.perf_counter()
-    timings["render and process"] = t1 - t0
-    rows = write_summary(spec, folder)
+            t1 = time.perf_counter()
+            rows = write_summary(spec, folder, mapper=map if pool is None else pool.map)
     t2 = time.perf_counter()
+    timings["render and process"] = t1 - t0
     timings["tables"] = t2 - t1
     if figure_jobs:  # side by side in worker processes: matplotlib draws on one core
         run_items(figure_jobs, campaign_figure, workers=min(len(figure_jobs), workers or default_workers()),
@@ -243,8 +251,11 @@ def _figure_pairs(stem: str, spec: CampaignSpec, folder):
     return {str(pair_path(folder, s, 0)) for s in spec.snapshots}
 
 
-def write_summary(spec: CampaignSpec, folder) -> list[dict]:
-    """The campaign's results table: summarise its score files, write ``results.csv`` and ``.json``, return the rows."""
-    rows = summarise(spec, folder)
+def write_summary(spec: CampaignSpec, folder, *, mapper=map) -> list[dict]:
+    """The campaign's results table: summarise its score files, write ``results.csv`` and ``.json``, return the rows.
+
+    ``mapper`` maps the table's groups (``tables.summarise``): a pool's or a Dask cluster's ``map``
+    summarises them side by side."""
+    rows = summarise(spec, folder, mapper=mapper)
     write_tables(rows, folder)
     return rows

@@ -51,8 +51,8 @@ from synthbos.values import shorten
 from .items import render_item, score_item
 from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, pair_tasks, run_pipeline
 
-__all__ = ["DaskRunner", "check_address", "check_scheduler", "pair_task", "pipeline_task", "run_pairs", "shards",
-           "visible_gpus"]
+__all__ = ["DaskRunner", "campaign_runner", "check_address", "check_scheduler", "pair_task", "pipeline_task",
+           "run_pairs", "shards", "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
@@ -475,6 +475,11 @@ class DaskRunner:
                 self._bar.refresh()
             return self._bar
 
+    def map(self, fn, *iterables) -> list:
+        """``fn`` over ``iterables`` as tasks on the cluster's workers; the results in order (a campaign's
+        results table, its groups side by side: ``tables.summarise``)."""
+        return self.client.gather(self.client.map(fn, *iterables, pure=False))
+
     def run_pairs(self, renders, scores, *, stack=None) -> int:
         """Run a campaign's render and score items as one task per pair; return the items written.
 
@@ -560,14 +565,22 @@ class DaskRunner:
             pass
 
 
+def campaign_runner(scheduler, *, needed: bool = True, device=None, workers=None, progress=True,
+                    process_device=None):
+    """A context giving the :class:`DaskRunner` of ``scheduler``: the runner itself when it is one (left
+    open), else one opened here and closed on leaving; None where nothing is ``needed`` (a finished
+    campaign starts no cluster)."""
+    if isinstance(scheduler, DaskRunner):
+        return contextlib.nullcontext(scheduler)
+    if not needed:
+        return contextlib.nullcontext(None)
+    return DaskRunner(scheduler, device=device, workers=workers, progress=progress, process_device=process_device)
+
+
 def run_pairs(renders, scores, *, scheduler, device=None, workers=None, progress=True, process_device=None,
               stack=None) -> int:
     """Run a campaign's items on a Dask cluster: ``scheduler`` is a :class:`DaskRunner` or its address;
     ``stack``: see :meth:`DaskRunner.run_pairs`."""
-    if isinstance(scheduler, DaskRunner):
-        return scheduler.run_pairs(renders, scores, stack=stack)
-    if not renders and not scores:  # a finished campaign: no cluster to start
-        return 0
-    with DaskRunner(scheduler, device=device, workers=workers, progress=progress,
-                    process_device=process_device) as runner:
-        return runner.run_pairs(renders, scores, stack=stack)
+    with campaign_runner(scheduler, needed=bool(renders or scores), device=device, workers=workers,
+                         progress=progress, process_device=process_device) as runner:
+        return 0 if runner is None else runner.run_pairs(renders, scores, stack=stack)

@@ -19,7 +19,7 @@ from . import scoring
 from .storage import DENSITY_TRUTHS, load_scores
 
 __all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "ERROR_UNITS", "QUANTITIES", "SPLITS", "format_summary",
-           "split_masks", "summarise"]
+           "split_masks", "summarise", "summary_groups", "summary_rows"]
 
 SPLITS = ("all", "below", "above")
 QUANTITIES = ("displacement", "gradient")
@@ -37,27 +37,46 @@ def split_masks(scores: dict) -> dict:
     return {"all": np.ones_like(below), "below": below, "above": ~below}
 
 
-def summarise(spec, folder) -> list[dict]:
+def summarise(spec, folder, *, mapper=map) -> list[dict]:
     """One row per method, noise level, split and quantity: error percentiles and RMS, and yield.
 
     Displacement errors in px, gradient errors in px/px (three splits each); density errors after
     integration (split ``all``): ``density_cone`` / ``density_chief`` in kg/m^3 against the cone and
     chief-ray truths, ``density_cone_rel`` / ``density_chief_rel`` relative to the truth's range.
+    Each (noise level, method) is :func:`summary_rows` of its own score files, mapped by ``mapper``
+    (``map`` here; a campaign passes its processes' or cluster's, so that the groups are summarised side
+    by side: the rows are the same, in the same order).
     """
+    groups = summary_groups(spec)
+    parts = mapper(summary_rows, [spec] * len(groups), [str(folder)] * len(groups), *zip(*groups, strict=True))
+    return [row for part in parts for row in part]
+
+
+def summary_groups(spec) -> list[tuple]:
+    """The (noise level, method) groups of a campaign's results table, in its row order.
+
+    Examples
+    --------
+    >>> from synthbos.benchmarks.spec import QUICK
+    >>> summary_groups(QUICK)[:2]
+    [(0.0, 'correlation'), (0.0, 'tracking')]
+    """
+    return [(noise, method) for noise in spec.noise_percent for method in spec.methods]
+
+
+def summary_rows(spec, folder, noise, method) -> list[dict]:
+    """The rows of one noise level and method (:func:`summarise`), from its score files over all pairs."""
+    sc = load_scores(spec, folder, method, noise)
+    masks = split_masks(sc)
+    yield_ = sc["measured"] / sc["expected"] if sc["expected"] else float("nan")
     rows = []
-    for noise in spec.noise_percent:
-        for method in spec.methods:
-            sc = load_scores(spec, folder, method, noise)
-            masks = split_masks(sc)
-            yield_ = sc["measured"] / sc["expected"] if sc["expected"] else float("nan")
-            for quantity in QUANTITIES:
-                errors = sc["error"] if quantity == "displacement" else sc["grad_error"]
-                for split in SPLITS:
-                    e = errors[masks[split]]
-                    rows.append(_row(method, noise, split, quantity, e, yield_, sc["process_device"],
-                                     spread=sc["spread"][masks[split]]))
-            for quantity in DENSITY_QUANTITIES:
-                rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_, sc["process_device"]))
+    for quantity in QUANTITIES:
+        errors = sc["error"] if quantity == "displacement" else sc["grad_error"]
+        for split in SPLITS:
+            rows.append(_row(method, noise, split, quantity, errors[masks[split]], yield_, sc["process_device"],
+                             spread=sc["spread"][masks[split]]))
+    for quantity in DENSITY_QUANTITIES:
+        rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_, sc["process_device"]))
     return rows
 
 

@@ -17,12 +17,12 @@ ARCH = 90
 
 def _campaign_modules():
     """The Python modules of a default GPU campaign's kernels: the renderer's, every built-in method's
-    on CUDA and the stacked tracker's."""
+    on CUDA and the stacked tracker's; and the opt-in shared-kernel step's, built on its first launch."""
     from synthbos.benchmarks.registry import BUILT_IN, STACK_KERNELS
     from synthbos.raytrace.kernels import MediumStraight, MediumVec, render_module
     from synthbos.raytrace.truth_kernels import truth_module
 
-    names = set(STACK_KERNELS)
+    names = set(STACK_KERNELS) | {"synthbos.tracking.kernel_step_kernels"}  # the opt-in step: built when used
     for method in BUILT_IN.values():
         names |= set(method.kernels)
     # render_modules(device="cuda:0") without a GPU to ask: the default medium at the default 64-register cap

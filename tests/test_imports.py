@@ -196,6 +196,7 @@ def test_the_kernel_modules_import_the_vocabulary_not_the_orchestrator():
         "fit_kernels",
         "identify_kernels",
         "kernel_constants",
+        "kernel_step_kernels",
         "moment_kernels",
         "neighbour_kernels",
         "predict_fft_kernels",

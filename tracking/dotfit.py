@@ -30,6 +30,7 @@ from . import fit_kernels as fk
 from .ellipse import ellipse_step
 from .fit_kernels import render_dots_kernel
 from .frame_stats import segment_medians
+from .kernel_step import kernel_step
 from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
 from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, start_width
 from .workspace import scratch
@@ -390,6 +391,8 @@ def moment_shifts(
     chi2=25.0,
     max_shift=MAX_SHIFT_PX,
     ellipse=False,
+    kernel=False,
+    kernels=None,
     device=None,
 ):
     """Shift from each dot's fitted centre to the first moment of its share of the light (the reference).
@@ -399,12 +402,10 @@ def moment_shifts(
     density, and the mean landing position is what the truth (and BOS) defines. The step weighs what the
     model leaves over: with ``M`` the model image of every dot, ``m_i`` dot i's own model and ``R = I - b_i
     - M`` the residual on dot i's stamp, dot i's share of the light is ``m_i + w R`` with ``w = m_i / M``
-    (``M`` taken as at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak),
-    and its first moment about the model centre ``(x_i, y_i)`` is
+    (``M`` at least ``SHARE_FLOOR_REL`` = 1e-6 of the dot's peak), and its first moment about the model
+    centre ``(x_i, y_i)`` is (the own model, symmetric about the centre, adds nothing to the numerators)
 
-    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``
-
-    (the own model, symmetric about the centre, adds nothing to the numerators).
+    ``dx = sum (x - x_i) w R / F``, ``dy = sum (y - y_i) w R / F``, ``F = sum (m_i + w R)``.
 
     Parameters
     ----------
@@ -432,10 +433,14 @@ def moment_shifts(
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
         A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
-    ellipse : bool, keyword-only
-        The elliptical moment step (:func:`tracking.ellipse.ellipse_step`): each gradient-image dot that
-        moves takes the first moment of its share by elliptical models fitted to the dots that move, not by
-        the symmetric ones. Which dots move, and their codes, are the first-moment step's.
+    ellipse, kernel : bool, keyword-only
+        The elliptical moment step (:func:`tracking.ellipse.ellipse_step`: moving gradient-image dots share
+        the light by fitted elliptical models), and after it the shared-kernel step
+        (:func:`tracking.kernel_step.kernel_step`, implies ``ellipse``: moving dots of either image share it
+        by non-parametric kernels shared by neighbours). Which dots move is the first-moment step's.
+    kernels : dict, optional, keyword-only
+        With ``kernel``: receives ``rows`` (those of the step, ascending), ``kernel`` ((R, 81), index
+        ``9 b + a`` for y tap b, x tap a) and ``position`` ((R, 2)); empty where no dot moves.
     device : str or None, keyword-only
         Warp device ("cpu", "cuda:0"); Warp's default when None.
 
@@ -484,19 +489,26 @@ def moment_shifts(
     prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
     sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
     sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
+    record = {} if kernels is not None else None
     out = _moment_codes(refs, grads, rows, models, prof, sat, sig, half=int(half), chi2=chi2, max_shift=max_shift,
-                        ellipse=ellipse, device=device)  # fmt: skip
+                        ellipse=ellipse, kernel=kernel, record=record, device=device)  # fmt: skip
+    if record:
+        at = np.argsort(order[record["rows"]])
+        kernels.update(rows=order[record["rows"]][at], kernel=record["kernel"][at], position=record["position"][at])
     moved = wp.empty(n, dtype=wp.int32, device=device)
     wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied
 
 
-def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, max_shift, ellipse, device):
+def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, max_shift, ellipse, kernel, device,
+                  record=None):
     """The first-moment step's shift and code of every row (``moment_shift``; a row not live gets none):
     the model image of every live row at its parameters is drawn into ``models`` (one layer of every
     frame, with the profiles into ``prof``), then each row's first moment taken (with ``ellipse``, a
-    gradient-image row that moves takes its elliptical moment, :func:`tracking.ellipse.ellipse_step`).
+    gradient-image row that moves takes its elliptical moment, :func:`tracking.ellipse.ellipse_step`; with
+    ``kernel``, then every moving row its shared-kernel moment, :func:`tracking.kernel_step.kernel_step`, its
+    kernels into ``record``).
     ``refs``, ``grads``, ``rows``, ``sat``: as for :func:`_fit_steps`; ``noise``: per frame; ``half``: the
     model's half-size. Returns a (R,) vec3d Warp array."""
     H, W = refs.shape[1:]
@@ -515,9 +527,12 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
         ],
         device,
     )  # fmt: skip
-    if ellipse:
+    if ellipse or kernel:
         ellipse_step(grads, models, scales, rows.params, rows.frame, rows.partner, prof, shift, half=half,
                      max_shift=float(max_shift), device=device)  # fmt: skip
+    if kernel:
+        kernel_step(refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, shift, half=half,
+                    max_shift=float(max_shift), record=record, device=device)  # fmt: skip
     return shift
 
 
@@ -611,7 +626,8 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     if s.distortion != "none":
         shift = _moment_codes(refs, grads, sorted_rows._replace(params=cur), bufs.models[: 2 * B * H * W], bufs.prof,
                               sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
-                              ellipse=s.distortion == "ellipse", device=device)  # fmt: skip
+                              ellipse=s.distortion == "ellipse", kernel=s.distortion == "kernel",
+                              device=device)  # fmt: skip
         _launch(fk.apply_moment_shift, rows, [shift, sorted_rows.partner, cur, bufs.shared, moved], device)
     # back in the rows' order (the parameters into ``start``, which the sorted rows copied)
     out = (start, wp.empty_like(bufs.ok), wp.empty_like(bufs.shared), wp.empty_like(moved))

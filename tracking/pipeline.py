@@ -156,7 +156,8 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
     if settings.distortion != "none":
         d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, ellipse=settings.distortion == "ellipse", device=device,
+            chi2=settings.distortion_chi2, ellipse=settings.distortion == "ellipse",
+            kernel=settings.distortion == "kernel", device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d

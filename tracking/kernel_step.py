@@ -1,0 +1,189 @@
+"""The shared-kernel step: host code shared by ``track_pair`` and the stacked tracker.
+
+After the elliptical step (:func:`tracking.ellipse.ellipse_step`), every dot of a pair that holds a moving
+dot gets a non-parametric ray-landing kernel fitted to the pixels about it and shared there by its
+neighbours, and moves to the first moment of the share of the light its kernel model gets
+(:mod:`tracking.kernel_step_kernels`; the NumPy reference is ``tracking.reference.moment_shifts_numpy``
+with ``kernel=True``). Which dots take the result is still the first-moment step's gate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .ellipse_kernels import ellipse_render
+from .kernel_step_kernels import (
+    kernel_finish,
+    kernel_fit,
+    kernel_frames,
+    kernel_moment,
+    kernel_points,
+    kernel_render,
+    kernel_rows,
+    kernel_start,
+    prior_fit,
+    prior_start,
+)
+from .settings import (
+    ELLIPSE_SWEEPS,
+    KERNEL_ITERATIONS,
+    KERNEL_MAX_NEIGHBOURS,
+    KERNEL_REACH_PX,
+    KERNEL_TAPS,
+    KERNEL_WINDOW_HALF,
+)
+
+__all__ = ["kernel_step"]
+
+#: Rows fitted per launch (their scratch is ~130 kB each).
+CHUNK_ROWS = {"cpu": 512, "cuda": 8192}
+#: Frames lie this far apart along the hash grid's z axis.
+Z_STEP = 4.0 * (KERNEL_REACH_PX + 1.0)
+
+
+def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift, *, half, max_shift, record=None,
+                device=None):
+    """Replace the shifts of the moving dots by their shared-kernel moments.
+
+    Parameters
+    ----------
+    refs, grads : Warp float64 arrays (B, H, W)
+        The reference and gradient image of each pair (frame ``f``: image ``f % 2`` of pair ``f // 2``).
+    models : Warp int64 array, flat ``[frames, H, W]``
+        Scratch for the fixed-point model images (units of ``1 / scales[f]`` in frame f): overwritten.
+    scales : Warp float64 array (frames,)
+        Fixed-point units per intensity, per frame.
+    params : Warp float64 array (N, 5)
+        Fitted parameters of every row.
+    frame, partner, live : Warp int32 arrays (N,)
+        Frame of each row, the row of its partner in the other image (-1 for none), and whether it was fitted.
+    shift : Warp vec3d array (N,)
+        The earlier steps' shifts and codes: the moving rows' shifts are replaced where their kernel
+        moment is usable (``kernel_finish``), the codes kept.
+    half : int, keyword-only
+        Stamp half-width of the models and moments (the fit's ``render_half``).
+    max_shift : float, keyword-only
+        Largest shift taken (px).
+    record : dict, optional, keyword-only
+        Receives ``rows`` (the rows that took part), ``kernel`` (their last kernels, (R, T^2), index
+        ``b T + a`` for the y tap b and the x tap a) and ``position`` (their last positions, (R, 2)).
+    device : str or None, keyword-only
+        Warp device.
+
+    Notes
+    -----
+    Every live row of a frame holding a moving row takes part (the moving dots' neighbours need kernels
+    too; a pair is measured alike). Their prior is the elliptical fit of all of them together
+    (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: every row's
+    kernel fit (``kernel_fit``, chunked), every row's kernel model drawn (``kernel_render``) and every row
+    moved to its moment (``kernel_moment``). Nothing past ``kernel_frames`` runs where no row moves.
+    """
+    n = params.shape[0]
+    height, width = refs.shape[1], refs.shape[2]
+    frames = scales.shape[0]
+    busy = wp.zeros(frames, dtype=wp.int32, device=device)
+    wp.launch(kernel_frames, dim=n, inputs=[shift, partner, live, frame, busy], device=device)
+    if not busy.numpy().any():
+        return
+    part = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(kernel_rows, dim=n, inputs=[live, frame, busy, part], device=device)
+    rows_host = np.flatnonzero(part.numpy()).astype(np.int32)
+    rows = wp.array(rows_host, dtype=wp.int32, device=device)
+    m = len(rows_host)
+    ell = _prior_fit(refs, grads, models, scales, params, frame, partner, part, rows, half, device)
+    state = _State(m, half, device)
+    start = [params, frame, partner, shift, rows, ell, state.pos, state.flux, state.sigma, state.background,
+             state.prior, state.kern]  # fmt: skip
+    wp.launch(kernel_start, dim=m, inputs=start, device=device)
+    level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
+    grid = wp.HashGrid(128, 128, 64, device=device)
+    scratch = _Scratch(m, device)
+    for _ in range(KERNEL_ITERATIONS):
+        _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
+        models.zero_()
+        draw = [rows, frame, state.pos, state.flux, state.sigma, state.kern, half, scales, height, width,
+                state.stamp_prof, state.stamp, models]  # fmt: skip
+        wp.launch(kernel_render, dim=m, inputs=draw, device=device)
+        moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.sigma,
+                  state.pos, state.flux, state.failed]  # fmt: skip
+        wp.launch(kernel_moment, dim=m, inputs=moment, device=device)
+    wp.launch(kernel_finish, dim=m, inputs=[params, partner, rows, state.pos, state.failed, float(max_shift), shift],
+              device=device)  # fmt: skip
+    if record is not None:
+        record.update(rows=rows_host, kernel=state.kern.numpy(), position=state.pos.numpy())
+
+
+class _State:
+    """The step's per-row state (compact rows) and the render's scratch."""
+
+    def __init__(self, m, half, device):
+        taps2 = KERNEL_TAPS * KERNEL_TAPS
+        n = 2 * half + 1
+        self.pos = wp.empty(m, dtype=wp.vec2d, device=device)
+        self.flux = wp.empty(m, dtype=wp.float64, device=device)
+        self.sigma = wp.empty(m, dtype=wp.float64, device=device)
+        self.background = wp.empty(m, dtype=wp.float64, device=device)
+        self.prior = wp.empty((m, taps2), dtype=wp.float64, device=device)
+        self.kern = wp.empty((m, taps2), dtype=wp.float64, device=device)
+        self.spare = wp.empty((m, taps2), dtype=wp.float64, device=device)
+        self.failed = wp.zeros(m, dtype=wp.int32, device=device)
+        self.stamp = wp.empty((m, n, n), dtype=wp.float64, device=device)
+        self.stamp_prof = wp.empty((m, 2 * KERNEL_TAPS, n), dtype=wp.float64, device=device)
+
+
+class _Scratch:
+    """The kernel fit's per-thread scratch for one chunk of rows: neighbours, their window profiles, the
+    normal matrix and the right side."""
+
+    def __init__(self, m, device):
+        self.chunk = min(m, CHUNK_ROWS["cuda" if wp.get_device(device).is_cuda else "cpu"])
+        taps, window = KERNEL_TAPS, 2 * KERNEL_WINDOW_HALF + 1
+        self.nbr = wp.empty((self.chunk, KERNEL_MAX_NEIGHBOURS), dtype=wp.int32, device=device)
+        self.prof = wp.empty((self.chunk, 2 * KERNEL_MAX_NEIGHBOURS * taps, window), dtype=wp.float64, device=device)
+        self.normal = wp.empty((self.chunk, taps * taps, taps * taps), dtype=wp.float64, device=device)
+        self.rhs = wp.empty((self.chunk, taps * taps), dtype=wp.float64, device=device)
+        self.points = wp.empty(m, dtype=wp.vec3, device=device)
+
+
+def _prior_fit(refs, grads, models, scales, params, frame, partner, part, rows, half, device):
+    """The elliptical fit of every taking-part row at once (both images), from the symmetric fit:
+    ``(N, 6)`` Warp array of ``(F, x0, y0, r1, r2, r3)`` (rows not taking part left unset)."""
+    n, m = params.shape[0], rows.shape[0]
+    height, width = refs.shape[1], refs.shape[2]
+    ell = wp.zeros((n, 6), dtype=wp.float64, device=device)
+    unused = wp.empty((1, 1, 1), dtype=wp.float64, device=device)  # the symmetric models' profiles: not drawn
+    wp.launch(prior_start, dim=m, inputs=[params, rows, ell], device=device)
+    for _ in range(ELLIPSE_SWEEPS):
+        models.zero_()
+        wp.launch(ellipse_render, dim=n, inputs=[params, frame, part, ell, unused, 0, 1, half, scales, height, width,
+                                                 models], device=device)  # fmt: skip
+        wp.launch(prior_fit, dim=m, inputs=[refs, grads, models, scales, params, frame, partner, rows, half, ell],
+                  device=device)  # fmt: skip
+    return ell
+
+
+def _frame_levels(background, frames_of_rows, frames, device):
+    """Per frame, the median of its taking-part rows' backgrounds (0 for a frame without any)."""
+    level = np.zeros(frames)
+    order = np.lexsort((background, frames_of_rows))
+    f, v = frames_of_rows[order], background[order]
+    first = np.searchsorted(f, np.arange(frames))
+    count = np.bincount(f, minlength=frames)
+    has = count > 0
+    lo, hi = first[has] + (count[has] - 1) // 2, first[has] + count[has] // 2
+    level[has] = 0.5 * (v[lo] + v[hi])
+    return wp.array(level, dtype=wp.float64, device=device)
+
+
+def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device):
+    """Every row's kernel fit (``kernel_fit``), in chunks; the new kernels replace the old."""
+    m, chunk = rows.shape[0], scratch.chunk
+    wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, scratch.points], device=device)
+    grid.build(scratch.points, KERNEL_REACH_PX + 0.5)
+    for start in range(0, m, chunk):
+        wp.launch(kernel_fit, dim=min(chunk, m - start),
+                  inputs=[start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma,
+                          state.prior, state.kern, state.spare, scratch.nbr, scratch.prof, scratch.normal, scratch.rhs],
+                  device=device)  # fmt: skip
+    state.kern, state.spare = state.spare, state.kern

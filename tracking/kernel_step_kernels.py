@@ -1,0 +1,509 @@
+"""Warp kernels of the shared-kernel step: the dots' light split by non-parametric ray-landing kernels.
+
+The elliptical step (:mod:`tracking.ellipse_kernels`) gives each distorted dot a Gaussian shape; the
+rays of a dot seen through a sharp interface land in a shape no Gaussian follows, and in a crowded
+pattern the light a Gaussian share hands to the wrong dot is most of the error left. Neighbouring dots
+see nearly the same flow, so they can share one **kernel**: dot ``i``'s kernel ``a_i`` is ``T x T``
+weights on a sub-pixel grid of offsets ``s_k`` (``KER_TAPS``, ``KER_STEP``), and a dot ``j`` drawn with it
+is
+
+``F_j sum_k a_k G(x - m_j - s_k + mu(a))``
+
+with ``G`` the pixel-integrated spot (width ``sigma_j``, the reference's), ``F_j`` its flux in units of
+the unit-peak spot and ``mu(a)`` the kernel's mean, so that the kernel's mean sits at the dot's position
+``m_j``. Per row (one thread each), ``kernel_fit`` fits ``a_i`` by weighted ridge least squares to the
+window of pixels about ``m_i``, every dot within ``KER_REACH`` of it drawn with ``a_i``. Window weight
+and pixel grid are separable, so the normal matrix is a sum over neighbour pairs ``(j, k)`` of Kronecker
+products ``Y_jk (x) X_jk`` of ``T x T`` factors; it is solved by a Cholesky factorisation in a chunked
+global scratch. ``kernel_render`` draws every row's model with its own kernel into the fixed-point model
+image, ``kernel_moment`` moves each row to the first moment of its share of the light.
+
+Rows are compact: row ``p`` of the step is the tracker's row ``rows[p]``; frame ``f`` is image ``f % 2``
+(0 the reference, 1 the gradient image) of pair ``f // 2``. The host code is
+:func:`tracking.kernel_step.kernel_step`; the NumPy reference,
+``tracking.reference.moment_shifts_numpy(..., kernel=True)``, defines the result.
+"""
+
+import warp as wp
+
+from .ellipse_kernels import ellipse_fit_step, start_width
+from .fit_kernels import profile_pixel, profile_start, to_fixed
+from .kernel_constants import (
+    KER_MAX_NEIGHBOURS,
+    KER_PRIOR_MIN_VAR,
+    KER_REACH,
+    KER_RIDGE,
+    KER_STEP,
+    KER_TAPS,
+    KER_UNKNOWNS,
+    KER_WINDOW,
+    KER_WINDOW_HALF,
+    KER_WINDOW_SIGMA,
+)
+from .moment_kernels import SHARE_FLOOR, moves, reference_background
+
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+
+TWO_PI = wp.constant(wp.float64(6.283185307179586))
+TWELFTH = wp.constant(wp.float64(1.0 / 12.0))
+mat_taps = wp.types.matrix(shape=(KER_TAPS, KER_TAPS), dtype=wp.float64)
+vec_window = wp.types.vector(length=KER_WINDOW, dtype=wp.float64)
+
+
+@wp.func
+def tap(a: int) -> wp.float64:
+    """Offset (px) of grid tap ``a`` from the kernel's centre."""
+    return wp.float64(a - KER_TAPS // 2) * KER_STEP
+
+
+@wp.func
+def pixel(refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), f: int, y: int, x: int):
+    """Pixel ``(y, x)`` of frame f's image."""
+    if f % 2 == 1:
+        return grads[f // 2, y, x]
+    return refs[f // 2, y, x]
+
+
+@wp.func
+def kernel_mean(a: wp.array2d(dtype=wp.float64), p: int) -> wp.vec2d:
+    """Mean offset ``mu(a)`` (x, y) of row p's kernel."""
+    total = wp.float64(0.0)
+    sx = wp.float64(0.0)
+    sy = wp.float64(0.0)
+    for b in range(KER_TAPS):
+        for c in range(KER_TAPS):
+            v = a[p, b * KER_TAPS + c]
+            total += v
+            sx += v * tap(c)
+            sy += v * tap(b)
+    return wp.vec2d(sx / total, sy / total)
+
+
+@wp.func
+def store_profile(
+    out: wp.array3d(dtype=wp.float64), t: int, row: int, c: wp.float64, s: wp.float64, first: int, n: int,
+    gain: wp.float64,
+):  # fmt: skip
+    """``gain`` times the pixel profile of a unit-peak spot of width ``s`` centred at ``c`` on pixels
+    ``first .. first + n - 1``, into ``out[t, row, :n]``."""
+    inv = wp.float64(1.0) / s
+    z, g, e, ratio, direct = profile_start(first, c, inv)
+    step = wp.exp(-inv * inv)
+    scale = wp.float64(1.2533141373155003) * s
+    for k in range(n):
+        z, g, e, ratio, v, _dc, _ds = profile_pixel(z, g, e, ratio, direct, inv, step, scale)
+        out[t, row, k] = gain * v
+
+
+@wp.kernel
+def kernel_frames(
+    shift: wp.array(dtype=wp.vec3d), partner: wp.array(dtype=wp.int32), live: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Frame of a live row that the first-moment step ``moves`` takes part."""
+    i = wp.tid()
+    if live[i] != 0 and moves(shift, partner, i):
+        busy[frame[i]] = 1
+
+
+@wp.kernel
+def kernel_rows(
+    live: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
+    part: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Every live row of a frame that takes part takes part."""
+    i = wp.tid()
+    part[i] = int(live[i] != 0 and busy[frame[i]] != 0)
+
+
+@wp.kernel
+def prior_start(
+    params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), ell: wp.array2d(dtype=wp.float64)
+):
+    """Row's elliptical model starts as the symmetric fit's (as ``ellipse_start``)."""
+    i = rows[wp.tid()]
+    r = wp.float64(1.0) / start_width(params, i)
+    ell[i, 0] = TWO_PI * params[i, 2] * params[i, 3] * params[i, 3]
+    ell[i, 1] = params[i, 0]
+    ell[i, 2] = params[i, 1]
+    ell[i, 3] = r
+    ell[i, 4] = wp.float64(0.0)
+    ell[i, 5] = r
+
+
+@wp.kernel
+def prior_fit(
+    refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+    scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int32), half: int, ell: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    """``ellipse_fit_step`` of a row in either image (a gradient-image row on its partner's background)."""
+    i = rows[wp.tid()]
+    f = frame[i]
+    b = reference_background(params, partner, i, f % 2 == 1)
+    inv = wp.float64(1.0) / scales[f]
+    if f % 2 == 1:
+        ellipse_fit_step(grads[f // 2], models, inv, f, params, i, half, b, ell)
+    else:
+        ellipse_fit_step(refs[f // 2], models, inv, f, params, i, half, b, ell)
+
+
+@wp.kernel
+def kernel_start(
+    params: wp.array2d(dtype=wp.float64), frame: wp.array(dtype=wp.int32), partner: wp.array(dtype=wp.int32),
+    shift: wp.array(dtype=wp.vec3d), rows: wp.array(dtype=wp.int32), ell: wp.array2d(dtype=wp.float64),
+    pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64),
+    background: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), kern: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    """Row p's state: its position (the fit's, moved by the earlier steps where it moves), the spot's
+    width (its partner's for a gradient-image row), its flux in units of the unit-peak spot
+    ``I0 sigma_fit^2 / sigma^2``, its background, and its prior kernel: the elliptical fit's covariance less
+    the pixel's and the spot's (eigenvalues at least ``KER_PRIOR_MIN_VAR``) as a Gaussian on the grid,
+    summing to 1; its kernel starts there."""
+    p = wp.tid()
+    i = rows[p]
+    gradient = frame[i] % 2 == 1
+    j = partner[i]
+    s = params[i, 3]
+    if gradient and j >= 0:
+        s = params[j, 3]
+    sigma[p] = s
+    flux[p] = params[i, 2] * params[i, 3] * params[i, 3] / (s * s)
+    background[p] = reference_background(params, partner, i, gradient)
+    pos[p] = wp.vec2d(params[i, 0], params[i, 1])
+    if moves(shift, partner, i):
+        pos[p] = wp.vec2d(params[i, 0] + shift[i][0], params[i, 1] + shift[i][1])
+    r1 = ell[i, 3]
+    r2 = ell[i, 4]
+    r3 = ell[i, 5]
+    det = r1 * r1 * r3 * r3
+    extra = TWELFTH + s * s
+    cxx = (r2 * r2 + r3 * r3) / det - extra
+    cxy = -r1 * r2 / det
+    cyy = r1 * r1 / det - extra
+    # eigenvalues at least KER_PRIOR_MIN_VAR: add (floor - ev) v v^T, v v^T = (C - other I) / (ev - other)
+    mid = wp.float64(0.5) * (cxx + cyy)
+    rad = wp.sqrt(wp.float64(0.25) * (cxx - cyy) * (cxx - cyy) + cxy * cxy)
+    lo = mid - rad
+    hi = mid + rad
+    if hi < KER_PRIOR_MIN_VAR:
+        cxx = KER_PRIOR_MIN_VAR
+        cyy = KER_PRIOR_MIN_VAR
+        cxy = wp.float64(0.0)
+    elif lo < KER_PRIOR_MIN_VAR:
+        g = (KER_PRIOR_MIN_VAR - lo) / (lo - hi)
+        cxx = cxx + g * (cxx - hi)
+        cyy = cyy + g * (cyy - hi)
+        cxy = cxy + g * cxy
+    d = cxx * cyy - cxy * cxy
+    total = wp.float64(0.0)
+    for b in range(KER_TAPS):
+        for c in range(KER_TAPS):
+            gx = tap(c)
+            gy = tap(b)
+            q = (cyy * gx * gx - wp.float64(2.0) * cxy * gx * gy + cxx * gy * gy) / d
+            v = wp.exp(wp.float64(-0.5) * q)
+            prior[p, b * KER_TAPS + c] = v
+            total += v
+    for k in range(KER_UNKNOWNS):
+        prior[p, k] = prior[p, k] / total
+        kern[p, k] = prior[p, k]
+
+
+@wp.kernel
+def kernel_points(
+    pos: wp.array(dtype=wp.vec2d), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    z_step: float, points: wp.array(dtype=wp.vec3),
+):  # fmt: skip
+    """Hash-grid point of row p: its position, frames apart along z."""
+    p = wp.tid()
+    points[p] = wp.vec3(wp.float32(pos[p][0]), wp.float32(pos[p][1]), float(frame[rows[p]]) * z_step)
+
+
+@wp.func
+def gather_neighbours(
+    grid: wp.uint64, pos: wp.array(dtype=wp.vec2d), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    z_step: float, p: int, t: int, nbr: wp.array2d(dtype=wp.int32),
+) -> int:  # fmt: skip
+    """The rows of row p's frame within ``KER_REACH`` of it (itself too) into ``nbr[t]``; their count
+    (more than ``KER_MAX_NEIGHBOURS``: that many plus one, the list cut)."""
+    f = frame[rows[p]]
+    centre = wp.vec3(wp.float32(pos[p][0]), wp.float32(pos[p][1]), float(f) * z_step)
+    count = int(0)  # noqa: UP018, RUF046 (a Warp variable, not a constant)
+    for q in wp.hash_grid_query(grid, centre, float(KER_REACH) + 0.5):
+        if frame[rows[q]] == f:
+            dx = pos[q][0] - pos[p][0]
+            dy = pos[q][1] - pos[p][1]
+            if dx * dx + dy * dy <= KER_REACH * KER_REACH:
+                if count < KER_MAX_NEIGHBOURS:
+                    nbr[t, count] = q
+                count += 1
+    return wp.min(count, KER_MAX_NEIGHBOURS + 1)
+
+
+@wp.func
+def window_weight(at: int, centre: wp.float64, size: int) -> wp.float64:
+    """The window's separable weight along one axis at pixel ``at`` (0 outside the image)."""
+    if at < 0 or at >= size:
+        return wp.float64(0.0)
+    d = wp.float64(at) - centre
+    return wp.exp(wp.float64(-0.5) * d * d / (KER_WINDOW_SIGMA * KER_WINDOW_SIGMA))
+
+
+@wp.func
+def neighbour_profiles(
+    pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64),
+    mu: wp.vec2d, ox: int, oy: int, t: int, count: int, nbr: wp.array2d(dtype=wp.int32),
+    prof: wp.array3d(dtype=wp.float64),
+):  # fmt: skip
+    """Each neighbour's window profiles per tap, drawn with the row's kernel: ``prof[t, (2 s) T + a]`` its
+    x profile (times its flux) at tap a, ``prof[t, (2 s + 1) T + b]`` its y profile at tap b."""
+    for s in range(count):
+        q = nbr[t, s]
+        for a in range(KER_TAPS):
+            store_profile(prof, t, 2 * s * KER_TAPS + a, pos[q][0] - mu[0] + tap(a), sigma[q], ox, KER_WINDOW, flux[q])
+            store_profile(prof, t, (2 * s + 1) * KER_TAPS + a, pos[q][1] - mu[1] + tap(a), sigma[q], oy, KER_WINDOW,
+                          wp.float64(1.0))  # fmt: skip
+
+
+@wp.func
+def factor(prof: wp.array3d(dtype=wp.float64), t: int, r0: int, r1: int, w: vec_window):
+    """``sum_x prof[t, r0 + a, x] w[x] prof[t, r1 + c, x]`` for every tap pair ``(a, c)``."""
+    out = mat_taps()
+    for a in range(KER_TAPS):
+        for c in range(KER_TAPS):
+            v = wp.float64(0.0)
+            for x in range(KER_WINDOW):
+                v += prof[t, r0 + a, x] * w[x] * prof[t, r1 + c, x]
+            out[a, c] = v
+    return out
+
+
+@wp.func
+def add_kronecker(normal: wp.array3d(dtype=wp.float64), t: int, fy: mat_taps, fx: mat_taps, both: bool):
+    """The lower triangle of ``fy (x) fx`` (and, with ``both``, of its transpose) added to ``normal[t]``."""
+    for b in range(KER_TAPS):
+        for b2 in range(b + 1):
+            y = fy[b, b2]
+            yt = fy[b2, b]
+            for a in range(KER_TAPS):
+                u = b * KER_TAPS + a
+                top = KER_TAPS
+                if b2 == b:
+                    top = a + 1
+                v0 = b2 * KER_TAPS
+                if both:
+                    for a2 in range(top):
+                        normal[t, u, v0 + a2] += y * fx[a, a2] + yt * fx[a2, a]
+                else:
+                    for a2 in range(top):
+                        normal[t, u, v0 + a2] += y * fx[a, a2]
+
+
+@wp.func
+def normal_equations(
+    prof: wp.array3d(dtype=wp.float64), t: int, count: int, wx: vec_window, wy: vec_window,
+    normal: wp.array3d(dtype=wp.float64),
+):  # fmt: skip
+    """The lower triangle of the normal matrix ``sum_(j, k) Y_jk (x) X_jk`` into ``normal[t]`` (the pairs
+    ``k > j`` once, with their transposes: ``Y_kj (x) X_kj = (Y_jk (x) X_jk)^T``)."""
+    for u in range(KER_UNKNOWNS):
+        for v in range(u + 1):
+            normal[t, u, v] = wp.float64(0.0)
+    for s in range(count):
+        for r in range(s, count):
+            fx = factor(prof, t, 2 * s * KER_TAPS, 2 * r * KER_TAPS, wx)
+            fy = factor(prof, t, (2 * s + 1) * KER_TAPS, (2 * r + 1) * KER_TAPS, wy)
+            add_kronecker(normal, t, fy, fx, r != s)
+
+
+@wp.func
+def right_side(
+    refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), f: int, level: wp.float64,
+    ox: int, oy: int, prof: wp.array3d(dtype=wp.float64), t: int, count: int,
+    wx: vec_window, wy: vec_window,
+    rhs: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    """``sum_pixels A W (I - level)`` into ``rhs[t]`` (``A`` the design of every neighbour)."""
+    for u in range(KER_UNKNOWNS):
+        rhs[t, u] = wp.float64(0.0)
+    for y in range(KER_WINDOW):
+        if wy[y] == wp.float64(0.0):
+            continue
+        for s in range(count):
+            for a in range(KER_TAPS):
+                v = wp.float64(0.0)
+                for x in range(KER_WINDOW):
+                    if wx[x] != wp.float64(0.0):
+                        v += prof[t, 2 * s * KER_TAPS + a, x] * wx[x] * (pixel(refs, grads, f, oy + y, ox + x) - level)
+                for b in range(KER_TAPS):
+                    rhs[t, b * KER_TAPS + a] += prof[t, (2 * s + 1) * KER_TAPS + b, y] * wy[y] * v
+
+
+@wp.func
+def ridge_solve(
+    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), t: int,
+    prior: wp.array2d(dtype=wp.float64), p: int, out: wp.array2d(dtype=wp.float64),
+) -> bool:  # fmt: skip
+    """``(N + l I) a = r + l prior`` with ``l = KER_RIDGE`` times N's mean diagonal, by a Cholesky
+    factorisation of the lower triangle in place; ``a`` into ``out[p]``. False where N is not positive
+    definite (nothing written)."""
+    n = KER_UNKNOWNS
+    trace = wp.float64(0.0)
+    for u in range(n):
+        trace += normal[t, u, u]
+    lam = KER_RIDGE * trace / wp.float64(n)
+    for u in range(n):
+        normal[t, u, u] = normal[t, u, u] + lam
+        rhs[t, u] = rhs[t, u] + lam * prior[p, u]
+    for j in range(n):
+        s = normal[t, j, j]
+        for k in range(j):
+            s -= normal[t, j, k] * normal[t, j, k]
+        if not (s > wp.float64(0.0)):
+            return False
+        d = wp.sqrt(s)
+        normal[t, j, j] = d
+        for r in range(j + 1, n):
+            v = normal[t, r, j]
+            for k in range(j):
+                v -= normal[t, r, k] * normal[t, j, k]
+            normal[t, r, j] = v / d
+    for j in range(n):
+        v = rhs[t, j]
+        for k in range(j):
+            v -= normal[t, j, k] * rhs[t, k]
+        rhs[t, j] = v / normal[t, j, j]
+    for jj in range(n):
+        j = n - 1 - jj
+        v = rhs[t, j]
+        for k in range(j + 1, n):
+            v -= normal[t, k, j] * out[p, k]
+        out[p, j] = v / normal[t, j, j]
+    return True
+
+
+@wp.kernel
+def kernel_fit(
+    offset: int, grid: wp.uint64, z_step: float, refs: wp.array3d(dtype=wp.float64),
+    grads: wp.array3d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    level: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64),
+    sigma: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
+    fitted: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
+    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    """Row ``p = offset + t``'s kernel: the ridge least-squares fit to its window of the image less its
+    frame's ``level``, every dot within ``KER_REACH`` drawn with it (placed by the row's last kernel's
+    mean); the last kernel kept where the neighbours are too many or the fit fails."""
+    t = wp.tid()
+    p = offset + t
+    f = frame[rows[p]]
+    count = gather_neighbours(grid, pos, rows, frame, z_step, p, t, nbr)
+    ok = count <= KER_MAX_NEIGHBOURS
+    if ok:
+        mu = kernel_mean(last, p)
+        ox = int(wp.rint(pos[p][0])) - KER_WINDOW_HALF
+        oy = int(wp.rint(pos[p][1])) - KER_WINDOW_HALF
+        wx = vec_window()
+        wy = vec_window()
+        for k in range(KER_WINDOW):
+            wx[k] = window_weight(ox + k, pos[p][0], refs.shape[2])
+            wy[k] = window_weight(oy + k, pos[p][1], refs.shape[1])
+        neighbour_profiles(pos, flux, sigma, mu, ox, oy, t, count, nbr, prof)
+        normal_equations(prof, t, count, wx, wy, normal)
+        right_side(refs, grads, f, level[f], ox, oy, prof, t, count, wx, wy, rhs)
+        ok = ridge_solve(normal, rhs, t, prior, p, fitted)
+    if not ok:
+        for k in range(KER_UNKNOWNS):
+            fitted[p, k] = last[p, k]
+
+
+@wp.kernel
+def kernel_render(
+    rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d),
+    flux: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64), kern: wp.array2d(dtype=wp.float64),
+    half: int, scales: wp.array(dtype=wp.float64), height: int, width: int, prof: wp.array3d(dtype=wp.float64),
+    stamp: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    """Row p's model with its own kernel on its ``2 half + 1`` stamp about its position: into ``stamp[p]``,
+    and (the pixels inside the image, fixed point) into its frame's model image."""
+    p = wp.tid()
+    f = frame[rows[p]]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    mu = kernel_mean(kern, p)
+    for a in range(KER_TAPS):
+        store_profile(prof, p, a, pos[p][0] - mu[0] + tap(a), sigma[p], ox, n, flux[p])
+        store_profile(prof, p, KER_TAPS + a, pos[p][1] - mu[1] + tap(a), sigma[p], oy, n, wp.float64(1.0))
+    for r in range(n):
+        for c in range(n):
+            v = wp.float64(0.0)
+            for b in range(KER_TAPS):
+                row = wp.float64(0.0)
+                for a in range(KER_TAPS):
+                    row += kern[p, b * KER_TAPS + a] * prof[p, a, c]
+                v += prof[p, KER_TAPS + b, r] * row
+            stamp[p, r, c] = v
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                wp.atomic_add(models, (f * height + oy + r) * width + ox + c, to_fixed(v, scales[f]))
+
+
+@wp.kernel
+def kernel_moment(
+    refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+    scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
+    background: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d),
+    flux: wp.array(dtype=wp.float64), failed: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """Row p moves to the first moment of its share of the light, ``L = w (I - b)``, ``w = m_p / M``
+    (``M`` at least ``SHARE_FLOOR`` of its fitted peak, ``w`` within [0, 1]; outside the image its own
+    model), and takes its flux (in units of the unit-peak spot); marked failed (kept) where it holds none."""
+    p = wp.tid()
+    i = rows[p]
+    f = frame[i]
+    height = refs.shape[1]
+    width = refs.shape[2]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    inv = wp.float64(1.0) / scales[f]
+    floor = SHARE_FLOOR * wp.abs(params[i, 2])
+    zero = wp.float64(0.0)
+    total = zero
+    sx = zero
+    sy = zero
+    for r in range(n):
+        for c in range(n):
+            light = stamp[p, r, c]
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                at = (f * height + oy + r) * width + ox + c
+                share = wp.clamp(light / wp.max(wp.float64(models[at]) * inv, floor), zero, wp.float64(1.0))
+                light = share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
+            total += light
+            sx += (wp.float64(ox + c) - pos[p][0]) * light
+            sy += (wp.float64(oy + r) - pos[p][1]) * light
+    if total > zero:
+        pos[p] = wp.vec2d(pos[p][0] + sx / total, pos[p][1] + sy / total)
+        flux[p] = total / (TWO_PI * sigma[p] * sigma[p])
+    else:
+        failed[p] = 1
+
+
+@wp.kernel
+def kernel_finish(
+    params: wp.array2d(dtype=wp.float64), partner: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec2d), failed: wp.array(dtype=wp.int32), max_shift: wp.float64,
+    shift: wp.array(dtype=wp.vec3d),
+):  # fmt: skip
+    """A row that ``moves`` takes the shift from its fitted centre to its last position, its code kept,
+    where that is finite and at most ``max_shift`` and its moments held light."""
+    p = wp.tid()
+    i = rows[p]
+    if failed[p] != 0 or not moves(shift, partner, i):
+        return
+    dx = pos[p][0] - params[i, 0]
+    dy = pos[p][1] - params[i, 1]
+    if dx * dx + dy * dy <= max_shift * max_shift:  # also false for NaN
+        shift[i] = wp.vec3d(dx, dy, shift[i][2])
