@@ -49,7 +49,14 @@ from synthbos import SynthbosError
 from synthbos.values import shorten
 
 from .items import render_item, score_item
-from .scheduling import PIPELINE_WORKER_DEVICE, default_workers, pair_tasks, run_pipeline
+from .scheduling import (
+    PIPELINE_WORKER_DEVICE,
+    default_workers,
+    host_pool,
+    pair_tasks,
+    run_pipeline,
+    worker_kernels,
+)
 
 __all__ = ["DaskRunner", "campaign_runner", "check_address", "check_scheduler", "pair_task", "pipeline_task",
            "run_pairs", "shards", "visible_gpus"]
@@ -211,16 +218,36 @@ def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -
     further pair once run ``token`` is told to stop. Returns the number of items it wrote."""
     renders = [r for r in renders if not Path(r[1]).exists()]
     scores = [s for s in scores if not Path(s[4]).exists()]
+    there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
+    workers = host_workers()
     with _LOCK:
         _IN_FLIGHT[token] += 1
     try:
-        run_pipeline(renders, scores, workers=host_workers(), progress=False,
-                     worker_device=PIPELINE_WORKER_DEVICE if worker_device is None else worker_device,
-                     stop=lambda: token in _STOPPED, stack=stack)
+        run_pipeline(renders, scores, workers=workers, progress=False, worker_device=there,
+                     stop=lambda: token in _STOPPED, stack=stack,
+                     pool=_kept_pool(workers - 1, worker_kernels(scores, worker_device=there, stack=stack)))
     finally:
         with _LOCK:
             _IN_FLIGHT[token] -= 1
     return sum(Path(r[1]).exists() for r in renders) + sum(Path(s[4]).exists() for s in scores)
+
+
+#: This worker's pool of host processes, kept between its pipeline tasks: ``(size, pool)``.
+_KEPT_POOL: list = []
+
+
+def _kept_pool(n: int, kernels):
+    """This worker's ``n`` host processes (None for none), started by its first pipeline task and kept for
+    the next ones: a campaign does not wait for 15 processes to start and load their kernels, on every GPU
+    worker of the host at once. Started again where its size changed or a process of it died."""
+    if n < 1:
+        return None
+    with _LOCK:
+        if _KEPT_POOL and (_KEPT_POOL[0][0] != n or getattr(_KEPT_POOL[0][1], "_broken", False)):
+            _KEPT_POOL.pop()[1].shutdown(wait=False, cancel_futures=True)
+        if not _KEPT_POOL:
+            _KEPT_POOL.append((n, host_pool(n, kernels)))
+        return _KEPT_POOL[0][1]
 
 
 def shards(tasks, n: int) -> list[tuple[list, list]]:

@@ -44,7 +44,7 @@ from tqdm.auto import tqdm
 from synthbos.device import load_kernels, shared_by_threads
 
 __all__ = ["PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers", "die_with_parent",
-           "pair_tasks", "render_kernels", "run_items", "run_pipeline", "same_image_runs", "score_kernels",
+           "host_pool", "pair_tasks", "render_kernels", "run_items", "run_pipeline", "same_image_runs", "score_kernels",
            "split_items", "submit_builds", "worker_kernels", "worker_pool"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
@@ -242,6 +242,15 @@ def worker_pool(workers: int):
     return _pool(workers) if workers > 1 else contextlib.nullcontext()
 
 
+def host_pool(workers: int, kernels=()):
+    """A started pool of ``workers`` host processes as :func:`run_pipeline` starts its own (the fork
+    server, a lower priority, ``kernels`` loaded), for a caller that keeps it between pipelines
+    (``run_pipeline(pool=...)``); the caller shuts it down."""
+    pool = _pool(workers, (), kernels, nice=WORKER_NICE)
+    _start_workers(pool, workers, threading.Event())
+    return pool
+
+
 def build_in_pool(pool, kernels) -> None:
     """Build the Warp modules of the ``(kernel module, device)`` pairs ``kernels`` in the processes of
     ``pool``, one task per module (an idle process takes the next), and wait for all of them.
@@ -331,7 +340,7 @@ def same_image_runs(scores) -> list[list]:
 
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
                  worker_device=None, jobs=(), renders_ahead: int = 2, on_items_done=None, stop=None, stack=None,
-                 stacks_log=None) -> list:
+                 stacks_log=None, pool=None) -> list:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items whose method is
@@ -370,6 +379,10 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
 
     ``stop``: a callable asked before each pair; once it returns True no further pair is started (the
     items already handed out finish and are written; the jobs still run). A Dask task uses it.
+
+    ``pool``: the ``workers - 1`` host processes to hand the work to, started and left open by the caller
+    (:func:`host_pool`: a Dask GPU worker keeps its own between tasks); None starts them here and shuts
+    them down at the end.
     """
     from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
@@ -468,8 +481,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
     preload = sorted({fn.__module__ for fn, _, _ in jobs})
     load_kernels(campaign_kernels(renders, scores, worker_device=worker_device, stack=stack))  # at once: a cold cache
-    pool = None
-    if workers > 1:
+    own_pool = pool is None
+    if own_pool and workers > 1:
         pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
                      nice=WORKER_NICE)
     ahead = max(1, int(renders_ahead))
@@ -481,7 +494,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     deferred: deque = deque()  # (pair file being written, its path, measured batch, worker items, count)
     rendering = []
     pool_ready = threading.Event()
-    if pool is None:
+    if pool is None or not own_pool:
         pool_ready.set()
     else:  # a thread starts the workers (the fork server imports first), so this one can go on
         threading.Thread(target=_start_workers, args=(pool, workers - 1, pool_ready), daemon=True,
@@ -562,5 +575,5 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         renderer.shutdown(wait=True)
         noiser.shutdown(wait=True)
         writer.shutdown(wait=True)  # a pair file being written is finished (atomic files)
-        if pool is not None:
+        if pool is not None and own_pool:
             pool.shutdown(wait=True, cancel_futures=True)
