@@ -225,7 +225,7 @@ def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -
     try:
         run_pipeline(renders, scores, workers=workers, progress=False, worker_device=there,
                      stop=lambda: token in _STOPPED, stack=stack,
-                     pool=_kept_pool(workers - 1, worker_kernels(scores, worker_device=there, stack=stack)))
+                     pool=lambda: _kept_pool(workers - 1, worker_kernels(scores, worker_device=there, stack=stack)))
     finally:
         with _LOCK:
             _IN_FLIGHT[token] -= 1

@@ -380,9 +380,10 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     ``stop``: a callable asked before each pair; once it returns True no further pair is started (the
     items already handed out finish and are written; the jobs still run). A Dask task uses it.
 
-    ``pool``: the ``workers - 1`` host processes to hand the work to, started and left open by the caller
-    (:func:`host_pool`: a Dask GPU worker keeps its own between tasks); None starts them here and shuts
-    them down at the end.
+    ``pool``: a callable giving the ``workers - 1`` host processes to hand the work to, kept open by the
+    caller (:func:`host_pool`: a Dask GPU worker keeps its own between tasks); called once the kernels are
+    built, so that new processes find them in the cache instead of each compiling them. None starts the
+    processes here and shuts them down at the end.
     """
     from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
@@ -482,7 +483,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     preload = sorted({fn.__module__ for fn, _, _ in jobs})
     load_kernels(campaign_kernels(renders, scores, worker_device=worker_device, stack=stack))  # at once: a cold cache
     own_pool = pool is None
-    if own_pool and workers > 1:
+    if not own_pool:
+        pool = pool()
+    elif workers > 1:
         pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
                      nice=WORKER_NICE)
     ahead = max(1, int(renders_ahead))

@@ -339,3 +339,22 @@ def test_pipeline_tasks_on_a_local_cluster_give_the_plain_campaign(tmp_path):
             assert all(a[k].tobytes() == b[k].tobytes() for k in a.files), path.name
     tasks = pair_tasks([(None, f"p{i}.h5", "cpu") for i in range(3)], [])
     assert [[r[1] for r in renders] for renders, _ in shards(tasks, 2)] == [["p0.h5", "p2.h5"], ["p1.h5"]]
+
+
+def test_a_gpu_worker_keeps_its_host_processes_between_tasks():
+    """``_kept_pool``: the same processes for the next pipeline task; new ones where the size changes."""
+    from synthbos.benchmarks import distributed as dist
+
+    assert dist._kept_pool(0, ()) is None
+    first = dist._kept_pool(1, ())
+    try:
+        assert dist._kept_pool(1, ()) is first
+        pid = first.submit(os.getpid).result()
+        assert first.submit(os.getpid).result() == pid != os.getpid()
+        second = dist._kept_pool(2, ())
+        assert second is not first and dist._kept_pool(2, ()) is second
+        with pytest.raises(RuntimeError):  # the first was shut down
+            first.submit(os.getpid)
+    finally:
+        while dist._KEPT_POOL:
+            dist._KEPT_POOL.pop()[1].shutdown(wait=True)
