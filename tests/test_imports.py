@@ -218,3 +218,6 @@ def test_no_production_module_imports_the_tracking_reference():
     assert {"synthbos.tracking.dotfit", "synthbos.tracking.register"} <= graph[reference]
     importers = sorted(module for module, edges in graph.items() if reference in edges)
     assert importers == []
+    kernel = "synthbos.tracking.reference_kernel"  # the shared-kernel step's, loaded by the reference only
+    assert kernel in graph[reference]
+    assert sorted(module for module, edges in graph.items() if kernel in edges) == [reference]

@@ -14,9 +14,11 @@ import warp as wp
 
 from .ellipse_kernels import ellipse_render
 from .kernel_step_kernels import (
+    kernel_accumulate,
     kernel_finish,
     kernel_fit,
     kernel_frames,
+    kernel_hold,
     kernel_moment,
     kernel_points,
     kernel_render,
@@ -27,6 +29,7 @@ from .kernel_step_kernels import (
 )
 from .settings import (
     ELLIPSE_SWEEPS,
+    KERNEL_FLUX_SWEEPS,
     KERNEL_ITERATIONS,
     KERNEL_MAX_NEIGHBOURS,
     KERNEL_REACH_PX,
@@ -76,8 +79,10 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     Every live row of a frame holding a moving row takes part (the moving dots' neighbours need kernels
     too; a pair is measured alike). Their prior is the elliptical fit of all of them together
     (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: every row's
-    kernel fit (``kernel_fit``, chunked), every row's kernel model drawn (``kernel_render``) and every row
-    moved to its moment (``kernel_moment``). Nothing past ``kernel_frames`` runs where no row moves.
+    kernel fit (``kernel_fit``, chunked), every row's kernel model drawn (``kernel_render``) with its
+    reference partner's flux, the shares held to that flux (``KERNEL_FLUX_SWEEPS`` sweeps of
+    ``kernel_accumulate`` and ``kernel_hold``: each row's multiplier in the shares) and every row moved to
+    its moment (``kernel_moment``). Nothing past ``kernel_frames`` runs where no row moves.
     """
     n = params.shape[0]
     height, width = refs.shape[1], refs.shape[2]
@@ -99,14 +104,23 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
     grid = wp.HashGrid(128, 128, 64, device=device)
     scratch = _Scratch(m, device)
+    held = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models]
     for _ in range(KERNEL_ITERATIONS):
         _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
         models.zero_()
         draw = [rows, frame, state.pos, state.flux, state.sigma, state.kern, half, scales, height, width,
                 state.stamp_prof, state.stamp, models]  # fmt: skip
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
-        moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.sigma,
-                  state.pos, state.flux, state.failed]  # fmt: skip
+        for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
+            models.zero_()
+            wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
+            wp.launch(kernel_hold, dim=m, inputs=[refs, grads, models, scales, params, rows, frame, half, state.stamp,
+                                                  state.background, state.pos, state.kern, state.alpha],
+                      device=device)  # fmt: skip
+        models.zero_()
+        wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
+        moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
+                  state.alpha, state.failed]  # fmt: skip
         wp.launch(kernel_moment, dim=m, inputs=moment, device=device)
     wp.launch(kernel_finish, dim=m, inputs=[params, partner, rows, state.pos, state.failed, float(max_shift), shift],
               device=device)  # fmt: skip
@@ -128,6 +142,7 @@ class _State:
         self.kern = wp.empty((m, taps2), dtype=wp.float64, device=device)
         self.spare = wp.empty((m, taps2), dtype=wp.float64, device=device)
         self.failed = wp.zeros(m, dtype=wp.int32, device=device)
+        self.alpha = wp.full(m, 1.0, dtype=wp.float64, device=device)  # the shares' multipliers (kernel_hold)
         self.stamp = wp.empty((m, n, n), dtype=wp.float64, device=device)
         self.stamp_prof = wp.empty((m, 2 * KERNEL_TAPS, n), dtype=wp.float64, device=device)
 

@@ -29,6 +29,8 @@ import warp as wp
 from .ellipse_kernels import ellipse_fit_step, start_width
 from .fit_kernels import profile_pixel, profile_start, to_fixed
 from .kernel_constants import (
+    KER_FLUX_BOUND,
+    KER_FLUX_STEP,
     KER_MAX_NEIGHBOURS,
     KER_PRIOR_MIN_VAR,
     KER_REACH,
@@ -156,10 +158,10 @@ def kernel_start(
     background: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), kern: wp.array2d(dtype=wp.float64),
 ):  # fmt: skip
     """Row p's state: its position (the fit's, moved by the earlier steps where it moves), the spot's
-    width (its partner's for a gradient-image row), its flux in units of the unit-peak spot
-    ``I0 sigma_fit^2 / sigma^2``, its background, and its prior kernel: the elliptical fit's covariance less
-    the pixel's and the spot's (eigenvalues at least ``KER_PRIOR_MIN_VAR``) as a Gaussian on the grid,
-    summing to 1; its kernel starts there."""
+    width and flux (its partner's for a gradient-image row: a dot sends the same rays in both images; the
+    flux in units of the unit-peak spot, its fitted peak), its background, and its prior kernel: the
+    elliptical fit's covariance less the pixel's and the spot's (eigenvalues at least ``KER_PRIOR_MIN_VAR``)
+    as a Gaussian on the grid, summing to 1; its kernel starts there."""
     p = wp.tid()
     i = rows[p]
     gradient = frame[i] % 2 == 1
@@ -168,7 +170,9 @@ def kernel_start(
     if gradient and j >= 0:
         s = params[j, 3]
     sigma[p] = s
-    flux[p] = params[i, 2] * params[i, 3] * params[i, 3] / (s * s)
+    flux[p] = params[i, 2]  # the reference flux, in units of the unit-peak spot of width s
+    if gradient and j >= 0:
+        flux[p] = params[j, 2]
     background[p] = reference_background(params, partner, i, gradient)
     pos[p] = wp.vec2d(params[i, 0], params[i, 1])
     if moves(shift, partner, i):
@@ -449,17 +453,88 @@ def kernel_render(
                 wp.atomic_add(models, (f * height + oy + r) * width + ox + c, to_fixed(v, scales[f]))
 
 
+@wp.func
+def held_share(stamp: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64), inv: wp.float64,
+               floor: wp.float64, alpha: wp.float64, p: int, r: int, c: int, at: int) -> wp.float64:  # fmt: skip
+    """Row p's share ``alpha m_p / M`` of pixel ``at`` (``M`` at least ``floor``, the share within [0, 1])."""
+    return wp.clamp(alpha * stamp[p, r, c] / wp.max(wp.float64(models[at]) * inv, floor), wp.float64(0.0),
+                    wp.float64(1.0))  # fmt: skip
+
+
+@wp.kernel
+def kernel_accumulate(
+    rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d), half: int,
+    stamp: wp.array3d(dtype=wp.float64), alpha: wp.array(dtype=wp.float64), scales: wp.array(dtype=wp.float64),
+    height: int, width: int, models: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    """Row p's model on its stamp times its multiplier ``alpha`` into its frame's model image (fixed point)."""
+    p = wp.tid()
+    f = frame[rows[p]]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    for r in range(n):
+        for c in range(n):
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                at = (f * height + oy + r) * width + ox + c
+                wp.atomic_add(models, at, to_fixed(alpha[p] * stamp[p, r, c], scales[f]))
+
+
+@wp.kernel
+def kernel_hold(
+    refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+    scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
+    background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), kern: wp.array2d(dtype=wp.float64),
+    alpha: wp.array(dtype=wp.float64),
+):  # fmt: skip
+    """One sweep of iterative proportional fitting: row p's multiplier ``alpha`` times the ratio of the
+    reference flux its model puts on its stamp inside the image (its model's share of the stamp times the
+    flux, less the model's light outside the image) to the light its share holds there (the ratio within
+    ``1 / KER_FLUX_STEP`` and ``KER_FLUX_STEP``, ``alpha`` within ``1 / KER_FLUX_BOUND`` and
+    ``KER_FLUX_BOUND``); unchanged where either is not positive."""
+    p = wp.tid()
+    i = rows[p]
+    f = frame[i]
+    height = refs.shape[1]
+    width = refs.shape[2]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    inv = wp.float64(1.0) / scales[f]
+    floor = SHARE_FLOOR * wp.abs(params[i, 2])
+    zero = wp.float64(0.0)
+    held = zero
+    total = zero
+    outside = zero
+    for r in range(n):
+        for c in range(n):
+            total += stamp[p, r, c]
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                at = (f * height + oy + r) * width + ox + c
+                share = held_share(stamp, models, inv, floor, alpha[p], p, r, c, at)
+                held += share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
+            else:
+                outside += stamp[p, r, c]
+    ksum = zero
+    for k in range(KER_UNKNOWNS):
+        ksum += kern[p, k]
+    target = total / ksum - outside
+    if target > zero and held > zero:
+        ratio = wp.clamp(target / held, wp.float64(1.0) / KER_FLUX_STEP, KER_FLUX_STEP)
+        alpha[p] = wp.clamp(alpha[p] * ratio, wp.float64(1.0) / KER_FLUX_BOUND, KER_FLUX_BOUND)
+
+
 @wp.kernel
 def kernel_moment(
     refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
     scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
-    background: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d),
-    flux: wp.array(dtype=wp.float64), failed: wp.array(dtype=wp.int32),
+    background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), alpha: wp.array(dtype=wp.float64),
+    failed: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """Row p moves to the first moment of its share of the light, ``L = w (I - b)``, ``w = m_p / M``
-    (``M`` at least ``SHARE_FLOOR`` of its fitted peak, ``w`` within [0, 1]; outside the image its own
-    model), and takes its flux (in units of the unit-peak spot); marked failed (kept) where it holds none."""
+    """Row p moves to the first moment of its held share of the light, ``L = w (I - b)``, ``w = alpha m_p /
+    M`` (:func:`held_share`; outside the image its own model); marked failed (kept) where it holds none."""
     p = wp.tid()
     i = rows[p]
     f = frame[i]
@@ -479,14 +554,13 @@ def kernel_moment(
             light = stamp[p, r, c]
             if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
                 at = (f * height + oy + r) * width + ox + c
-                share = wp.clamp(light / wp.max(wp.float64(models[at]) * inv, floor), zero, wp.float64(1.0))
+                share = held_share(stamp, models, inv, floor, alpha[p], p, r, c, at)
                 light = share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
             total += light
             sx += (wp.float64(ox + c) - pos[p][0]) * light
             sy += (wp.float64(oy + r) - pos[p][1]) * light
     if total > zero:
         pos[p] = wp.vec2d(pos[p][0] + sx / total, pos[p][1] + sy / total)
-        flux[p] = total / (TWO_PI * sigma[p] * sigma[p])
     else:
         failed[p] = 1
 

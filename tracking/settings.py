@@ -110,6 +110,14 @@ KERNEL_RIDGE = 0.1
 KERNEL_PRIOR_MIN_VAR_PX2 = 0.01
 #: ... and the kernel fit, the shares of every dot's kernel model and the moment repeated this many times.
 KERNEL_ITERATIONS = 3
+#: The shares are held to the reference flux: every dot's model has its reference partner's flux (its own in
+#: the reference image; a dot sends the same rays in both images), and per-dot multipliers ``alpha`` of the
+#: models in the shares are fitted, ``KERNEL_FLUX_SWEEPS`` sweeps of iterative proportional fitting per
+#: iteration, so that each share holds that flux; a sweep changes ``alpha`` by at most ``KERNEL_FLUX_STEP``
+#: times, and ``alpha`` stays within ``1 / KERNEL_FLUX_BOUND`` and ``KERNEL_FLUX_BOUND``.
+KERNEL_FLUX_SWEEPS = 40
+KERNEL_FLUX_STEP = 2.0
+KERNEL_FLUX_BOUND = 1.5
 
 #: Standard tracking pairs within, and the wide search looks as far as, ``max_displacement`` plus this (px)
 #: unless ``TrackingSettings.search_radius`` is set.

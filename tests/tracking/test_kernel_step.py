@@ -78,17 +78,18 @@ def test_kernel_step_device_equals_numpy(device):
 @pytest.mark.parametrize("seed", [3, 11])
 def test_kernel_step_beats_ellipse_in_track_pair(seed):
     """The tracker end to end on crowded dots distorted alike by their neighbourhood: the elliptical
-    shares leave p90 0.027-0.031 px, the shared kernels 0.0085-0.0097 px (seeds 1, 2, 3, 11; the model
-    correction 0.024-0.029 and 0.011-0.014 px)."""
+    shares leave p90 0.027-0.031 px, the shared kernels with their shares held to the reference flux
+    0.0048-0.0057 px (seeds 1, 2, 3, 11; without the held shares 0.0085-0.0097 px; the model correction
+    0.024-0.029 and 0.010-0.012 px)."""
     reference, gradient, xy, truth = _pair(seed)
     tables = {d: track_pair(reference, gradient, prior_xy=xy, settings=TrackingSettings(distortion=d))
               for d in ("ellipse", "kernel")}  # fmt: skip
     e_ell, _ = _errors(tables["ellipse"], truth)
     e_ker, ok = _errors(tables["kernel"], truth)
     assert ok.all()
-    assert np.percentile(e_ker, 90) < 0.013, np.percentile(e_ker, 90)
+    assert np.percentile(e_ker, 90) < 0.008, np.percentile(e_ker, 90)
     p90 = np.percentile(e_ker, 90), np.percentile(e_ell, 90)
-    assert p90[0] < 0.5 * p90[1], p90
+    assert p90[0] < 0.3 * p90[1], p90
     assert np.percentile(e_ker, 99) < np.percentile(e_ell, 99)
     e_cc, _ = _errors(tables["kernel"], truth, cc=True)
     e_ell_cc, _ = _errors(tables["ellipse"], truth, cc=True)
