@@ -362,9 +362,10 @@ class TrackingSettings:
         light the flow spread along its gradient. "kernel" (opt-in): the elliptical step, then, in every
         pair that holds a moving dot, the shared-kernel step (:func:`tracking.kernel_step.kernel_step`):
         every dot of both images gets a non-parametric ray-landing kernel fitted to the pixels about it and
-        shared there by its neighbours, and the moving dots take the first moments of the shares these
-        kernels give them (zero-noise p90 0.0049-0.0144 px on snapshots 0-2 at 256 px against the
-        ellipse's 0.0079-0.0371; about 2 s of CPU per distorted 256-px pair, docs/distortion.md).
+        shared there by its neighbours, its share held to its reference partner's flux, and the moving dots
+        take the first moments of these shares (zero-noise p90 0.0031-0.0068 px on snapshots 0-2 at 256 px
+        against the ellipse's 0.0079-0.0371; about 2.5 s of CPU per distorted 256-px pair,
+        docs/distortion.md).
         "none": the symmetric model's centre. Only the model estimators (``centroid`` or ``correction``
         "model") use it.
     distortion_chi2 : float
