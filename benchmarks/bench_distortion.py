@@ -35,7 +35,7 @@ from .scoring import cramer_rao_displacement
 
 METHODS = ("tracking", "tracking-cc")
 #: The distorted-dot steps compared (``TrackingSettings.distortion``); the targets are read on the default's.
-STEPS = ("none", "moment", "ellipse", "kernel")
+STEPS = ("none", "moment", "ellipse", "flux", "kernel")
 DEFAULT_STEP = TrackingSettings().distortion
 #: The targets of issue 25 at zero noise: p90, p99 (px), the share measured and valid, the linear case's
 #: p90 and the density's ratio to its floor.

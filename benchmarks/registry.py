@@ -198,7 +198,7 @@ STACK_CPU_KERNELS = tuple(
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
 # where a coarser pass left a field, and is built on its first launch. Neither list holds the shared-kernel
-# step (kernel_step_kernels): it runs only with TrackingSettings(distortion="kernel"), and is built on its
+# step (kernel_step_kernels): it runs only with TrackingSettings(distortion="kernel" or "flux"), built on its
 # first launch, so that a default campaign's first run does not compile it.
 _TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
 # track_pair with the default estimators is a stack of one: those of the stack too (on the CPU, deform_kernels

@@ -32,7 +32,7 @@ from .fit_kernels import render_dots_kernel
 from .frame_stats import segment_medians
 from .kernel_step import kernel_step
 from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
-from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, start_width
+from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, distortion_options, start_width
 from .workspace import scratch
 
 __all__ = [
@@ -433,11 +433,10 @@ def moment_shifts(
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
         A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
-    ellipse, kernel : bool, keyword-only
+    ellipse : bool; kernel : bool or "prior", keyword-only
         The elliptical moment step (:func:`tracking.ellipse.ellipse_step`: moving gradient-image dots share
-        the light by fitted elliptical models), and after it the shared-kernel step
-        (:func:`tracking.kernel_step.kernel_step`, implies ``ellipse``: moving dots of either image share it
-        by non-parametric kernels shared by neighbours). Which dots move is the first-moment step's.
+        the light by fitted elliptical models), then the shared-kernel step (implies ``ellipse``; "prior":
+        kernels left at their elliptical prior), :func:`tracking.kernel_step.kernel_step`.
     kernels : dict, optional, keyword-only
         With ``kernel``: receives ``rows`` (those of the step, ascending), ``kernel`` ((R, 81), index
         ``9 b + a`` for y tap b, x tap a) and ``position`` ((R, 2)); empty where no dot moves.
@@ -532,7 +531,7 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
                      max_shift=float(max_shift), device=device)  # fmt: skip
     if kernel:
         kernel_step(refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, shift, half=half,
-                    max_shift=float(max_shift), record=record, device=device)  # fmt: skip
+                    max_shift=float(max_shift), fit=kernel != "prior", record=record, device=device)  # fmt: skip
     return shift
 
 
@@ -626,8 +625,7 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     if s.distortion != "none":
         shift = _moment_codes(refs, grads, sorted_rows._replace(params=cur), bufs.models[: 2 * B * H * W], bufs.prof,
                               sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
-                              ellipse=s.distortion == "ellipse", kernel=s.distortion == "kernel",
-                              device=device)  # fmt: skip
+                              **distortion_options(s.distortion), device=device)  # fmt: skip
         _launch(fk.apply_moment_shift, rows, [shift, sorted_rows.partner, cur, bufs.shared, moved], device)
     # back in the rows' order (the parameters into ``start``, which the sorted rows copied)
     out = (start, wp.empty_like(bufs.ok), wp.empty_like(bufs.shared), wp.empty_like(moved))

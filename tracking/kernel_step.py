@@ -45,8 +45,8 @@ CHUNK_ROWS = {"cpu": 512, "cuda": 8192}
 Z_STEP = 4.0 * (KERNEL_REACH_PX + 1.0)
 
 
-def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift, *, half, max_shift, record=None,
-                device=None):
+def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift, *, half, max_shift, fit=True,
+                record=None, device=None):
     """Replace the shifts of the moving dots by their shared-kernel moments.
 
     Parameters
@@ -68,6 +68,8 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
         Stamp half-width of the models and moments (the fit's ``render_half``).
     max_shift : float, keyword-only
         Largest shift taken (px).
+    fit : bool, keyword-only
+        Fit the kernels; False leaves each at its elliptical prior (``TrackingSettings.distortion`` "flux").
     record : dict, optional, keyword-only
         Receives ``rows`` (the rows that took part), ``kernel`` (their last kernels, (R, T^2), index
         ``b T + a`` for the y tap b and the x tap a) and ``position`` (their last positions, (R, 2)).
@@ -103,10 +105,11 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
     level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
     grid = wp.HashGrid(128, 128, 64, device=device)
-    scratch = _Scratch(m, device)
+    scratch = _Scratch(m if fit else 1, device)
     held = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models]
     for _ in range(KERNEL_ITERATIONS):
-        _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
+        if fit:
+            _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
         models.zero_()
         draw = [rows, frame, state.pos, state.flux, state.sigma, state.kern, half, scales, height, width,
                 state.stamp_prof, state.stamp, models]  # fmt: skip

@@ -65,6 +65,7 @@ from .settings import (  # noqa: F401  (re-exported)
     WILD_FIT_PX,
     DotStatus,
     TrackingSettings,
+    distortion_options,
     is_valid,
     prior_inside,
     residual_reach,
@@ -156,8 +157,7 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
     if settings.distortion != "none":
         d, moved = moment_shifts(
             images, params, half=render_half, frame=frame, partner=pair, saturation=saturation, noise=noise,
-            chi2=settings.distortion_chi2, ellipse=settings.distortion == "ellipse",
-            kernel=settings.distortion == "kernel", device=device,
+            chi2=settings.distortion_chi2, **distortion_options(settings.distortion), device=device,
         )  # fmt: skip
         params[:, :2] += d
         shared += d

@@ -427,7 +427,7 @@ def moment_shifts_numpy(
 
     Parameters and result are those of :func:`tracking.dotfit.moment_shifts`, without ``device``;
     ``ellipse=True`` is the elliptical moment step (:func:`tracking.ellipse.ellipse_step`), ``kernel=True``
-    that and then the shared-kernel step (:func:`tracking.kernel_step.kernel_step`).
+    that and then the shared-kernel step (:func:`tracking.kernel_step.kernel_step`; "prior": unfitted kernels).
     """
     stack, p, frame, partner = _checked(images, params, frame, partner)
     stack = np.stack(stack)
@@ -475,7 +475,7 @@ def moment_shifts_numpy(
         part = np.isin(frame, np.unique(frame[applied]))
         ell = _ellipse_fit(stack, p, frame, part, background, half)[0]  # the kernels' prior
         shift = kernel_shifts(stack, p, frame, partner, applied, shift, background, half, max_shift, ell,
-                              {} if kernels is None else kernels)  # fmt: skip
+                              {} if kernels is None else kernels, fit=kernel != "prior")  # fmt: skip
     return np.where(applied[:, None], shift, 0.0), applied
 
 

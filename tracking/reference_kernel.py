@@ -27,7 +27,7 @@ from .settings import (
 __all__ = ["kernel_shifts"]
 
 
-def kernel_shifts(stack, p, frame, partner, applied, shift, background, half, max_shift, ell, record):
+def kernel_shifts(stack, p, frame, partner, applied, shift, background, half, max_shift, ell, record, *, fit=True):
     """The shared-kernel step (:func:`tracking.kernel_step.kernel_step`): every row of a frame holding a
     moving row, its prior ``ell`` the elliptical fit of them all, then ``KERNEL_ITERATIONS`` kernel fits and
     moments; the moving rows take their last positions where usable (``record``: as ``moment_shifts``'s
@@ -43,7 +43,8 @@ def kernel_shifts(stack, p, frame, partner, applied, shift, background, half, ma
     level = {f: np.median(b[frame[rows] == f]) for f in np.unique(frame[rows])}
     kern, failed, alpha = prior.copy(), np.zeros(len(rows), dtype=bool), np.ones(len(rows))
     for _ in range(KERNEL_ITERATIONS):
-        kern = _kernel_fit(stack, frame[rows], level, pos, flux, sigma, prior, kern)
+        if fit:  # else the kernels stay at their prior
+            kern = _kernel_fit(stack, frame[rows], level, pos, flux, sigma, prior, kern)
         pos, failed, alpha = _kernel_moments(stack, p[rows, 2], frame[rows], pos, flux, sigma, kern, b, half, failed,
                                              alpha)  # fmt: skip
     d = pos - p[rows, :2]

@@ -38,7 +38,20 @@ __all__ = [
 CENTROID_METHODS = ("gaussian3", "centroid", "gaussian4", "lsq")
 
 #: What the model fit's positions measure on a distorted dot (``TrackingSettings.distortion``).
-DISTORTION_STEPS = ("ellipse", "kernel", "moment", "none")
+DISTORTION_STEPS = ("ellipse", "flux", "kernel", "moment", "none")
+
+
+def distortion_options(distortion: str) -> dict:
+    """The moment step's options (:func:`tracking.dotfit.moment_shifts`) for ``TrackingSettings.distortion``:
+    the elliptical step, and the shared-kernel step with its kernels fitted (True) or left at their
+    elliptical prior ("prior", the "flux" setting).
+
+    Examples
+    --------
+    >>> distortion_options("flux")
+    {'ellipse': False, 'kernel': 'prior'}
+    """
+    return {"ellipse": distortion == "ellipse", "kernel": {"kernel": True, "flux": "prior"}.get(distortion, False)}
 
 #: Pairings of standard tracking (:mod:`tracking.match`).
 MATCH_METHODS = ("nearest", "multiparametric")
@@ -350,7 +363,7 @@ class TrackingSettings:
         Block-Jacobi Gauss-Newton steps of the model fit (the model correction comes with the last).
         Three leave no zero-noise tail at 20 dots per 32x32 px (largest error ~0.003 px); two are
         ~7 % faster overall and keep a tail of ~1 % of the dots between 0.005 and 0.02 px (p95 < 0.001 px).
-    distortion : {"ellipse", "kernel", "moment", "none"}
+    distortion : {"ellipse", "flux", "kernel", "moment", "none"}
         What the model fit's positions are taken to measure on a dot whose image the flow has distorted
         (rays through different parts of the aperture crossing different density spread and skew it).
         "moment": the mean of its light, the mean landing position of its rays that the renderer's truth
@@ -365,7 +378,9 @@ class TrackingSettings:
         shared there by its neighbours, its share held to its reference partner's flux, and the moving dots
         take the first moments of these shares (zero-noise p90 0.0031-0.0068 px on snapshots 0-2 at 256 px
         against the ellipse's 0.0079-0.0371; about 2.5 s of CPU per distorted 256-px pair,
-        docs/distortion.md).
+        docs/distortion.md). "flux" (opt-in): the same with every kernel left at its elliptical prior (no
+        kernel fit), so that only the shares held to the reference flux act (p90 0.0026-0.0105 px on
+        snapshots 0-2; about 0.3 s of CPU per distorted 256-px pair).
         "none": the symmetric model's centre. Only the model estimators (``centroid`` or ``correction``
         "model") use it.
     distortion_chi2 : float
