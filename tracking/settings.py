@@ -26,6 +26,7 @@ __all__ = [
     "TRACK_DTYPE",
     "DotStatus",
     "TrackingSettings",
+    "distortion_options",
     "is_valid",
     "prior_inside",
     "residual_reach",
