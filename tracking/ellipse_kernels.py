@@ -81,6 +81,19 @@ def start_width(params: wp.array2d(dtype=wp.float64), i: int) -> wp.float64:
     return wp.sqrt(params[i, 3] * params[i, 3] + TWELFTH)
 
 
+@wp.func
+def round_start(params: wp.array2d(dtype=wp.float64), i: int, ell: wp.array2d(dtype=wp.float64)):
+    """Row i's elliptical model as its symmetric fit: flux ``2 pi I0 sigma^2``, its centre, round, of width
+    ``start_width``."""
+    r = wp.float64(1.0) / start_width(params, i)
+    ell[i, 0] = TWO_PI * params[i, 2] * params[i, 3] * params[i, 3]
+    ell[i, 1] = params[i, 0]
+    ell[i, 2] = params[i, 1]
+    ell[i, 3] = r
+    ell[i, 4] = wp.float64(0.0)
+    ell[i, 5] = r
+
+
 @wp.kernel
 def ellipse_start(
     params: wp.array2d(dtype=wp.float64),
@@ -98,13 +111,7 @@ def ellipse_start(
     if frame[i] % 2 != 1 or not moves(shift, partner, i):
         return
     active[i] = 1
-    r = wp.float64(1.0) / start_width(params, i)
-    ell[i, 0] = TWO_PI * params[i, 2] * params[i, 3] * params[i, 3]
-    ell[i, 1] = params[i, 0]
-    ell[i, 2] = params[i, 1]
-    ell[i, 3] = r
-    ell[i, 4] = wp.float64(0.0)
-    ell[i, 5] = r
+    round_start(params, i, ell)
 
 
 @wp.kernel

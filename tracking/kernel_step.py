@@ -103,16 +103,15 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     start = [params, frame, partner, shift, rows, ell, state.pos, state.flux, state.sigma, state.background,
              state.prior, state.kern]  # fmt: skip
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
-    level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
-    grid = wp.HashGrid(128, 128, 64, device=device)
-    scratch = _Scratch(m if fit else 1, device)
+    if fit:  # the kernel fit's frame levels, neighbour grid and scratch
+        level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
+        grid = wp.HashGrid(128, 128, 64, device=device)
+        scratch = _Scratch(m, device)
     held = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models]
     for _ in range(KERNEL_ITERATIONS):
         if fit:
-            _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)
-        models.zero_()
-        draw = [rows, frame, state.pos, state.flux, state.sigma, state.kern, half, scales, height, width,
-                state.stamp_prof, state.stamp, models]  # fmt: skip
+            _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)  # swaps state.kern
+        draw = [state.pos, state.flux, state.sigma, state.kern, half, state.stamp_prof, state.stamp]
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
         for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
             models.zero_()

@@ -15,8 +15,9 @@ the unit-peak spot and ``mu(a)`` the kernel's mean, so that the kernel's mean si
 window of pixels about ``m_i``, every dot within ``KER_REACH`` of it drawn with ``a_i``. Window weight
 and pixel grid are separable, so the normal matrix is a sum over neighbour pairs ``(j, k)`` of Kronecker
 products ``Y_jk (x) X_jk`` of ``T x T`` factors; it is solved by a Cholesky factorisation in a chunked
-global scratch. ``kernel_render`` draws every row's model with its own kernel into the fixed-point model
-image, ``kernel_moment`` moves each row to the first moment of its share of the light.
+global scratch. ``kernel_render`` draws every row's model with its own kernel on its stamp,
+``kernel_accumulate`` the stamps times their multipliers into the fixed-point model image, ``kernel_hold``
+fits the multipliers, and ``kernel_moment`` moves each row to the first moment of its held share.
 
 Rows are compact: row ``p`` of the step is the tracker's row ``rows[p]``; frame ``f`` is image ``f % 2``
 (0 the reference, 1 the gradient image) of pair ``f // 2``. The host code is
@@ -26,7 +27,7 @@ Rows are compact: row ``p`` of the step is the tracker's row ``rows[p]``; frame 
 
 import warp as wp
 
-from .ellipse_kernels import ellipse_fit_step, start_width
+from .ellipse_kernels import ellipse_fit_step, round_start, vec6d
 from .fit_kernels import profile_pixel, profile_start, to_fixed
 from .kernel_constants import (
     KER_FLUX_BOUND,
@@ -46,7 +47,6 @@ from .moment_kernels import SHARE_FLOOR, moves, reference_background
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
-TWO_PI = wp.constant(wp.float64(6.283185307179586))
 TWELFTH = wp.constant(wp.float64(1.0 / 12.0))
 mat_taps = wp.types.matrix(shape=(KER_TAPS, KER_TAPS), dtype=wp.float64)
 vec_window = wp.types.vector(length=KER_WINDOW, dtype=wp.float64)
@@ -123,14 +123,7 @@ def prior_start(
     params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), ell: wp.array2d(dtype=wp.float64)
 ):
     """Row's elliptical model starts as the symmetric fit's (as ``ellipse_start``)."""
-    i = rows[wp.tid()]
-    r = wp.float64(1.0) / start_width(params, i)
-    ell[i, 0] = TWO_PI * params[i, 2] * params[i, 3] * params[i, 3]
-    ell[i, 1] = params[i, 0]
-    ell[i, 2] = params[i, 1]
-    ell[i, 3] = r
-    ell[i, 4] = wp.float64(0.0)
-    ell[i, 5] = r
+    round_start(params, rows[wp.tid()], ell)
 
 
 @wp.kernel
@@ -424,15 +417,13 @@ def kernel_fit(
 
 @wp.kernel
 def kernel_render(
-    rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d),
-    flux: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64), kern: wp.array2d(dtype=wp.float64),
-    half: int, scales: wp.array(dtype=wp.float64), height: int, width: int, prof: wp.array3d(dtype=wp.float64),
-    stamp: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+    pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64), sigma: wp.array(dtype=wp.float64),
+    kern: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64),
+    stamp: wp.array3d(dtype=wp.float64),
 ):  # fmt: skip
-    """Row p's model with its own kernel on its ``2 half + 1`` stamp about its position: into ``stamp[p]``,
-    and (the pixels inside the image, fixed point) into its frame's model image."""
+    """Row p's model with its own kernel on its ``2 half + 1`` stamp about its position, into ``stamp[p]``
+    (``kernel_accumulate`` draws the stamps into the model image)."""
     p = wp.tid()
-    f = frame[rows[p]]
     n = 2 * half + 1
     ox = int(wp.rint(pos[p][0])) - half
     oy = int(wp.rint(pos[p][1])) - half
@@ -449,16 +440,46 @@ def kernel_render(
                     row += kern[p, b * KER_TAPS + a] * prof[p, a, c]
                 v += prof[p, KER_TAPS + b, r] * row
             stamp[p, r, c] = v
-            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
-                wp.atomic_add(models, (f * height + oy + r) * width + ox + c, to_fixed(v, scales[f]))
 
 
 @wp.func
-def held_share(stamp: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64), inv: wp.float64,
-               floor: wp.float64, alpha: wp.float64, p: int, r: int, c: int, at: int) -> wp.float64:  # fmt: skip
-    """Row p's share ``alpha m_p / M`` of pixel ``at`` (``M`` at least ``floor``, the share within [0, 1])."""
-    return wp.clamp(alpha * stamp[p, r, c] / wp.max(wp.float64(models[at]) * inv, floor), wp.float64(0.0),
-                    wp.float64(1.0))  # fmt: skip
+def held_sums(
+    refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
+    scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
+    background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), alpha: wp.array(dtype=wp.float64),
+    p: int,
+):  # fmt: skip
+    """Row p's sums over its stamp: its held share of the light ``L = w (I - b)``, ``w = alpha m_p / M``
+    (``M`` at least ``SHARE_FLOOR`` of its fitted peak, ``w`` within [0, 1]; outside the image its own
+    model): ``(sum L, sum (x - x_p) L, sum (y - y_p) L, sum L inside the image, sum m_p outside it,
+    sum m_p)``."""
+    i = rows[p]
+    f = frame[i]
+    height = refs.shape[1]
+    width = refs.shape[2]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    inv = wp.float64(1.0) / scales[f]
+    floor = SHARE_FLOOR * wp.abs(params[i, 2])
+    out = vec6d()
+    for r in range(n):
+        for c in range(n):
+            light = stamp[p, r, c]
+            out[5] += light
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                at = (f * height + oy + r) * width + ox + c
+                share = wp.clamp(alpha[p] * light / wp.max(wp.float64(models[at]) * inv, floor), wp.float64(0.0),
+                                 wp.float64(1.0))  # fmt: skip
+                light = share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
+                out[3] += light
+            else:
+                out[4] += light
+            out[0] += light
+            out[1] += (wp.float64(ox + c) - pos[p][0]) * light
+            out[2] += (wp.float64(oy + r) - pos[p][1]) * light
+    return out
 
 
 @wp.kernel
@@ -494,34 +515,13 @@ def kernel_hold(
     ``1 / KER_FLUX_STEP`` and ``KER_FLUX_STEP``, ``alpha`` within ``1 / KER_FLUX_BOUND`` and
     ``KER_FLUX_BOUND``); unchanged where either is not positive."""
     p = wp.tid()
-    i = rows[p]
-    f = frame[i]
-    height = refs.shape[1]
-    width = refs.shape[2]
-    n = 2 * half + 1
-    ox = int(wp.rint(pos[p][0])) - half
-    oy = int(wp.rint(pos[p][1])) - half
-    inv = wp.float64(1.0) / scales[f]
-    floor = SHARE_FLOOR * wp.abs(params[i, 2])
-    zero = wp.float64(0.0)
-    held = zero
-    total = zero
-    outside = zero
-    for r in range(n):
-        for c in range(n):
-            total += stamp[p, r, c]
-            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
-                at = (f * height + oy + r) * width + ox + c
-                share = held_share(stamp, models, inv, floor, alpha[p], p, r, c, at)
-                held += share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
-            else:
-                outside += stamp[p, r, c]
-    ksum = zero
+    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
+    ksum = wp.float64(0.0)
     for k in range(KER_UNKNOWNS):
         ksum += kern[p, k]
-    target = total / ksum - outside
-    if target > zero and held > zero:
-        ratio = wp.clamp(target / held, wp.float64(1.0) / KER_FLUX_STEP, KER_FLUX_STEP)
+    target = sums[5] / ksum - sums[4]
+    if target > wp.float64(0.0) and sums[3] > wp.float64(0.0):
+        ratio = wp.clamp(target / sums[3], wp.float64(1.0) / KER_FLUX_STEP, KER_FLUX_STEP)
         alpha[p] = wp.clamp(alpha[p] * ratio, wp.float64(1.0) / KER_FLUX_BOUND, KER_FLUX_BOUND)
 
 
@@ -533,34 +533,12 @@ def kernel_moment(
     background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), alpha: wp.array(dtype=wp.float64),
     failed: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """Row p moves to the first moment of its held share of the light, ``L = w (I - b)``, ``w = alpha m_p /
-    M`` (:func:`held_share`; outside the image its own model); marked failed (kept) where it holds none."""
+    """Row p moves to the first moment of its held share of the light (:func:`held_sums`); marked failed
+    (kept) where it holds none."""
     p = wp.tid()
-    i = rows[p]
-    f = frame[i]
-    height = refs.shape[1]
-    width = refs.shape[2]
-    n = 2 * half + 1
-    ox = int(wp.rint(pos[p][0])) - half
-    oy = int(wp.rint(pos[p][1])) - half
-    inv = wp.float64(1.0) / scales[f]
-    floor = SHARE_FLOOR * wp.abs(params[i, 2])
-    zero = wp.float64(0.0)
-    total = zero
-    sx = zero
-    sy = zero
-    for r in range(n):
-        for c in range(n):
-            light = stamp[p, r, c]
-            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
-                at = (f * height + oy + r) * width + ox + c
-                share = held_share(stamp, models, inv, floor, alpha[p], p, r, c, at)
-                light = share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
-            total += light
-            sx += (wp.float64(ox + c) - pos[p][0]) * light
-            sy += (wp.float64(oy + r) - pos[p][1]) * light
-    if total > zero:
-        pos[p] = wp.vec2d(pos[p][0] + sx / total, pos[p][1] + sy / total)
+    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
+    if sums[0] > wp.float64(0.0):
+        pos[p] = wp.vec2d(pos[p][0] + sums[1] / sums[0], pos[p][1] + sums[2] / sums[0])
     else:
         failed[p] = 1
 
