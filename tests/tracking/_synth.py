@@ -2,6 +2,7 @@
 
 import numpy as np
 from scipy.spatial import cKDTree
+from synthbos.tracking.dotfit import fit_dots, fit_window_half
 
 
 def dot_pattern(rng, shape, *, per_32x32=20.0, min_distance=3.0, margin=3.0):
@@ -59,3 +60,15 @@ def distorted_dots(rng, shape, xy, *, diameter=3.0, strength=0.4, rays=48):
     landing = xy[:, None, :] + along[..., None] * normal[:, None, :]
     image = draw_dots(shape, landing.reshape(-1, 2), diameter, intensity=1.0 / rays)
     return image, landing.mean(axis=1)
+
+
+def fitted_pair(reference, gradient, xy, truth, device):
+    """The model fit of both images, started at the truth, and the step's keywords."""
+    n = len(xy)
+    half, render_half = fit_window_half(0.75)
+    start = np.column_stack([np.r_[xy, xy + truth], np.ones(2 * n), np.full(2 * n, 0.75), np.zeros(2 * n)])
+    frame = np.r_[np.zeros(n, int), np.ones(n, int)]
+    partner = np.r_[np.arange(n) + n, np.arange(n)]
+    params, _, _ = fit_dots([reference, gradient], start, half=half, render_half=render_half, frame=frame,
+                            partner=partner, iterations=3, device=device)  # fmt: skip
+    return params, {"half": render_half, "frame": frame, "partner": partner, "noise": (0.0, 0.0)}

@@ -9,11 +9,11 @@ centres it.
 
 import numpy as np
 import pytest
-from _synth import distorted_dots, dot_pattern, smooth_displacement
+from _synth import distorted_dots, dot_pattern, fitted_pair, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.dotfit import fit_dots, fit_window_half, moment_shifts
+from synthbos.tracking.dotfit import fit_window_half, moment_shifts
 from synthbos.tracking.reference import moment_shifts_numpy
 from synthbos.tracking.stack import track_pairs
 
@@ -34,24 +34,12 @@ def _errors(table, truth, *, cc=False):
     return np.hypot(table[u] - truth[:, 0], table[v] - truth[:, 1])[ok], ok
 
 
-def _fitted(reference, gradient, xy, truth, device):
-    """The model fit of both images, started at the truth, and the step's keywords."""
-    n = len(xy)
-    half, render_half = fit_window_half(0.75)
-    start = np.column_stack([np.r_[xy, xy + truth], np.ones(2 * n), np.full(2 * n, 0.75), np.zeros(2 * n)])
-    frame = np.r_[np.zeros(n, int), np.ones(n, int)]
-    partner = np.r_[np.arange(n) + n, np.arange(n)]
-    params, _, _ = fit_dots([reference, gradient], start, half=half, render_half=render_half, frame=frame,
-                            partner=partner, iterations=3, device=device)  # fmt: skip
-    return params, {"half": render_half, "frame": frame, "partner": partner, "noise": (0.0, 0.0)}
-
-
 @pytest.mark.parametrize("ellipse", [False, True])
 def test_moment_shifts_device_equals_numpy(device, ellipse):
     """Crowded dots (14 per 32x32 px, >= 3 px apart), some whose stamps cross the image edge."""
     reference, gradient, xy, truth = _pair(1, per_32x32=14.0, min_distance=3.0, margin=1.0)
     n = len(xy)
-    params, kw = _fitted(reference, gradient, xy, truth, device)
+    params, kw = fitted_pair(reference, gradient, xy, truth, device)
     _, render_half = fit_window_half(0.75)
     crossing = ((np.rint(params[n:, :2]) < render_half) | (np.rint(params[n:, :2]) > 127 - render_half)).any(axis=1)
     d_ref, a_ref = moment_shifts_numpy([reference, gradient], params, ellipse=ellipse, **kw)
@@ -71,7 +59,7 @@ def test_ellipse_step_measures_crowded_distorted_dots():
     step, 0.004 px with the elliptical one."""
     reference, gradient, xy, truth = _pair(1, per_32x32=14.0, min_distance=3.0)
     n = len(xy)
-    params, kw = _fitted(reference, gradient, xy, truth, "cpu")
+    params, kw = fitted_pair(reference, gradient, xy, truth, "cpu")
     errors = {}
     for ellipse in (False, True):
         d, _ = moment_shifts([reference, gradient], params, device="cpu", ellipse=ellipse, **kw)

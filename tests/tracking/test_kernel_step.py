@@ -9,11 +9,11 @@ neighbours are distorted nearly alike, each dot is skewed, and the truth is its 
 
 import numpy as np
 import pytest
-from _synth import dot_pattern, smooth_displacement
+from _synth import dot_pattern, fitted_pair, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.dotfit import fit_dots, fit_window_half, moment_shifts
+from synthbos.tracking.dotfit import moment_shifts
 from synthbos.tracking.reference import moment_shifts_numpy
 from synthbos.tracking.stack import track_pairs
 
@@ -54,13 +54,8 @@ def test_kernel_step_device_equals_numpy(device, kernel):
     positions and the shifts of the Warp step equal its NumPy reference's."""
     reference, gradient, xy, truth = _pair(4, (64, 64))
     n = len(xy)
-    half, render_half = fit_window_half(0.75)
-    start = np.column_stack([np.r_[xy, xy + truth], np.ones(2 * n), np.full(2 * n, 0.75), np.zeros(2 * n)])
-    frame = np.r_[np.zeros(n, int), np.ones(n, int)]
-    partner = np.r_[np.arange(n) + n, np.arange(n)]
-    params, _, _ = fit_dots([reference, gradient], start, half=half, render_half=render_half, frame=frame,
-                            partner=partner, iterations=3, device=device)  # fmt: skip
-    kw = {"half": render_half, "frame": frame, "partner": partner, "noise": (0.0, 0.0), "kernel": kernel}
+    params, kw = fitted_pair(reference, gradient, xy, truth, device)
+    kw["kernel"] = kernel
     got, want = {}, {}
     d, a = moment_shifts([reference, gradient], params, device=device, kernels=got, **kw)
     d_ref, a_ref = moment_shifts_numpy([reference, gradient], params, kernels=want, **kw)
