@@ -76,9 +76,9 @@ def track_seconds(pair, noise_percent, settings, device, repeats) -> float:
     return best
 
 
-def measure_case(pair, *, noise_percent, device, repeats=1) -> dict:
-    """Every method with each distorted-dot step on one pair; the floor and the cone gap; ``seconds``:
-    ``track_pair``'s best wall time over ``repeats`` calls (:func:`track_seconds`)."""
+def measure_case(pair, *, noise_percent, device, repeats=1, steps=STEPS) -> dict:
+    """Every method with each distorted-dot step of ``steps`` on one pair; the floor and the cone gap;
+    ``seconds``: ``track_pair``'s best wall time over ``repeats`` calls (:func:`track_seconds`)."""
     valid = pair.valid & np.all(np.isfinite(pair.displacement_px), axis=1)
     gap = pair.displacement_px[valid] - pair.theory_cone_px[valid]
     row = {
@@ -93,7 +93,7 @@ def measure_case(pair, *, noise_percent, device, repeats=1) -> dict:
         ),
     }
     for method in METHODS:
-        for distortion in STEPS:
+        for distortion in steps:
             settings = TrackingSettings(distortion=distortion)
             res = measure_pair(pair, method, noise_percent=noise_percent, device=device, settings=settings)
             s = score_result(pair, method, res)
@@ -106,7 +106,7 @@ def measure_case(pair, *, noise_percent, device, repeats=1) -> dict:
             }
     # one track_pair call serves both methods (tracking-cc reads its model correction): timed once per step,
     # after the measurements above have built its kernels
-    for distortion in STEPS:
+    for distortion in steps:
         seconds = track_seconds(pair, noise_percent, TrackingSettings(distortion=distortion), device, repeats)
         for method in METHODS:
             row[f"{method}/{distortion}"]["seconds"] = seconds

@@ -174,6 +174,7 @@ _TRACKING_KERNELS = (
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.moment_kernels",
     "synthbos.tracking.ellipse_kernels",
+    "synthbos.tracking.kernel_step_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
 )
@@ -184,6 +185,7 @@ STACK_KERNELS = (
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.identify_kernels",
+    "synthbos.tracking.kernel_step_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
@@ -197,9 +199,7 @@ STACK_CPU_KERNELS = tuple(
     sorted({*STACK_KERNELS, "synthbos.tracking.deform_kernels"} - {"synthbos.tracking.predict_fft_kernels"})
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
-# where a coarser pass left a field, and is built on its first launch. Neither list holds the shared-kernel
-# step (kernel_step_kernels): it runs only with TrackingSettings(distortion="kernel" or "flux"), built on its
-# first launch, so that a default campaign's first run does not compile it.
+# where a coarser pass left a field, and is built on its first launch.
 _TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
 # track_pair with the default estimators is a stack of one: those of the stack too (on the CPU, deform_kernels
 # again left to its first launch)

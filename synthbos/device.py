@@ -198,6 +198,8 @@ def load_kernels(pairs, *, max_workers=None) -> None:
         mods = by_device.setdefault(str(device), {})
         for m in _warp_modules(name):
             mods.setdefault(m, name)
+    if not by_device:  # nothing to build (a campaign with nothing left to do)
+        return
     workers = max_workers if max_workers is not None else (os.cpu_count() or 1)
     missing = [(name, d, m.name) for d, mods in by_device.items() if wp.get_device(d).is_cuda
                for m, name in mods.items() if not _cached(m, d)]

@@ -153,3 +153,13 @@ print(_cached(module, "cpu"))
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["True"]
     assert log.read_text() == "run\n"
+
+
+def test_load_kernels_of_nothing_returns():
+    """A campaign with nothing left to do (every item on disk) asks for no module: ``load_kernels([])``
+    returns instead of starting a pool of no threads (``paper`` rerun in a finished folder on a GPU
+    stopped there with "max_workers must be greater than 0")."""
+    from synthbos.device import load_kernels
+
+    assert load_kernels([]) is None
+    assert load_kernels([], max_workers=4) is None

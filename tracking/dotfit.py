@@ -530,8 +530,9 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
         ellipse_step(grads, models, scales, rows.params, rows.frame, rows.partner, prof, shift, half=half,
                      max_shift=float(max_shift), device=device)  # fmt: skip
     if kernel:
-        kernel_step(refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, shift, half=half,
-                    max_shift=float(max_shift), fit=kernel != "prior", record=record, device=device)  # fmt: skip
+        kernel_step(refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, prof, shift,
+                    half=half, max_shift=float(max_shift), fit=kernel != "prior", record=record,
+                    device=device)  # fmt: skip
     return shift
 
 

@@ -756,8 +756,9 @@ def apply_moment_shift(
         d = shift[i]
         params[i, 0] = params[i, 0] + d[0]
         params[i, 1] = params[i, 1] + d[1]
-        shared_xy[i, 0] = shared_xy[i, 0] + d[0]
-        shared_xy[i, 1] = shared_xy[i, 1] + d[1]
+        if wp.isfinite(shared_xy[i, 0]):
+            shared_xy[i, 0] = params[i, 0]
+            shared_xy[i, 1] = params[i, 1]
         moved[i] = 1
 
 

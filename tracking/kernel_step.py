@@ -1,8 +1,9 @@
 """The shared-kernel step: host code shared by ``track_pair`` and the stacked tracker.
 
-After the elliptical step (:func:`tracking.ellipse.ellipse_step`), every dot of a pair that holds a moving
-dot gets a non-parametric ray-landing kernel fitted to the pixels about it and shared there by its
-neighbours, and moves to the first moment of the share of the light its kernel model gets
+After the elliptical step (:func:`tracking.ellipse.ellipse_step`), every distorted dot gets a
+non-parametric ray-landing kernel fitted to the pixels about it and shared there by its neighbours (the
+dots near it keep their elliptical prior), and it moves to the first moment of the share of the light its
+kernel model gets
 (:mod:`tracking.kernel_step_kernels`; the NumPy reference is ``tracking.reference.moment_shifts_numpy``
 with ``kernel=True``). Which dots take the result is still the first-moment step's gate.
 """
@@ -24,11 +25,14 @@ from .kernel_step_kernels import (
     kernel_render,
     kernel_rows,
     kernel_start,
+    not_taking_part,
     prior_fit,
     prior_start,
+    row_points,
 )
 from .settings import (
     ELLIPSE_SWEEPS,
+    KERNEL_FITS,
     KERNEL_FLUX_SWEEPS,
     KERNEL_ITERATIONS,
     KERNEL_MAX_NEIGHBOURS,
@@ -39,14 +43,14 @@ from .settings import (
 
 __all__ = ["kernel_step"]
 
-#: Rows fitted per launch (their scratch is ~130 kB each).
-CHUNK_ROWS = {"cpu": 512, "cuda": 8192}
+#: Rows fitted per launch (their scratch is ~104 kB each; on a GPU at most, :func:`chunk_rows`).
+CHUNK_ROWS = {"cpu": 512, "cuda": 65536}
 #: Frames lie this far apart along the hash grid's z axis.
 Z_STEP = 4.0 * (KERNEL_REACH_PX + 1.0)
 
 
-def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift, *, half, max_shift, fit=True,
-                record=None, device=None):
+def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof, shift, *, half, max_shift, fit=True,
+                record=None, device=None):  # fmt: skip
     """Replace the shifts of the moving dots by their shared-kernel moments.
 
     Parameters
@@ -61,6 +65,9 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
         Fitted parameters of every row.
     frame, partner, live : Warp int32 arrays (N,)
         Frame of each row, the row of its partner in the other image (-1 for none), and whether it was fitted.
+    prof : Warp float64 array (N, 6, 2 half + 1)
+        The rows' profiles on their stamps (``render_dots_kernel``): the rows that do not take part are
+        drawn with their symmetric models.
     shift : Warp vec3d array (N,)
         The earlier steps' shifts and codes: the moving rows' shifts are replaced where their kernel
         moment is usable (``kernel_finish``), the codes kept.
@@ -78,10 +85,11 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
 
     Notes
     -----
-    Every live row of a frame holding a moving row takes part (the moving dots' neighbours need kernels
-    too; a pair is measured alike). Their prior is the elliptical fit of all of them together
-    (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: every row's
-    kernel fit (``kernel_fit``, chunked), every row's kernel model drawn (``kernel_render``) with its
+    Every live row within ``KERNEL_REACH_PX`` of a moving row of its frame takes part (``kernel_rows``: the
+    moving dots' neighbours share their light). Their prior is the elliptical fit of all of them together
+    (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: in the first
+    ``KERNEL_FITS``, every distorted row's kernel fit (``kernel_fit``, chunked; the others keep their
+    prior), every row's kernel model drawn (``kernel_render``) with its
     reference partner's flux, the shares held to that flux (``KERNEL_FLUX_SWEEPS`` sweeps of
     ``kernel_accumulate`` and ``kernel_hold``: each row's multiplier in the shares) and every row moved to
     its moment (``kernel_moment``). Nothing past ``kernel_frames`` runs where no row moves.
@@ -93,33 +101,44 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, shift
     wp.launch(kernel_frames, dim=n, inputs=[shift, partner, live, frame, busy], device=device)
     if not busy.numpy().any():
         return
+    near = wp.HashGrid(128, 128, 64, device=device)
+    points = wp.empty(n, dtype=wp.vec3, device=device)
+    wp.launch(row_points, dim=n, inputs=[params, frame, live, Z_STEP, points], device=device)
+    near.build(points, KERNEL_REACH_PX + 0.5)
     part = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(kernel_rows, dim=n, inputs=[live, frame, busy, part], device=device)
+    wp.launch(kernel_rows, dim=n, inputs=[near.id, Z_STEP, params, shift, partner, live, frame, part], device=device)
     rows_host = np.flatnonzero(part.numpy()).astype(np.int32)
     rows = wp.array(rows_host, dtype=wp.int32, device=device)
     m = len(rows_host)
-    ell = _prior_fit(refs, grads, models, scales, params, frame, partner, part, rows, half, device)
+    # the model image of the live rows that do not take part: their symmetric models
+    others = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(not_taking_part, dim=n, inputs=[live, part, others], device=device)
+    models.zero_()
+    wp.launch(ellipse_render, dim=n, inputs=[params, frame, others, params, prof, 1, 1, half, scales, height, width,
+                                             models], device=device)  # fmt: skip
+    base = wp.clone(models)
+    ell = _prior_fit(refs, grads, models, base, scales, params, frame, partner, part, rows, half, device)
     state = _State(m, half, device)
     start = [params, frame, partner, shift, rows, ell, state.pos, state.flux, state.sigma, state.background,
              state.prior, state.kern]  # fmt: skip
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
-    if fit:  # the kernel fit's frame levels, neighbour grid and scratch
+    if fit:  # the kernel fit's frame levels and scratch
         level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
         grid = wp.HashGrid(128, 128, 64, device=device)
         scratch = _Scratch(m, device)
     held = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models]
-    for _ in range(KERNEL_ITERATIONS):
-        if fit:
-            _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device)  # swaps state.kern
+    for iteration in range(KERNEL_ITERATIONS):
+        if fit and iteration < KERNEL_FITS:
+            _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, device)  # swaps state.kern
         draw = [state.pos, state.flux, state.sigma, state.kern, half, state.stamp_prof, state.stamp]
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
         for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
-            models.zero_()
+            wp.copy(models, base)
             wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
             wp.launch(kernel_hold, dim=m, inputs=[refs, grads, models, scales, params, rows, frame, half, state.stamp,
                                                   state.background, state.pos, state.kern, state.alpha],
                       device=device)  # fmt: skip
-        models.zero_()
+        wp.copy(models, base)
         wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
         moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
                   state.alpha, state.failed]  # fmt: skip
@@ -154,8 +173,8 @@ class _Scratch:
     normal matrix and the right side."""
 
     def __init__(self, m, device):
-        self.chunk = min(m, CHUNK_ROWS["cuda" if wp.get_device(device).is_cuda else "cpu"])
         taps, window = KERNEL_TAPS, 2 * KERNEL_WINDOW_HALF + 1
+        self.chunk = min(m, chunk_rows(device))
         self.nbr = wp.empty((self.chunk, KERNEL_MAX_NEIGHBOURS), dtype=wp.int32, device=device)
         self.prof = wp.empty((self.chunk, 2 * KERNEL_MAX_NEIGHBOURS * taps, window), dtype=wp.float64, device=device)
         self.normal = wp.empty((self.chunk, taps * taps, taps * taps), dtype=wp.float64, device=device)
@@ -163,16 +182,37 @@ class _Scratch:
         self.points = wp.empty(m, dtype=wp.vec3, device=device)
 
 
-def _prior_fit(refs, grads, models, scales, params, frame, partner, part, rows, half, device):
-    """The elliptical fit of every taking-part row at once (both images), from the symmetric fit:
-    ``(N, 6)`` Warp array of ``(F, x0, y0, r1, r2, r3)`` (rows not taking part left unset)."""
+def chunk_rows(device) -> int:
+    """Rows fitted per ``kernel_fit`` launch: on the CPU ``CHUNK_ROWS["cpu"]``; on a GPU as many as an eighth
+    of its free memory holds (some 104 kB of scratch a row), within ``CHUNK_ROWS["cuda"]``: each thread
+    solves its row alone, so a GPU needs many of them at once (a stack of 8 zero-noise 512-px pairs on an
+    H100: 1.27 s at 8192 rows a launch, 0.55 s at 32768, 0.39 s at 65536).
+
+    Examples
+    --------
+    >>> chunk_rows("cpu")
+    512
+    """
+    d = wp.get_device(device)
+    if not d.is_cuda:
+        return CHUNK_ROWS["cpu"]
+    taps2, window = KERNEL_TAPS**2, 2 * KERNEL_WINDOW_HALF + 1
+    floats = taps2 * taps2 + taps2 + 2 * KERNEL_MAX_NEIGHBOURS * KERNEL_TAPS * window
+    row_bytes = 8 * floats + 4 * KERNEL_MAX_NEIGHBOURS
+    return int(np.clip(d.free_memory // (8 * row_bytes), CHUNK_ROWS["cpu"], CHUNK_ROWS["cuda"]))
+
+
+def _prior_fit(refs, grads, models, base, scales, params, frame, partner, part, rows, half, device):
+    """The elliptical fit of every taking-part row at once (both images), from the symmetric fit, against
+    the model image ``base`` of the others: ``(N, 6)`` Warp array of ``(F, x0, y0, r1, r2, r3)`` (rows not
+    taking part left unset)."""
     n, m = params.shape[0], rows.shape[0]
     height, width = refs.shape[1], refs.shape[2]
     ell = wp.zeros((n, 6), dtype=wp.float64, device=device)
     unused = wp.empty((1, 1, 1), dtype=wp.float64, device=device)  # the symmetric models' profiles: not drawn
     wp.launch(prior_start, dim=m, inputs=[params, rows, ell], device=device)
     for _ in range(ELLIPSE_SWEEPS):
-        models.zero_()
+        wp.copy(models, base)
         wp.launch(ellipse_render, dim=n, inputs=[params, frame, part, ell, unused, 0, 1, half, scales, height, width,
                                                  models], device=device)  # fmt: skip
         wp.launch(prior_fit, dim=m, inputs=[refs, grads, models, scales, params, frame, partner, rows, half, ell],
@@ -193,14 +233,16 @@ def _frame_levels(background, frames_of_rows, frames, device):
     return wp.array(level, dtype=wp.float64, device=device)
 
 
-def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, device):
-    """Every row's kernel fit (``kernel_fit``), in chunks; the new kernels replace the old."""
+def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, device):
+    """Every distorted row's kernel fit (``kernel_fit``), in chunks; the new kernels replace the old (the
+    grid is rebuilt on the rows' positions)."""
     m, chunk = rows.shape[0], scratch.chunk
     wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, scratch.points], device=device)
     grid.build(scratch.points, KERNEL_REACH_PX + 0.5)
     for start in range(0, m, chunk):
         wp.launch(kernel_fit, dim=min(chunk, m - start),
                   inputs=[start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma,
-                          state.prior, state.kern, state.spare, scratch.nbr, scratch.prof, scratch.normal, scratch.rhs],
+                          state.prior, state.kern, state.spare, scratch.nbr, scratch.prof, scratch.normal, scratch.rhs,
+                          shift],
                   device=device)  # fmt: skip
     state.kern, state.spare = state.spare, state.kern

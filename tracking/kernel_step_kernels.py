@@ -43,7 +43,7 @@ from .kernel_constants import (
     KER_WINDOW_HALF,
     KER_WINDOW_SIGMA,
 )
-from .moment_kernels import SHARE_FLOOR, moves, reference_background
+from .moment_kernels import DISTORTED_CODE, SHARE_FLOOR, moves, reference_background
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
@@ -109,13 +109,44 @@ def kernel_frames(
 
 
 @wp.kernel
+def row_points(
+    params: wp.array2d(dtype=wp.float64), frame: wp.array(dtype=wp.int32), live: wp.array(dtype=wp.int32),
+    z_step: float, points: wp.array(dtype=wp.vec3),
+):  # fmt: skip
+    """Hash-grid point of row i: its fitted position, frames apart along z (a row not live far below)."""
+    i = wp.tid()
+    z = float(frame[i]) * z_step
+    if live[i] == 0:
+        z = -1.0e9
+    points[i] = wp.vec3(wp.float32(params[i, 0]), wp.float32(params[i, 1]), z)
+
+
+@wp.kernel
 def kernel_rows(
-    live: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
+    grid: wp.uint64, z_step: float, params: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
+    partner: wp.array(dtype=wp.int32), live: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
     part: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """Every live row of a frame that takes part takes part."""
+    """A live row takes part where a moving row of its frame lies within ``KER_REACH`` of it (itself too)."""
     i = wp.tid()
-    part[i] = int(live[i] != 0 and busy[frame[i]] != 0)
+    part[i] = 0
+    if live[i] == 0:
+        return
+    f = frame[i]
+    centre = wp.vec3(wp.float32(params[i, 0]), wp.float32(params[i, 1]), float(f) * z_step)
+    for q in wp.hash_grid_query(grid, centre, float(KER_REACH) + 0.5):
+        if live[q] != 0 and frame[q] == f and moves(shift, partner, q):
+            dx = params[q, 0] - params[i, 0]
+            dy = params[q, 1] - params[i, 1]
+            if dx * dx + dy * dy <= KER_REACH * KER_REACH:
+                part[i] = 1
+
+
+@wp.kernel
+def not_taking_part(live: wp.array(dtype=wp.int32), part: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """A live row that does not take part (its symmetric model stays in the model image)."""
+    i = wp.tid()
+    out[i] = int(live[i] != 0 and part[i] == 0)
 
 
 @wp.kernel
@@ -218,6 +249,12 @@ def kernel_points(
 
 
 @wp.func
+def before(pos: wp.array(dtype=wp.vec2d), a: int, b: int) -> bool:
+    """Whether row a's position comes before row b's in raster order (y, then x)."""
+    return pos[a][1] < pos[b][1] or (pos[a][1] == pos[b][1] and pos[a][0] < pos[b][0])
+
+
+@wp.func
 def gather_neighbours(
     grid: wp.uint64, pos: wp.array(dtype=wp.vec2d), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
     z_step: float, p: int, t: int, nbr: wp.array2d(dtype=wp.int32),
@@ -235,7 +272,17 @@ def gather_neighbours(
                 if count < KER_MAX_NEIGHBOURS:
                     nbr[t, count] = q
                 count += 1
-    return wp.min(count, KER_MAX_NEIGHBOURS + 1)
+    count = wp.min(count, KER_MAX_NEIGHBOURS + 1)
+    # in raster order of their positions (insertion sort): the fit's sums then do not depend on the rows'
+    # order or the grid's, and track_pair's per-pair path and the stack agree to the bit
+    for k in range(1, wp.min(count, KER_MAX_NEIGHBOURS)):
+        q = nbr[t, k]
+        j = k
+        while j > 0 and before(pos, q, nbr[t, j - 1]):
+            nbr[t, j] = nbr[t, j - 1]
+            j -= 1
+        nbr[t, j] = q
+    return count
 
 
 @wp.func
@@ -387,16 +434,20 @@ def kernel_fit(
     level: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64),
     sigma: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
     fitted: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
-    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64),
+    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
 ):  # fmt: skip
     """Row ``p = offset + t``'s kernel: the ridge least-squares fit to its window of the image less its
     frame's ``level``, every dot within ``KER_REACH`` drawn with it (placed by the row's last kernel's
-    mean); the last kernel kept where the neighbours are too many or the fit fails."""
+    mean); the last kernel kept where the row is not distorted itself (its first-moment code), the
+    neighbours are too many or the fit fails."""
     t = wp.tid()
     p = offset + t
     f = frame[rows[p]]
-    count = gather_neighbours(grid, pos, rows, frame, z_step, p, t, nbr)
-    ok = count <= KER_MAX_NEIGHBOURS
+    count = int(0)  # noqa: UP018, RUF046 (a Warp variable, not a constant)
+    ok = False
+    if shift[rows[p]][2] == DISTORTED_CODE:
+        count = gather_neighbours(grid, pos, rows, frame, z_step, p, t, nbr)
+        ok = count <= KER_MAX_NEIGHBOURS
     if ok:
         mu = kernel_mean(last, p)
         ox = int(wp.rint(pos[p][0])) - KER_WINDOW_HALF

@@ -160,7 +160,7 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
             chi2=settings.distortion_chi2, **distortion_options(settings.distortion), device=device,
         )  # fmt: skip
         params[:, :2] += d
-        shared += d
+        shared[moved] = np.where(np.isfinite(shared[moved]), params[moved, :2], np.nan)
     fits = []
     for (idx, _), found, rows in zip(starts, founds, (slice(0, idx_r.size), slice(idx_r.size, None)), strict=True):
         n = len(found["x"])

@@ -36,7 +36,7 @@ from .moment_kernels import (
     SHARE_FLOOR_REL,
 )
 from .predict import _bilinear, _tile_stack, _tiles_view
-from .reference_kernel import kernel_shifts
+from .reference_kernel import kernel_shifts, taking_part
 from .register import _gradients
 from .register_kernels import MAX_STEP_PX, MIN_PIXELS, REGISTRATION_STEPS
 from .settings import (
@@ -472,10 +472,11 @@ def moment_shifts_numpy(
         ok &= np.abs(flux - model_flux) <= MAX_RESIDUAL_FLUX_REL * np.abs(model_flux)
         shift[np.flatnonzero(active)[ok]] = d[ok]
     if kernel and applied.any():
-        part = np.isin(frame, np.unique(frame[applied]))
+        part = taking_part(p, frame, applied)
         ell = _ellipse_fit(stack, p, frame, part, background, half)[0]  # the kernels' prior
-        shift = kernel_shifts(stack, p, frame, partner, applied, shift, background, half, max_shift, ell,
-                              {} if kernels is None else kernels, fit=kernel != "prior")  # fmt: skip
+        others = render_dots(stack.shape, p[~part], half=half, frame=frame[~part])  # the rest, symmetric
+        shift = kernel_shifts(stack, p, frame, partner, applied, distorted, part, others, shift, background, half,
+                              max_shift, ell, {} if kernels is None else kernels, fit=kernel != "prior")  # fmt: skip
     return np.where(applied[:, None], shift, 0.0), applied
 
 

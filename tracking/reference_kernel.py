@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from .dotfit import integrated_profile
 from .moment_kernels import SHARE_FLOOR_REL
 from .settings import (
+    KERNEL_FITS,
     KERNEL_FLUX_BOUND,
     KERNEL_FLUX_STEP,
     KERNEL_FLUX_SWEEPS,
@@ -24,15 +25,27 @@ from .settings import (
     KERNEL_WINDOW_SIGMA_PX,
 )
 
-__all__ = ["kernel_shifts"]
+__all__ = ["kernel_shifts", "taking_part"]
 
 
-def kernel_shifts(stack, p, frame, partner, applied, shift, background, half, max_shift, ell, record, *, fit=True):
-    """The shared-kernel step (:func:`tracking.kernel_step.kernel_step`): every row of a frame holding a
-    moving row, its prior ``ell`` the elliptical fit of them all, then ``KERNEL_ITERATIONS`` kernel fits and
-    moments; the moving rows take their last positions where usable (``record``: as ``moment_shifts``'s
-    ``kernels``)."""
-    part = np.isin(frame, np.unique(frame[applied]))
+def taking_part(p, frame, applied):
+    """The rows of the shared-kernel step: those within ``KERNEL_REACH_PX`` of a moving (``applied``) row of
+    their frame (``kernel_rows``)."""
+    moving = np.flatnonzero(applied)
+    part = np.zeros(len(p), dtype=bool)
+    if moving.size:
+        tree = cKDTree(np.column_stack([p[moving, :2], frame[moving] * 1e6]))
+        near = tree.query_ball_point(np.column_stack([p[:, :2], frame * 1e6]), KERNEL_REACH_PX)
+        part = np.array([len(q) > 0 for q in near], dtype=bool)
+    return part
+
+
+def kernel_shifts(stack, p, frame, partner, applied, distorted, part, others, shift, background, half, max_shift, ell,
+                  record, *, fit=True):  # fmt: skip
+    """The shared-kernel step (:func:`tracking.kernel_step.kernel_step`) of the rows ``part`` (:func:`taking_part`;
+    ``others``: the model image of the rest), their prior ``ell`` the elliptical fit of them all, then
+    ``KERNEL_ITERATIONS`` moments, the ``distorted`` rows' kernels fitted in the first ``KERNEL_FITS``; the
+    moving rows take their last positions where usable (``record``: as ``moment_shifts``'s ``kernels``)."""
     rows = np.flatnonzero(part)
     gradient = (frame[rows] % 2 == 1) & (partner[rows] >= 0)
     src = np.where(gradient, np.maximum(partner[rows], 0), rows)  # the reference partner: width and flux
@@ -42,11 +55,11 @@ def kernel_shifts(stack, p, frame, partner, applied, shift, background, half, ma
     b = background[rows]
     level = {f: np.median(b[frame[rows] == f]) for f in np.unique(frame[rows])}
     kern, failed, alpha = prior.copy(), np.zeros(len(rows), dtype=bool), np.ones(len(rows))
-    for _ in range(KERNEL_ITERATIONS):
-        if fit:  # else the kernels stay at their prior
-            kern = _kernel_fit(stack, frame[rows], level, pos, flux, sigma, prior, kern)
-        pos, failed, alpha = _kernel_moments(stack, p[rows, 2], frame[rows], pos, flux, sigma, kern, b, half, failed,
-                                             alpha)  # fmt: skip
+    for iteration in range(KERNEL_ITERATIONS):
+        if fit and iteration < KERNEL_FITS:  # else the kernels stay as they are
+            kern = _kernel_fit(stack, frame[rows], level, pos, flux, sigma, prior, kern, distorted[rows])
+        pos, failed, alpha = _kernel_moments(stack, others, p[rows, 2], frame[rows], pos, flux, sigma, kern, b, half,
+                                             failed, alpha)  # fmt: skip
     d = pos - p[rows, :2]
     take = applied[rows] & ~failed & ((d**2).sum(axis=1) <= max_shift**2)
     shift = shift.copy()
@@ -81,9 +94,9 @@ def _kernel_mean(kern):
     return k3.sum(axis=1) @ _taps() / total, k3.sum(axis=2) @ _taps() / total
 
 
-def _kernel_fit(stack, frame, level, pos, flux, sigma, prior, last):
-    """Each row's kernel, the weighted ridge fit to its window (every row of its frame within
-    ``KERNEL_REACH_PX`` drawn with it); the last one kept with too many neighbours or no solution."""
+def _kernel_fit(stack, frame, level, pos, flux, sigma, prior, last, distorted):
+    """Each distorted row's kernel, the weighted ridge fit to its window (every row of its frame within
+    ``KERNEL_REACH_PX`` drawn with it); the last one kept elsewhere, with too many neighbours or no solution."""
     h, w = stack.shape[1:]
     n = 2 * KERNEL_WINDOW_HALF + 1
     taps, k2 = _taps(), KERNEL_TAPS**2
@@ -92,7 +105,7 @@ def _kernel_fit(stack, frame, level, pos, flux, sigma, prior, last):
     tree = cKDTree(np.column_stack([pos, frame * 1e6]))
     for i, near in enumerate(tree.query_ball_point(np.column_stack([pos, frame * 1e6]), KERNEL_REACH_PX)):
         near = np.asarray(near)
-        if len(near) > KERNEL_MAX_NEIGHBOURS:
+        if not distorted[i] or len(near) > KERNEL_MAX_NEIGHBOURS:
             continue
         ox, oy = np.rint(pos[i]).astype(np.int64) - KERNEL_WINDOW_HALF
         cx = (pos[near, 0, None] - mux[i] + taps[None]).ravel()
@@ -117,8 +130,9 @@ def _kernel_fit(stack, frame, level, pos, flux, sigma, prior, last):
     return out
 
 
-def _kernel_moments(stack, peak, frame, pos, flux, sigma, kern, b, half, failed, alpha):
-    """Every row's kernel model on its stamp about its position, the shares held to the reference flux
+def _kernel_moments(stack, others, peak, frame, pos, flux, sigma, kern, b, half, failed, alpha):
+    """Every row's kernel model on its stamp about its position (``others``: the model image of the rows
+    that do not take part), the shares held to the reference flux
     (``KERNEL_FLUX_SWEEPS`` sweeps of the multipliers ``alpha``), and each row moved to the first moment of
     its held share of the light; failed where it holds none."""
     h, w = stack.shape[1:]
@@ -140,7 +154,7 @@ def _kernel_moments(stack, peak, frame, pos, flux, sigma, kern, b, half, failed,
     data = stack[at] - b[:, None, None]
 
     def held(a):  # the light each row's share ``a m / M`` holds (inside the image)
-        total = np.zeros(stack.shape)
+        total = others.copy()
         np.add.at(total, (fr[inside], ys[inside], xs[inside]), (a[:, None, None] * models)[inside])
         floor = SHARE_FLOOR_REL * np.abs(peak[:, None, None])
         return np.where(inside, np.clip(a[:, None, None] * models / np.maximum(total[at], floor), 0.0, 1.0) * data, 0)

@@ -41,8 +41,8 @@ def test_item_lists_give_each_module_once_per_device():
     scores.append(("a.h5", "correlation", 1.0, (1, 2), "out", {}, None))  # no device: nothing to build
     assert score_kernels(scores) == [("synthbos.correlation.kernels", "cpu"),
                                      *[(f"synthbos.tracking.{n}_kernels", "cpu")
-                                       for n in ("claim", "ellipse", "fit", "identify", "moment", "neighbour",
-                                                 "predict", "stats", "table", "wide_search")]]
+                                       for n in ("claim", "ellipse", "fit", "identify", "kernel_step", "moment",
+                                                 "neighbour", "predict", "stats", "table", "wide_search")]]
     both = campaign_kernels(renders, scores)
     assert both == sorted(render_kernels(renders) + score_kernels(scores))
 

@@ -69,20 +69,27 @@ def test_ellipse_step_measures_crowded_distorted_dots():
     assert np.percentile(errors[True], 99) < 0.014, np.percentile(errors[True], 99)
 
 
-@pytest.mark.parametrize("seed", [3, 11])
-def test_ellipse_step_in_track_pair(seed):
-    """The tracker end to end on crowded distorted dots: the default (elliptical) step against the
-    first-moment step, both estimators (first-moment p90 0.009-0.012 px, elliptical 0.004-0.005 px,
-    its model correction 0.007-0.008 px)."""
+@pytest.mark.parametrize(
+    ("seed", "distortion", "p90", "p99"),
+    [(3, "ellipse", 0.0065, 0.018), (11, "ellipse", 0.0065, 0.018), (3, "kernel", 0.009, 0.022),
+     (11, "kernel", 0.009, 0.022)],
+)  # fmt: skip
+def test_distortion_steps_in_track_pair(seed, distortion, p90, p99):
+    """The tracker end to end on crowded dots, each distorted by its own random elliptical spread: the
+    elliptical and the shared-kernel (default) steps against the first-moment step, both estimators
+    (first-moment p90 0.010-0.012 px; elliptical 0.004-0.005 px; shared kernels 0.006-0.007 px, p99
+    0.013-0.019 px: a kernel shared by neighbours that are distorted unlike each other fits neither as well
+    as each dot's own ellipse does; on rendered flows, whose neighbours share their distortion, the kernel
+    step is the better one, ``tests/benchmarks/test_distortion_bench.py``)."""
     reference, gradient, xy, truth = _pair(seed, per_32x32=14.0, min_distance=3.0)
-    table = track_pair(reference, gradient, prior_xy=xy)
+    table = track_pair(reference, gradient, prior_xy=xy, settings=TrackingSettings(distortion=distortion))
     moment = track_pair(reference, gradient, prior_xy=xy, settings=TrackingSettings(distortion="moment"))
-    for cc, limit in ((False, 0.0065), (True, 0.0095)):
+    for cc in (False, True):
         e, ok = _errors(table, truth, cc=cc)
         e_m, _ = _errors(moment, truth, cc=cc)
         assert ok.all()
-        assert np.percentile(e, 90) < limit, np.percentile(e, 90)
-        assert np.percentile(e, 99) < 0.018, np.percentile(e, 99)
+        assert np.percentile(e, 90) < p90, np.percentile(e, 90)
+        assert np.percentile(e, 99) < p99, np.percentile(e, 99)
         assert np.percentile(e, 90) < 0.75 * np.percentile(e_m, 90)
 
 

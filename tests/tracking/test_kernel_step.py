@@ -128,3 +128,4 @@ def test_track_pairs_equals_track_pair_with_the_kernel_step(device):
         assert ((single["status"] & DotStatus.DISTORTED) != 0).mean() > 0.9
         for name in ("x", "y", "u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
             assert_allclose(tables[b][name], single[name], rtol=0, atol=1e-9, err_msg=name)
+
