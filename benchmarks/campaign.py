@@ -19,6 +19,7 @@ from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
+from .integrate import density_floor_errors
 from .items import render_item, score_item
 from .registry import check_available, get_method
 from .scheduling import (
@@ -33,7 +34,7 @@ from .scheduling import (
 from .spec import CampaignSpec
 from .stacks import check_stack
 from .storage import check_folder, pair_path, score_path, write_tables
-from .tables import summarise, summary_groups, summary_rows
+from .tables import floor_rows, summarise, summary_groups, summary_rows
 
 __all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_spec", "resolve_process_device",
            "run_campaign", "write_summary"]
@@ -253,9 +254,13 @@ def _figure_pairs(stem: str, spec: CampaignSpec, folder):
 
 def write_summary(spec: CampaignSpec, folder, *, mapper=map) -> list[dict]:
     """The campaign's results table: summarise its score files, write ``results.csv`` and ``.json``, return the rows.
+    Beside it the density floor (``floor.csv`` and ``.json``, ``tables.floor_rows``): its pairs' exact
+    displacements integrated and scored alike.
 
-    ``mapper`` maps the table's groups (``tables.summarise``): a pool's or a Dask cluster's ``map``
-    summarises them side by side."""
+    ``mapper`` maps the table's groups (``tables.summarise``) and the pairs' floors: a pool's or a Dask
+    cluster's ``map`` does them side by side."""
     rows = summarise(spec, folder, mapper=mapper)
     write_tables(rows, folder)
+    paths = [str(pair_path(folder, s, p)) for s, p in spec.pair_keys()]
+    write_tables(floor_rows(mapper(density_floor_errors, [p for p in paths if Path(p).exists()])), folder, stem="floor")
     return rows

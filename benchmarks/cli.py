@@ -42,7 +42,7 @@ from .show_result import plot_result
 from .spec import FULL, QUICK
 from .stacks import DEFAULT_STACK, describe_stacks
 from .sweep import parse_parameter, run_sweep
-from .tables import format_summary
+from .tables import format_floor, format_summary
 
 __all__ = ["build_parser", "in_worker_thread", "main", "work_abandoned"]
 
@@ -307,6 +307,8 @@ def _paper(args):
                         progress=not args.quiet, scheduler=args.scheduler, wait=args.wait,
                         worker_device=worker_device, timings=timings, stack=args.stack, stacks=stacks)
     print(format_summary(rows))
+    if (out / "floor.json").exists():
+        print(format_floor(json.loads((out / "floor.json").read_text())))
     _stacks_note(stacks, args.stack)
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "

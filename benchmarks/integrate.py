@@ -84,6 +84,7 @@ __all__ = [
     "DensityMap",
     "Geometry",
     "GradientGrid",
+    "density_floor_errors",
     "density_from_result",
     "exact_grid",
     "geometry_from_config",
@@ -467,6 +468,24 @@ def score_density_grid(pair, grid: GradientGrid, *, solver=DENSITY_SOLVER) -> di
 #: Smallest reach (px) of a measured point past the image's edge accepted by :func:`check_belongs`:
 #: a dot is fitted from the part of its image inside the frame, so its centre may lie outside.
 EDGE_REACH_PX = 2.0
+
+
+def density_floor_errors(path) -> dict:
+    """The density errors of a pair file's exact per-dot displacements (:func:`exact_grid`, the floor set by
+    the dot spacing and the solver), pooled as a campaign pools a method's (``storage.load_scores``):
+    ``density_{truth}`` (kg/m^3) and ``density_{truth}_rel`` (over the truth's range), for the cone and the
+    chief-ray truths."""
+    from synthbos.raytrace import read_pair
+
+    pair = read_pair(path)
+    s = score_density_grid(pair, exact_grid(pair, geometry_from_pair(pair)))
+    out = {}
+    for truth in ("cone", "chief"):
+        e = np.abs(s[f"density_error_{truth}"])
+        rng = float(s[f"density_range_{truth}"])
+        out[f"density_{truth}"] = e
+        out[f"density_{truth}_rel"] = e / rng if rng > 0 else np.full(len(e), np.nan)
+    return out
 
 
 def edge_reach_px(result: MethodResult) -> float:

@@ -18,14 +18,17 @@ import numpy as np
 from . import scoring
 from .storage import DENSITY_TRUTHS, load_scores
 
-__all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "ERROR_UNITS", "QUANTITIES", "SPLITS", "format_summary",
-           "split_masks", "summarise", "summary_groups", "summary_rows"]
+__all__ = ["BUDGET_PERCENTILES", "DENSITY_QUANTITIES", "ERROR_UNITS", "FLOOR_METHOD", "QUANTITIES", "SPLITS",
+           "floor_rows", "format_floor", "format_summary", "split_masks", "summarise", "summary_groups",
+           "summary_rows"]
 
 SPLITS = ("all", "below", "above")
 QUANTITIES = ("displacement", "gradient")
 # Density errors (split "all" only): kg/m^3, and relative to the truth's range (``_rel``).
 DENSITY_QUANTITIES = tuple(q for t in DENSITY_TRUTHS for q in (f"density_{t}", f"density_{t}_rel"))
 BUDGET_PERCENTILES = (50, 90, 99)  # the error percentiles of each in-cone spread bin
+#: The method name of the density floor's rows (``floor.csv``): the pairs' exact per-dot displacements.
+FLOOR_METHOD = "exact"
 #: The unit of a row's error columns, by its quantity.
 ERROR_UNITS = {"displacement": "px", "gradient": "px/px",
                **{q: ("1" if q.endswith("_rel") else "kg/m^3") for q in DENSITY_QUANTITIES}}
@@ -78,6 +81,29 @@ def summary_rows(spec, folder, noise, method) -> list[dict]:
     for quantity in DENSITY_QUANTITIES:
         rows.append(_row(method, noise, "all", quantity, sc[quantity], yield_, sc["process_device"]))
     return rows
+
+
+def floor_rows(parts) -> list[dict]:
+    """The density floor's rows (``floor.csv`` beside ``results.csv``): one per density quantity, method
+    ``FLOOR_METHOD``, noise 0, split ``all``, from each pair's :func:`benchmarks.integrate.density_floor_errors`
+    pooled over the pairs as a method's rows are. A method's zero-noise density rows read against them."""
+    parts = list(parts)
+    return [_row(FLOOR_METHOD, 0.0, "all", q, np.concatenate([p[q] for p in parts]) if parts else np.zeros(0), 1.0,
+                 "cpu") for q in DENSITY_QUANTITIES]  # fmt: skip
+
+
+def format_floor(rows: list[dict]) -> str:
+    """One line: the floor's density RMS against both truths, % of the range.
+
+    Examples
+    --------
+    >>> print(format_floor([{"quantity": "density_cone_rel", "rms": 0.0348},
+    ...                     {"quantity": "density_chief_rel", "rms": 0.1}]))
+    density floor (the pairs' exact displacements, floor.csv): rho rms 3.48 % cone, 10.00 % chief
+    """
+    by = {r["quantity"]: r["rms"] for r in rows}
+    return (f"density floor (the pairs' exact displacements, floor.csv): rho rms {100 * by['density_cone_rel']:.2f} % "
+            f"cone, {100 * by['density_chief_rel']:.2f} % chief")
 
 
 def _row(method, noise, split, quantity, e, yield_, device, *, spread=None):

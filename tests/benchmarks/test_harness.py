@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from synthbos.benchmarks.campaign import run_campaign
 from synthbos.benchmarks.cli import main
+from synthbos.benchmarks.integrate import density_floor_errors
 from synthbos.benchmarks.spec import REGRESS
 from synthbos.raytrace import read_pair, render_pair, write_pair
 
@@ -37,6 +38,14 @@ def test_campaign_is_resumable_and_deterministic(tmp_path, capsys):
     units = {(f := dict(zip(header, line.split(","), strict=True)))["quantity"]: f["error_units"] for line in lines[1:]}
     assert units == {"displacement": "px", "gradient": "px/px", "density_cone": "kg/m^3", "density_chief": "kg/m^3",
                      "density_cone_rel": "1", "density_chief_rel": "1"}
+    # floor.csv: the density floor, the pair's exact displacements integrated and scored alike
+    floor = json.loads((tmp_path / "c" / "floor.json").read_text())
+    assert [(r["method"], r["quantity"]) for r in floor] == [("exact", q) for q in (
+        "density_cone", "density_cone_rel", "density_chief", "density_chief_rel")]
+    exact = density_floor_errors(tmp_path / "c" / "pairs" / "s2_p00.h5")
+    by = {r["quantity"]: r for r in floor}
+    assert by["density_cone_rel"]["rms"] == pytest.approx(np.sqrt(np.mean(exact["density_cone_rel"] ** 2)), rel=1e-12)
+    assert 0 < by["density_cone_rel"]["rms"] < 0.2
     # A re-run skips finished work: nothing is rewritten, and it says so.
     stamps = {p: p.stat().st_mtime_ns for p in scores}
     capsys.readouterr()
