@@ -177,15 +177,18 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
         # The table's (noise level, method) groups are summarised side by side, one job each.
         groups = summary_groups(spec)
+        floors = _pair_paths(spec, folder)
         jobs = [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
+        jobs += [(density_floor_errors, (path,), {path}) for path in floors]  # each as soon as its pair is there
         jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
         parts = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
                              worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
-                             on_items_done=lambda: t_items.append(time.perf_counter()))[:len(groups)]
-        rows = [row for part in parts for row in part]
+                             on_items_done=lambda: t_items.append(time.perf_counter()))
+        rows = [row for part in parts[: len(groups)] for row in part]
         write_tables(rows, folder)
+        write_tables(floor_rows(parts[len(groups) : len(groups) + len(floors)]), folder, stem="floor")
         timings["render and process"] = t_items[0] - t0
         timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
         return rows
@@ -261,6 +264,10 @@ def write_summary(spec: CampaignSpec, folder, *, mapper=map) -> list[dict]:
     cluster's ``map`` does them side by side."""
     rows = summarise(spec, folder, mapper=mapper)
     write_tables(rows, folder)
-    paths = [str(pair_path(folder, s, p)) for s, p in spec.pair_keys()]
-    write_tables(floor_rows(mapper(density_floor_errors, [p for p in paths if Path(p).exists()])), folder, stem="floor")
+    write_tables(floor_rows(mapper(density_floor_errors, _pair_paths(spec, folder))), folder, stem="floor")
     return rows
+
+
+def _pair_paths(spec: CampaignSpec, folder) -> list[str]:
+    """Every pair file of the campaign (the density floor's inputs), in its pairs' order."""
+    return [str(pair_path(folder, s, p)) for s, p in spec.pair_keys()]
