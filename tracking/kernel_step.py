@@ -15,6 +15,11 @@ import warp as wp
 
 from .ellipse_kernels import ellipse_render
 from .kernel_step_kernels import (
+    fit_column,
+    fit_rows_normal,
+    fit_rows_ridge,
+    fit_rows_setup,
+    fit_rows_solve,
     kernel_accumulate,
     kernel_finish,
     kernel_fit,
@@ -126,23 +131,30 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
         level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
         grid = wp.HashGrid(128, 128, 64, device=device)
         scratch = _Scratch(m, device)
-    held = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models]
+    wp.copy(models, base)  # the others; the taking-part rows are drawn in and out again (fixed point: to the bit)
+
+    def accumulate(sign):
+        inputs = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models, sign]
+        wp.launch(kernel_accumulate, dim=m, inputs=inputs, device=device)
+
     for iteration in range(KERNEL_ITERATIONS):
         if fit and iteration < KERNEL_FITS:
             _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, device)  # swaps state.kern
         draw = [state.pos, state.flux, state.sigma, state.kern, half, state.stamp_prof, state.stamp]
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
         for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
-            wp.copy(models, base)
-            wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
-            wp.launch(kernel_hold, dim=m, inputs=[refs, grads, models, scales, params, rows, frame, half, state.stamp,
-                                                  state.background, state.pos, state.kern, state.alpha],
-                      device=device)  # fmt: skip
-        wp.copy(models, base)
-        wp.launch(kernel_accumulate, dim=m, inputs=held, device=device)
+            accumulate(1)
+            hold = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
+                    state.kern, state.alpha, state.spare_alpha]  # fmt: skip
+            wp.launch(kernel_hold, dim=m, inputs=hold, device=device)
+            accumulate(-1)
+            state.alpha, state.spare_alpha = state.spare_alpha, state.alpha
+        accumulate(1)
         moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
-                  state.alpha, state.failed]  # fmt: skip
+                  state.alpha, state.failed, state.spare_pos]  # fmt: skip
         wp.launch(kernel_moment, dim=m, inputs=moment, device=device)
+        accumulate(-1)  # where it was drawn
+        state.pos, state.spare_pos = state.spare_pos, state.pos
     wp.launch(kernel_finish, dim=m, inputs=[params, partner, rows, state.pos, state.failed, float(max_shift), shift],
               device=device)  # fmt: skip
     if record is not None:
@@ -156,6 +168,7 @@ class _State:
         taps2 = KERNEL_TAPS * KERNEL_TAPS
         n = 2 * half + 1
         self.pos = wp.empty(m, dtype=wp.vec2d, device=device)
+        self.spare_pos = wp.empty(m, dtype=wp.vec2d, device=device)
         self.flux = wp.empty(m, dtype=wp.float64, device=device)
         self.sigma = wp.empty(m, dtype=wp.float64, device=device)
         self.background = wp.empty(m, dtype=wp.float64, device=device)
@@ -164,6 +177,7 @@ class _State:
         self.spare = wp.empty((m, taps2), dtype=wp.float64, device=device)
         self.failed = wp.zeros(m, dtype=wp.int32, device=device)
         self.alpha = wp.full(m, 1.0, dtype=wp.float64, device=device)  # the shares' multipliers (kernel_hold)
+        self.spare_alpha = wp.empty(m, dtype=wp.float64, device=device)
         self.stamp = wp.empty((m, n, n), dtype=wp.float64, device=device)
         self.stamp_prof = wp.empty((m, 2 * KERNEL_TAPS, n), dtype=wp.float64, device=device)
 
@@ -179,6 +193,10 @@ class _Scratch:
         self.prof = wp.empty((self.chunk, 2 * KERNEL_MAX_NEIGHBOURS * taps, window), dtype=wp.float64, device=device)
         self.normal = wp.empty((self.chunk, taps * taps, taps * taps), dtype=wp.float64, device=device)
         self.rhs = wp.empty((self.chunk, taps * taps), dtype=wp.float64, device=device)
+        self.weights = wp.empty((self.chunk, 2, window), dtype=wp.float64, device=device)
+        self.diag = wp.empty((self.chunk, taps * taps), dtype=wp.float64, device=device)
+        self.count = wp.empty(self.chunk, dtype=wp.int32, device=device)
+        self.failed = wp.empty(self.chunk, dtype=wp.int32, device=device)
         self.points = wp.empty(m, dtype=wp.vec3, device=device)
 
 
@@ -233,16 +251,43 @@ def _frame_levels(background, frames_of_rows, frames, device):
     return wp.array(level, dtype=wp.float64, device=device)
 
 
+def column_engine(device) -> bool:
+    """Whether the kernel fit takes a GPU's engine: the normal matrix a thread per row of it, the Cholesky
+    factorisation a launch per column (``fit_rows_setup`` .. ``fit_rows_solve``); on the CPU one thread
+    fits a row alone (``kernel_fit``). A row's solve is some 0.25 M multiply-adds in sequence: one GPU
+    thread each leaves the GPU waiting on memory. The two give the same kernels to rounding.
+
+    Examples
+    --------
+    >>> column_engine("cpu")
+    False
+    """
+    return wp.get_device(device).is_cuda
+
+
 def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, device):
-    """Every distorted row's kernel fit (``kernel_fit``), in chunks; the new kernels replace the old (the
-    grid is rebuilt on the rows' positions)."""
-    m, chunk = rows.shape[0], scratch.chunk
-    wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, scratch.points], device=device)
-    grid.build(scratch.points, KERNEL_REACH_PX + 0.5)
+    """Every distorted row's kernel fit, in chunks (:func:`column_engine`); the new kernels replace the old
+    (the grid is rebuilt on the rows' positions)."""
+    m, chunk, sc = rows.shape[0], scratch.chunk, scratch
+    wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, sc.points], device=device)
+    grid.build(sc.points, KERNEL_REACH_PX + 0.5)
+    columns = column_engine(device)
     for start in range(0, m, chunk):
-        wp.launch(kernel_fit, dim=min(chunk, m - start),
-                  inputs=[start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma,
-                          state.prior, state.kern, state.spare, scratch.nbr, scratch.prof, scratch.normal, scratch.rhs,
-                          shift],
+        n = min(chunk, m - start)
+        setup = [start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma]
+        if not columns:
+            fit = [*setup, state.prior, state.kern, state.spare, sc.nbr, sc.prof, sc.normal, sc.rhs, shift, sc.weights,
+                   sc.diag]  # fmt: skip
+            wp.launch(kernel_fit, dim=n, inputs=fit, device=device)
+            continue
+        taps2 = KERNEL_TAPS * KERNEL_TAPS
+        wp.launch(fit_rows_setup, dim=n, inputs=[*setup, state.kern, sc.nbr, sc.prof, sc.rhs, shift, sc.weights,
+                                                 sc.count], device=device)  # fmt: skip
+        wp.launch(fit_rows_normal, dim=(n, taps2), inputs=[sc.prof, sc.weights, sc.count, sc.normal], device=device)
+        wp.launch(fit_rows_ridge, dim=n, inputs=[start, sc.count, sc.normal, sc.rhs, state.prior, sc.failed],
                   device=device)  # fmt: skip
+        for j in range(taps2):
+            wp.launch(fit_column, dim=(n, taps2), inputs=[j, sc.count, sc.normal, sc.diag, sc.failed], device=device)
+        wp.launch(fit_rows_solve, dim=n, inputs=[start, sc.count, sc.normal, sc.diag, sc.rhs, sc.failed, state.kern,
+                                                 state.spare], device=device)  # fmt: skip
     state.kern, state.spare = state.spare, state.kern

@@ -49,6 +49,7 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 TWELFTH = wp.constant(wp.float64(1.0 / 12.0))
 mat_taps = wp.types.matrix(shape=(KER_TAPS, KER_TAPS), dtype=wp.float64)
+vec_taps = wp.types.vector(length=KER_TAPS, dtype=wp.float64)
 vec_window = wp.types.vector(length=KER_WINDOW, dtype=wp.float64)
 
 
@@ -385,13 +386,9 @@ def right_side(
 
 
 @wp.func
-def ridge_solve(
-    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), t: int,
-    prior: wp.array2d(dtype=wp.float64), p: int, out: wp.array2d(dtype=wp.float64),
-) -> bool:  # fmt: skip
-    """``(N + l I) a = r + l prior`` with ``l = KER_RIDGE`` times N's mean diagonal, by a Cholesky
-    factorisation of the lower triangle in place; ``a`` into ``out[p]``. False where N is not positive
-    definite (nothing written)."""
+def add_ridge(normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), t: int,
+              prior: wp.array2d(dtype=wp.float64), p: int):  # fmt: skip
+    """``N + l I`` and ``r + l prior`` in place, ``l = KER_RIDGE`` times N's mean diagonal."""
     n = KER_UNKNOWNS
     trace = wp.float64(0.0)
     for u in range(n):
@@ -400,31 +397,100 @@ def ridge_solve(
     for u in range(n):
         normal[t, u, u] = normal[t, u, u] + lam
         rhs[t, u] = rhs[t, u] + lam * prior[p, u]
-    for j in range(n):
-        s = normal[t, j, j]
-        for k in range(j):
-            s -= normal[t, j, k] * normal[t, j, k]
-        if not (s > wp.float64(0.0)):
-            return False
-        d = wp.sqrt(s)
-        normal[t, j, j] = d
-        for r in range(j + 1, n):
-            v = normal[t, r, j]
-            for k in range(j):
-                v -= normal[t, r, k] * normal[t, j, k]
-            normal[t, r, j] = v / d
+
+
+@wp.func
+def cholesky_entry(normal: wp.array3d(dtype=wp.float64), t: int, j: int, r: int) -> wp.float64:
+    """Column j's entry in row r >= j of the Cholesky factor before the division by its pivot (for r = j the
+    pivot's square): ``N[r, j] - sum_(k < j) L[r, k] L[j, k]``, with the columns before j done in place
+    (below the diagonal; the pivots are kept apart, in ``diag``)."""
+    v = normal[t, r, j]
+    for k in range(j):
+        v -= normal[t, r, k] * normal[t, j, k]
+    return v
+
+
+@wp.func
+def substitute(normal: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
+               rhs: wp.array2d(dtype=wp.float64), t: int, out: wp.array2d(dtype=wp.float64), p: int):  # fmt: skip
+    """``L L^T a = rhs`` by forward and back substitution (L: ``normal[t]`` below the diagonal, its pivots
+    ``diag[t]``); ``a`` into ``out[p]``, ``rhs[t]`` overwritten."""
+    n = KER_UNKNOWNS
     for j in range(n):
         v = rhs[t, j]
         for k in range(j):
             v -= normal[t, j, k] * rhs[t, k]
-        rhs[t, j] = v / normal[t, j, j]
+        rhs[t, j] = v / diag[t, j]
     for jj in range(n):
         j = n - 1 - jj
         v = rhs[t, j]
         for k in range(j + 1, n):
             v -= normal[t, k, j] * out[p, k]
-        out[p, j] = v / normal[t, j, j]
+        out[p, j] = v / diag[t, j]
+
+
+@wp.func
+def ridge_solve(
+    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
+    t: int, prior: wp.array2d(dtype=wp.float64), p: int, out: wp.array2d(dtype=wp.float64),
+) -> bool:  # fmt: skip
+    """``(N + l I) a = r + l prior`` (:func:`add_ridge`) by a Cholesky factorisation of the lower triangle in
+    place, one thread (the CPU's engine; a GPU's takes a column a launch, ``fit_column``); ``a`` into
+    ``out[p]``. False where N is not positive definite (nothing written)."""
+    add_ridge(normal, rhs, t, prior, p)
+    for j in range(KER_UNKNOWNS):
+        s = cholesky_entry(normal, t, j, j)
+        if not (s > wp.float64(0.0)):
+            return False
+        d = wp.sqrt(s)
+        diag[t, j] = d
+        for r in range(j + 1, KER_UNKNOWNS):
+            normal[t, r, j] = cholesky_entry(normal, t, j, r) / d
+    substitute(normal, diag, rhs, t, out, p)
     return True
+
+
+@wp.func
+def fit_setup(
+    offset: int, t: int, grid: wp.uint64, z_step: float, refs: wp.array3d(dtype=wp.float64),
+    grads: wp.array3d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    level: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64),
+    sigma: wp.array(dtype=wp.float64), last: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32),
+    prof: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
+    weights: wp.array3d(dtype=wp.float64),
+) -> int:  # fmt: skip
+    """Row ``p = offset + t``'s fit up to its normal matrix: its neighbours (``nbr[t]``), their window
+    profiles (``prof[t]``), its window weights (``weights[t]``: x then y) and the right side (``rhs[t]``).
+    Returns the neighbours' count, 0 where the row is not fitted (not distorted itself, or too many
+    neighbours)."""
+    p = offset + t
+    if shift[rows[p]][2] != DISTORTED_CODE:
+        return 0
+    count = gather_neighbours(grid, pos, rows, frame, z_step, p, t, nbr)
+    if count > KER_MAX_NEIGHBOURS:
+        return 0
+    mu = kernel_mean(last, p)
+    ox = int(wp.rint(pos[p][0])) - KER_WINDOW_HALF
+    oy = int(wp.rint(pos[p][1])) - KER_WINDOW_HALF
+    wx = vec_window()
+    wy = vec_window()
+    for k in range(KER_WINDOW):
+        wx[k] = window_weight(ox + k, pos[p][0], refs.shape[2])
+        wy[k] = window_weight(oy + k, pos[p][1], refs.shape[1])
+        weights[t, 0, k] = wx[k]
+        weights[t, 1, k] = wy[k]
+    neighbour_profiles(pos, flux, sigma, mu, ox, oy, t, count, nbr, prof)
+    right_side(refs, grads, frame[rows[p]], level[frame[rows[p]]], ox, oy, prof, t, count, wx, wy, rhs)
+    return count
+
+
+@wp.func
+def window_of(weights: wp.array3d(dtype=wp.float64), t: int, axis: int) -> vec_window:
+    """Row t's window weights along ``axis`` (0: x, 1: y), as ``fit_setup`` stored them."""
+    w = vec_window()
+    for k in range(KER_WINDOW):
+        w[k] = weights[t, axis, k]
+    return w
 
 
 @wp.kernel
@@ -435,33 +501,121 @@ def kernel_fit(
     sigma: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
     fitted: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
     normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
+    weights: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
 ):  # fmt: skip
-    """Row ``p = offset + t``'s kernel: the ridge least-squares fit to its window of the image less its
-    frame's ``level``, every dot within ``KER_REACH`` drawn with it (placed by the row's last kernel's
-    mean); the last kernel kept where the row is not distorted itself (its first-moment code), the
-    neighbours are too many or the fit fails."""
+    """Row ``p = offset + t``'s kernel, one thread (the CPU's engine): the ridge least-squares fit to its
+    window of the image less its frame's ``level``, every dot within ``KER_REACH`` drawn with it (placed by
+    the row's last kernel's mean); the last kernel kept where the row is not distorted itself (its
+    first-moment code), the neighbours are too many or the fit fails."""
     t = wp.tid()
     p = offset + t
-    f = frame[rows[p]]
-    count = int(0)  # noqa: UP018, RUF046 (a Warp variable, not a constant)
+    count = fit_setup(offset, t, grid, z_step, refs, grads, rows, frame, level, pos, flux, sigma, last, nbr, prof,
+                      rhs, shift, weights)  # fmt: skip
     ok = False
-    if shift[rows[p]][2] == DISTORTED_CODE:
-        count = gather_neighbours(grid, pos, rows, frame, z_step, p, t, nbr)
-        ok = count <= KER_MAX_NEIGHBOURS
-    if ok:
-        mu = kernel_mean(last, p)
-        ox = int(wp.rint(pos[p][0])) - KER_WINDOW_HALF
-        oy = int(wp.rint(pos[p][1])) - KER_WINDOW_HALF
-        wx = vec_window()
-        wy = vec_window()
-        for k in range(KER_WINDOW):
-            wx[k] = window_weight(ox + k, pos[p][0], refs.shape[2])
-            wy[k] = window_weight(oy + k, pos[p][1], refs.shape[1])
-        neighbour_profiles(pos, flux, sigma, mu, ox, oy, t, count, nbr, prof)
-        normal_equations(prof, t, count, wx, wy, normal)
-        right_side(refs, grads, f, level[f], ox, oy, prof, t, count, wx, wy, rhs)
-        ok = ridge_solve(normal, rhs, t, prior, p, fitted)
+    if count > 0:
+        normal_equations(prof, t, count, window_of(weights, t, 0), window_of(weights, t, 1), normal)
+        ok = ridge_solve(normal, rhs, diag, t, prior, p, fitted)
     if not ok:
+        for k in range(KER_UNKNOWNS):
+            fitted[p, k] = last[p, k]
+
+
+@wp.kernel
+def fit_rows_setup(
+    offset: int, grid: wp.uint64, z_step: float, refs: wp.array3d(dtype=wp.float64),
+    grads: wp.array3d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    level: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64),
+    sigma: wp.array(dtype=wp.float64), last: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32),
+    prof: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
+    weights: wp.array3d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """A GPU's engine, first launch: ``fit_setup`` of row ``offset + t``, its neighbours' count into
+    ``count[t]`` (0: not fitted)."""
+    t = wp.tid()
+    count[t] = fit_setup(offset, t, grid, z_step, refs, grads, rows, frame, level, pos, flux, sigma, last, nbr, prof,
+                         rhs, shift, weights)  # fmt: skip
+
+
+@wp.kernel
+def fit_rows_normal(
+    prof: wp.array3d(dtype=wp.float64), weights: wp.array3d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+    normal: wp.array3d(dtype=wp.float64),
+):  # fmt: skip
+    """A GPU's engine: row u of the lower triangle of row t's normal matrix, one thread each (t, u):
+    ``N[u, v] = sum_(s, r) Y_sr[b, b'] X_sr[a, a']`` for ``u = b T + a``, ``v = b' T + a' <= u``, over every
+    ordered pair of neighbours (the CPU's ``normal_equations`` sums the same terms in another order)."""
+    t, u = wp.tid()
+    n = count[t]
+    if n == 0:
+        return
+    b = u // KER_TAPS
+    a = u - b * KER_TAPS
+    for v in range(u + 1):
+        normal[t, u, v] = wp.float64(0.0)
+    for s in range(n):
+        for r in range(n):
+            ys = vec_taps()
+            xs = vec_taps()
+            for c in range(KER_TAPS):
+                vy = wp.float64(0.0)
+                vx = wp.float64(0.0)
+                for k in range(KER_WINDOW):
+                    ry = (2 * r + 1) * KER_TAPS + c
+                    vy += prof[t, (2 * s + 1) * KER_TAPS + b, k] * weights[t, 1, k] * prof[t, ry, k]
+                    vx += prof[t, 2 * s * KER_TAPS + a, k] * weights[t, 0, k] * prof[t, 2 * r * KER_TAPS + c, k]
+                ys[c] = vy
+                xs[c] = vx
+            for v in range(u + 1):
+                b2 = v // KER_TAPS
+                normal[t, u, v] += ys[b2] * xs[v - b2 * KER_TAPS]
+
+
+@wp.kernel
+def fit_rows_ridge(
+    offset: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64),
+    rhs: wp.array2d(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), failed: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """A GPU's engine: :func:`add_ridge` of row t (not failed yet)."""
+    t = wp.tid()
+    failed[t] = 0
+    if count[t] > 0:
+        add_ridge(normal, rhs, t, prior, offset + t)
+
+
+@wp.kernel
+def fit_column(
+    j: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
+    failed: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """A GPU's engine: column j of row t's Cholesky factor, entry r a thread (t, r): as ``ridge_solve`` does it
+    (:func:`cholesky_entry`), the columns before j done by the launches before; row t fails where the
+    pivot is not positive."""
+    t, r = wp.tid()
+    if count[t] == 0 or failed[t] != 0 or r < j:
+        return
+    s = cholesky_entry(normal, t, j, j)
+    if not (s > wp.float64(0.0)):
+        failed[t] = 1
+        return
+    d = wp.sqrt(s)
+    if r == j:
+        diag[t, j] = d
+    else:
+        normal[t, r, j] = cholesky_entry(normal, t, j, r) / d
+
+
+@wp.kernel
+def fit_rows_solve(
+    offset: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64),
+    diag: wp.array2d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), failed: wp.array(dtype=wp.int32),
+    last: wp.array2d(dtype=wp.float64), fitted: wp.array2d(dtype=wp.float64),
+):  # fmt: skip
+    """A GPU's engine, last launch: row t's kernel by :func:`substitute`; its last one where not fitted."""
+    t = wp.tid()
+    p = offset + t
+    if count[t] > 0 and failed[t] == 0:
+        substitute(normal, diag, rhs, t, fitted, p)
+    else:
         for k in range(KER_UNKNOWNS):
             fitted[p, k] = last[p, k]
 
@@ -537,9 +691,10 @@ def held_sums(
 def kernel_accumulate(
     rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d), half: int,
     stamp: wp.array3d(dtype=wp.float64), alpha: wp.array(dtype=wp.float64), scales: wp.array(dtype=wp.float64),
-    height: int, width: int, models: wp.array(dtype=wp.int64),
+    height: int, width: int, models: wp.array(dtype=wp.int64), sign: int,
 ):  # fmt: skip
-    """Row p's model on its stamp times its multiplier ``alpha`` into its frame's model image (fixed point)."""
+    """Row p's model on its stamp times its multiplier ``alpha`` into its frame's model image (fixed point),
+    or with ``sign`` -1 out of it again, to the bit (the integer sums do not depend on the order)."""
     p = wp.tid()
     f = frame[rows[p]]
     n = 2 * half + 1
@@ -549,7 +704,7 @@ def kernel_accumulate(
         for c in range(n):
             if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
                 at = (f * height + oy + r) * width + ox + c
-                wp.atomic_add(models, at, to_fixed(alpha[p] * stamp[p, r, c], scales[f]))
+                wp.atomic_add(models, at, wp.int64(sign) * to_fixed(alpha[p] * stamp[p, r, c], scales[f]))
 
 
 @wp.kernel
@@ -558,12 +713,12 @@ def kernel_hold(
     scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
     background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), kern: wp.array2d(dtype=wp.float64),
-    alpha: wp.array(dtype=wp.float64),
+    alpha: wp.array(dtype=wp.float64), alpha_out: wp.array(dtype=wp.float64),
 ):  # fmt: skip
-    """One sweep of iterative proportional fitting: row p's multiplier ``alpha`` times the ratio of the
-    reference flux its model puts on its stamp inside the image (its model's share of the stamp times the
-    flux, less the model's light outside the image) to the light its share holds there (the ratio within
-    ``1 / KER_FLUX_STEP`` and ``KER_FLUX_STEP``, ``alpha`` within ``1 / KER_FLUX_BOUND`` and
+    """One sweep of iterative proportional fitting, into ``alpha_out``: row p's multiplier ``alpha`` times
+    the ratio of the reference flux its model puts on its stamp inside the image (its model's share of the
+    stamp times the flux, less the model's light outside the image) to the light its share holds there (the
+    ratio within ``1 / KER_FLUX_STEP`` and ``KER_FLUX_STEP``, ``alpha`` within ``1 / KER_FLUX_BOUND`` and
     ``KER_FLUX_BOUND``); unchanged where either is not positive."""
     p = wp.tid()
     sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
@@ -571,9 +726,10 @@ def kernel_hold(
     for k in range(KER_UNKNOWNS):
         ksum += kern[p, k]
     target = sums[5] / ksum - sums[4]
+    alpha_out[p] = alpha[p]
     if target > wp.float64(0.0) and sums[3] > wp.float64(0.0):
         ratio = wp.clamp(target / sums[3], wp.float64(1.0) / KER_FLUX_STEP, KER_FLUX_STEP)
-        alpha[p] = wp.clamp(alpha[p] * ratio, wp.float64(1.0) / KER_FLUX_BOUND, KER_FLUX_BOUND)
+        alpha_out[p] = wp.clamp(alpha[p] * ratio, wp.float64(1.0) / KER_FLUX_BOUND, KER_FLUX_BOUND)
 
 
 @wp.kernel
@@ -582,14 +738,15 @@ def kernel_moment(
     scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
     background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), alpha: wp.array(dtype=wp.float64),
-    failed: wp.array(dtype=wp.int32),
+    failed: wp.array(dtype=wp.int32), pos_out: wp.array(dtype=wp.vec2d),
 ):  # fmt: skip
-    """Row p moves to the first moment of its held share of the light (:func:`held_sums`); marked failed
-    (kept) where it holds none."""
+    """Row p's next position, into ``pos_out``: the first moment of its held share of the light
+    (:func:`held_sums`); its position, marked failed, where it holds none."""
     p = wp.tid()
     sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
+    pos_out[p] = pos[p]
     if sums[0] > wp.float64(0.0):
-        pos[p] = wp.vec2d(pos[p][0] + sums[1] / sums[0], pos[p][1] + sums[2] / sums[0])
+        pos_out[p] = wp.vec2d(pos[p][0] + sums[1] / sums[0], pos[p][1] + sums[2] / sums[0])
     else:
         failed[p] = 1
 

@@ -129,3 +129,24 @@ def test_track_pairs_equals_track_pair_with_the_kernel_step(device):
         for name in ("x", "y", "u", "v", "u_cc", "v_cc", "x_gradient", "y_gradient"):
             assert_allclose(tables[b][name], single[name], rtol=0, atol=1e-9, err_msg=name)
 
+
+
+def test_the_gpu_engine_of_the_kernel_fit_equals_the_reference(monkeypatch):
+    """The kernel fit's GPU engine (the normal matrix a thread per row of it, the Cholesky factorisation a
+    launch per column; ``kernel_step.column_engine``), run on the CPU: the kernels, positions and shifts of
+    the NumPy reference to 1e-9, as the CPU's one-thread engine gives them."""
+    from synthbos.tracking import kernel_step
+
+    reference, gradient, xy, truth = _pair(4, (64, 64))
+    params, kw = fitted_pair(reference, gradient, xy, truth, "cpu")
+    want = {}
+    d_ref, a_ref = moment_shifts_numpy([reference, gradient], params, kernels=want, kernel=True, **kw)
+    monkeypatch.setattr(kernel_step, "column_engine", lambda device: True)
+    got = {}
+    d, a = moment_shifts([reference, gradient], params, device="cpu", kernels=got, kernel=True, **kw)
+    assert_array_equal(a, a_ref)
+    assert a.mean() > 0.9
+    assert_allclose(got["kernel"], want["kernel"], rtol=1e-9, atol=1e-9 * np.abs(want["kernel"]).max())
+    assert_allclose(got["position"], want["position"], rtol=0, atol=1e-9)
+    assert_allclose(d, d_ref, rtol=0, atol=1e-9)
+    assert np.abs(np.asarray(want["kernel"]).sum(axis=1) - 1).max() > 1e-6  # kernels were fitted, not priors
