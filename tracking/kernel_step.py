@@ -131,9 +131,15 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
         level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
         grid = wp.HashGrid(128, 128, 64, device=device)
         scratch = _Scratch(m, device)
-    wp.copy(models, base)  # the others; the taking-part rows are drawn in and out again (fixed point: to the bit)
+    wp.copy(models, base)  # the others; the taking-part rows are drawn in, and taken out again after each use
+    # out again by drawing them with the opposite sign (fixed point: to the bit) where their stamps cover less
+    # than an eighth of the model images (a GPU stack's few moving dots), else by copying the others back
+    redraw = 8 * m * (2 * half + 1) ** 2 < frames * height * width
 
     def accumulate(sign):
+        if sign < 0 and not redraw:
+            wp.copy(models, base)
+            return
         inputs = [rows, frame, state.pos, half, state.stamp, state.alpha, scales, height, width, models, sign]
         wp.launch(kernel_accumulate, dim=m, inputs=inputs, device=device)
 
