@@ -20,7 +20,7 @@ from synthbos.device import check_device
 
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
 from .integrate import density_floor_errors
-from .items import render_item, score_item
+from .items import by_pair_and_noise, render_item, score_items
 from .registry import check_available, get_method
 from .scheduling import (
     PIPELINE_WORKER_DEVICE,
@@ -207,8 +207,9 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         with worker_pool(workers) as pool:  # the same processes render and then score: kernels built once
             run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress,
                       kernels=render_kernels(renders), pool=None if on_gpu else pool, build_after=processing)
-            run_items(scores, score_item, workers=workers, desc="process", progress=progress, kernels=processing,
-                      pool=pool)
+            # a pair's items of one noise level in one task: tracking and tracking-cc share one tracker run
+            run_items(by_pair_and_noise(scores), score_items, workers=workers, desc="process", progress=progress,
+                      kernels=processing, pool=pool)
             t1 = time.perf_counter()
             rows = write_summary(spec, folder, mapper=map if pool is None else pool.map)
     t2 = time.perf_counter()

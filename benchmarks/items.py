@@ -36,9 +36,23 @@ from .integrate import score_density
 from .registry import DENSE, DOTS, GRID, get_method
 from .storage import save_scores
 
-__all__ = ["finish_item", "finish_items", "item_images", "measure_item", "measure_pair", "noisy_pair",
-           "nominal_positions", "read_pair_cached", "render_item", "render_only", "score_item", "score_pair",
-           "score_result"]
+__all__ = [
+    "by_pair_and_noise",
+    "finish_item",
+    "finish_items",
+    "item_images",
+    "measure_item",
+    "measure_pair",
+    "noisy_pair",
+    "nominal_positions",
+    "read_pair_cached",
+    "render_item",
+    "render_only",
+    "score_item",
+    "score_items",
+    "score_pair",
+    "score_result",
+]
 
 
 def render_item(config: dict, out: str, device) -> str:
@@ -235,6 +249,28 @@ def score_item(pair_path: str, method: str, noise: float, seeds, out: str, overr
     res = measure_pair(pair, method, noise_percent=noise, seeds=seeds, settings=m.settings(overrides),
                        device=device)
     return finish_item(pair_path, method, res, out, device, pair=pair)
+
+
+def score_items(*items) -> list[str]:
+    """Several :func:`score_item` argument tuples in turn, in this process: the items of one pair at one
+    noise level (a CPU campaign's task) share the noisy images and one tracker run, which tracking and
+    tracking-cc both read (``synthbos.memo``); apart, each process would track the pair again."""
+    return [score_item(*args) for args in items]
+
+
+def by_pair_and_noise(items) -> list[tuple]:
+    """:func:`score_item` argument tuples grouped by (pair file, noise level), in their order: the tasks of
+    :func:`score_items`.
+
+    Examples
+    --------
+    >>> by_pair_and_noise([("a.h5", "tracking", 0.0), ("a.h5", "tracking-cc", 0.0), ("a.h5", "tracking", 1.0)])
+    [(('a.h5', 'tracking', 0.0), ('a.h5', 'tracking-cc', 0.0)), (('a.h5', 'tracking', 1.0),)]
+    """
+    groups: dict[tuple, list] = {}
+    for args in items:
+        groups.setdefault((args[0], args[2]), []).append(args)
+    return [tuple(g) for g in groups.values()]
 
 
 def measure_item(pair, pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict,
