@@ -17,12 +17,12 @@ from .ellipse_kernels import ellipse_render
 from .kernel_step_kernels import (
     fit_column,
     fit_rows_normal,
+    fit_rows_one_thread,
     fit_rows_ridge,
     fit_rows_setup,
     fit_rows_solve,
     kernel_accumulate,
     kernel_finish,
-    kernel_fit,
     kernel_frames,
     kernel_hold,
     kernel_moment,
@@ -93,7 +93,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     Every live row within ``KERNEL_REACH_PX`` of a moving row of its frame takes part (``kernel_rows``: the
     moving dots' neighbours share their light). Their prior is the elliptical fit of all of them together
     (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: in the first
-    ``KERNEL_FITS``, every distorted row's kernel fit (``kernel_fit``, chunked; the others keep their
+    ``KERNEL_FITS``, every distorted row's kernel fit (``fit_rows_setup`` and an engine, chunked; the others keep their
     prior), every row's kernel model drawn (``kernel_render``) with its
     reference partner's flux, the shares held to that flux (``KERNEL_FLUX_SWEEPS`` sweeps of
     ``kernel_accumulate`` and ``kernel_hold``: each row's multiplier in the shares) and every row moved to
@@ -207,7 +207,7 @@ class _Scratch:
 
 
 def chunk_rows(device) -> int:
-    """Rows fitted per ``kernel_fit`` launch: on the CPU ``CHUNK_ROWS["cpu"]``; on a GPU as many as an eighth
+    """Rows fitted per launch of the kernel fit: on the CPU ``CHUNK_ROWS["cpu"]``; on a GPU as many as an eighth
     of its free memory holds (some 104 kB of scratch a row), within ``CHUNK_ROWS["cuda"]``: each thread
     solves its row alone, so a GPU needs many of them at once (a stack of 8 zero-noise 512-px pairs on an
     H100: 1.27 s at 8192 rows a launch, 0.55 s at 32768, 0.39 s at 65536).
@@ -260,7 +260,7 @@ def _frame_levels(background, frames_of_rows, frames, device):
 def column_engine(device) -> bool:
     """Whether the kernel fit takes a GPU's engine: the normal matrix a thread per row of it, the Cholesky
     factorisation a launch per column (``fit_rows_setup`` .. ``fit_rows_solve``); on the CPU one thread
-    fits a row alone (``kernel_fit``). A row's solve is some 0.25 M multiply-adds in sequence: one GPU
+    fits a row alone (``fit_rows_one_thread``). A row's solve is some 0.25 M multiply-adds in sequence: one GPU
     thread each leaves the GPU waiting on memory. The two give the same kernels to rounding.
 
     Examples
@@ -278,17 +278,17 @@ def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, d
     wp.launch(kernel_points, dim=m, inputs=[state.pos, rows, frame, Z_STEP, sc.points], device=device)
     grid.build(sc.points, KERNEL_REACH_PX + 0.5)
     columns = column_engine(device)
+    taps2 = KERNEL_TAPS * KERNEL_TAPS
     for start in range(0, m, chunk):
         n = min(chunk, m - start)
-        setup = [start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos, state.flux, state.sigma]
+        wp.launch(fit_rows_setup, dim=n, inputs=[start, grid.id, Z_STEP, refs, grads, rows, frame, level, state.pos,
+                                                 state.flux, state.sigma, state.kern, sc.nbr, sc.prof, sc.rhs, shift,
+                                                 sc.weights, sc.count], device=device)  # fmt: skip
         if not columns:
-            fit = [*setup, state.prior, state.kern, state.spare, sc.nbr, sc.prof, sc.normal, sc.rhs, shift, sc.weights,
-                   sc.diag]  # fmt: skip
-            wp.launch(kernel_fit, dim=n, inputs=fit, device=device)
+            wp.launch(fit_rows_one_thread, dim=n, inputs=[start, sc.count, sc.prof, sc.weights, sc.normal, sc.rhs,
+                                                          sc.diag, state.prior, state.kern, state.spare],
+                      device=device)  # fmt: skip
             continue
-        taps2 = KERNEL_TAPS * KERNEL_TAPS
-        wp.launch(fit_rows_setup, dim=n, inputs=[*setup, state.kern, sc.nbr, sc.prof, sc.rhs, shift, sc.weights,
-                                                 sc.count], device=device)  # fmt: skip
         wp.launch(fit_rows_normal, dim=(n, taps2), inputs=[sc.prof, sc.weights, sc.count, sc.normal], device=device)
         wp.launch(fit_rows_ridge, dim=n, inputs=[start, sc.count, sc.normal, sc.rhs, state.prior, sc.failed],
                   device=device)  # fmt: skip

@@ -11,11 +11,11 @@ is
 
 with ``G`` the pixel-integrated spot (width ``sigma_j``, the reference's), ``F_j`` its flux in units of
 the unit-peak spot and ``mu(a)`` the kernel's mean, so that the kernel's mean sits at the dot's position
-``m_j``. Per row (one thread each), ``kernel_fit`` fits ``a_i`` by weighted ridge least squares to the
-window of pixels about ``m_i``, every dot within ``KER_REACH`` of it drawn with ``a_i``. Window weight
-and pixel grid are separable, so the normal matrix is a sum over neighbour pairs ``(j, k)`` of Kronecker
-products ``Y_jk (x) X_jk`` of ``T x T`` factors; it is solved by a Cholesky factorisation in a chunked
-global scratch. ``kernel_render`` draws every row's model with its own kernel on its stamp,
+``m_j``. Per row (``fit_rows_setup``, then an engine by device), the kernel fit fits ``a_i`` by weighted ridge
+least squares to the window of pixels about ``m_i``, every dot within ``KER_REACH`` of it drawn with ``a_i``.
+Window weight and pixel grid are separable, so the normal matrix is a sum over neighbour pairs ``(j, k)`` of
+Kronecker products ``Y_jk (x) X_jk`` of ``T x T`` factors; it is solved by a Cholesky factorisation in a
+chunked global scratch. ``kernel_render`` draws every row's model with its own kernel on its stamp,
 ``kernel_accumulate`` the stamps times their multipliers into the fixed-point model image, ``kernel_hold``
 fits the multipliers, and ``kernel_moment`` moves each row to the first moment of its held share.
 
@@ -493,31 +493,31 @@ def window_of(weights: wp.array3d(dtype=wp.float64), t: int, axis: int) -> vec_w
     return w
 
 
+@wp.func
+def keep_last(last: wp.array2d(dtype=wp.float64), fitted: wp.array2d(dtype=wp.float64), p: int):
+    """Row p keeps its last kernel (not fitted, or its fit failed)."""
+    for k in range(KER_UNKNOWNS):
+        fitted[p, k] = last[p, k]
+
+
 @wp.kernel
-def kernel_fit(
-    offset: int, grid: wp.uint64, z_step: float, refs: wp.array3d(dtype=wp.float64),
-    grads: wp.array3d(dtype=wp.float64), rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
-    level: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), flux: wp.array(dtype=wp.float64),
-    sigma: wp.array(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
-    fitted: wp.array2d(dtype=wp.float64), nbr: wp.array2d(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
-    normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
-    weights: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
+def fit_rows_one_thread(
+    offset: int, count: wp.array(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
+    weights: wp.array3d(dtype=wp.float64), normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64),
+    diag: wp.array2d(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
+    fitted: wp.array2d(dtype=wp.float64),
 ):  # fmt: skip
-    """Row ``p = offset + t``'s kernel, one thread (the CPU's engine): the ridge least-squares fit to its
-    window of the image less its frame's ``level``, every dot within ``KER_REACH`` drawn with it (placed by
-    the row's last kernel's mean); the last kernel kept where the row is not distorted itself (its
-    first-moment code), the neighbours are too many or the fit fails."""
+    """The CPU's engine, after ``fit_rows_setup``: row ``p = offset + t``'s kernel, one thread: its normal
+    matrix (``normal_equations``) and the ridge solve; the last kernel kept where the row is not fitted or
+    the fit fails."""
     t = wp.tid()
     p = offset + t
-    count = fit_setup(offset, t, grid, z_step, refs, grads, rows, frame, level, pos, flux, sigma, last, nbr, prof,
-                      rhs, shift, weights)  # fmt: skip
     ok = False
-    if count > 0:
-        normal_equations(prof, t, count, window_of(weights, t, 0), window_of(weights, t, 1), normal)
+    if count[t] > 0:
+        normal_equations(prof, t, count[t], window_of(weights, t, 0), window_of(weights, t, 1), normal)
         ok = ridge_solve(normal, rhs, diag, t, prior, p, fitted)
     if not ok:
-        for k in range(KER_UNKNOWNS):
-            fitted[p, k] = last[p, k]
+        keep_last(last, fitted, p)
 
 
 @wp.kernel
@@ -529,7 +529,7 @@ def fit_rows_setup(
     prof: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
     weights: wp.array3d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """A GPU's engine, first launch: ``fit_setup`` of row ``offset + t``, its neighbours' count into
+    """Both engines' first launch: ``fit_setup`` of row ``offset + t``, its neighbours' count into
     ``count[t]`` (0: not fitted)."""
     t = wp.tid()
     count[t] = fit_setup(offset, t, grid, z_step, refs, grads, rows, frame, level, pos, flux, sigma, last, nbr, prof,
@@ -616,8 +616,7 @@ def fit_rows_solve(
     if count[t] > 0 and failed[t] == 0:
         substitute(normal, diag, rhs, t, fitted, p)
     else:
-        for k in range(KER_UNKNOWNS):
-            fitted[p, k] = last[p, k]
+        keep_last(last, fitted, p)
 
 
 @wp.kernel
