@@ -749,7 +749,9 @@ def apply_moment_shift(
     moved: wp.array(dtype=wp.int32),
 ):
     """``tracking.pipeline._fit_models``' first-moment step, in place: where row i ``moves``, its position
-    and its common-shape position move by its shift."""
+    moves by its shift, and its common-shape position (where it has one) becomes that moved position: the
+    shift is measured about the own fit's centre, and the moved position is the mean of the dot's light,
+    which both corrections then read."""
     i = wp.tid()
     moved[i] = 0
     if moves(shift, partner, i):

@@ -122,10 +122,10 @@ def _fit_models(images, founds, partner, eta0, saturation, noise, settings, devi
 
     Both images in one call (:func:`tracking.dotfit.fit_dots`), the matched dots paired so that the
     last step also gives their positions at the pair's common shape (the model correction); with
-    ``settings.distortion`` "moment" or "ellipse", the positions (both kinds) then move to the first
-    moments of the dots' light (:func:`tracking.dotfit.moment_shifts`). Returns per image a dict of ``params``
-    (N, 5; NaN where not found), ``ok`` (N,), ``shared_xy`` (N, 2; NaN where not matched) and ``moved``
-    (N,) bool.
+    a ``settings.distortion`` step, the moving dots' positions then move to the first moments of their
+    light (:func:`tracking.dotfit.moment_shifts`), and their common-shape positions become those. Returns
+    per image a dict of ``params`` (N, 5; NaN where not found), ``ok`` (N,), ``shared_xy`` (N, 2; NaN where
+    not matched) and ``moved`` (N,) bool.
     """
     half, render_half = fit_window_half(eta0)
     sigma0 = _start_sigma(founds, eta0)
