@@ -34,6 +34,7 @@ from .kernel_step_kernels import (
     prior_fit,
     prior_start,
     row_points,
+    vec_taps,
 )
 from .settings import (
     ELLIPSE_SWEEPS,
@@ -204,6 +205,23 @@ class _Scratch:
         self.count = wp.empty(self.chunk, dtype=wp.int32, device=device)
         self.failed = wp.empty(self.chunk, dtype=wp.int32, device=device)
         self.points = wp.empty(m, dtype=wp.vec3, device=device)
+        self._pairs = 0  # the CPU engine's factor scratch (``factors``), grown as needed
+        self._factors = None
+
+    def factors(self, n):
+        """The CPU engine's factor scratch for the first n rows of the chunk (``fit_rows_setup`` counted their
+        neighbours, ``count (count + 1) / 2`` pairs a row): each row's first pair, and the pairs' rows and
+        columns of X and their Y (``normal_equations``)."""
+        count = self.count.numpy()[:n].astype(np.int64)
+        pairs = count * (count + 1) // 2
+        first = np.concatenate([[0], np.cumsum(pairs)[:-1]]).astype(np.int32)
+        device = self.count.device
+        if self._factors is None or self._pairs < pairs.sum():
+            self._pairs = int(pairs.sum())
+            self._factors = (wp.empty((self._pairs, KERNEL_TAPS), dtype=vec_taps, device=device),
+                             wp.empty((self._pairs, KERNEL_TAPS), dtype=vec_taps, device=device),
+                             wp.empty((self._pairs, KERNEL_TAPS**2), dtype=wp.float64, device=device))  # fmt: skip
+        return (wp.array(first, dtype=wp.int32, device=device), *self._factors)
 
 
 def chunk_rows(device) -> int:
@@ -286,8 +304,8 @@ def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, d
                                                  sc.weights, sc.count], device=device)  # fmt: skip
         if not columns:
             wp.launch(fit_rows_one_thread, dim=n, inputs=[start, sc.count, sc.prof, sc.weights, sc.normal, sc.rhs,
-                                                          sc.diag, state.prior, state.kern, state.spare],
-                      device=device)  # fmt: skip
+                                                          sc.diag, state.prior, state.kern, state.spare,
+                                                          *sc.factors(n)], device=device)  # fmt: skip
             continue
         wp.launch(fit_rows_normal, dim=(n, taps2), inputs=[sc.prof, sc.weights, sc.count, sc.normal], device=device)
         wp.launch(fit_rows_ridge, dim=n, inputs=[start, sc.count, sc.normal, sc.rhs, state.prior, sc.failed],

@@ -313,53 +313,57 @@ def neighbour_profiles(
 
 @wp.func
 def factor(prof: wp.array3d(dtype=wp.float64), t: int, r0: int, r1: int, w: vec_window):
-    """``sum_x prof[t, r0 + a, x] w[x] prof[t, r1 + c, x]`` for every tap pair ``(a, c)``."""
+    """``sum_x prof[t, r0 + a, x] w[x] prof[t, r1 + c, x]`` for every tap pair ``(a, c)`` (a row of sums at
+    a time: the sums of a row do not wait on each other)."""
     out = mat_taps()
     for a in range(KER_TAPS):
+        acc = vec_taps()
+        for x in range(KER_WINDOW):
+            pa = prof[t, r0 + a, x] * w[x]
+            for c in range(KER_TAPS):
+                acc[c] += pa * prof[t, r1 + c, x]
         for c in range(KER_TAPS):
-            v = wp.float64(0.0)
-            for x in range(KER_WINDOW):
-                v += prof[t, r0 + a, x] * w[x] * prof[t, r1 + c, x]
-            out[a, c] = v
+            out[a, c] = acc[c]
     return out
 
 
 @wp.func
-def add_kronecker(normal: wp.array3d(dtype=wp.float64), t: int, fy: mat_taps, fx: mat_taps, both: bool):
-    """The lower triangle of ``fy (x) fx`` (and, with ``both``, of its transpose) added to ``normal[t]``."""
-    for b in range(KER_TAPS):
-        for b2 in range(b + 1):
-            y = fy[b, b2]
-            yt = fy[b2, b]
-            for a in range(KER_TAPS):
-                u = b * KER_TAPS + a
-                top = KER_TAPS
-                if b2 == b:
-                    top = a + 1
-                v0 = b2 * KER_TAPS
-                if both:
-                    for a2 in range(top):
-                        normal[t, u, v0 + a2] += y * fx[a, a2] + yt * fx[a2, a]
-                else:
-                    for a2 in range(top):
-                        normal[t, u, v0 + a2] += y * fx[a, a2]
-
-
-@wp.func
 def normal_equations(
-    prof: wp.array3d(dtype=wp.float64), t: int, count: int, wx: vec_window, wy: vec_window,
+    prof: wp.array3d(dtype=wp.float64), t: int, count: int, wx: vec_window, wy: vec_window, first: int,
+    rows_x: wp.array2d(dtype=vec_taps), cols_x: wp.array2d(dtype=vec_taps), y: wp.array2d(dtype=wp.float64),
     normal: wp.array3d(dtype=wp.float64),
 ):  # fmt: skip
-    """The lower triangle of the normal matrix ``sum_(j, k) Y_jk (x) X_jk`` into ``normal[t]`` (the pairs
-    ``k > j`` once, with their transposes: ``Y_kj (x) X_kj = (Y_jk (x) X_jk)^T``)."""
-    for u in range(KER_UNKNOWNS):
-        for v in range(u + 1):
-            normal[t, u, v] = wp.float64(0.0)
+    """The lower triangle of the normal matrix ``sum_(j, k) Y_jk (x) X_jk`` into ``normal[t]``: the factors
+    of the pairs ``k >= j`` into the scratch from ``first`` on (pair q: ``rows_x[q, a]`` row a of X,
+    ``cols_x[q, a]`` its column a, ``y[q, b T + b']`` Y; X halved where ``k = j``), then each row of a
+    ``T x T`` block of N summed over them as a vector, the pairs ``k > j`` with their transposes
+    (``Y_kj (x) X_kj = (Y_jk (x) X_jk)^T``)."""
+    q = first
     for s in range(count):
         for r in range(s, count):
             fx = factor(prof, t, 2 * s * KER_TAPS, 2 * r * KER_TAPS, wx)
             fy = factor(prof, t, (2 * s + 1) * KER_TAPS, (2 * r + 1) * KER_TAPS, wy)
-            add_kronecker(normal, t, fy, fx, r != s)
+            if r == s:
+                fx = fx * wp.float64(0.5)
+            for a in range(KER_TAPS):
+                rows_x[q, a] = fx[a]
+                col = vec_taps()
+                for c in range(KER_TAPS):
+                    col[c] = fx[c, a]
+                    y[q, a * KER_TAPS + c] = fy[a, c]
+                cols_x[q, a] = col
+            q += 1
+    for b in range(KER_TAPS):
+        for b2 in range(b + 1):
+            for a in range(KER_TAPS):
+                acc = vec_taps()
+                for k in range(first, q):
+                    acc = acc + y[k, b * KER_TAPS + b2] * rows_x[k, a] + y[k, b2 * KER_TAPS + b] * cols_x[k, a]
+                top = KER_TAPS
+                if b2 == b:
+                    top = a + 1
+                for a2 in range(top):
+                    normal[t, b * KER_TAPS + a, b2 * KER_TAPS + a2] = acc[a2]
 
 
 @wp.func
@@ -400,14 +404,54 @@ def add_ridge(normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.flo
 
 
 @wp.func
+def dot4(a: wp.array3d(dtype=wp.float64), ta: int, ra: int, b: wp.array3d(dtype=wp.float64), tb: int, rb: int,
+         start: int, stop: int) -> wp.float64:  # fmt: skip
+    """``sum_(start <= k < stop) a[ta, ra, k] b[tb, rb, k]`` in four partial sums (no sum waits on the one
+    before it; the CPU's one-thread solve was bound by that wait)."""
+    v0 = wp.float64(0.0)
+    v1 = wp.float64(0.0)
+    v2 = wp.float64(0.0)
+    v3 = wp.float64(0.0)
+    k = start
+    while k + 3 < stop:
+        v0 += a[ta, ra, k] * b[tb, rb, k]
+        v1 += a[ta, ra, k + 1] * b[tb, rb, k + 1]
+        v2 += a[ta, ra, k + 2] * b[tb, rb, k + 2]
+        v3 += a[ta, ra, k + 3] * b[tb, rb, k + 3]
+        k += 4
+    while k < stop:
+        v0 += a[ta, ra, k] * b[tb, rb, k]
+        k += 1
+    return (v0 + v1) + (v2 + v3)
+
+
+@wp.func
+def dot4_vector(a: wp.array3d(dtype=wp.float64), ta: int, ra: int, b: wp.array2d(dtype=wp.float64), tb: int,
+                start: int, stop: int) -> wp.float64:  # fmt: skip
+    """:func:`dot4` of a row of ``a`` and one of the 2-D ``b``: ``sum_k a[ta, ra, k] b[tb, k]``."""
+    v0 = wp.float64(0.0)
+    v1 = wp.float64(0.0)
+    v2 = wp.float64(0.0)
+    v3 = wp.float64(0.0)
+    k = start
+    while k + 3 < stop:
+        v0 += a[ta, ra, k] * b[tb, k]
+        v1 += a[ta, ra, k + 1] * b[tb, k + 1]
+        v2 += a[ta, ra, k + 2] * b[tb, k + 2]
+        v3 += a[ta, ra, k + 3] * b[tb, k + 3]
+        k += 4
+    while k < stop:
+        v0 += a[ta, ra, k] * b[tb, k]
+        k += 1
+    return (v0 + v1) + (v2 + v3)
+
+
+@wp.func
 def cholesky_entry(normal: wp.array3d(dtype=wp.float64), t: int, j: int, r: int) -> wp.float64:
     """Column j's entry in row r >= j of the Cholesky factor before the division by its pivot (for r = j the
     pivot's square): ``N[r, j] - sum_(k < j) L[r, k] L[j, k]``, with the columns before j done in place
     (below the diagonal; the pivots are kept apart, in ``diag``)."""
-    v = normal[t, r, j]
-    for k in range(j):
-        v -= normal[t, r, k] * normal[t, j, k]
-    return v
+    return normal[t, r, j] - dot4(normal, t, r, normal, t, j, 0, j)
 
 
 @wp.func
@@ -417,16 +461,19 @@ def substitute(normal: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.f
     ``diag[t]``); ``a`` into ``out[p]``, ``rhs[t]`` overwritten."""
     n = KER_UNKNOWNS
     for j in range(n):
-        v = rhs[t, j]
-        for k in range(j):
-            v -= normal[t, j, k] * rhs[t, k]
-        rhs[t, j] = v / diag[t, j]
+        rhs[t, j] = (rhs[t, j] - dot4_vector(normal, t, j, rhs, t, 0, j)) / diag[t, j]
     for jj in range(n):
         j = n - 1 - jj
-        v = rhs[t, j]
-        for k in range(j + 1, n):
-            v -= normal[t, k, j] * out[p, k]
-        out[p, j] = v / diag[t, j]
+        v0 = wp.float64(0.0)
+        v1 = wp.float64(0.0)
+        k = j + 1
+        while k + 1 < n:
+            v0 += normal[t, k, j] * out[p, k]
+            v1 += normal[t, k + 1, j] * out[p, k + 1]
+            k += 2
+        if k < n:
+            v0 += normal[t, k, j] * out[p, k]
+        out[p, j] = (rhs[t, j] - (v0 + v1)) / diag[t, j]
 
 
 @wp.func
@@ -505,16 +552,18 @@ def fit_rows_one_thread(
     offset: int, count: wp.array(dtype=wp.int32), prof: wp.array3d(dtype=wp.float64),
     weights: wp.array3d(dtype=wp.float64), normal: wp.array3d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64),
     diag: wp.array2d(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), last: wp.array2d(dtype=wp.float64),
-    fitted: wp.array2d(dtype=wp.float64),
+    fitted: wp.array2d(dtype=wp.float64), first: wp.array(dtype=wp.int32), rows_x: wp.array2d(dtype=vec_taps),
+    cols_x: wp.array2d(dtype=vec_taps), y: wp.array2d(dtype=wp.float64),
 ):  # fmt: skip
     """The CPU's engine, after ``fit_rows_setup``: row ``p = offset + t``'s kernel, one thread: its normal
-    matrix (``normal_equations``) and the ridge solve; the last kernel kept where the row is not fitted or
-    the fit fails."""
+    matrix (``normal_equations``, its neighbour pairs' factors in the scratch from ``first[t]`` on) and the
+    ridge solve; the last kernel kept where the row is not fitted or the fit fails."""
     t = wp.tid()
     p = offset + t
     ok = False
     if count[t] > 0:
-        normal_equations(prof, t, count[t], window_of(weights, t, 0), window_of(weights, t, 1), normal)
+        wx = window_of(weights, t, 0)
+        normal_equations(prof, t, count[t], wx, window_of(weights, t, 1), first[t], rows_x, cols_x, y, normal)
         ok = ridge_solve(normal, rhs, diag, t, prior, p, fitted)
     if not ok:
         keep_last(last, fitted, p)
