@@ -91,12 +91,15 @@ JOURNAL_STYLE = {
     "legend.handlelength": 2.6, "legend.borderaxespad": 0.3, "legend.columnspacing": 1.2,
     "figure.constrained_layout.h_pad": 0.02, "figure.constrained_layout.w_pad": 0.02,
     "image.cmap": "cividis", "pdf.fonttype": 42, "svg.fonttype": "none", "savefig.dpi": _DPI,
+    "svg.hashsalt": "synthbos",  # the SVG's element ids the same in every run
 }
 #: The smallest text of a figure, pt.
 MIN_FONT_PT = 7.0
 #: savefig's keywords per format: zlib level 3 for the PNG writes the same pixels in 0.6 of the time
-#: of the default level (6) into a file about 1/6 larger.
-_SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}}
+#: of the default level (6) into a file about 1/6 larger; no date in the PDF and SVG, so that the same
+#: results give the same files, byte for byte.
+_SAVE_OPTIONS = {"png": {"pil_kwargs": {"compress_level": 3}}, "pdf": {"metadata": {"CreationDate": None}},
+                 "svg": {"metadata": {"Date": None}}}
 
 #: Points drawn per error CDF (``scoring.empirical_cdf``'s ``max_points``): finer than the pixels of a
 #: 300 dpi panel, however many errors a campaign scored.

@@ -185,6 +185,17 @@ def test_save_figure_draws_what_savefig_draws(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_saved_figures_are_the_same_bytes_every_time(tmp_path):
+    """No date and no random ids: the same figure gives the same PNG, PDF and SVG files, whether its formats
+    are saved together or each by a call of its own (as a campaign on many workers does)."""
+    with figures.journal_style():
+        figures.save_figure(_busy_figure(), tmp_path / "a")
+        for fmt in figures.FORMATS:
+            figures.save_figure(_busy_figure(), tmp_path / "b", formats=(fmt,))
+    for fmt in figures.FORMATS:
+        assert (tmp_path / f"a.{fmt}").read_bytes() == (tmp_path / f"b.{fmt}").read_bytes(), fmt
+
+
 def test_docs_figures_are_made_by_one_script(campaign, tmp_path, capsys):
     """docs/make_figures.py draws the docs' campaign figures from a campaign folder and says what it wrote."""
     import importlib.util
