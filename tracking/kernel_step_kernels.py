@@ -701,12 +701,12 @@ def held_sums(
     scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32), half: int, stamp: wp.array3d(dtype=wp.float64),
     background: wp.array(dtype=wp.float64), pos: wp.array(dtype=wp.vec2d), alpha: wp.array(dtype=wp.float64),
-    p: int,
+    p: int, moments: bool,
 ):  # fmt: skip
     """Row p's sums over its stamp: its held share of the light ``L = w (I - b)``, ``w = alpha m_p / M``
     (``M`` at least ``SHARE_FLOOR`` of its fitted peak, ``w`` within [0, 1]; outside the image its own
-    model): ``(sum L, sum (x - x_p) L, sum (y - y_p) L, sum L inside the image, sum m_p outside it,
-    sum m_p)``."""
+    model): with ``moments`` ``(sum L, sum (x - x_p) L, sum (y - y_p) L, 0, 0, 0)`` (``kernel_moment``),
+    else ``(0, 0, 0, sum L inside the image, sum m_p outside it, sum m_p)`` (``kernel_hold``)."""
     i = rows[p]
     f = frame[i]
     height = refs.shape[1]
@@ -717,21 +717,26 @@ def held_sums(
     inv = wp.float64(1.0) / scales[f]
     floor = SHARE_FLOOR * wp.abs(params[i, 2])
     out = vec6d()
+    a = alpha[p]
+    b = background[p]
     for r in range(n):
         for c in range(n):
             light = stamp[p, r, c]
-            out[5] += light
+            if not moments:
+                out[5] += light
             if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
                 at = (f * height + oy + r) * width + ox + c
-                share = wp.clamp(alpha[p] * light / wp.max(wp.float64(models[at]) * inv, floor), wp.float64(0.0),
+                share = wp.clamp(a * light / wp.max(wp.float64(models[at]) * inv, floor), wp.float64(0.0),
                                  wp.float64(1.0))  # fmt: skip
-                light = share * (pixel(refs, grads, f, oy + r, ox + c) - background[p])
-                out[3] += light
-            else:
+                light = share * (pixel(refs, grads, f, oy + r, ox + c) - b)
+                if not moments:
+                    out[3] += light
+            elif not moments:
                 out[4] += light
-            out[0] += light
-            out[1] += (wp.float64(ox + c) - pos[p][0]) * light
-            out[2] += (wp.float64(oy + r) - pos[p][1]) * light
+            if moments:
+                out[0] += light
+                out[1] += (wp.float64(ox + c) - pos[p][0]) * light
+                out[2] += (wp.float64(oy + r) - pos[p][1]) * light
     return out
 
 
@@ -769,7 +774,8 @@ def kernel_hold(
     ratio within ``1 / KER_FLUX_STEP`` and ``KER_FLUX_STEP``, ``alpha`` within ``1 / KER_FLUX_BOUND`` and
     ``KER_FLUX_BOUND``); unchanged where either is not positive."""
     p = wp.tid()
-    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
+    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p,
+                     False)
     ksum = wp.float64(0.0)
     for k in range(KER_UNKNOWNS):
         ksum += kern[p, k]
@@ -791,7 +797,8 @@ def kernel_moment(
     """Row p's next position, into ``pos_out``: the first moment of its held share of the light
     (:func:`held_sums`); its position, marked failed, where it holds none."""
     p = wp.tid()
-    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p)
+    sums = held_sums(refs, grads, models, scales, params, rows, frame, half, stamp, background, pos, alpha, p,
+                     True)
     pos_out[p] = pos[p]
     if sums[0] > wp.float64(0.0):
         pos_out[p] = wp.vec2d(pos[p][0] + sums[1] / sums[0], pos[p][1] + sums[2] / sums[0])
