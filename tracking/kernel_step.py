@@ -107,7 +107,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     wp.launch(kernel_frames, dim=n, inputs=[shift, partner, live, frame, busy], device=device)
     if not busy.numpy().any():
         return
-    near = wp.HashGrid(128, 128, 64, device=device)
+    near = stack_grid(frames, height, width, device)
     points = wp.empty(n, dtype=wp.vec3, device=device)
     wp.launch(row_points, dim=n, inputs=[params, frame, live, Z_STEP, points], device=device)
     near.build(points, KERNEL_REACH_PX + 0.5)
@@ -130,7 +130,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
     if fit:  # the kernel fit's frame levels and scratch
         level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
-        grid = wp.HashGrid(128, 128, 64, device=device)
+        grid = stack_grid(frames, height, width, device)
         scratch = _Scratch(m, device)
     wp.copy(models, base)  # the others; the taking-part rows are drawn in, and taken out again after each use
     # out again by drawing them with the opposite sign (fixed point: to the bit) where their stamps cover less
@@ -222,6 +222,38 @@ class _Scratch:
                              wp.empty((self._pairs, KERNEL_TAPS), dtype=vec_taps, device=device),
                              wp.empty((self._pairs, KERNEL_TAPS**2), dtype=wp.float64, device=device))  # fmt: skip
         return (wp.array(first, dtype=wp.int32, device=device), *self._factors)
+
+
+def stack_grid(frames: int, height: int, width: int, device) -> wp.HashGrid:
+    """A hash grid for the rows of ``frames`` frames of ``height`` x ``width`` px (frame f at z = f Z_STEP),
+    with a cell for every place of every frame up to ``MAX_GRID_CELLS`` cells: a fixed 128 x 128 x 64 grid
+    folded a stack's frames onto each other along z (400 pairs: a query looked through the rows of some 37
+    frames to find those of its own), and on a pair held 1 M cells for some 6,000.
+
+    Examples
+    --------
+    >>> grid_dims(2, 512, 512)  # a pair: its two frames
+    (55, 55, 10)
+    """
+    return wp.HashGrid(*grid_dims(frames, height, width), device=device)
+
+
+#: The most cells :func:`stack_grid` holds (two int32 each): past it, frames share cells again.
+MAX_GRID_CELLS = 1 << 25
+
+
+def grid_dims(frames: int, height: int, width: int) -> tuple[int, int, int]:
+    """:func:`stack_grid`'s cells along x, y and z (cells ``KERNEL_REACH_PX + 0.5`` wide, the queries' radius).
+
+    Examples
+    --------
+    >>> grid_dims(800, 512, 512)
+    (55, 55, 3370)
+    """
+    cell = KERNEL_REACH_PX + 0.5
+    nx, ny = int(width // cell) + 2, int(height // cell) + 2
+    nz = int(frames * Z_STEP // cell) + 2
+    return nx, ny, max(1, min(nz, MAX_GRID_CELLS // (nx * ny)))
 
 
 def chunk_rows(device) -> int:
