@@ -112,13 +112,14 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     wp.launch(row_points, dim=n, inputs=[params, frame, live, Z_STEP, points], device=device)
     near.build(points, KERNEL_REACH_PX + 0.5)
     part = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(kernel_rows, dim=n, inputs=[near.id, Z_STEP, params, shift, partner, live, frame, part], device=device)
+    wp.launch(kernel_rows, dim=n, inputs=[near.id, Z_STEP, params, shift, partner, live, frame, busy, part],
+              device=device)  # fmt: skip
     rows_host = np.flatnonzero(part.numpy()).astype(np.int32)
     rows = wp.array(rows_host, dtype=wp.int32, device=device)
     m = len(rows_host)
-    # the model image of the live rows that do not take part: their symmetric models
+    # the model image of the live rows of the busy frames that do not take part: their symmetric models
     others = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(not_taking_part, dim=n, inputs=[live, part, others], device=device)
+    wp.launch(not_taking_part, dim=n, inputs=[live, part, frame, busy, others], device=device)
     models.zero_()
     wp.launch(ellipse_render, dim=n, inputs=[params, frame, others, params, prof, 1, 1, half, scales, height, width,
                                              models], device=device)  # fmt: skip

@@ -126,12 +126,13 @@ def row_points(
 def kernel_rows(
     grid: wp.uint64, z_step: float, params: wp.array2d(dtype=wp.float64), shift: wp.array(dtype=wp.vec3d),
     partner: wp.array(dtype=wp.int32), live: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
-    part: wp.array(dtype=wp.int32),
+    busy: wp.array(dtype=wp.int32), part: wp.array(dtype=wp.int32),
 ):  # fmt: skip
-    """A live row takes part where a moving row of its frame lies within ``KER_REACH`` of it (itself too)."""
+    """A live row takes part where a moving row of its frame lies within ``KER_REACH`` of it (itself too; no
+    row of a frame without one, ``busy``, looks)."""
     i = wp.tid()
     part[i] = 0
-    if live[i] == 0:
+    if live[i] == 0 or busy[frame[i]] == 0:
         return
     f = frame[i]
     centre = wp.vec3(wp.float32(params[i, 0]), wp.float32(params[i, 1]), float(f) * z_step)
@@ -144,10 +145,14 @@ def kernel_rows(
 
 
 @wp.kernel
-def not_taking_part(live: wp.array(dtype=wp.int32), part: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
-    """A live row that does not take part (its symmetric model stays in the model image)."""
+def not_taking_part(
+    live: wp.array(dtype=wp.int32), part: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32),
+    busy: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32),
+):  # fmt: skip
+    """A live row of a frame with a moving row (``busy``, ``kernel_frames``) that does not take part: its
+    symmetric model stays in the model image (no other frame's image is read)."""
     i = wp.tid()
-    out[i] = int(live[i] != 0 and part[i] == 0)
+    out[i] = int(live[i] != 0 and part[i] == 0 and busy[frame[i]] != 0)
 
 
 @wp.kernel
