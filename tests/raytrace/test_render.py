@@ -148,6 +148,36 @@ def test_deposit_kernel_matches_numpy_twin(device):
     assert_allclose(fixed_to_image(img.numpy()), twin, atol=2e-6 * energy.max())
 
 
+@wp.kernel
+def _deposit_plain(sen: kernels.Sensor, px: wp.array(dtype=wp.vec2), energy: wp.array(dtype=float),
+                   image: wp.array2d(dtype=wp.int64)):
+    i = wp.tid()
+    kernels.deposit_gaussian_plain(image, sen, px[i], energy[i])
+
+
+@pytest.mark.parametrize(("sigma_px", "half_width"), [(0.75, 3), (0.3, 1), (2.6, 8), (16.0, 48), (0.75, 49)])
+def test_deposit_gives_the_plain_loops_bits(device, sigma_px, half_width):
+    """``deposit_gaussian`` (on the CPU, column weights kept per spot and each edge's erf read once) adds
+    exactly what the plain pixel-by-pixel loop adds, spots across the image's edges and corners included;
+    half width 49 is beyond ``kernels.DEPOSIT_WINDOW``, where the CPU too takes the plain loop."""
+    sen = kernels.Sensor()
+    sen.width, sen.height, sen.pitch, sen.cx, sen.cy = 40, 33, 1.0e-5, 20.0, 16.0
+    sen.sigma_px, sen.half_width, sen.energy = sigma_px, half_width, 1.0
+    rng = np.random.default_rng(11)
+    px = np.concatenate([rng.uniform(-60, 100, size=(300, 2)), rng.uniform(-3, 43, size=(300, 2)),
+                         [[0.5, 0.5], [-0.5, 32.5], [39.49, -0.51], [20.0, 16.0]]]).astype(np.float32)
+    energy = rng.uniform(0.1, 3.0, size=len(px)).astype(np.float32)
+    images = []
+    for kernel in (kernels.deposit_spots, _deposit_plain):
+        img = wp.zeros((33, 40), dtype=wp.int64, device=device)
+        wp.launch(kernel, dim=len(px), inputs=[sen, wp.array(px, dtype=wp.vec2, device=device),
+                                               wp.array(energy, dtype=float, device=device)],
+                  outputs=[img], device=device)
+        images.append(img.numpy())
+    assert images[0].sum() > 0
+    np.testing.assert_array_equal(images[0], images[1])
+
+
 def test_medium_sampling_matches_numpy_twin(device):
     rng = np.random.default_rng(5)
     size = (0.01, 0.012, 0.008)
