@@ -56,7 +56,7 @@ class RenderPlan:
                 f"volume.distance_from_target_mm={z_mid * 1e3:g} reaches the target or the lens"
             )
         self.target_xy = self.camera.pixel_to_target(px)
-        self.dot_radius = 0.0 if tgt["dot_model"] == "point" else 0.5 * tgt["dot_diameter_px"] * pitch / M
+        self.dot_radius = 0.0 if tgt["dot_model"] == "point" else float(0.5 * tgt["dot_diameter_px"] * pitch / M)
         spot = sen["spot_diameter_px"]
         if spot == "auto":
             spot = tgt["dot_diameter_px"] if tgt["dot_model"] == "point" else "diffraction"

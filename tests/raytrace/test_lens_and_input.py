@@ -29,6 +29,15 @@ def test_thick_lens_focus_and_magnification_close_to_thin_lens():
     assert_allclose(s_image, thin.z_sensor - thin.z_stop, rtol=1e-6)
 
 
+def test_thick_lens_renders_disk_dots():
+    """The thick lens's magnification is a NumPy float: the dot radius it gives must still be a plain float
+    for the kernels (a disk-dot render through a thick lens used to fail in wp.launch)."""
+    config = _config(camera={"lens": "thick"}, target={"dot_model": "disk"})
+    assert type(plan_render(config).dot_radius) is float
+    pair = render_pair(config, device="cpu")
+    assert pair.valid.mean() > 0.5 and np.isfinite(pair.gradient).all()
+
+
 def test_thick_lens_displacement_matches_thin_lens(device):
     vol = {"source": "linear", "gradient_kg_m4": [0.0, 40.0], "grid": [8, 8, 4]}
     thin = render_pair(_config(volume=vol), device=device)
