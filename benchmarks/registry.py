@@ -194,9 +194,12 @@ STACK_KERNELS = (
     "synthbos.tracking.wide_search_kernels",
 )
 #: those it launches on the CPU, where its frame statistics, identification and predictor run their host
-#: engines (the predictor's deformation kernel instead of the tile FFT)
+#: engines (the predictor's deformation kernel instead of the tile engine's FFT and tile kernels)
 STACK_CPU_KERNELS = tuple(
-    sorted({*STACK_KERNELS, "synthbos.tracking.deform_kernels"} - {"synthbos.tracking.predict_fft_kernels"})
+    sorted(
+        {*STACK_KERNELS, "synthbos.tracking.deform_kernels"}
+        - {"synthbos.tracking.predict_fft_kernels", "synthbos.tracking.predict_kernels"}
+    )
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
 # where a coarser pass left a field, and is built on its first launch.

@@ -6,7 +6,8 @@ Kernels and ``@wp.func`` steps only; one kernel, :func:`measure_stack`, measures
 (host code :mod:`tracking.windows`, a stack of one) and of a stack of pairs (``tracking.identify.
 StackIdentification``, whose rounds of claims are :mod:`tracking.claim_kernels`). The NumPy reference
 ``tracking.reference.measure_windows_numpy`` defines what the kernels compute. Windows are held flat, pixel ``p`` of a
-``w x w`` window at row ``p // w``, column ``p % w``.
+``w x w`` window at row ``p // w``, column ``p % w``. The last section takes the predictor's hand-over:
+the positions to search from and the dots inside each pair's image.
 """
 
 import warp as wp
@@ -707,3 +708,54 @@ def measure_stack(
         floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, full_maps, out_int, out_float,
         dotmap, cross,
     )  # fmt: skip
+
+
+# --- the hand-over from the predictor: the positions to search from, the dots inside each image --------
+
+
+@wp.kernel
+def reference_or_prior(
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    prior: wp.array(dtype=wp.vec2d),
+    base: wp.array(dtype=wp.vec2d),
+):
+    """Where the reference dot was found its position, else the prior."""
+    i = wp.tid()
+    if wp.isfinite(x[i]):
+        base[i] = wp.vec2d(x[i], y[i])
+    else:
+        base[i] = prior[i]
+
+
+@wp.kernel
+def count_inside(
+    base: wp.array(dtype=wp.vec2d), per_frame: int, height: int, width: int, count: wp.array(dtype=wp.int32)
+):
+    """Dots per pair inside the image (``tracking.predict.dots_inside``), which set the predictor's passes."""
+    i = wp.tid()
+    p = base[i]
+    h = wp.float64(height)
+    w = wp.float64(width)
+    half = wp.float64(0.5)
+    in_x = wp.abs(p[0] - (w - wp.float64(1.0)) * half) <= w * half
+    if in_x and wp.abs(p[1] - (h - wp.float64(1.0)) * half) <= h * half:  # (NaN: never)
+        wp.atomic_add(count, i // per_frame, 1)
+
+
+@wp.kernel
+def predicted_position(
+    base: wp.array(dtype=wp.vec2d),
+    uv: wp.array(dtype=wp.vec2d),
+    pred: wp.array(dtype=wp.vec2d),
+):
+    """``base + nan_to_num(uv)`` (the gradient-image prediction)."""
+    i = wp.tid()
+    u = uv[i]
+    du = u[0]
+    dv = u[1]
+    if not wp.isfinite(du):
+        du = wp.float64(0.0)
+    if not wp.isfinite(dv):
+        dv = wp.float64(0.0)
+    pred[i] = wp.vec2d(base[i][0] + du, base[i][1] + dv)

@@ -4,9 +4,9 @@
 
 Host code: :func:`tracking.predict.predict_displacement_stack`. Which pairs run, tile grids and fields,
 the deformation, peak fits, the median test and the end of a pass; the tile correlation is in
-:mod:`tracking.predict_fft_kernels`. The last section hands the prediction over to
-identification: the positions to search from and the dots inside each pair's image (which set its
-passes).
+:mod:`tracking.predict_fft_kernels`; the hand-over of the prediction to identification (the
+positions to search from, the dots inside each pair's image) is in :mod:`tracking.identify_kernels`, which
+the CPU builds anyway (it runs this engine's host twin, not these kernels).
 
 Kernels and ``@wp.func`` steps only. Each kernel does one step of a pass of
 :func:`tracking.predict.predict_displacement` for every pair of a stack at once (threads indexed by pair
@@ -631,54 +631,3 @@ def values_at_dots(
         nan = wp.float64(wp.nan)
         uv[b, q] = wp.vec2d(nan, nan)
         quality[b, q] = nan
-
-
-# --- the hand-over to identification: the positions to search from, the dots inside each image ------
-
-
-@wp.kernel
-def reference_or_prior(
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    prior: wp.array(dtype=wp.vec2d),
-    base: wp.array(dtype=wp.vec2d),
-):
-    """Where the reference dot was found its position, else the prior."""
-    i = wp.tid()
-    if wp.isfinite(x[i]):
-        base[i] = wp.vec2d(x[i], y[i])
-    else:
-        base[i] = prior[i]
-
-
-@wp.kernel
-def count_inside(
-    base: wp.array(dtype=wp.vec2d), per_frame: int, height: int, width: int, count: wp.array(dtype=wp.int32)
-):
-    """Dots per pair inside the image (``tracking.predict.dots_inside``), which set the predictor's passes."""
-    i = wp.tid()
-    p = base[i]
-    h = wp.float64(height)
-    w = wp.float64(width)
-    half = wp.float64(0.5)
-    in_x = wp.abs(p[0] - (w - wp.float64(1.0)) * half) <= w * half
-    if in_x and wp.abs(p[1] - (h - wp.float64(1.0)) * half) <= h * half:  # (NaN: never)
-        wp.atomic_add(count, i // per_frame, 1)
-
-
-@wp.kernel
-def predicted_position(
-    base: wp.array(dtype=wp.vec2d),
-    uv: wp.array(dtype=wp.vec2d),
-    pred: wp.array(dtype=wp.vec2d),
-):
-    """``base + nan_to_num(uv)`` (the gradient-image prediction)."""
-    i = wp.tid()
-    u = uv[i]
-    du = u[0]
-    dv = u[1]
-    if not wp.isfinite(du):
-        du = wp.float64(0.0)
-    if not wp.isfinite(dv):
-        dv = wp.float64(0.0)
-    pred[i] = wp.vec2d(base[i][0] + du, base[i][1] + dv)

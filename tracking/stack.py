@@ -40,7 +40,7 @@ from synthbos import SynthbosError
 from synthbos.device import init_warp
 
 from . import claim_kernels as ck
-from . import predict_kernels as pk
+from . import identify_kernels as ik
 from .diameter import estimate_dot_diameter
 from .dotfit import fit_stack, fit_window_half
 from .frame_stats import fill_level, frame_statistics, saturation_level
@@ -337,11 +337,11 @@ def _track_group(refs, grads, prior, excluded, st_r, st_g, geometry, settings, d
     r = ident.identify(refs, 0, on_device, all_ids, M, wide=False)
     use_pred = s.predictor == "correlation"
     base = wp.empty(M, dtype=wp.vec2d, device=device)
-    wp.launch(pk.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
+    wp.launch(ik.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
     if use_pred:
         uv_pred, quality = _predict(refs, grads, base, B, N, s, device, excluded)
         pred_g = wp.empty(M, dtype=wp.vec2d, device=device)
-        wp.launch(pk.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
+        wp.launch(ik.predicted_position, dim=M, inputs=[base, uv_pred, pred_g], device=device)
         g = ident.identify(grads, 1, pred_g, all_ids, M, wide=False)
         wide_search_stack(
             lambda ids, n_ids: ident.identify(grads, 1, pred_g, ids, n_ids, wide=True),
@@ -393,7 +393,7 @@ def _predict(refs, grads, base, B, N, settings, device, excluded=None):
         return _predict_on_host(refs, grads, base, B, N, settings, device, excluded)
     H, W = refs.shape[1:]
     count = wp.zeros(B, dtype=wp.int32, device=device)
-    wp.launch(pk.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
+    wp.launch(ik.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
     plans = {}
     for b, n_in in enumerate(count.numpy()):
         sizes, density = predictor_passes((H, W), int(n_in), settings.predictor_windows)

@@ -42,7 +42,7 @@ def test_item_lists_give_each_module_once_per_device():
     assert score_kernels(scores) == [("synthbos.correlation.kernels", "cpu"),
                                      *[(f"synthbos.tracking.{n}_kernels", "cpu")
                                        for n in ("claim", "ellipse", "fit", "identify", "kernel_step", "moment",
-                                                 "neighbour", "predict", "stats", "table", "wide_search")]]
+                                                 "neighbour", "stats", "table", "wide_search")]]
     both = campaign_kernels(renders, scores)
     assert both == sorted(render_kernels(renders) + score_kernels(scores))
 
