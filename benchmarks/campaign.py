@@ -19,7 +19,7 @@ from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
 from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
-from .integrate import density_floor_errors
+from .integrate import floor_current, pair_floor
 from .items import by_pair_and_noise, render_item, score_items
 from .registry import check_available, get_method
 from .scheduling import (
@@ -179,7 +179,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         groups = summary_groups(spec)
         floors = _pair_paths(spec, folder)
         jobs = [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
-        jobs += [(density_floor_errors, (path,), {path}) for path in floors]  # each as soon as its pair is there
+        jobs += [(pair_floor, (path,), {path}) for path in floors]  # each as soon as its pair is there
         jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
@@ -272,11 +272,14 @@ def write_summary(spec: CampaignSpec, folder, *, mapper=map) -> list[dict]:
     Beside it the density floor (``floor.csv`` and ``.json``, ``tables.floor_rows``): its pairs' exact
     displacements integrated and scored alike.
 
-    ``mapper`` maps the table's groups (``tables.summarise``) and the pairs' floors: a pool's or a Dask
-    cluster's ``map`` does them side by side."""
+    ``mapper`` maps the table's groups (``tables.summarise``) and the floors the workers did not already
+    keep (``integrate.pair_floor``): a pool's or a Dask cluster's ``map`` does them side by side."""
     rows = summarise(spec, folder, mapper=mapper)
     write_tables(rows, folder)
-    write_tables(floor_rows(mapper(density_floor_errors, _pair_paths(spec, folder))), folder, stem="floor")
+    paths = _pair_paths(spec, folder)
+    missing = [p for p in paths if not floor_current(p)]
+    made = dict(zip(missing, mapper(pair_floor, missing), strict=True))
+    write_tables(floor_rows([made[p] if p in made else pair_floor(p) for p in paths]), folder, stem="floor")
     return rows
 
 

@@ -48,6 +48,7 @@ from tqdm.auto import tqdm
 from synthbos import SynthbosError
 from synthbos.values import shorten
 
+from .integrate import floor_current, pair_floor
 from .items import render_item, score_item
 from .scheduling import (
     PIPELINE_WORKER_DEVICE,
@@ -214,16 +215,20 @@ def host_workers() -> int:
 def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -> int:
     """Run a share of a campaign's pairs through the single-node pipeline (``scheduling.run_pipeline``)
     on this GPU worker, with :func:`host_workers` host processes and its tracking items in stacks of
-    ``stack`` pairs (None: the pipeline's default, stacks on a GPU); skips what exists and starts no
-    further pair once run ``token`` is told to stop. Returns the number of items it wrote."""
+    ``stack`` pairs (None: the pipeline's default, stacks on a GPU), and its pairs' density floors
+    (``integrate.pair_floor``) in those processes; skips what exists and starts no further pair once run
+    ``token`` is told to stop. Returns the number of items it wrote."""
+    pairs = sorted({str(r[1]) for r in renders} | {str(s[0]) for s in scores})
     renders = [r for r in renders if not Path(r[1]).exists()]
     scores = [s for s in scores if not Path(s[4]).exists()]
     there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
     workers = host_workers()
+    # its campaign pairs' density floors, each as soon as its pair file is there (the table reads them)
+    jobs = [(pair_floor, (p,), {p}) for p in pairs if Path(p).parent.name == "pairs" and not floor_current(p)]
     with _LOCK:
         _IN_FLIGHT[token] += 1
     try:
-        run_pipeline(renders, scores, workers=workers, progress=False, worker_device=there,
+        run_pipeline(renders, scores, workers=workers, progress=False, worker_device=there, jobs=jobs,
                      stop=lambda: token in _STOPPED, stack=stack,
                      pool=lambda: _kept_pool(workers - 1, worker_kernels(scores, worker_device=there, stack=stack)))
     finally:

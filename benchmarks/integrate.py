@@ -85,6 +85,9 @@ __all__ = [
     "Geometry",
     "GradientGrid",
     "density_floor_errors",
+    "floor_current",
+    "floor_file",
+    "pair_floor",
     "density_from_result",
     "exact_grid",
     "geometry_from_config",
@@ -486,6 +489,41 @@ def density_floor_errors(path) -> dict:
         out[f"density_{truth}"] = e
         out[f"density_{truth}_rel"] = e / rng if rng > 0 else np.full(len(e), np.nan)
     return out
+
+
+def floor_file(path) -> Path:
+    """Where a campaign keeps a pair file's :func:`density_floor_errors` (:func:`pair_floor`): beside its
+    score files, ``scores/<pair>_floor.npz``.
+
+    Examples
+    --------
+    >>> floor_file("run/pairs/s2_p00.h5").as_posix()
+    'run/scores/s2_p00_floor.npz'
+    """
+    path = Path(path)
+    return path.parent.parent / "scores" / f"{path.stem}_floor.npz"
+
+
+def floor_current(path) -> bool:
+    """Whether a pair file's :func:`floor_file` is there and not older than the pair file."""
+    out = floor_file(path)
+    return out.exists() and out.stat().st_mtime >= Path(path).stat().st_mtime
+
+
+def pair_floor(path) -> dict:
+    """:func:`density_floor_errors` of a campaign's pair file, kept in its :func:`floor_file`: computed and
+    written (atomically) the first time, read back after, unless the pair file is newer. A campaign's workers
+    make them while the work goes on (the pipeline's jobs, a Dask worker's pipeline task), so its floor
+    table only reads them, and a run again finds them there."""
+    out = floor_file(path)
+    if floor_current(path):
+        with np.load(out) as f:
+            return {k: f[k] for k in f.files}
+    floor = density_floor_errors(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(out) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **floor)
+    return floor
 
 
 def edge_reach_px(result: MethodResult) -> float:

@@ -29,8 +29,10 @@ def test_campaign_is_resumable_and_deterministic(tmp_path, capsys):
     assert all(r["n"] > 0 for r in rows if r["split"] == "all")
     dens = [r for r in rows if r["quantity"] == "density_cone_rel"]
     assert len(dens) == 6 and all(0 < r["rms"] < 0.2 for r in dens)
-    scores = sorted((tmp_path / "c" / "scores").iterdir())
+    kept = sorted((tmp_path / "c" / "scores").iterdir())
+    scores = [p for p in kept if not p.name.endswith("_floor.npz")]
     assert len(scores) == 3 * 2
+    assert [p.name for p in kept if p not in scores] == ["s2_p00_floor.npz"]  # the pair's floor, kept
     # results.csv names the unit of each row's errors, in a last column
     lines = (tmp_path / "c" / "results.csv").read_text().splitlines()
     header = lines[0].split(",")
@@ -46,11 +48,11 @@ def test_campaign_is_resumable_and_deterministic(tmp_path, capsys):
     by = {r["quantity"]: r for r in floor}
     assert by["density_cone_rel"]["rms"] == pytest.approx(np.sqrt(np.mean(exact["density_cone_rel"] ** 2)), rel=1e-12)
     assert 0 < by["density_cone_rel"]["rms"] < 0.2
-    # A re-run skips finished work: nothing is rewritten, and it says so.
-    stamps = {p: p.stat().st_mtime_ns for p in scores}
+    # A re-run skips finished work: nothing is rewritten (the floor neither), and it says so.
+    stamps = {p: p.stat().st_mtime_ns for p in kept}
     capsys.readouterr()
     again = run_campaign(TINY, tmp_path / "c", device="cpu", workers=1, progress=True, figures=False)
-    assert {p: p.stat().st_mtime_ns for p in scores} == stamps
+    assert {p: p.stat().st_mtime_ns for p in kept} == stamps
     assert again == rows
     assert (f"resumed {tmp_path / 'c'}: 7 of 7 items already done (1 of 1 pairs rendered, 6 of 6 scores made), "
             "0 to run") in capsys.readouterr().out

@@ -121,3 +121,32 @@ def test_integrate_input_errors_one_line_nothing_written(pair_file, tmp_path, ca
     refused(["integrate", str(write_pair(tmp_path / "few.h5", few))], "0 valid dot(s)")
     with pytest.raises(SynthbosError, match="not an HDF5 file"):
         input_kind(cfg)
+
+
+def test_a_campaign_keeps_each_pairs_floor(tmp_path, monkeypatch):
+    """``pair_floor`` writes a pair's floor beside its scores, reads it back after, and makes it again once the
+    pair file is newer (a pair rendered again)."""
+    import os
+
+    from synthbos.benchmarks import integrate
+
+    path = tmp_path / "pairs" / "s2_p00.h5"
+    path.parent.mkdir()
+    write_pair(path, synthetic_pair())
+    first = integrate.pair_floor(path)
+    kept = tmp_path / "scores" / "s2_p00_floor.npz"
+    assert integrate.floor_file(path) == kept and kept.exists() and integrate.floor_current(path)
+    want = integrate.density_floor_errors(path)
+    assert sorted(first) == sorted(want) and all(np.array_equal(first[k], want[k]) for k in want)
+
+    def refuse(_path):
+        raise AssertionError("computed again")
+
+    monkeypatch.setattr(integrate, "density_floor_errors", refuse)
+    again = integrate.pair_floor(path)
+    assert all(np.array_equal(again[k], want[k]) for k in want)
+    stamp = kept.stat().st_mtime_ns
+    os.utime(path, ns=(stamp + 10**9, stamp + 10**9))  # the pair rendered again, after its floor
+    assert not integrate.floor_current(path)
+    with pytest.raises(AssertionError, match="computed again"):
+        integrate.pair_floor(path)
