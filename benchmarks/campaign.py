@@ -149,7 +149,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     t0 = time.perf_counter()
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
-    for sub in (folder, folder / "pairs", folder / "scores"):
+    for sub in (folder, folder / "pairs", folder / "scores", folder / "floors"):
         for stale in sub.glob(".*.tmp"):
             stale.unlink(missing_ok=True)
     on_gpu = device is not None and str(device).startswith("cuda")

@@ -492,16 +492,16 @@ def density_floor_errors(path) -> dict:
 
 
 def floor_file(path) -> Path:
-    """Where a campaign keeps a pair file's :func:`density_floor_errors` (:func:`pair_floor`): beside its
-    score files, ``scores/<pair>_floor.npz``.
+    """Where a campaign keeps a pair file's :func:`density_floor_errors` (:func:`pair_floor`): in its folder
+    ``floors``, beside ``pairs`` and ``scores`` (whose files stay one per score item).
 
     Examples
     --------
     >>> floor_file("run/pairs/s2_p00.h5").as_posix()
-    'run/scores/s2_p00_floor.npz'
+    'run/floors/s2_p00.npz'
     """
     path = Path(path)
-    return path.parent.parent / "scores" / f"{path.stem}_floor.npz"
+    return path.parent.parent / "floors" / f"{path.stem}.npz"
 
 
 def floor_current(path) -> bool:

@@ -334,8 +334,8 @@ def test_pipeline_tasks_on_a_local_cluster_give_the_plain_campaign(tmp_path):
         run_campaign(spec, dask, device="cpu", scheduler=runner, progress=False, figures=False)
     assert (plain / "results.json").read_bytes() == (dask / "results.json").read_bytes()
     assert (plain / "floor.json").read_bytes() == (dask / "floor.json").read_bytes()
-    # the pairs' density floors, kept beside the scores (the pipeline tasks make them as the pairs appear)
-    assert sorted(p.name for p in (dask / "scores").glob("*_floor.npz")) == ["s1_p00_floor.npz", "s4_p00_floor.npz"]
+    # the pairs' density floors, kept in the campaign's folder (the pipeline tasks make them as the pairs appear)
+    assert sorted(p.name for p in (dask / "floors").glob("*.npz")) == ["s1_p00.npz", "s4_p00.npz"]
     for path in sorted((plain / "scores").glob("*.npz")):
         with np.load(path) as a, np.load(dask / "scores" / path.name) as b:
             assert sorted(a.files) == sorted(b.files)

@@ -29,10 +29,10 @@ def test_campaign_is_resumable_and_deterministic(tmp_path, capsys):
     assert all(r["n"] > 0 for r in rows if r["split"] == "all")
     dens = [r for r in rows if r["quantity"] == "density_cone_rel"]
     assert len(dens) == 6 and all(0 < r["rms"] < 0.2 for r in dens)
-    kept = sorted((tmp_path / "c" / "scores").iterdir())
-    scores = [p for p in kept if not p.name.endswith("_floor.npz")]
+    scores = sorted((tmp_path / "c" / "scores").iterdir())
     assert len(scores) == 3 * 2
-    assert [p.name for p in kept if p not in scores] == ["s2_p00_floor.npz"]  # the pair's floor, kept
+    kept = [*scores, *(tmp_path / "c" / "floors").iterdir()]
+    assert [p.name for p in kept[len(scores):]] == ["s2_p00.npz"]  # the pair's density floor, kept
     # results.csv names the unit of each row's errors, in a last column
     lines = (tmp_path / "c" / "results.csv").read_text().splitlines()
     header = lines[0].split(",")

@@ -134,7 +134,7 @@ def test_a_campaign_keeps_each_pairs_floor(tmp_path, monkeypatch):
     path.parent.mkdir()
     write_pair(path, synthetic_pair())
     first = integrate.pair_floor(path)
-    kept = tmp_path / "scores" / "s2_p00_floor.npz"
+    kept = tmp_path / "floors" / "s2_p00.npz"
     assert integrate.floor_file(path) == kept and kept.exists() and integrate.floor_current(path)
     want = integrate.density_floor_errors(path)
     assert sorted(first) == sorted(want) and all(np.array_equal(first[k], want[k]) for k in want)
