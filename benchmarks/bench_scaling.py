@@ -173,7 +173,7 @@ def _plain_table(rows, gpus, args) -> str:
         spec_options = {"pixels": args.pixels, "rays": args.rays, "noise": [float(v) for v in args.noise.split(",")]}
         share = max(1, default_workers() // max(1, len(gpus)))
         plain = [run_plain(device=args.device, pairs=first["pairs"], workers=w, folder=tmp, **spec_options)
-                 for w in (None, share)]
+                 for w in (default_workers(), share)]  # every core, and a GPU worker's share
     best = max(plain, key=lambda p: p["pairs_per_s"])  # like with like: the faster of the two
     lines = [f"Without Dask on one GPU ({first['pairs']} pairs): "
              + "; ".join(f"{p['workers']} processes {p['pairs_per_s']:.3f} pairs/s ({p['campaign_s']:.1f} s)"

@@ -25,6 +25,7 @@ from .registry import check_available, get_method
 from .scheduling import (
     PIPELINE_WORKER_DEVICE,
     default_workers,
+    pipeline_workers,
     render_kernels,
     run_items,
     run_pipeline,
@@ -171,7 +172,10 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     if progress:
         _resume_note(folder, n_pairs=len(keys), n_scores=len(keys) * len(spec.noise_percent) * len(methods),
                      renders=len(renders), scores=len(scores))
-    figure_jobs = _figure_jobs(spec, folder, workers=workers or default_workers()) if figures else []
+    # host processes here: one GPU's pipeline at most PIPELINE_MAX_WORKERS of them, else every core (Dask
+    # workers size their own)
+    host = workers or (pipeline_workers() if pipeline and scheduler is None else default_workers())
+    figure_jobs = _figure_jobs(spec, folder, workers=host) if figures else []
     if pipeline and scheduler is None:
         # The device work here; scoring, the tables and the figures in worker processes. A figure that
         # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
@@ -183,7 +187,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
-        parts = run_pipeline(renders, scores, workers=workers or default_workers(), progress=progress,
+        parts = run_pipeline(renders, scores, workers=host, progress=progress,
                              worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
                              on_items_done=lambda: t_items.append(time.perf_counter()))
         rows = [row for part in parts[: len(groups)] for row in part]
@@ -202,13 +206,12 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
             t1 = time.perf_counter()
             rows = write_summary(spec, folder, mapper=map if runner is None else runner.map)  # on the cluster
     else:
-        workers = workers or default_workers()
         processing = score_kernels(scores)
-        with worker_pool(workers) as pool:  # the same processes render and then score: kernels built once
-            run_items(renders, render_item, workers=1 if on_gpu else workers, desc="render", progress=progress,
+        with worker_pool(host) as pool:  # the same processes render and then score: kernels built once
+            run_items(renders, render_item, workers=1 if on_gpu else host, desc="render", progress=progress,
                       kernels=render_kernels(renders), pool=None if on_gpu else pool, build_after=processing)
             # a pair's items of one noise level in one task: tracking and tracking-cc share one tracker run
-            run_items(by_pair_and_noise(scores), score_items, workers=workers, desc="process", progress=progress,
+            run_items(by_pair_and_noise(scores), score_items, workers=host, desc="process", progress=progress,
                       kernels=processing, pool=pool)
             t1 = time.perf_counter()
             rows = write_summary(spec, folder, mapper=map if pool is None else pool.map)
@@ -216,7 +219,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     timings["render and process"] = t1 - t0
     timings["tables"] = t2 - t1
     if figure_jobs:  # side by side in worker processes: matplotlib draws on one core
-        run_items(figure_jobs, campaign_figure, workers=min(len(figure_jobs), workers or default_workers()),
+        run_items(figure_jobs, campaign_figure, workers=min(len(figure_jobs), host),
                   desc="figures", progress=progress)
         timings["figures"] = time.perf_counter() - t2
     return rows

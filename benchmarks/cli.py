@@ -676,8 +676,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
         _add_process_device_option(p)
         p.add_argument("--workers", type=_workers, default=None,
-                       help="processes (default: all CPU cores); processing on a GPU, this process drives the GPU "
-                            "and the others score")
+                       help="processes (default: all CPU cores, at most 16 when processing on a GPU); processing "
+                            "on a GPU, this process drives the GPU and the others score")
         p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
         p.add_argument("--methods", default=None, metavar="A,B,...",
                        help=f"methods to run (default: {','.join(default_methods())}; also: "
@@ -697,7 +697,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="baseline file (default: the one synthbos ships); e.g. your own for a plugin")
     _add_output(p, "keep the campaign in this folder (default: a temporary one, removed at the end)", required=False,
                 alias=True)
-    p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+    p.add_argument("--workers", type=_workers, default=None,
+                   help="processes (default: all CPU cores, at most 16 when processing on a GPU)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     _add_scheduler_option(p)
     _add_stack_option(p, cpu_only=True)
@@ -717,7 +718,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None,
                    help="Warp device for rendering and processing (default: cuda:0 if present, else cpu)")
     _add_process_device_option(p)
-    p.add_argument("--workers", type=_workers, default=None, help="processes (default: all CPU cores)")
+    p.add_argument("--workers", type=_workers, default=None,
+                   help="processes (default: all CPU cores, at most 16 when processing on a GPU)")
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     _add_scheduler_option(p)
     _add_stack_option(p)

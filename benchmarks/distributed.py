@@ -55,6 +55,7 @@ from .scheduling import (
     default_workers,
     host_pool,
     pair_tasks,
+    pipeline_workers,
     run_pipeline,
     worker_kernels,
 )
@@ -209,7 +210,7 @@ def host_workers() -> int:
     told = os.environ.get(HOST_WORKERS_VAR, "")
     if told.isdigit() and int(told) > 0:
         return int(told)
-    return max(1, default_workers() // max(1, len(visible_gpus())))
+    return pipeline_workers(len(visible_gpus()))
 
 
 def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -> int:
@@ -462,7 +463,7 @@ class DaskRunner:
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
             share = max(n, len(gpus), len(host_gpus))
-            threads = {**_thread_share(share), HOST_WORKERS_VAR: str(max(1, default_workers() // share))}
+            threads = {**_thread_share(share), HOST_WORKERS_VAR: str(pipeline_workers(share))}
             envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:

@@ -43,9 +43,9 @@ from tqdm.auto import tqdm
 
 from synthbos.device import load_kernels, shared_by_threads
 
-__all__ = ["PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers", "die_with_parent",
-           "host_pool", "pair_tasks", "render_kernels", "run_items", "run_pipeline", "same_image_runs", "score_kernels",
-           "split_items", "submit_builds", "worker_kernels", "worker_pool"]
+__all__ = ["PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers",
+           "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels", "run_items", "run_pipeline",
+           "same_image_runs", "score_kernels", "split_items", "submit_builds", "worker_kernels", "worker_pool"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
@@ -63,6 +63,25 @@ PENDING_PER_WORKER = 16
 def default_workers() -> int:
     """The CPU cores this process may use."""
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+#: The most host processes one GPU's pipeline starts when none are asked for: one GPU keeps about this many
+#: busy, and more were slower on every larger host measured (H100 hosts, `bench_scaling`'s baselines,
+#: pairs/s with 16 against all cores: 32 cores 2.24 / 2.04; 64 cores 2.43 / 1.39, 2.50 / 1.61, 3.45 / 2.14,
+#: 2.81 / 1.93; docs/benchmarks.md).
+PIPELINE_MAX_WORKERS = 16
+
+
+def pipeline_workers(gpus: int = 1) -> int:
+    """Host processes of each of ``gpus`` GPU pipelines on this host when none are asked for: a share of
+    the cores, at most :data:`PIPELINE_MAX_WORKERS`.
+
+    Examples
+    --------
+    >>> 1 <= pipeline_workers() <= PIPELINE_MAX_WORKERS
+    True
+    """
+    return max(1, min(default_workers() // max(1, gpus), PIPELINE_MAX_WORKERS))
 
 
 def die_with_parent(parent_pid: int, preload=(), kernels=(), nice: int = 0) -> None:

@@ -313,3 +313,34 @@ def test_pipeline_draws_first_pair_figures_early_and_the_rest_after_the_last_ite
     assert drawn == {"fig4": [None], "fig5": [None], "fig_density": [None], "fig_budget": [None]}
     assert (tmp_path / "f" / "results.csv").read_bytes() == (plain[0] / "results.csv").read_bytes()
     assert set(timings) == {"render and process", "tables and figures, after the last item"}
+
+
+def test_one_gpu_pipeline_starts_at_most_sixteen_host_processes(monkeypatch):
+    """Without --workers a GPU's pipeline takes every core up to ``PIPELINE_MAX_WORKERS`` (more were slower on
+    every larger host measured); a CPU campaign every core; Dask GPU workers a share of them, as capped."""
+    from synthbos.benchmarks import scheduling
+
+    monkeypatch.setattr(scheduling, "default_workers", lambda: 64)
+    assert scheduling.PIPELINE_MAX_WORKERS == 16
+    assert scheduling.pipeline_workers() == 16
+    assert scheduling.pipeline_workers(4) == 16 and scheduling.pipeline_workers(8) == 8
+    monkeypatch.setattr(scheduling, "default_workers", lambda: 2)
+    assert scheduling.pipeline_workers() == 2 and scheduling.pipeline_workers(4) == 1
+
+
+def test_the_pipeline_asks_for_the_capped_host_processes(tmp_path, monkeypatch):
+    """``run_campaign`` without ``workers``: the pipeline (a GPU campaign's way, here on the CPU) is handed
+    ``pipeline_workers()`` processes, not every core."""
+    from synthbos.benchmarks import campaign, scheduling
+
+    class Asked(Exception):
+        pass
+
+    def fake_pipeline(renders, scores, *, workers, **kwargs):
+        raise Asked(workers)
+
+    monkeypatch.setattr(scheduling, "default_workers", lambda: 64)
+    monkeypatch.setattr(campaign, "run_pipeline", fake_pipeline)
+    with pytest.raises(Asked) as asked:
+        run_campaign(SMALL, tmp_path / "c", device="cpu", progress=False, figures=False, pipeline=True)
+    assert asked.value.args == (16,)
