@@ -505,9 +505,10 @@ def floor_file(path) -> Path:
 
 
 def floor_current(path) -> bool:
-    """Whether a pair file's :func:`floor_file` is there and not older than the pair file."""
-    out = floor_file(path)
-    return out.exists() and out.stat().st_mtime >= Path(path).stat().st_mtime
+    """Whether a pair file's :func:`floor_file` is there and not older than the pair file (False while the
+    pair file is not there: a pair deleted to be rendered again)."""
+    out, pair = floor_file(path), Path(path)
+    return out.exists() and pair.exists() and out.stat().st_mtime >= pair.stat().st_mtime
 
 
 def pair_floor(path) -> dict:
