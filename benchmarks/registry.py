@@ -168,13 +168,24 @@ def _checked(method: Method) -> Method:
     return replace(method, run=checked_run)
 
 
+# The Warp modules of the GPU's engines of a step, which a CPU run never launches (each step's kernel module
+# names its own ``GPU_MODULE``: the 7 x 7 windows in registers, the kernel fit a thread per entry, the
+# frame statistics, the claim board's rounds).
+_GPU_ENGINES = (
+    "synthbos.tracking.claim_kernels.gpu",
+    "synthbos.tracking.identify_kernels.gpu",
+    "synthbos.tracking.kernel_step_kernels.gpu",
+    "synthbos.tracking.stats_kernels.gpu",
+)
 # the Warp modules that track_pair launches (compiled ahead of the work by a campaign: scheduling)
 _TRACKING_KERNELS = (
     "synthbos.tracking.identify_kernels",
+    "synthbos.tracking.identify_kernels.gpu",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.moment_kernels",
     "synthbos.tracking.ellipse_kernels",
     "synthbos.tracking.kernel_step_kernels",
+    "synthbos.tracking.kernel_step_kernels.gpu",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.deform_kernels",
 )
@@ -192,18 +203,22 @@ STACK_KERNELS = (
     "synthbos.tracking.stats_kernels",
     "synthbos.tracking.table_kernels",
     "synthbos.tracking.wide_search_kernels",
+    *_GPU_ENGINES,
 )
 #: those it launches on the CPU, where its frame statistics, identification and predictor run their host
-#: engines (the predictor's deformation kernel instead of the tile engine's FFT and tile kernels)
+#: engines (the predictor's deformation kernel instead of the tile engine's FFT and tile kernels) and no
+#: step builds its GPU engine
 STACK_CPU_KERNELS = tuple(
     sorted(
         {*STACK_KERNELS, "synthbos.tracking.deform_kernels"}
-        - {"synthbos.tracking.predict_fft_kernels", "synthbos.tracking.predict_kernels"}
+        - {"synthbos.tracking.predict_fft_kernels", "synthbos.tracking.predict_kernels", *_GPU_ENGINES}
     )
 )
 # those it launches on every pair: the window deformation of a prediction pass (deform_kernels) runs only
 # where a coarser pass left a field, and is built on its first launch.
-_TRACKING_CPU_KERNELS = tuple(name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels")
+_TRACKING_CPU_KERNELS = tuple(
+    name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels" and name not in _GPU_ENGINES
+)
 # track_pair with the default estimators is a stack of one: those of the stack too (on the CPU, deform_kernels
 # again left to its first launch)
 _DEFAULT_KERNELS = tuple(sorted({*_TRACKING_KERNELS, *STACK_KERNELS}))

@@ -33,6 +33,11 @@ from .kernel_constants import (
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
+#: The claim board's rounds are the GPU's engine of identification, a Warp module of their own: the CPU
+#: identifies pair by pair as host code (``identify_near_predictions``) and builds only ``release_claims`` (the
+#: wide search's) and ``repeat_rows`` (a stack's prior) here.
+GPU_MODULE = f"{__name__}.gpu"
+wp.set_module_options({"enable_backward": False}, module=GPU_MODULE)
 
 
 #: Largest int32: an unclaimed blob.
@@ -42,7 +47,7 @@ NO_CLAIM = wp.constant(2147483647)
 # --- identification -------------------------------------------------------------------------------
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def start_identification(
     pred: wp.array(dtype=wp.vec2d),
     ids: wp.array(dtype=wp.int32),
@@ -78,7 +83,7 @@ def claim_key(f: int, root_r: int, root_c: int, w: int, hp: int, wp_: int) -> in
     return (f * hp + root_r + 2 * w) * wp_ + root_c + 2 * w
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def accept_blobs(
     ids: wp.array(dtype=wp.int32),
     per_frame: int,
@@ -117,7 +122,7 @@ def accept_blobs(
     wp.atomic_min(claim_dist, k, out_float[t, 2])
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def claim_nearest(
     ids: wp.array(dtype=wp.int32),
     out_float: wp.array2d(dtype=wp.float64),
@@ -132,7 +137,7 @@ def claim_nearest(
         wp.atomic_min(claim_id, k, ids[t])
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def take_blobs(
     ids: wp.array(dtype=wp.int32),
     per_frame: int,
@@ -226,7 +231,7 @@ def release_claims(
         claim_id[k] = NO_CLAIM
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def next_round(won: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32)):
     """A frame in which a round found no dot stops (``identify_near_predictions``' ``break``)."""
     f = wp.tid()
@@ -239,7 +244,7 @@ def grid_point(p: wp.vec2d, f: int, z_step: float) -> wp.vec3:
     return wp.vec3(wp.float32(p[0]), wp.float32(p[1]), float(f) * z_step)
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def waiting_points(
     pred: wp.array(dtype=wp.vec2d),
     todo: wp.array(dtype=wp.int32),
@@ -255,7 +260,7 @@ def waiting_points(
         points[i] = wp.vec3(-1.0e6 - 61.0 * float(i % 4093), -1.0e6 - 67.0 * float((i // 4093) % 4093), -1.0e6)
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def subtract_near_waiting(
     grid: wp.uint64,
     ids: wp.array(dtype=wp.int32),
@@ -323,7 +328,7 @@ def repeat_rows(one: wp.array(dtype=wp.vec2d), per_frame: int, out: wp.array(dty
     out[i] = one[i % per_frame]
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def measured_peaks(
     ids: wp.array(dtype=wp.int32),
     out_int: wp.array2d(dtype=wp.int32),

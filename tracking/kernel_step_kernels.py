@@ -46,6 +46,10 @@ from .kernel_constants import (
 from .moment_kernels import DISTORTED_CODE, SHARE_FLOOR, moves, reference_background
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+#: The GPU's engine of the fit (``fit_rows_normal`` .. ``fit_rows_solve``, a thread per entry) is a Warp module of
+#: its own: the CPU fits a row in one thread (``fit_rows_one_thread``) and never builds it.
+GPU_MODULE = f"{__name__}.gpu"
+wp.set_module_options({"enable_backward": False, "max_unroll": 1}, module=GPU_MODULE)
 
 TWELFTH = wp.constant(wp.float64(1.0 / 12.0))
 mat_taps = wp.types.matrix(shape=(KER_TAPS, KER_TAPS), dtype=wp.float64)
@@ -590,7 +594,7 @@ def fit_rows_setup(
                          rhs, shift, weights)  # fmt: skip
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def fit_rows_normal(
     prof: wp.array3d(dtype=wp.float64), weights: wp.array3d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
     normal: wp.array3d(dtype=wp.float64),
@@ -624,7 +628,7 @@ def fit_rows_normal(
                 normal[t, u, v] += ys[b2] * xs[v - b2 * KER_TAPS]
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def fit_rows_ridge(
     offset: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64),
     rhs: wp.array2d(dtype=wp.float64), prior: wp.array2d(dtype=wp.float64), failed: wp.array(dtype=wp.int32),
@@ -636,7 +640,7 @@ def fit_rows_ridge(
         add_ridge(normal, rhs, t, prior, offset + t)
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def fit_column(
     j: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64), diag: wp.array2d(dtype=wp.float64),
     failed: wp.array(dtype=wp.int32),
@@ -658,7 +662,7 @@ def fit_column(
         normal[t, r, j] = cholesky_entry(normal, t, j, r) / d
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def fit_rows_solve(
     offset: int, count: wp.array(dtype=wp.int32), normal: wp.array3d(dtype=wp.float64),
     diag: wp.array2d(dtype=wp.float64), rhs: wp.array2d(dtype=wp.float64), failed: wp.array(dtype=wp.int32),

@@ -29,6 +29,10 @@ from synthbos.device import quiet_warp
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+#: The frame statistics' kernels are the GPU's engine, a Warp module of their own: the CPU computes the
+#: statistics as host code (``tracking.frame_stats``) and builds only the segment medians below.
+GPU_MODULE = f"{__name__}.gpu"
+wp.set_module_options({"enable_backward": False, "fuse_fp": False}, module=GPU_MODULE)
 
 # Bits of the per-column and per-frame flags.
 NONFINITE = wp.constant(1)  # a pixel is NaN or +-inf
@@ -37,7 +41,7 @@ FILL_NAN = wp.constant(4)  # a pixel of every fourth row and column is NaN
 NOISE_NAN = wp.constant(8)  # a horizontal difference of the rows used by the noise estimate is NaN
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def column_pass(
     images: wp.array3d(dtype=wp.float64),
     band: int,
@@ -139,7 +143,7 @@ def reduce_columns(
     return vmin, vmax, count, total, flags
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def band_moments(
     col_min: wp.array3d(dtype=wp.float64),
     col_max: wp.array3d(dtype=wp.float64),
@@ -164,7 +168,7 @@ def band_moments(
     band_flags[f, b, 0] = flags
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def frame_moments(
     col_min: wp.array3d(dtype=wp.float64),
     col_max: wp.array3d(dtype=wp.float64),
@@ -209,7 +213,7 @@ def frame_moments(
     frame_flags[f] = flags
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def column_lags(
     images: wp.array3d(dtype=wp.float64),
     band: int,
@@ -250,14 +254,14 @@ def summed_lags(lags: wp.array3d(dtype=wp.vec4d), f: int, b0: int, b1: int) -> w
     return s
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def band_lags(lags: wp.array3d(dtype=wp.vec4d), band_total: wp.array3d(dtype=wp.vec4d)):
     """Band ``b`` of frame ``f``: the sum of its columns' lag sums, as one column ``(f, b, 0)``."""
     f, b = wp.tid()
     band_total[f, b, 0] = summed_lags(lags, f, b, b + 1)
 
 
-@wp.kernel
+@wp.kernel(module=GPU_MODULE)
 def frame_results(
     sorted_keys: wp.array(dtype=wp.float64),
     frame_flags: wp.array(dtype=wp.int32),

@@ -201,6 +201,7 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
     a missing one would compile during the work)."""
     import warp as wp
     from synthbos.raytrace.dots import draw_dots
+    from synthbos.device import _warp_modules
     from synthbos.tracking.stack import track_pairs
 
     launched = set()
@@ -208,7 +209,7 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
         original = getattr(wp, name)
 
         def spy(kernel, *args, _original=original, **kwargs):
-            launched.add(kernel.func.__module__)
+            launched.add((kernel.func.__module__, kernel.module.name))
             return _original(kernel, *args, **kwargs)
 
         monkeypatch.setattr(wp, name, spy)
@@ -218,7 +219,11 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
     refs = np.stack([draw_dots(shape, xy, 3.0), draw_dots(shape, xy, 3.0)])
     grads = np.stack([draw_dots(shape, xy + 0.7, 3.0), draw_dots(shape, xy - 0.4, 3.0)])
     track_pairs(refs, grads, prior_xy=xy + 0.2, device="cpu")
-    assert launched == set(STACK_CPU_KERNELS)
+    assert {name for name, _ in launched} == set(STACK_CPU_KERNELS)
+    # and only the Warp modules those names build: no step's GPU engine (``GPU_MODULE``) on the CPU
+    built = {m.name for name in STACK_CPU_KERNELS for m in _warp_modules(name)}
+    assert {module for _, module in launched} <= built
+    assert not any(module.endswith(".gpu") for module in built)
 
 
 def test_stacks_hold_the_trackers_with_the_default_estimators_and_load_their_kernels():
