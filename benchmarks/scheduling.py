@@ -44,8 +44,9 @@ from tqdm.auto import tqdm
 from synthbos.device import load_kernels, shared_by_threads
 
 __all__ = ["PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers",
-           "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels", "run_items", "run_pipeline",
-           "same_image_runs", "score_kernels", "split_items", "submit_builds", "worker_kernels", "worker_pool"]
+           "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels", "run_items",
+           "run_pipeline", "same_image_runs", "score_kernels", "split_items", "submit_builds", "worker_kernels",
+           "worker_pool"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and

@@ -201,8 +201,9 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
     a missing one would compile during the work)."""
     import warp as wp
     from synthbos.raytrace.dots import draw_dots
-    from synthbos.device import _warp_modules
     from synthbos.tracking.stack import track_pairs
+
+    from synthbos.device import _warp_modules
 
     launched = set()
     for name in ("launch", "launch_tiled"):
