@@ -16,7 +16,7 @@ import warp as wp
 from synthbos import SynthbosError
 from synthbos.memo import RecentResults
 
-from . import kernels, sources
+from . import medium_kernels, sources
 from .checks import check_density
 
 __all__ = [
@@ -123,9 +123,9 @@ def is_planar(field) -> bool:
     return bool(all(np.array_equal(field[k], field[0]) for k in range(1, field.shape[0])))
 
 
-def straight_to_warp(medium: MediumData) -> kernels.MediumStraight:
+def straight_to_warp(medium: MediumData) -> medium_kernels.MediumStraight:
     """The box's placement only, for the reference image's straight rays (nothing to upload)."""
-    m = kernels.MediumStraight()
+    m = medium_kernels.MediumStraight()
     m.half = wp.vec3(*(0.5 * s for s in medium.size))
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
     m.centre = wp.vec3(*medium.centre)
@@ -142,38 +142,39 @@ def medium_struct(field: str):
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
-    return {"float32": kernels.Medium, "float32_vec": kernels.MediumVec, "float16": kernels.MediumHalf,
-            "float16_nodes": kernels.MediumHalfNodes, "texture": kernels.MediumTexture,
-            "texture16": kernels.MediumTexture, "texture_nearest": kernels.MediumTexels}[field]
+    mk = medium_kernels
+    return {"float32": mk.Medium, "float32_vec": mk.MediumVec, "float16": mk.MediumHalf,
+            "float16_nodes": mk.MediumHalfNodes, "texture": mk.MediumTexture, "texture16": mk.MediumTexture,
+            "texture_nearest": mk.MediumTexels}[field]
 
 
 def to_warp(medium: MediumData, *, device=None, field="float32"):
     """Upload the medium to a Warp device as the struct ``render_rays`` reads (see ``FIELDS``).
 
-    "float32" and "float32_vec" give ``kernels.Medium`` / ``kernels.MediumVec`` over the packed nodes;
-    "float16" gives ``kernels.MediumHalf`` (node pairs along x), "float16_nodes"
-    ``kernels.MediumHalfNodes``; "texture" and "texture16"
-    ``kernels.MediumTexture``; "texture_nearest" ``kernels.MediumTexels``.
+    "float32" and "float32_vec" give ``medium_kernels.Medium`` / ``medium_kernels.MediumVec`` over the packed nodes;
+    "float16" gives ``medium_kernels.MediumHalf`` (node pairs along x), "float16_nodes"
+    ``medium_kernels.MediumHalfNodes``; "texture" and "texture16"
+    ``medium_kernels.MediumTexture``; "texture_nearest" ``medium_kernels.MediumTexels``.
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
     if field in ("float32", "float32_vec"):
-        m = kernels.Medium() if field == "float32" else kernels.MediumVec()
+        m = medium_kernels.Medium() if field == "float32" else medium_kernels.MediumVec()
         m.field = wp.array(medium.field, dtype=wp.vec4, device=device)
     elif field == "float16":
         scale = half_scale(medium.field)
         nodes = (medium.field * scale).astype(np.float16)
         pairs = np.concatenate([nodes[:, :, :-1], nodes[:, :, 1:]], axis=-1)
-        m = kernels.MediumHalf()
-        m.pairs = wp.array(np.ascontiguousarray(pairs), dtype=kernels.vec8h, device=device)
+        m = medium_kernels.MediumHalf()
+        m.pairs = wp.array(np.ascontiguousarray(pairs), dtype=medium_kernels.vec8h, device=device)
         m.unscale = wp.vec4(*(1.0 / scale))
     elif field == "float16_nodes":
         scale = half_scale(medium.field)
-        m = kernels.MediumHalfNodes()
+        m = medium_kernels.MediumHalfNodes()
         m.nodes = wp.array((medium.field * scale).astype(np.float16), dtype=wp.vec4h, device=device)
         m.unscale = wp.vec4(*(1.0 / scale))
     elif field == "texture_nearest":
-        m = kernels.MediumTexels()
+        m = medium_kernels.MediumTexels()
         m.tex = wp.Texture3D(
             medium.field, filter_mode=wp.TextureFilterMode.CLOSEST, address_mode=wp.TextureAddressMode.CLAMP,
             normalized_coords=False, device=device,
@@ -183,7 +184,7 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
         if field == "texture16":
             scale = half_scale(medium.field)
             data, unscale = np.ascontiguousarray((medium.field * scale).astype(np.float16)), 1.0 / scale
-        m = kernels.MediumTexture()
+        m = medium_kernels.MediumTexture()
         m.tex = wp.Texture3D(
             data, filter_mode=wp.TextureFilterMode.LINEAR, address_mode=wp.TextureAddressMode.CLAMP,
             normalized_coords=False, device=device,

@@ -18,7 +18,7 @@ import synthbos
 from synthbos import SynthbosError
 from synthbos.device import check_device, init_warp
 
-from . import checks, kernels, truth_kernels
+from . import checks, kernels, medium_kernels, truth_kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
 from .medium import EXACT_FIELDS, MediumData, is_planar, medium_from_config, medium_struct, straight_to_warp, to_warp
@@ -379,10 +379,10 @@ def truth_medium(plan: RenderPlan, *, device=None, medium=None):
     """The medium the ground truths read: the exact float32 nodes on ``device``.
 
     ``medium`` (an uploaded medium, e.g. the gradient image's ``to_warp(plan.medium, field=plan.field)``)
-    is reused where it holds them (``kernels.Medium``, ``kernels.MediumVec``); otherwise (None, or an
+    is reused where it holds them (``medium_kernels.Medium``, ``medium_kernels.MediumVec``); otherwise (None, or an
     approximate field) the nodes are uploaded as "float32_vec".
     """
-    if isinstance(medium, (kernels.Medium.instance_type, kernels.MediumVec.instance_type)):
+    if isinstance(medium, (medium_kernels.Medium.instance_type, medium_kernels.MediumVec.instance_type)):
         return medium
     return to_warp(plan.medium, device=device, field="float32_vec")
 
@@ -473,8 +473,9 @@ def render_modules(config=None, *, device=None) -> list[str]:
     init_warp()
     cap = rays["max_registers"] if wp.get_device(check_device(device)).is_cuda else 0
     struct = medium_struct(rays["field"])
-    truth = struct if rays["field"] in EXACT_FIELDS and struct in truth_kernels.TRUTH_MEDIA else kernels.MediumVec
-    return sorted({kernels.render_module(struct, cap), kernels.render_module(kernels.MediumStraight, cap),
+    exact = rays["field"] in EXACT_FIELDS and struct in truth_kernels.TRUTH_MEDIA
+    truth = struct if exact else medium_kernels.MediumVec
+    return sorted({kernels.render_module(struct, cap), kernels.render_module(medium_kernels.MediumStraight, cap),
                    truth_kernels.truth_module(truth)})
 
 

@@ -10,7 +10,8 @@ from typing import Any
 
 import warp as wp
 
-from .kernels import Camera, Medium, MediumVec, group_member, sample_disk, sample_medium
+from .kernels import Camera, group_member, sample_disk
+from .medium_kernels import Medium, MediumVec, sample_medium
 
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
