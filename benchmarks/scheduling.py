@@ -112,13 +112,7 @@ def die_with_parent(parent_pid: int, preload=(), kernels=(), nice: int = 0) -> N
     for name in preload:
         importlib.import_module(name)
     if kernels:
-        import warp as wp
-
-        from synthbos.device import init_warp
-
-        init_warp()
-        for name, device in kernels:
-            wp.load_module(importlib.import_module(name), device=device)
+        load_kernels(kernels, max_workers=1)  # (a Python module's Warp modules, or one named under it)
 
 
 def _exit_with(pid: int) -> None:

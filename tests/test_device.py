@@ -163,3 +163,27 @@ def test_load_kernels_of_nothing_returns():
 
     assert load_kernels([]) is None
     assert load_kernels([], max_workers=4) is None
+
+
+def test_a_steps_gpu_engine_is_a_module_named_under_its_kernel_module(monkeypatch):
+    """Each step's GPU engine (``GPU_MODULE``, e.g. ``synthbos.tracking.claim_kernels.gpu``) is a Warp module
+    named under its Python module, kept apart from that module's own, and a worker loads it by that name
+    (``scheduling.die_with_parent`` -> ``load_kernels``: a GPU campaign's workers stopped on importing it
+    as a Python module)."""
+    import warp as wp
+    from synthbos.benchmarks import scheduling
+    from synthbos.tracking import claim_kernels
+
+    from synthbos.device import _warp_modules
+
+    assert claim_kernels.GPU_MODULE == "synthbos.tracking.claim_kernels.gpu"
+    assert [m.name for m in _warp_modules(claim_kernels.GPU_MODULE)] == [claim_kernels.GPU_MODULE]
+    assert claim_kernels.GPU_MODULE not in {m.name for m in _warp_modules(claim_kernels.__name__)}
+    loaded = []
+    monkeypatch.setattr(wp, "force_load", lambda device, modules, max_workers: loaded.extend(m.name for m in modules))
+    monkeypatch.setattr(scheduling.ctypes, "CDLL", lambda *a, **k: type("L", (), {"prctl": staticmethod(lambda *a: 0)}))
+    monkeypatch.setattr(scheduling.os, "getppid", lambda: 1)  # started by the campaign process, pid 1
+    monkeypatch.setattr(scheduling, "_exit_with", lambda pid: None)
+    monkeypatch.setattr(scheduling, "threadpool_limits", lambda limits: None)
+    scheduling.die_with_parent(1, kernels=[(claim_kernels.GPU_MODULE, "cpu")])
+    assert loaded == [claim_kernels.GPU_MODULE]
