@@ -70,7 +70,8 @@ RENDER_KEYS = {
     "rays.rays_per_thread": "rays of one dot each thread traces, adding their sums once; \"auto\": 8 for planar media "
                             "and straight rays, 1 through 3-D media (never changes a bit)",
     "rays.block_dim": "threads per CUDA block (never changes a bit)",
-    "rays.max_registers": "0 (the compiler's choice), 64 or 80 registers per CUDA thread (never changes a bit)",
+    "rays.max_registers": "\"auto\" (64, or 80 through a 3-D medium), 0 (the compiler's choice), 64 or 80 registers "
+                          "per CUDA thread (never changes a bit)",
     "rays.stepping": '"cells" (RK4 steps end at node planes) or "fixed" (equal steps of step_mm)',
     "sensor.spot_diameter_px": '"auto" (dot diameter for point dots, diffraction for disks), "diffraction", or px',
     "sensor.peak_intensity": "peak I0 of a point dot's spot",

@@ -42,12 +42,12 @@ Keys
   order in which threads take the dots); rays_per_thread = "auto" | n (each thread traces this many
   consecutive rays of one dot and adds their sums to the dot's once; "auto": 8 for straight rays and
   planar media, 1 through a 3-D medium); rays_per_group = "auto" | n (consecutive threads take this many
-  chunks of rays of one dot); block_dim (threads per CUDA block); max_registers = 0 | 80 | 64 (the compiler's choice,
-  or at most that many registers a thread on CUDA). The launch settings never change a bit of the result.
-  Defaults: field "float32_vec", dot_order "morton", rays_per_group "auto" (8 for planar media and straight
-  rays, 64 through a 3-D medium), rays_per_thread "auto", block_dim 256,
-  max_registers 64
-  (the fastest exact choice on an H200: see docs/benchmarks.md, renderer speed; the CPU ignores max_registers).
+  chunks of rays of one dot); block_dim (threads per CUDA block); max_registers = "auto" | 0 | 80 | 64 (the
+  compiler's choice, or at most that many registers a thread on CUDA). The launch settings never change a bit
+  of the result. Defaults: field "float32_vec", dot_order "morton", rays_per_group "auto" (8 for planar media
+  and straight rays, 64 through a 3-D medium), rays_per_thread "auto", block_dim 256, max_registers "auto"
+  (64 for planar media and straight rays, 80 through a 3-D medium: the fastest exact choices measured on
+  H200 and H100 GPUs, see docs/benchmarks.md, renderer speed; the CPU ignores max_registers).
 [sensor]
   spot_diameter_px = "auto" | "diffraction" | px ("auto": dot_diameter_px for point dots, the
   diffraction spot 2.44 lambda f# (1 + M) for disks); peak_intensity (peak I0 of a point dot's spot).
@@ -91,7 +91,8 @@ _OPTIONAL = {
     "target": {"min_spacing_px": None},
     "rays": {
         "chunk": 4_194_304, "aim_iterations": "auto", "field": "float32_vec", "dot_order": "morton",
-        "rays_per_group": "auto", "rays_per_thread": "auto", "block_dim": 256, "max_registers": 64, "stepping": "cells",
+        "rays_per_group": "auto", "rays_per_thread": "auto", "block_dim": 256, "max_registers": "auto",
+        "stepping": "cells",
     },
     "volume": {k: v for k, v in sources.COMMON_KEYS.items() if k not in DEFAULT_CONFIG["volume"]},
     # Resource limits, checked before any work (None: the default, see raytrace.checks).
@@ -205,9 +206,9 @@ def _validate(cfg):
     if rays["rays_per_thread"] != "auto":
         rays["rays_per_thread"] = _num("rays.rays_per_thread", rays["rays_per_thread"])
     rays["block_dim"] = _num("rays.block_dim", rays["block_dim"])
-    if rays["max_registers"] not in (0, 64, 80) or isinstance(rays["max_registers"], bool):
+    if rays["max_registers"] not in ("auto", 0, 64, 80) or isinstance(rays["max_registers"], bool):
         raise SynthbosError(
-            f"rays.max_registers must be 0 (the compiler's choice), 64 or 80, got {rays['max_registers']!r}"
+            f"rays.max_registers must be \"auto\", 0 (the compiler's choice), 64 or 80, got {rays['max_registers']!r}"
         )
 
     if sen["spot_diameter_px"] not in ("auto", "diffraction"):

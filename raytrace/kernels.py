@@ -28,6 +28,7 @@ from .medium_kernels import (
     MediumTexels,
     MediumTexture,
     MediumVec,
+    MediumVec3D,
     node_coords,
     read_by_cell,
     sample_medium,
@@ -578,7 +579,7 @@ def deposit_spots(
 # registers, at the price of spills to local memory), each in a Warp module of its own (named by
 # ``render_module``): a run compiles only the media it launches, on a first run two of the 21 (the
 # paper's medium and the reference image's). The generic ``render_rays`` itself is compiled for none.
-MEDIA = (Medium, MediumStraight, MediumVec, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels)
+MEDIA = (Medium, MediumStraight, MediumVec, MediumVec3D, MediumHalf, MediumHalfNodes, MediumTexture, MediumTexels)
 REGISTER_CAPS = (0, 80, 64)  # 0: no cap
 
 

@@ -132,18 +132,19 @@ def straight_to_warp(medium: MediumData) -> medium_kernels.MediumStraight:
     return m
 
 
-def medium_struct(field: str):
-    """The struct of ``raytrace.kernels`` that :func:`to_warp` gives for ``field`` (one of ``FIELDS``).
+def medium_struct(field: str, planar: bool = True):
+    """The struct of ``raytrace.medium_kernels`` that :func:`to_warp` gives for ``field`` (one of ``FIELDS``)
+    and a ``planar`` medium or not (:func:`is_planar`).
 
     Examples
     --------
-    >>> medium_struct("float32_vec").key
-    'MediumVec'
+    >>> medium_struct("float32_vec").key, medium_struct("float32_vec", planar=False).key
+    ('MediumVec', 'MediumVec3D')
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
     mk = medium_kernels
-    return {"float32": mk.Medium, "float32_vec": mk.MediumVec, "float16": mk.MediumHalf,
+    return {"float32": mk.Medium, "float32_vec": mk.MediumVec if planar else mk.MediumVec3D, "float16": mk.MediumHalf,
             "float16_nodes": mk.MediumHalfNodes, "texture": mk.MediumTexture, "texture16": mk.MediumTexture,
             "texture_nearest": mk.MediumTexels}[field]
 
@@ -151,15 +152,17 @@ def medium_struct(field: str):
 def to_warp(medium: MediumData, *, device=None, field="float32"):
     """Upload the medium to a Warp device as the struct ``render_rays`` reads (see ``FIELDS``).
 
-    "float32" and "float32_vec" give ``medium_kernels.Medium`` / ``medium_kernels.MediumVec`` over the packed nodes;
+    "float32" and "float32_vec" give ``medium_kernels.Medium`` / ``medium_kernels.MediumVec`` over the packed nodes
+    (``MediumVec3D`` where the node planes differ);
     "float16" gives ``medium_kernels.MediumHalf`` (node pairs along x), "float16_nodes"
     ``medium_kernels.MediumHalfNodes``; "texture" and "texture16"
     ``medium_kernels.MediumTexture``; "texture_nearest" ``medium_kernels.MediumTexels``.
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
+    planar = is_planar(medium.field) if field in EXACT_FIELDS else False
     if field in ("float32", "float32_vec"):
-        m = medium_kernels.Medium() if field == "float32" else medium_kernels.MediumVec()
+        m = medium_struct(field, planar)()
         m.field = wp.array(medium.field, dtype=wp.vec4, device=device)
     elif field == "float16":
         scale = half_scale(medium.field)
@@ -191,7 +194,7 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
         )
         m.unscale = wp.vec4(*unscale)
     if field in EXACT_FIELDS:
-        m.planar = int(is_planar(medium.field))
+        m.planar = int(planar)
     m.half = wp.vec3(*(0.5 * s for s in medium.size))
     m.inv_spacing = wp.vec3(*(1.0 / s for s in medium.spacing))
     m.centre = wp.vec3(*medium.centre)

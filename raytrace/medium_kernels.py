@@ -10,8 +10,10 @@ and ``MediumStraight`` (no medium: the reference image). All share ``node_coords
 
 A cell step (``raytrace.kernels.trace_volume``, ``stepping = "cells"``) stays inside one cell of the
 nodes, so through a truly 3-D float32 field its four RK4 stages read that cell's eight nodes once
-(``step_medium``: a ``MediumCell``) instead of eight nodes each; a planar field (every node plane the
-same) and the other media are read at each stage as before.
+(``read_by_cell``, ``step_medium``: a ``MediumCell``) instead of eight a stage: ``Medium`` and
+``MediumTexels`` where their planes differ, and ``MediumVec3D``, the default field's struct for such a
+field. A planar field (the paper's slice, ``MediumVec``) and the other media are read at each stage, the
+bits of before; the exact fields agree bit for bit on the CPU in each case.
 """
 
 from typing import Any
@@ -50,6 +52,18 @@ class MediumStraight:
 @wp.struct
 class MediumVec:
     # The same nodes as ``Medium``, read with one 128-bit load per node on CUDA (bitwise the same values).
+    field: wp.array3d(dtype=wp.vec4)
+    planar: int
+    half: wp.vec3
+    inv_spacing: wp.vec3
+    centre: wp.vec3
+
+
+@wp.struct
+class MediumVec3D:
+    # ``MediumVec`` for a truly 3-D field (``raytrace.medium.to_warp`` gives it where the node planes
+    # differ): a cell step reads its cell once (``step_medium``), and the planar slice's kernel stays as
+    # it was (one kernel holding both ways of reading ran the slice 7-9 % slower on an H100).
     field: wp.array3d(dtype=wp.vec4)
     planar: int
     half: wp.vec3
@@ -236,6 +250,18 @@ def sample_medium(m: MediumStraight, p: wp.vec3):  # noqa: F811 (an overload)
 @wp.func
 def sample_medium(m: MediumVec, p: wp.vec3):  # noqa: F811 (an overload)
     """``sample_medium`` of ``Medium`` with 128-bit node loads: the same numbers."""
+    return sample_vec(m, p)
+
+
+@wp.func
+def sample_medium(m: MediumVec3D, p: wp.vec3):  # noqa: F811 (an overload)
+    """As ``MediumVec`` (the stages of the fixed steps, which may cross cells)."""
+    return sample_vec(m, p)
+
+
+@wp.func
+def sample_vec(m: Any, p: wp.vec3):
+    """``sample_medium`` of ``Medium`` with 128-bit node loads, for ``MediumVec`` and ``MediumVec3D``."""
     nz = m.field.shape[0]
     ny = m.field.shape[1]
     nx = m.field.shape[2]
@@ -363,7 +389,7 @@ def grid_node(m: Medium, k: int, j: int, i: int):
 
 
 @wp.func
-def grid_node(m: MediumVec, k: int, j: int, i: int):  # noqa: F811 (an overload)
+def grid_node(m: MediumVec3D, k: int, j: int, i: int):  # noqa: F811 (an overload)
     """Node (k, j, i), one 128-bit load on CUDA."""
     return load_node(m.field, k, j, i)
 
@@ -409,19 +435,14 @@ def cell_at(m: Any, p: wp.vec3):
 
 @wp.func
 def read_by_cell(m: Any) -> int:
-    """Whether a cell step through ``m`` reads its cell once (``step_medium``): the other media, each stage."""
+    """Whether a cell step through ``m`` reads its cell once (``step_medium``); 0: at each stage (a
+    constant, so the kernel of such a medium holds only the reads at each stage)."""
     return 0
 
 
 @wp.func
 def read_by_cell(m: Medium) -> int:  # noqa: F811 (an overload)
-    """A float32 medium: where it is truly 3-D (a planar one keeps its bilinear reads)."""
-    return 1 - m.planar
-
-
-@wp.func
-def read_by_cell(m: MediumVec) -> int:  # noqa: F811 (an overload)
-    """As ``Medium``."""
+    """Where the field is truly 3-D (a planar one keeps the bilinear reads of ``MediumVec``'s slice)."""
     return 1 - m.planar
 
 
@@ -432,6 +453,12 @@ def read_by_cell(m: MediumTexels) -> int:  # noqa: F811 (an overload)
 
 
 @wp.func
+def read_by_cell(m: MediumVec3D) -> int:  # noqa: F811 (an overload)
+    """Always (a truly 3-D field)."""
+    return 1
+
+
+@wp.func
 def step_medium(m: Any, p: wp.vec3):
     """What the stages of a cell step around local point p read: the medium itself (read at each stage)."""
     return m
@@ -439,17 +466,17 @@ def step_medium(m: Any, p: wp.vec3):
 
 @wp.func
 def step_medium(m: Medium, p: wp.vec3):  # noqa: F811 (an overload)
-    """The cell around p (where ``read_by_cell``)."""
+    """The cell around p."""
     return cell_at(m, p)
 
 
 @wp.func
-def step_medium(m: MediumVec, p: wp.vec3):  # noqa: F811 (an overload)
-    """The cell around p (where ``read_by_cell``)."""
+def step_medium(m: MediumVec3D, p: wp.vec3):  # noqa: F811 (an overload)
+    """The cell around p."""
     return cell_at(m, p)
 
 
 @wp.func
 def step_medium(m: MediumTexels, p: wp.vec3):  # noqa: F811 (an overload)
-    """The cell around p (where ``read_by_cell``)."""
+    """The cell around p."""
     return cell_at(m, p)

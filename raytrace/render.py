@@ -218,7 +218,9 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     lost = wp.zeros(n, dtype=wp.int32, device=device)
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
-    kernel = kernels.render_kernel(medium, plan.max_registers if wp.get_device(device).is_cuda else 0)
+    on_cuda = wp.get_device(device).is_cuda
+    cap = register_cap(plan.max_registers, active=active, planar=is_planar(plan.medium.field)) if on_cuda else 0
+    kernel = kernels.render_kernel(medium, cap)
     per_thread, group = launch_shape(plan, active=active)
     rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
     group = min(group, -(-rays_per_launch // per_thread))  # at most every chunk of a launch: dot-major order
@@ -259,6 +261,10 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
 #: at 32, 4.48e8 at 64.
 AUTO_LAUNCH_ALIKE = (8, 8)
 AUTO_LAUNCH_3D = (1, 64)
+#: ``rays.max_registers = "auto"``: the register cap of a CUDA render for straight rays and planar media,
+#: and through a truly 3-D medium, whose cell steps hold a cell's eight nodes (docs/benchmarks.md).
+AUTO_REGISTERS_ALIKE = 64
+AUTO_REGISTERS_3D = 80
 
 
 def launch_shape(plan: RenderPlan, *, active: bool) -> tuple[int, int]:
@@ -279,6 +285,22 @@ def launch_shape(plan: RenderPlan, *, active: bool) -> tuple[int, int]:
     auto = AUTO_LAUNCH_ALIKE if not active or is_planar(plan.medium.field) else AUTO_LAUNCH_3D
     settings = (plan.rays_per_thread, plan.rays_per_group)
     return tuple(a if v == "auto" else int(v) for a, v in zip(auto, settings, strict=True))
+
+
+def register_cap(max_registers, *, active: bool, planar: bool) -> int:
+    """The register cap of a CUDA render (``rays.max_registers``; "auto": ``AUTO_REGISTERS_3D`` for the
+    gradient image through a truly 3-D medium, else ``AUTO_REGISTERS_ALIKE``).
+
+    Examples
+    --------
+    >>> register_cap("auto", active=True, planar=False), register_cap("auto", active=False, planar=False)
+    (80, 64)
+    >>> register_cap(0, active=True, planar=False)
+    0
+    """
+    if max_registers != "auto":
+        return int(max_registers)
+    return AUTO_REGISTERS_3D if active and not planar else AUTO_REGISTERS_ALIKE
 
 
 def moment_scales(rays_per_dot: int) -> tuple[float, float]:
@@ -379,12 +401,18 @@ def truth_medium(plan: RenderPlan, *, device=None, medium=None):
     """The medium the ground truths read: the exact float32 nodes on ``device``.
 
     ``medium`` (an uploaded medium, e.g. the gradient image's ``to_warp(plan.medium, field=plan.field)``)
-    is reused where it holds them (``medium_kernels.Medium``, ``medium_kernels.MediumVec``); otherwise (None, or an
+    is reused where it holds them (``medium_kernels.Medium``, ``MediumVec``, ``MediumVec3D``); otherwise (None, or an
     approximate field) the nodes are uploaded as "float32_vec".
     """
-    if isinstance(medium, (medium_kernels.Medium.instance_type, medium_kernels.MediumVec.instance_type)):
-        return medium
-    return to_warp(plan.medium, device=device, field="float32_vec")
+    mk = medium_kernels
+    if not isinstance(medium, (mk.Medium.instance_type, mk.MediumVec.instance_type, mk.MediumVec3D.instance_type)):
+        medium = to_warp(plan.medium, device=device, field="float32_vec")
+    if isinstance(medium, mk.MediumVec3D.instance_type):  # the same nodes (no copy), read as MediumVec
+        m = mk.MediumVec()
+        m.field, m.planar, m.half, m.inv_spacing, m.centre = (
+            medium.field, medium.planar, medium.half, medium.inv_spacing, medium.centre)
+        return m
+    return medium
 
 
 def chief_ray_truth(plan: RenderPlan, *, device=None, samples_per_step=1, medium=None):
@@ -469,13 +497,18 @@ def render_modules(config=None, *, device=None) -> list[str]:
     ['synthbos.raytrace.kernels.render_MediumStraight', 'synthbos.raytrace.kernels.render_MediumVec', \
 'synthbos.raytrace.truth_kernels.truth_MediumVec']
     """
-    rays = load_config(config)["rays"]
+    cfg = load_config(config)
+    rays = cfg["rays"]
     init_warp()
-    cap = rays["max_registers"] if wp.get_device(check_device(device)).is_cuda else 0
-    struct = medium_struct(rays["field"])
+    on_cuda = wp.get_device(check_device(device)).is_cuda
+    planar = is_planar(medium_from_config(cfg).field)
+    cap, straight_cap = ((register_cap(rays["max_registers"], active=a, planar=planar) if on_cuda else 0)
+                         for a in (True, False))
+    struct = medium_struct(rays["field"], planar)
     exact = rays["field"] in EXACT_FIELDS and struct in truth_kernels.TRUTH_MEDIA
     truth = struct if exact else medium_kernels.MediumVec
-    return sorted({kernels.render_module(struct, cap), kernels.render_module(medium_kernels.MediumStraight, cap),
+    straight = medium_kernels.MediumStraight
+    return sorted({kernels.render_module(struct, cap), kernels.render_module(straight, straight_cap),
                    truth_kernels.truth_module(truth)})
 
 

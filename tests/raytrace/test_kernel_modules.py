@@ -8,19 +8,24 @@ import warp as wp
 from _small import small_config
 from synthbos.raytrace import kernels, truth_kernels
 from synthbos.raytrace.config import load_config
-from synthbos.raytrace.medium import FIELDS, medium_from_config, medium_struct, to_warp
+from synthbos.raytrace.medium import FIELDS, is_planar, medium_from_config, medium_struct, to_warp
 from synthbos.raytrace.render import render_modules, render_pair
 
 from synthbos import SynthbosError
 
 
-def test_every_field_uploads_the_struct_medium_struct_names():
-    medium = medium_from_config(load_config(small_config()))
+@pytest.mark.parametrize("planar", [True, False], ids=["slice", "3-D"])
+def test_every_field_uploads_the_struct_medium_struct_names(planar):
+    blob = {"source": "gaussian", "sigma_mm": 4.0, "amplitude_kg_m3": 0.05, "grid": [24, 24, 8]}
+    medium = medium_from_config(load_config(small_config() if planar else small_config(volume=blob)))
+    assert is_planar(medium.field) == planar
     for field in FIELDS:
-        struct = medium_struct(field)
+        struct = medium_struct(field, planar)
         assert struct in kernels.MEDIA
         assert isinstance(to_warp(medium, device="cpu", field=field), struct.instance_type), field
         assert kernels.render_kernel(to_warp(medium, device="cpu", field=field)) is kernels.render_kernel(struct)
+    # only the default field takes a struct of its own for a 3-D field (its cell reads, apart from the slice's)
+    assert medium_struct("float32_vec", planar).key == ("MediumVec" if planar else "MediumVec3D")
     with pytest.raises(SynthbosError, match=r"rays\.field"):
         medium_struct("float64")
 
