@@ -33,9 +33,10 @@ _LAUNCH = [
 # Exact fields: the same float32 values and the same arithmetic, read another way. The same bits on the
 # CPU; CUDA's compiler contracts the trilinear sums into fused multiply-adds in another order for each
 # form of load, which moves displacements by ~1e-8 px (2.4e-8 px measured at the paper's set-up). Through
-# this 3-D blob a cell step reads one cell for its four stages (raytrace.medium_kernels.step_medium), and a
-# step that ends a hair past a node plane may find its midpoint in either cell under another contraction:
-# 1.03e-6 px on one dot of 256 measured (H100, 2026-11-27), against 1e-8 px for reads at each stage.
+# this 3-D blob a cell step reads one cell for its four stages (raytrace.medium_kernels.step_medium):
+# 1.03e-6 px on one dot of 256 measured (H100, 2026-11-27), against 1e-8 px for reads at each stage (the
+# likely cause, not traced: a very short step's midpoint lies within float32 rounding of a node plane, and
+# another contraction puts it in the neighbouring cell, whose clamped blend differs by a hair).
 _EXACT_FIELDS = [
     {"field": "float32_vec", "dot_order": "morton", "rays_per_group": 8},
     {"field": "texture_nearest", "rays_per_group": 3},
