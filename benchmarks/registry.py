@@ -169,18 +169,16 @@ def _checked(method: Method) -> Method:
 
 
 # The Warp modules of the GPU's engines of a step, which a CPU run never launches (each step's kernel module
-# names its own ``GPU_MODULE``: the 7 x 7 windows in registers, the kernel fit a thread per entry, the
-# frame statistics, the claim board's rounds).
+# names its own ``GPU_MODULE``: the kernel fit a thread per entry, the frame statistics, the claim board's
+# rounds).
 _GPU_ENGINES = (
     "synthbos.tracking.claim_kernels.gpu",
-    "synthbos.tracking.identify_kernels.gpu",
     "synthbos.tracking.kernel_step_kernels.gpu",
     "synthbos.tracking.stats_kernels.gpu",
 )
 # the Warp modules that track_pair launches (compiled ahead of the work by a campaign: scheduling)
 _TRACKING_KERNELS = (
     "synthbos.tracking.identify_kernels",
-    "synthbos.tracking.identify_kernels.gpu",
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.moment_kernels",
     "synthbos.tracking.ellipse_kernels",

@@ -20,13 +20,14 @@ from scipy.spatial import cKDTree
 from . import claim_kernels as ck
 from .centroid import fit_centroids, gaussian3_from_samples
 from .frame_stats import partial_median, segment_medians
-from .identify_kernels import in_registers, measure_kernel
+from .identify_kernels import measure_stack
 from .residual import subtract_gaussians
 from .settings import (
     DIAMETER_PER_WIDTH,
     RESIDUAL_STAMP_WIDTHS,
     RESIDUAL_WIDTH_CLIP,
     SEARCH_MARGIN_PX,
+    SMALL_WINDOW,
     THREE_POINT_WIDTH_RANGE,
     WILD_FIT_PX,
     DotStatus,
@@ -628,7 +629,7 @@ class StackIdentification:
         active = self.full(self.B, 1, wp.int32)
         won = self.zeros(self.B, wp.int32)
         rows = 1 if wp.get_device(self.device).is_cpu else n_ids
-        ww = 1 if in_registers(w, self.device) else w * w  # (a GPU measures 7 x 7 in registers)
+        ww = w * w if w != SMALL_WINDOW else 1  # the 7 x 7 window is measured in registers
         scratch = [
             wp.empty((rows, ww), dtype=wp.float64, device=self.device),
             wp.empty((rows, max(4 * (w - 1), 1)), dtype=wp.float64, device=self.device),
@@ -651,7 +652,7 @@ class StackIdentification:
         points = wp.empty(M, dtype=wp.vec3, device=self.device)
         for it in range(1, s.max_iterations + 1):
             self.launch(
-                measure_kernel(self.device),
+                measure_stack,
                 n_ids,
                 [
                     self.residual, ids, self.N, fill, floor, sat, active, origin, pred, todo, half, g.map_half,

@@ -627,6 +627,12 @@ def measure_window(
     enough where threads run one after another, as on the CPU).
     """
     w = 2 * half + 1
+    if w == SMALL_W:
+        measure_small_window(
+            image, fill, ox, oy, lx, ly, hc, radius, frac, floor, wa, wi, wd, use_min, sat, i, full_maps,
+            out_int, out_float, dotmap, cross,
+        )  # fmt: skip
+        return
     s = i % win.shape[0]
     mm = load_window(image, fill, ox, oy, w, s, win)
     bg = mm[0]
@@ -651,104 +657,57 @@ def measure_window(
         cut_cross(win, lab, s, w, chosen, bg, i, cross)
 
 
-def _measure_stack(registers: bool, module: str):
-    """:func:`measure_stack` for one of its two engines, in the Warp module ``module``: with
-    ``registers``, a 7 x 7 window (``SMALL_W``) is measured in local vectors (``measure_small_window``,
-    the GPU's engine), and every other size, or every window without it, in the scratch rows
-    (``measure_window``, the CPU's: it leaves the unrolled register code, most of this module's build
-    time, uncompiled there). Both give the same bits (``tests/tracking/test_pieces.py``)."""
-
-    def measure_stack(
-        images: wp.array3d(dtype=wp.float64),
-        ids: wp.array(dtype=wp.int32),
-        per_frame: int,
-        fill: wp.array(dtype=wp.float64),
-        floor: wp.array(dtype=wp.float64),
-        sat: wp.array(dtype=wp.float64),
-        active: wp.array(dtype=wp.int32),
-        origin: wp.array2d(dtype=wp.int32),
-        pred: wp.array(dtype=wp.vec2d),
-        todo: wp.array(dtype=wp.int32),
-        half: int,
-        hc: int,
-        radius: wp.float64,
-        frac: wp.float64,
-        wa: wp.float64,
-        wi: wp.float64,
-        wd: wp.float64,
-        use_min: int,
-        win: wp.array2d(dtype=wp.float64),
-        ring: wp.array2d(dtype=wp.float64),
-        network: wp.array2d(dtype=wp.int32),
-        lab: wp.array2d(dtype=wp.int32),
-        area: wp.array2d(dtype=wp.int32),
-        roots: wp.array2d(dtype=wp.int32),
-        dotmap: wp.array3d(dtype=wp.float64),
-        out_int: wp.array2d(dtype=wp.int32),
-        out_float: wp.array2d(dtype=wp.float64),
-        cross: wp.array2d(dtype=wp.float64),
-        full_maps: int,
-    ):
-        """``measure_window`` of dot ``ids[t]`` on its frame ``f = ids[t] // per_frame`` (``pred``: its
-        prediction in image coordinates; ``fill``, ``floor``, ``sat`` per frame), results in row t (the dot
-        map if ``full_maps``, else its centre cross); chosen -1 where not measured (found already, outside,
-        or its frame done). One pair is a stack of one (``tracking.windows.measure_windows``); a thread
-        order ``ids`` that follows the image's memory lets neighbouring threads read neighbouring pixels."""
-        t = wp.tid()
-        i = ids[t]
-        f = i // per_frame
-        out_int[t, 0] = -1
-        if todo[i] == 0 or active[f] == 0:
-            return
-        ox = origin[i, 0]
-        oy = origin[i, 1]
-        p = pred[i]
-        if wp.static(registers):
-            if 2 * half + 1 == SMALL_W:
-                measure_small_window(
-                    images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), hc, radius, frac,
-                    floor[f], wa, wi, wd, use_min, sat[f], t, full_maps, out_int, out_float, dotmap, cross,
-                )  # fmt: skip
-                return
-        measure_window(
-            images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
-            floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, full_maps, out_int,
-            out_float, dotmap, cross,
-        )  # fmt: skip
-
-    return wp.kernel(measure_stack, module=module, enable_backward=False)
-
-
-#: The Warp module of the GPU's engines, which the CPU never builds (``synthbos.device.load_kernels`` names it
-#: apart from this module's own).
-GPU_MODULE = f"{__name__}.gpu"
-wp.set_module_options({"enable_backward": False}, module=GPU_MODULE)
-measure_stack = _measure_stack(False, __name__)
-measure_stack_registers = _measure_stack(True, GPU_MODULE)
-
-
-def measure_kernel(device) -> wp.Kernel:
-    """The engine of :func:`measure_stack` that ``device`` runs: windows in registers on a GPU, in scratch
-    rows on the CPU (the same bits).
-
-    Examples
-    --------
-    >>> measure_kernel("cpu") is measure_stack
-    True
-    """
-    return measure_stack_registers if wp.get_device(device).is_cuda else measure_stack
-
-
-def in_registers(w: int, device) -> bool:
-    """Whether :func:`measure_kernel` measures a ``w x w`` window in registers on ``device`` (then it
-    needs no scratch rows).
-
-    Examples
-    --------
-    >>> in_registers(7, "cpu"), in_registers(9, "cpu")
-    (False, False)
-    """
-    return w == SMALL_WINDOW and wp.get_device(device).is_cuda
+@wp.kernel
+def measure_stack(
+    images: wp.array3d(dtype=wp.float64),
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    fill: wp.array(dtype=wp.float64),
+    floor: wp.array(dtype=wp.float64),
+    sat: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    origin: wp.array2d(dtype=wp.int32),
+    pred: wp.array(dtype=wp.vec2d),
+    todo: wp.array(dtype=wp.int32),
+    half: int,
+    hc: int,
+    radius: wp.float64,
+    frac: wp.float64,
+    wa: wp.float64,
+    wi: wp.float64,
+    wd: wp.float64,
+    use_min: int,
+    win: wp.array2d(dtype=wp.float64),
+    ring: wp.array2d(dtype=wp.float64),
+    network: wp.array2d(dtype=wp.int32),
+    lab: wp.array2d(dtype=wp.int32),
+    area: wp.array2d(dtype=wp.int32),
+    roots: wp.array2d(dtype=wp.int32),
+    dotmap: wp.array3d(dtype=wp.float64),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_float: wp.array2d(dtype=wp.float64),
+    cross: wp.array2d(dtype=wp.float64),
+    full_maps: int,
+):
+    """``measure_window`` of dot ``ids[t]`` on its frame ``f = ids[t] // per_frame`` (``pred``: its
+    prediction in image coordinates; ``fill``, ``floor``, ``sat`` per frame), results in row t (the dot
+    map if ``full_maps``, else its centre cross); chosen -1 where not measured (found already, outside, or
+    its frame done). One pair is a stack of one (``tracking.windows.measure_windows``); a thread order
+    ``ids`` that follows the image's memory lets neighbouring threads read neighbouring pixels."""
+    t = wp.tid()
+    i = ids[t]
+    f = i // per_frame
+    out_int[t, 0] = -1
+    if todo[i] == 0 or active[f] == 0:
+        return
+    ox = origin[i, 0]
+    oy = origin[i, 1]
+    p = pred[i]
+    measure_window(
+        images[f], fill[f], ox, oy, p[0] - wp.float64(ox), p[1] - wp.float64(oy), half, hc, radius, frac,
+        floor[f], wa, wi, wd, use_min, sat[f], win, ring, network, lab, area, roots, t, full_maps, out_int, out_float,
+        dotmap, cross,
+    )  # fmt: skip
 
 
 # --- the hand-over from the predictor: the positions to search from, the dots inside each image --------

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .identify_kernels import measure_kernel
+from .identify_kernels import measure_stack
 from .sorting import median_network
 
 __all__ = ["WINDOW_FIELDS", "measure_windows", "median_network"]
@@ -119,7 +119,7 @@ def measure_windows(
         *(wp.empty((rows, w * w), dtype=wp.int32, device=device) for _ in range(3)),
         dotmap, out_i, out_f, cross, int(bool(full_maps)),
     ]  # fmt: skip
-    wp.launch(measure_kernel(device), dim=n, inputs=inputs, device=device)
+    wp.launch(measure_stack, dim=n, inputs=inputs, device=device)
     return _results(out_i, out_f, dotmap, cross, order, full_maps=full_maps)
 
 

@@ -17,14 +17,12 @@ from synthbos.tracking import (
     estimate_dot_diameter,
     estimate_noise,
     fit_soloff,
-    identify_kernels,
     match_multiparametric,
     match_nearest,
     render_gaussians,
     segment_windows,
     static_threshold_identification,
     subtract_gaussians,
-    windows,
 )
 from synthbos.tracking.neighbours import neighbour_fit
 from synthbos.tracking.reference import measure_windows_numpy, neighbour_fit_numpy
@@ -262,18 +260,12 @@ def test_matching_nearest_and_multiparametric():
     assert match_nearest(r, np.array([[15.0, 10.0]]), radius=2.0)[0] == -1
 
 
-@pytest.mark.parametrize("engine", ["device's", "registers", "scratch rows"])
-def test_window_kernel_matches_numpy_reference(device, engine, monkeypatch):
-    """Both engines of ``measure_stack`` on every device (a GPU runs the registers' one, the CPU the
-    scratch rows'; each can run the other's) give the NumPy reference's windows."""
-    if engine != "device's":
-        kernel = identify_kernels.measure_stack_registers if engine == "registers" else identify_kernels.measure_stack
-        monkeypatch.setattr(windows, "measure_kernel", lambda device: kernel)
+def test_window_kernel_matches_numpy_reference(device):
     rng = np.random.default_rng(9)
     xy = dot_pattern(rng, (128, 128), per_32x32=15)
     img = draw_dots((128, 128), xy, 3.0) + 0.03 * rng.standard_normal((128, 128))
     pred = np.vstack([xy + rng.normal(0, 0.3, xy.shape), [[1.0, 1.0], [126.6, 0.2]]])  # two at the edge
-    for half, use_min in ((3, False), (3, True), (5, True)):  # 7 x 7: measure_small_window in registers
+    for half, use_min in ((3, False), (3, True), (5, True)):  # 7 x 7: measure_small_window
         origin = np.rint(pred).astype(np.int64) - half
         kw = dict(
             half=half,
