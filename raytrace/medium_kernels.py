@@ -4,9 +4,9 @@ stages read them.
 ``raytrace.kernels.render_rays`` is generic over the struct that holds the medium; ``sample_medium`` has
 one overload per struct (``raytrace.medium.FIELDS`` names them for the configuration): ``Medium``
 (float32 nodes), ``MediumVec`` (the same, 128-bit loads; ``MediumVec3D`` for a truly 3-D field),
-``MediumTexels`` (the same, point-sampled texture), ``MediumHalf`` / ``MediumHalfNodes`` (float16), ``MediumTexture`` (the texture unit's filter)
-and ``MediumStraight`` (no medium: the reference image). All share ``node_coords``, ``in_grid``,
-``cell_of`` and ``trilinear``.
+``MediumTexels`` (the same, point-sampled texture), ``MediumHalf`` / ``MediumHalfNodes`` (float16),
+``MediumTexture`` (the texture unit's filter) and ``MediumStraight`` (no medium: the reference image).
+All share ``node_coords``, ``in_grid``, ``cell_of`` and ``trilinear``.
 
 A cell step (``raytrace.kernels.trace_volume``, ``stepping = "cells"``) stays inside one cell of the
 nodes, so through a truly 3-D float32 field its four RK4 stages read that cell's eight nodes once

@@ -18,7 +18,7 @@ import synthbos
 from synthbos import SynthbosError
 from synthbos.device import check_device, init_warp
 
-from . import checks, kernels, medium_kernels, truth_kernels
+from . import checks, kernels, medium_kernels, sources, truth_kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
 from .medium import EXACT_FIELDS, MediumData, is_planar, medium_from_config, medium_struct, straight_to_warp, to_warp
@@ -501,7 +501,10 @@ def render_modules(config=None, *, device=None) -> list[str]:
     rays = cfg["rays"]
     init_warp()
     on_cuda = wp.get_device(check_device(device)).is_cuda
-    planar = is_planar(medium_from_config(cfg).field)
+    # whether the medium is planar picks the default field's struct and the automatic register cap; a
+    # campaign asks for every pair, so a slice is not built to be told
+    needs = rays["field"] == "float32_vec" or (on_cuda and rays["max_registers"] == "auto")
+    planar = not needs or sources.extruded(cfg["volume"]) or is_planar(medium_from_config(cfg).field)
     cap, straight_cap = ((register_cap(rays["max_registers"], active=a, planar=planar) if on_cuda else 0)
                          for a in (True, False))
     struct = medium_struct(rays["field"], planar)

@@ -79,6 +79,7 @@ __all__ = [
     "DensityField",
     "DensityNotice",
     "density_from_config",
+    "extruded",
     "node_coordinates",
 ]
 
@@ -262,6 +263,19 @@ def _analytic(source, p, size_m, grid):
         s = X * d[0] + Y * d[1] + Z * d[2]
         rho = rho0 + a * np.sin(2.0 * np.pi * s / lam + phase)
     return _positive_field(rho, source), rho0
+
+
+def extruded(volume: dict) -> bool:
+    """Whether the ``[volume]`` table's source is a plane extruded along z (``slice``) by construction, so
+    its medium is planar without being built (other sources, a 2-D file among them, may be too: see
+    ``raytrace.medium.is_planar``).
+
+    Examples
+    --------
+    >>> extruded({"source": "slice"}), extruded({"source": "gaussian"})
+    (True, False)
+    """
+    return volume.get("source") == "slice"
 
 
 def _extrude(plane):

@@ -65,3 +65,12 @@ def test_a_render_launches_exactly_the_modules_render_modules_names(device, fiel
     pair = render_pair(cfg, device=device)
     assert launched == set(render_modules(cfg, device=device))
     assert np.isfinite(pair.displacement_px[pair.valid]).all() and pair.valid.any()
+
+
+def test_render_modules_name_the_3d_struct_for_a_3d_field():
+    """A truly 3-D field takes ``MediumVec3D`` (its cell reads), a slice ``MediumVec``; the slice is known
+    planar from its table (``sources.extruded``), a 3-D source from its built medium."""
+    blob = {"source": "gaussian", "sigma_mm": 4.0, "amplitude_kg_m3": 0.05, "grid": [24, 24, 8]}
+    base = "synthbos.raytrace.kernels."
+    assert base + "render_MediumVec3D" in render_modules(small_config(volume=blob), device="cpu")
+    assert base + "render_MediumVec" in render_modules(small_config(volume={"source": "slice"}), device="cpu")

@@ -5,7 +5,7 @@ rounding of that blend."""
 import numpy as np
 import warp as wp
 from _small import small_config
-from synthbos.raytrace import kernels
+from synthbos.raytrace import kernels, sources
 from synthbos.raytrace.medium import EXACT_FIELDS, is_planar, to_warp
 from synthbos.raytrace.render import plan_render, render_pair
 
@@ -14,6 +14,7 @@ _SLICE = {"source": "slice", "snapshot": 2}
 
 def test_planar_media_are_recognised():
     assert is_planar(plan_render(small_config(volume=_SLICE)).medium.field)
+    assert sources.extruded(_SLICE)  # what render_modules takes without building the medium
     blob = {"source": "gaussian", "sigma_mm": 4.0, "amplitude_kg_m3": 0.05, "grid": [24, 24, 8]}
     assert not is_planar(plan_render(small_config(volume=blob)).medium.field)
     field = np.zeros((3, 4, 5, 4), np.float32)
