@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import warp as wp
@@ -41,6 +42,12 @@ class MediumData:
     def spacing(self) -> tuple[float, float, float]:
         nz, ny, nx = self.field.shape[:3]
         return tuple(L / (n - 1) for L, n in zip(self.size, (nx, ny, nz), strict=True))
+
+    @cached_property
+    def planar(self) -> bool:
+        """:func:`is_planar` of the nodes, told once (it picks the struct, the register cap and the launch
+        shape of every render of this medium)."""
+        return is_planar(self.field)
 
 
 # Largest refractive index a medium may reach: liquids and gases stay far below; more is a unit mistake.
@@ -160,7 +167,7 @@ def to_warp(medium: MediumData, *, device=None, field="float32"):
     """
     if field not in FIELDS:
         raise SynthbosError(f"rays.field must be one of {list(FIELDS)}, got {field!r}")
-    planar = is_planar(medium.field) if field in EXACT_FIELDS else False
+    planar = medium.planar if field in EXACT_FIELDS else False
     if field in ("float32", "float32_vec"):
         m = medium_struct(field, planar)()
         m.field = wp.array(medium.field, dtype=wp.vec4, device=device)

@@ -21,7 +21,7 @@ from synthbos.device import check_device, init_warp
 from . import checks, kernels, medium_kernels, sources, truth_kernels
 from .camera import CameraModel, camera_from_config
 from .config import config_to_toml, load_config
-from .medium import EXACT_FIELDS, MediumData, is_planar, medium_from_config, medium_struct, straight_to_warp, to_warp
+from .medium import EXACT_FIELDS, MediumData, medium_from_config, medium_struct, straight_to_warp, to_warp
 from .pairfile import Pair
 from .pattern import grid_pattern, random_pattern
 
@@ -219,7 +219,7 @@ def trace_rays(plan: RenderPlan, *, active: bool, device=None, progress=None, la
     tir = wp.zeros(n, dtype=wp.int32, device=device)
     # A register cap is a CUDA setting: the CPU runs the plain kernel (the same bits either way).
     on_cuda = wp.get_device(device).is_cuda
-    cap = register_cap(plan.max_registers, active=active, planar=is_planar(plan.medium.field)) if on_cuda else 0
+    cap = register_cap(plan.max_registers, active=active, planar=plan.medium.planar) if on_cuda else 0
     kernel = kernels.render_kernel(medium, cap)
     per_thread, group = launch_shape(plan, active=active)
     rays_per_launch = max(per_thread, plan.cfg["rays"]["chunk"] // n)
@@ -282,7 +282,7 @@ def launch_shape(plan: RenderPlan, *, active: bool) -> tuple[int, int]:
     >>> launch_shape(blob, active=True), launch_shape(blob, active=False)  # a 3-D medium; straight rays
     ((1, 64), (8, 8))
     """
-    auto = AUTO_LAUNCH_ALIKE if not active or is_planar(plan.medium.field) else AUTO_LAUNCH_3D
+    auto = AUTO_LAUNCH_ALIKE if not active or plan.medium.planar else AUTO_LAUNCH_3D
     settings = (plan.rays_per_thread, plan.rays_per_group)
     return tuple(a if v == "auto" else int(v) for a, v in zip(auto, settings, strict=True))
 
@@ -504,7 +504,7 @@ def render_modules(config=None, *, device=None) -> list[str]:
     # whether the medium is planar picks the default field's struct and the automatic register cap; a
     # campaign asks for every pair, so a slice is not built to be told
     needs = rays["field"] == "float32_vec" or (on_cuda and rays["max_registers"] == "auto")
-    planar = not needs or sources.extruded(cfg["volume"]) or is_planar(medium_from_config(cfg).field)
+    planar = not needs or sources.extruded(cfg["volume"]) or medium_from_config(cfg).planar
     cap, straight_cap = ((register_cap(rays["max_registers"], active=a, planar=planar) if on_cuda else 0)
                          for a in (True, False))
     struct = medium_struct(rays["field"], planar)
