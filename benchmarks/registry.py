@@ -23,7 +23,6 @@ from dataclasses import replace
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
-from synthbos.tracking.stack import stack_support
 
 import synthbos
 from synthbos import SynthbosError
@@ -137,14 +136,12 @@ def stack_settings(name: str, overrides: dict):
     or None where they are tracked one by one (``track_pair``).
 
     Stacks hold the built-in trackers with a prior, whose result is two columns of one ``track_pair``
-    table (``tracking``, ``tracking-cc``), with settings that ``track_pairs`` runs
-    (``tracking.stack.stack_support``: the default estimators; the paper's procedure is not one of them).
+    table (``tracking``, ``tracking-cc`` and the paper's procedure of each), whatever their settings.
     """
     m = get_method(name)
     if name not in BUILT_IN or not m.uses_prior or getattr(m.run, "columns", None) is None:
         return None
-    settings = m.settings(overrides)
-    return settings if stack_support(settings) is None else None
+    return m.settings(overrides)
 
 
 def stacked_result(name: str, table, settings) -> MethodResult:

@@ -1,12 +1,24 @@
-"""Correlation correction: the displacement of a matched dot from the correlation of its two images."""
+"""The correction step: a matched dot's displacement measured a second way (``u_cc, v_cc``).
+
+Two corrections: the default model correction, both positions refitted with the pair's common peak and
+width (:func:`tracking.dotfit.fit_stack` returns them), and the paper's, the correlation of the dot's two
+intensity maps (Rajendran, Bane and Vlachos 2019, section 2.3; :func:`correlation_correction`).
+:func:`paper_correction_stack` writes the paper's for a stack in the model correction's form, so that
+the table (:func:`tracking.table.table_rows`) reads either one way.
+"""
 
 from __future__ import annotations
 
 import numpy as np
+import warp as wp
 from synthbos.correlation.peak import subpixel_peak
 from synthbos.correlation.xcorr import cross_correlate
 
-__all__ = ["correlation_correction"]
+__all__ = ["correlation_correction", "paper_correction_stack"]
+
+#: The largest displacement (px) that the paper's correction resolves between two dot maps centred on
+#: their peak pixels: the peak pixels' offset is known, the correlation only refines it.
+MAX_SHIFT_PX = 2
 
 
 def correlation_correction(reference_maps, gradient_maps, *, max_shift=None, method="gaussian"):
@@ -55,3 +67,26 @@ def correlation_correction(reference_maps, gradient_maps, *, max_shift=None, met
     row, col, on_border = subpixel_peak(corr, method=method)
     ok = ~on_border & (np.abs(a).sum(axis=(1, 2)) > 0) & (np.abs(b).sum(axis=(1, 2)) > 0)
     return col - pw // 2, row - ph // 2, ok
+
+
+def paper_correction_stack(r, g, *, device):
+    """The paper's correction of every row of a stack found in both images, as ``(shared, valid)``: a
+    (2 M, 2) float64 Warp array whose gradient rows minus reference rows are the correction (the peak
+    pixels' offset plus the correlation peak's; NaN where a dot is missing) and the (M,) int32 Warp
+    array of :func:`correlation_correction`'s ``ok``.
+
+    ``r`` and ``g`` are the two images' dots (``"x"`` and ``"root"`` Warp arrays, ``"dotmap"`` an (M, c, c)
+    NumPy array: :func:`tracking.identify.identify_near_predictions` keeps them for this correction).
+    """
+    both = np.flatnonzero(np.isfinite(r["x"].numpy()) & np.isfinite(g["x"].numpy()))
+    m = len(r["dotmap"])
+    shared = np.full((2 * m, 2), np.nan)
+    valid = np.zeros(m, dtype=np.int32)
+    if both.size:
+        du, dv, ok = correlation_correction(r["dotmap"][both], g["dotmap"][both], max_shift=MAX_SHIFT_PX)
+        offset = (g["root"].numpy()[both] - r["root"].numpy()[both]).astype(np.float64)
+        shared[both] = 0.0
+        shared[m + both, 0] = offset[:, 0] + du
+        shared[m + both, 1] = offset[:, 1] + dv
+        valid[both] = ok
+    return wp.array(shared, dtype=wp.float64, device=device), wp.array(valid, dtype=wp.int32, device=device)

@@ -544,15 +544,20 @@ def _launch(kernel, dim, inputs, device):
         wp.launch(kernel, dim=dim, inputs=inputs, device=device)
 
 
-def fit_stack(refs, grads, r, g, *, eta0, sat_frames, noise_frames, fit_half, render_half, settings, device):
-    """``tracking.pipeline._fit_models`` and ``_take_model`` for every pair of a stack, on one device.
+def fit_stack(refs, grads, r, g, *, eta0, sat_frames, noise_frames, fit_half, render_half, settings, device,
+              take=True):  # fmt: skip
+    """The model fit of every dot of a stack of pairs, on one device: the joint least-squares fit of the
+    pixel-integrated dot model to the dots found in both images of each pair (rows of one prior row are
+    partners, so the last step also gives their positions at the pair's common shape, the model
+    correction); with a ``settings.distortion`` step, the moving dots then move to the first moments of
+    their light (:func:`moment_shifts`' rule), and their common-shape positions with them.
 
     Parameters
     ----------
     refs, grads : (B, H, W) float64 Warp arrays
         The image pairs.
     r, g : dict of (M,) Warp arrays
-        The reference and gradient images' dots of the ``M = B N`` prior rows (``"x"``, ``"y"``,
+        The reference and gradient images' dots of the ``M = B N`` rows (``"x"``, ``"y"``,
         ``"eta"``, ``"i0"``, ``"flags"``; NaN where not found): the fit's position, width and peak replace
         theirs in place, and the flags gain FIT_FALLBACK and DISTORTED.
     eta0 : (B,) float64 array
@@ -565,6 +570,9 @@ def fit_stack(refs, grads, r, g, *, eta0, sat_frames, noise_frames, fit_half, re
     settings : TrackingSettings, keyword-only
         ``fit_iterations``, ``distortion``, ``distortion_chi2``.
     device : warp.context.Device or str, keyword-only
+    take : bool, keyword-only
+        Whether the fit's parameters replace the dots' (``centroid="model"``); otherwise only the model
+        correction is asked for and ``r`` and ``g`` stay as they are.
 
     Returns
     -------
@@ -575,7 +583,7 @@ def fit_stack(refs, grads, r, g, *, eta0, sat_frames, noise_frames, fit_half, re
     params, ok, shared, live, moved = _fit_rows(refs, grads, r, g, eta0, sat_frames, noise_frames, fit_half,
                                                 render_half, settings, device)  # fmt: skip
     m = r["x"].shape[0]
-    for row0, found in ((0, r), (m, g)):
+    for row0, found in ((0, r), (m, g)) if take else ():
         _launch(
             fk.take_model,
             m,
@@ -597,7 +605,7 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
     med = segment_medians(values, valid, length=2 * N, segments=B, device=device).numpy()
     sigma0_host = np.ascontiguousarray(start_width(med, eta0_host), dtype=np.float64)
     sigma0 = wp.array(sigma0_host, dtype=wp.float64, device=device)
-    # the three-point peak is that of the pixel-broadened dot (pipeline._model_start's factor, as it computes it)
+    # the three-point peak is that of the pixel-broadened dot (variance sigma0^2 + 1/12, the same flux)
     factor = wp.array(1.0 + 1.0 / (12.0 * sigma0_host**2), dtype=wp.float64, device=device)
     eta0_host = np.asarray(eta0_host, dtype=np.float64)
     width = np.stack([MODEL_WIDTH_RANGE[0] * eta0_host, MODEL_WIDTH_RANGE[1] * eta0_host], axis=1)

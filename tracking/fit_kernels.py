@@ -748,9 +748,10 @@ def apply_moment_shift(
     shared_xy: wp.array2d(dtype=wp.float64),
     moved: wp.array(dtype=wp.int32),
 ):
-    """``tracking.pipeline._fit_models``' first-moment step, in place: where row i ``moves``, its position
-    moves by its shift, and its common-shape position (where it has one) becomes that moved position: the
-    shift is measured about the own fit's centre, and the moved position is the mean of the dot's light,
+    """The model fit's first-moment step (:func:`tracking.dotfit.fit_stack`), in place: where row i
+    ``moves``, its position moves by its shift, and its common-shape position (where it has one) becomes
+    that moved position: the shift is measured about the own fit's centre, and the moved position is the
+    mean of the dot's light,
     which both corrections then read."""
     i = wp.tid()
     moved[i] = 0

@@ -21,17 +21,18 @@ from . import claim_kernels as ck
 from .centroid import fit_centroids, gaussian3_from_samples
 from .frame_stats import partial_median, segment_medians
 from .identify_kernels import measure_stack
+from .mask import touches
 from .residual import subtract_gaussians
 from .settings import (
     DIAMETER_PER_WIDTH,
     RESIDUAL_STAMP_WIDTHS,
     RESIDUAL_WIDTH_CLIP,
-    SEARCH_MARGIN_PX,
     SMALL_WINDOW,
     THREE_POINT_WIDTH_RANGE,
     WILD_FIT_PX,
     DotStatus,
     residual_reach,
+    search_reach,
 )
 from .sorting import median_network
 from .windows import measure_windows
@@ -43,7 +44,9 @@ __all__ = [
     "dynamic_threshold_identification",
     "estimate_noise",
     "identify_near_predictions",
+    "kernels_measure",
     "segment_windows",
+    "standard_candidates",
     "static_threshold_identification",
 ]
 
@@ -242,6 +245,34 @@ def blob_properties(image, labels):
     out["area"] = np.bincount(flat, minlength=n + 1)[1:]
     out["peak"] = top[1:]
     return out
+
+
+def standard_candidates(image, settings, noise):
+    """Standard tracking's candidates: the (K, 2) centres of the blobs that whole-image identification
+    (``settings.identification``: dynamic or static threshold) finds above ``settings.threshold``, or by
+    default above the median + ``threshold_fraction`` of the way to the 99.9th percentile, and at least
+    ``noise_threshold`` times the ``noise`` above the median.
+
+    Examples
+    --------
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> from synthbos.tracking.settings import TrackingSettings
+    >>> image = draw_dots((32, 32), np.array([[8.0, 8.0], [20.0, 12.0]]), 3.0)
+    >>> standard_candidates(image, TrackingSettings(), 0.0).round(1).tolist()
+    [[8.0, 8.0], [20.0, 12.0]]
+    """
+    if settings.threshold is not None:
+        thr = float(settings.threshold)
+    else:
+        med = float(np.median(image))
+        top = float(np.percentile(image, 99.9))
+        thr = med + max(settings.threshold_fraction * (top - med), settings.noise_threshold * noise)
+    if settings.identification == "dynamic":
+        labels, _ = dynamic_threshold_identification(image, threshold=thr, n_levels=settings.n_levels)
+    else:
+        labels, _ = static_threshold_identification(image, threshold=thr)
+    props = blob_properties(image, labels)
+    return np.stack([props["x"], props["y"]], axis=1)
 
 
 def segment_windows(windows, threshold):
@@ -508,6 +539,20 @@ def _subtract_found(residual, out, subtracted, missing, half, eta0):
 _Z_STEP = 1000.0
 
 
+def kernels_measure(settings) -> bool:
+    """Whether :class:`StackIdentification`'s kernels measure what ``settings`` ask of identification: the
+    three-point start of the model fit (``centroid="model"``), without the dot maps of the paper's
+    correction; other estimators take its host engine on every device.
+
+    Examples
+    --------
+    >>> from synthbos.tracking.settings import TrackingSettings
+    >>> kernels_measure(TrackingSettings()), kernels_measure(TrackingSettings.paper())
+    (True, False)
+    """
+    return settings.centroid == "model" and settings.correction == "model"
+
+
 class StackIdentification:
     """Identification (Eq. 1, Eq. 2) of a stack of B pairs of one group, N prior dots each, on one Warp
     device: :func:`identify_near_predictions` for the dots of every pair in each launch, its rounds of
@@ -558,19 +603,24 @@ class StackIdentification:
         self.board = (self.hp, self.wpad, self.claim_dist, self.claim_id)
         self.residual = wp.empty_like(refs)
         self.grid = wp.HashGrid(128, 128, 64, device=device)
+        self.on_host = self.on_cpu or not kernels_measure(settings)
 
     def arr(self, a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
 
     def _identify_on_host(self, image, which, pred, ids, n_ids, *, wide):
-        """:meth:`identify`'s host engine, for the CPU: :func:`identify_near_predictions` pair by pair on
-        the arrays where they lie (``track_pair``'s identification: its windows sorted by place, its claims
-        on the host and its rounds stopped when no dot waits took 31 ms on the 1024 x 1024 benchmark pair
-        against 82 ms for the rounds of kernels)."""
+        """:meth:`identify`'s host engine, for the CPU and for the estimators the kernels do not measure
+        (:func:`kernels_measure`): :func:`identify_near_predictions` pair by pair on the arrays where they
+        lie (its windows sorted by place, its claims on the host and its rounds stopped when no dot waits
+        took 31 ms on the 1024 x 1024 benchmark pair against 82 ms for the rounds of kernels). The paper's
+        correction's dot maps stay on the host (``"dotmap"``, an (M, c, c) NumPy array)."""
         s, g, M = self.settings, self.geometry, self.M
-        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
+        search = search_reach(s)
         out = {k: np.full(M, np.nan) for k in ("x", "y", "eta", "i0")}
         out.update(iteration=np.zeros(M, np.int32), flags=np.zeros(M, np.int32), root=np.zeros((M, 2), np.int32))
+        if s.correction == "paper":
+            c = 2 * g.map_half + 1
+            out["dotmap"] = np.zeros((M, c, c))
         sel = np.sort(ids.numpy()[:n_ids])
         pairs = np.searchsorted(sel, np.arange(self.B + 1) * self.N)
         images, xy = image.numpy(), pred.numpy()
@@ -585,7 +635,32 @@ class StackIdentification:
             )  # fmt: skip
             for k, v in out.items():
                 v[rows] = found[k]
-        return {k: self.arr(v, wp.float64 if v.dtype == np.float64 else wp.int32) for k, v in out.items()}
+        maps = out.pop("dotmap", None)
+        out = {k: self.arr(v, wp.float64 if v.dtype == np.float64 else wp.int32) for k, v in out.items()}
+        if maps is not None:
+            out["dotmap"] = maps
+        return out
+
+    def standard(self, images, which, excluded=None):
+        """Standard tracking's identification in ``images`` (the (B, H, W) NumPy stack; ``which`` 0 the
+        reference images, 1 the gradient images), on the host: per pair, the dots found at the
+        :func:`standard_candidates` not on its ``excluded`` pixels (one round, within a pixel of the
+        candidate), as dicts of per-dot NumPy arrays of the dots found only."""
+        s, g = self.settings, self.geometry
+        st = {k: self.stats[k][which].numpy() for k in ("noise", "sat", "fill")}
+        founds = []
+        for b, image in enumerate(images):
+            cand = standard_candidates(image, s, st["noise"][b])
+            if excluded is not None:
+                cand = cand[~touches(excluded[b], cand)]
+            found = identify_near_predictions(
+                image, cand, half=g.half_r, map_half=g.map_half, radius=1.0, settings=s, eta0=self.eta0_host[b],
+                max_iterations=1, noise=st["noise"][b], sat_level=st["sat"][b], fill=st["fill"][b],
+                device=self.device,
+            )  # fmt: skip
+            keep = np.isfinite(found["x"])
+            founds.append({k: v[keep] for k, v in found.items()})
+        return founds
 
     def zeros(self, shape, dtype):
         return wp.zeros(shape, dtype=dtype, device=self.device)
@@ -602,11 +677,11 @@ class StackIdentification:
         of every pair, around ``pred`` (``wp.vec2d``, one per prior row), in ``image`` (the reference
         images with ``which`` 0, the gradient images with 1), with the wide window if ``wide``: fresh
         (M,) per-dot Warp arrays ``x``, ``y``, ``eta``, ``i0``, ``iteration``, ``root`` and ``flags``."""
-        if self.on_cpu:
+        if self.on_host:
             return self._identify_on_host(image, which, pred, ids, n_ids, wide=wide)
         s, g, M = self.settings, self.geometry, self.M
         half = g.half_g if wide else g.half_r
-        search = s.max_displacement + SEARCH_MARGIN_PX if s.search_radius is None else s.search_radius
+        search = search_reach(s)
         radius = search if wide else s.prior_radius
         w = 2 * half + 1
         st = self.stats

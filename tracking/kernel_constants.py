@@ -54,6 +54,7 @@ PREDICTOR_WEAK = wp.constant(int(DotStatus.PREDICTOR_WEAK))
 EDGE_CUT = wp.constant(int(DotStatus.EDGE_CUT))
 OUTLIER = wp.constant(int(DotStatus.OUTLIER))
 MASKED = wp.constant(int(DotStatus.MASKED))
+MISREGISTERED = wp.constant(int(DotStatus.MISREGISTERED))
 
 # the rule constants, from their one home (float64 constants: a literal in a kernel may be float32)
 PIXEL_EDGE = wp.constant(wp.float64(PIXEL_EDGE_PX))

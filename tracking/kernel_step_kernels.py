@@ -284,7 +284,7 @@ def gather_neighbours(
                 count += 1
     count = wp.min(count, KER_MAX_NEIGHBOURS + 1)
     # in raster order of their positions (insertion sort): the fit's sums then do not depend on the rows'
-    # order or the grid's, and track_pair's per-pair path and the stack agree to the bit
+    # order or the grid's, and a pair tracked alone and in a stack agree to the bit
     for k in range(1, wp.min(count, KER_MAX_NEIGHBOURS)):
         q = nbr[t, k]
         j = k

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .settings import MATCH_METHODS
+from .settings import DIAMETER_PER_WIDTH, MATCH_METHODS, search_reach
 
-__all__ = ["MATCH_METHODS", "match_multiparametric", "match_nearest"]
+__all__ = ["MATCH_METHODS", "match_multiparametric", "match_nearest", "pair_dots", "paired_rows"]
 
 
 def _one_to_one(cost, ref_idx, grad_idx, n_ref):
@@ -110,3 +110,56 @@ def match_multiparametric(
     wd, wi, wD = weights
     cost = wd * d / radius + wi * ti + wD * td
     return _one_to_one(cost, r, g, len(ref_xy))
+
+
+def pair_dots(ref_xy, r, g, settings):
+    """Standard tracking's pairing of the reference dots ``r`` (their positions moved to ``ref_xy``, the
+    predicted gradient-image positions) with the gradient dots ``g`` (dicts of per-dot arrays ``x``, ``y``,
+    ``eta``, ``i0``) by ``settings.matching`` within :func:`tracking.settings.search_reach`: each reference
+    dot's partner index, -1 where there is none.
+
+    Examples
+    --------
+    >>> from synthbos.tracking.settings import TrackingSettings
+    >>> r = {"x": np.array([5.0, 20.0]), "y": np.array([5.0, 5.0]), "eta": np.ones(2), "i0": np.ones(2)}
+    >>> g = {"x": np.array([20.5, 5.4]), "y": np.array([5.0, 5.0]), "eta": np.ones(2), "i0": np.ones(2)}
+    >>> pair_dots(np.stack([r["x"], r["y"]], axis=1), r, g, TrackingSettings(max_displacement=2.0)).tolist()
+    [1, 0]
+    """
+    radius = search_reach(settings)
+    gxy = np.stack([g["x"], g["y"]], axis=1)
+    if settings.matching == "nearest":
+        return match_nearest(ref_xy, gxy, radius=radius)
+    sizes = (DIAMETER_PER_WIDTH * r["eta"], DIAMETER_PER_WIDTH * g["eta"])
+    return match_multiparametric(ref_xy, gxy, r["i0"], g["i0"], *sizes, radius=radius, weights=settings.match_weights)
+
+
+def paired_rows(r, g, partner, rows):
+    """One pair's paired dots laid out in ``rows`` rows of a stack, as the prior's rows are: row i < n (the
+    n reference dots) holds reference dot i and its partner, the next rows the gradient dots without
+    one, the rest nothing (x NaN, everything else 0). Returns the two images' row dicts.
+
+    Examples
+    --------
+    >>> r = {"x": np.array([1.0, 2.0]), "flags": np.array([4, 8])}
+    >>> g = {"x": np.array([7.0, 8.0, 9.0]), "flags": np.array([1, 2, 3])}
+    >>> rr, gg = paired_rows(r, g, np.array([2, -1]), 4)
+    >>> rr["x"].tolist(), gg["x"].tolist(), gg["flags"].tolist()
+    ([1.0, 2.0, nan, nan], [9.0, nan, 7.0, 8.0], [3, 0, 1, 2])
+    """
+    n = len(r["x"])
+    alone = np.setdiff1d(np.arange(len(g["x"])), partner[partner >= 0])
+    g_rows = np.full(rows, -1)
+    g_rows[:n] = partner
+    g_rows[n : n + alone.size] = alone
+    out = []
+    for found, at in ((r, np.where(np.arange(rows) < n, np.arange(rows), -1)), (g, g_rows)):
+        has = at >= 0
+        laid = {}
+        for key, v in found.items():
+            shape = (rows, *v.shape[1:])
+            a = np.full(shape, np.nan) if key in ("x", "y", "eta", "i0") else np.zeros(shape, v.dtype)
+            a[has] = v[at[has]]
+            laid[key] = a
+        out.append(laid)
+    return out[0], out[1]

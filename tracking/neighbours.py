@@ -10,7 +10,7 @@ k-d tree) that defines the result.
 One set of points (:func:`neighbour_fit`, ``track_pair``'s tests) is a stack of one: the fit is
 :func:`neighbour_fit_stack`'s. The stacked form (:func:`neighbour_fit_stack`,
 :func:`neighbour_outliers_stack`, :func:`confirmed_by_neighbours_stack`) is
-``tracking.pipeline._neighbour_outliers`` and ``_confirmed_by_neighbours`` for all the pairs of a stack
+the tracker's outlier test and its confirmation of the predictor for all the pairs of a stack
 in every launch, with no host round trip (the number of launches does not depend on the number of
 pairs). A pair's dots are the rows of ``(B, N)`` device arrays and the subsets a test uses are masks;
 each pair gets a grid of square cells over the box of its points and queries, built on the device by a
@@ -323,8 +323,11 @@ def neighbour_fit_stack(xy, uv, points, queries, *, k, exclude_self=False, devic
 def neighbour_outliers_stack(xy, uv, valid, *, k, threshold, epsilon, device=None):
     """Normalised median test of every pair's valid vectors against their neighbours' local linear fit.
 
-    For each pair ``b`` the flags of ``tracking.pipeline._neighbour_outliers`` for the dots
-    ``S = flatnonzero(valid[b])`` (in that order), at their rows; 0 elsewhere.
+    For each pair ``b`` the outlier flags of the dots ``S = flatnonzero(valid[b])`` (in that order), at
+    their rows; 0 elsewhere: True where a vector is further from the local linear fit of its ``k`` nearest
+    vectors than ``threshold`` times (their median distance from that fit + ``epsilon``), a normalised
+    median test for scattered data (Westerweel and Scarano 2005, eq. 2, with a local linear reference as
+    in Duncan et al. 2010 so that smooth gradients do not count as outliers), in two rounds.
 
     Parameters
     ----------
@@ -391,7 +394,8 @@ def neighbour_outliers_stack(xy, uv, valid, *, k, threshold, epsilon, device=Non
 def confirmed_by_neighbours_stack(xy, uv, good, query, *, k, threshold, epsilon, tolerance, device=None):
     """Whether each queried dot's displacement agrees with the local linear fit of its pair's good dots.
 
-    For each pair ``b`` the flags of ``tracking.pipeline._confirmed_by_neighbours``: the fit of the
+    For each pair ``b`` (the neighbours overrule a poor prediction, the correlation being least reliable
+    in the windows at the image edge): the fit of the
     ``k`` nearest dots of ``G = flatnonzero(good[b])`` at each dot of ``query[b]`` (the query itself not
     left out), 1 where ``|uv - fit| <= min(threshold * (spread + epsilon), tolerance)``.
 

@@ -84,7 +84,7 @@ def frame_statistics_numpy(images):
         for f, image in enumerate(stack):
             lo, hi = image.min(), image.max()
             out["lo"][f], out["hi"][f] = lo, hi
-            # tracking.pipeline._check_image's two refusals
+            # the stack's two refusals of a frame (tracking.stack._frame_statistics)
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 out["bad"][f] = 1
             elif lo == 0 and hi == 0:

@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from .register_kernels import registration_kernel
 
-__all__ = ["local_gradients", "registration_offsets", "spline_coefficients"]
+__all__ = ["local_gradients", "misregistered", "registration_offsets", "spline_coefficients"]
 
 
 def spline_coefficients(image):
@@ -152,3 +152,30 @@ def registration_offsets(reference, coefficients, xy, uv, *, half, gradients=Non
         device=device,
     )  # fmt: skip
     return out.numpy(), ok.numpy().astype(bool)
+
+
+def misregistered(reference, gradient, xy, uv_cc, uv, *, half, k, tolerance, device=None):
+    """The MISREGISTERED rule: True where a dot's window, registered onto the gradient image from its
+    correction ``uv_cc`` (:func:`registration_offsets`, with the field's local gradients from its ``k``
+    nearest dots), ends further than ``tolerance`` px from ``uv_cc`` or from the centroid difference ``uv``,
+    or cannot be registered. ``xy``, ``uv_cc`` and ``uv`` are (N, 2) arrays, ``half`` the window's half-size.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from synthbos.raytrace.dots import draw_dots
+    >>> xy = np.array([[20.0, 20.0], [40.0, 22.0], [30.0, 40.0], [18.0, 44.0], [44.0, 42.0]])
+    >>> ref, grad = draw_dots((64, 64), xy, 3.0), draw_dots((64, 64), xy + [0.6, 0.0], 3.0)
+    >>> uv = np.tile([0.6, 0.0], (5, 1))
+    >>> misregistered(ref, grad, xy, uv, uv, half=3, k=4, tolerance=0.25, device="cpu").tolist()
+    [False, False, False, False, False]
+    >>> misregistered(ref, grad, xy, uv + 1.0, uv + 1.0, half=3, k=4, tolerance=0.25, device="cpu").any()
+    np.True_
+    """
+    xy, uv_cc, uv = (np.asarray(a, dtype=np.float64).reshape(-1, 2) for a in (xy, uv_cc, uv))
+    coef = spline_coefficients(gradient)
+    grads = local_gradients(xy, uv_cc, k=k)
+    c, ok = registration_offsets(reference, coef, xy, uv_cc, half=half, gradients=grads, device=device)
+    far = np.hypot(c[:, 0], c[:, 1]) > tolerance
+    far |= np.hypot(*(uv_cc + c - uv).T) > tolerance
+    return far | ~ok

@@ -594,6 +594,18 @@ def window_sizes(d, settings):
     )
 
 
+def search_reach(settings) -> float:
+    """Radius (px) of the wide search and of standard tracking's pairing: ``search_radius``, or by default
+    ``max_displacement`` plus ``SEARCH_MARGIN_PX``.
+
+    Examples
+    --------
+    >>> search_reach(TrackingSettings(max_displacement=4.0)), search_reach(TrackingSettings(search_radius=2.5))
+    (5.0, 2.5)
+    """
+    return settings.max_displacement + SEARCH_MARGIN_PX if settings.search_radius is None else settings.search_radius
+
+
 def residual_reach(half, eta0):
     """Distance (px) from a dot still missing within which a found dot leaves the residual image (Eq. 2):
     the window's half-diagonal, the subtracted stamp (``RESIDUAL_STAMP_WIDTHS`` eta0) and a pixel."""

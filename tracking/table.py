@@ -1,14 +1,13 @@
 """The table: a stack of pairs' status bits and their rows of ``TRACK_DTYPE``, on one Warp device.
 
-The last steps of :func:`tracking.stack.track_pairs`, as ``track_pair`` takes them for one pair
-(:mod:`tracking.pipeline`): :func:`predictor_check` sets the found bits and the predictor's mismatch and
-weakness, and says which dots vouch for their neighbours and which mismatches the neighbours may
-overrule (:func:`tracking.neighbours.confirmed_by_neighbours_stack`); :func:`edge_cut` keeps the
-mismatches the neighbours confirm and cuts the dots whose disk leaves the image differently in the two
-images; :func:`table_rows` writes each row with the outlier test's verdict
-(:func:`tracking.neighbours.neighbour_outliers_stack`), the displacements and the model correction.
-:class:`HostTable` copies the table back. The kernels are in :mod:`tracking.table_kernels`; the status
-bits and rule constants in :mod:`tracking.settings`.
+The last steps of :func:`tracking.stack.track_pairs`: :func:`predictor_check` sets the found bits and
+the predictor's mismatch and weakness, and says which dots vouch for their neighbours and which
+mismatches the neighbours may overrule (:func:`tracking.neighbours.confirmed_by_neighbours_stack`);
+:func:`edge_cut` keeps the mismatches the neighbours confirm and cuts the dots whose disk leaves the
+image differently in the two images; :func:`table_rows` writes each row with the outlier test's verdict
+(:func:`tracking.neighbours.neighbour_outliers_stack`) and the registration's, the displacements and the
+correction. :class:`HostTable` copies the table back. The kernels are in :mod:`tracking.table_kernels`;
+the status bits and rule constants in :mod:`tracking.settings`.
 """
 
 from __future__ import annotations
@@ -20,9 +19,9 @@ import numpy as np
 import warp as wp
 
 from . import table_kernels as tk
-from .settings import TRACK_DTYPE
+from .settings import TRACK_DTYPE, DotStatus
 
-__all__ = ["HostTable", "edge_cut", "masked_rows", "predictor_check", "table_rows"]
+__all__ = ["HostTable", "edge_cut", "gradient_bits", "masked_rows", "predictor_check", "table_rows"]
 
 
 def _launch(kernel, dim, inputs, device):
@@ -30,10 +29,22 @@ def _launch(kernel, dim, inputs, device):
         wp.launch(kernel, dim=dim, inputs=inputs, device=device)
 
 
+def gradient_bits(with_prior: bool) -> int:
+    """The flags of a row's gradient-image dot that join its status: all but OUTSIDE_IMAGE with a prior
+    (the dot was looked for at the prior's row), only DISTORTED without one (the dot was paired).
+
+    Examples
+    --------
+    >>> gradient_bits(False) == DotStatus.DISTORTED
+    True
+    """
+    return ~int(DotStatus.OUTSIDE_IMAGE) if with_prior else int(DotStatus.DISTORTED)
+
+
 def masked_rows(near, prior, r, g, *, per_frame, device):
     """The (M,) int32 Warp array of the dots a mask hides (MASKED): those whose reference, gradient or
-    prior position lies on their pair's ``near`` ((B, H, W) int32 Warp array, ``mask.mask_reach``); all 0
-    without one (``near`` None)."""
+    prior position (``prior`` None: no prior) lies on their pair's ``near`` ((B, H, W) int32 Warp array,
+    ``mask.mask_reach``); all 0 without one (``near`` None)."""
     m = r["x"].shape[0]
     if near is None:
         return wp.zeros(m, dtype=wp.int32, device=device)
@@ -42,7 +53,7 @@ def masked_rows(near, prior, r, g, *, per_frame, device):
     return hidden
 
 
-def predictor_check(r, g, uv_pred, quality, hidden, *, use_pred, settings, device):
+def predictor_check(r, g, uv_pred, quality, hidden, *, use_pred, with_prior=True, settings, device):
     """Status bits up to the predictor's check, for the M dots of a stack (flat).
 
     Parameters
@@ -57,6 +68,8 @@ def predictor_check(r, g, uv_pred, quality, hidden, *, use_pred, settings, devic
         The dots a mask hides (:func:`masked_rows`): MASKED, never matched.
     use_pred : bool, keyword-only
         Whether the correlation predictor ran.
+    with_prior : bool, keyword-only
+        Whether the rows are a prior's (:func:`gradient_bits`).
     settings : TrackingSettings, keyword-only
         ``predictor_tolerance`` and ``predictor_min_correlation``.
     device : warp.context.Device or str, keyword-only
@@ -80,7 +93,8 @@ def predictor_check(r, g, uv_pred, quality, hidden, *, use_pred, settings, devic
         tk.first_status,
         m,
         [
-            r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], uv_pred, quality, int(use_pred),
+            r["x"], r["y"], r["flags"], g["x"], g["y"], g["flags"], gradient_bits(with_prior), uv_pred, quality,
+            int(use_pred),
             float(settings.predictor_tolerance), float(settings.predictor_min_correlation), hidden, status, xy, uv,
             good, query,
         ],
@@ -105,18 +119,23 @@ def edge_cut(confirmed, query, status, r, g, *, per_frame, shape, diameter, devi
     return matched
 
 
-def table_rows(r, g, matched, outlier, shared, uv_pred, quality, status, *, use_pred, settings, per_frame, device):
-    """The (M,) ``TrackRow`` Warp array of the table: the outlier test's verdict, MATCHED, the
-    displacements and the model correction (``shared``: the (2 M, 2) positions refitted with each pair's
-    common peak and width, reference rows first); ``per_frame`` is the prior's dots per pair."""
+def table_rows(r, g, matched, outlier, correction, uv_pred, quality, status, *, use_pred, settings, per_frame,
+               device, misregistered=None, with_prior=True):  # fmt: skip
+    """The (M,) ``TrackRow`` Warp array of the table: the outlier test's verdict, the registration's
+    (``misregistered``, (M,) int32 or None), MATCHED, the displacements and the correction
+    (``correction``: ``(shared, valid)``, the (2 M, 2) positions whose difference it is, reference rows
+    first, and the (M,) int32 verdict where the correction gives one, else None: valid where finite);
+    ``per_frame`` is the dots per pair, ``with_prior`` whether they are a prior's rows (``dot_id``)."""
     m = status.shape[0]
+    shared, valid = correction
     table = wp.empty(m, dtype=tk.TrackRow, device=device)
     _launch(
         tk.write_table,
         m,
         [
             r["x"], r["y"], r["eta"], r["i0"], r["iteration"], g["x"], g["y"], g["iteration"], matched, outlier,
-            shared, m, uv_pred, quality, int(use_pred), float(settings.cc_threshold), status, per_frame, table,
+            misregistered, shared, valid, m, uv_pred, quality, int(use_pred), float(settings.cc_threshold), status,
+            per_frame, int(with_prior), table,
         ],
         device,
     )  # fmt: skip

@@ -22,8 +22,8 @@ from .kernel_constants import (
     FOUND_REFERENCE,
     MASKED,
     MATCHED,
+    MISREGISTERED,
     OUTLIER,
-    OUTSIDE_IMAGE,
     PIXEL_EDGE,
     PREDICTOR_MISMATCH,
     PREDICTOR_WEAK,
@@ -75,6 +75,7 @@ def first_status(
     x_g: wp.array(dtype=wp.float64),
     y_g: wp.array(dtype=wp.float64),
     flags_g: wp.array(dtype=wp.int32),
+    g_bits: int,
     uv_pred: wp.array(dtype=wp.vec2d),
     quality: wp.array(dtype=wp.float64),
     use_pred: int,
@@ -89,9 +90,10 @@ def first_status(
 ):
     """Status bits up to the predictor's check: found, MASKED (``hidden``: :func:`masked_rows`), the
     predictor's mismatch and weakness; the dots that vouch for their neighbours (``good``) and those whose
-    mismatch the neighbours may overrule (``query``)."""
+    mismatch the neighbours may overrule (``query``). The gradient dot's flags ``g_bits`` join the status
+    (:func:`tracking.table.gradient_bits`)."""
     i = wp.tid()
-    s = flags_r[i] | (flags_g[i] & ~OUTSIDE_IMAGE)
+    s = flags_r[i] | (flags_g[i] & g_bits)
     found_r = wp.isfinite(x_r[i])
     found_g = wp.isfinite(x_g[i])
     if found_r:
@@ -145,12 +147,13 @@ def masked_rows(
     y_g: wp.array(dtype=wp.float64),
     hidden: wp.array(dtype=wp.int32),
 ):
-    """The dots whose reference, gradient or prior position lies within a dot radius of pair b's excluded
-    pixels (``near``: ``mask.mask_reach``): MASKED (``track_pair``'s ``_table``)."""
+    """The dots whose reference, gradient or prior position (without one: ``prior`` of no rows) lies
+    within a dot radius of pair b's excluded pixels (``near``: ``mask.mask_reach``): MASKED."""
     i = wp.tid()
     b = i // per_frame
     h = touches(near, b, x_r[i], y_r[i]) or touches(near, b, x_g[i], y_g[i])
-    h = h or touches(near, b, prior[i][0], prior[i][1])
+    if prior.shape[0] > 0:
+        h = h or touches(near, b, prior[i][0], prior[i][1])
     hidden[i] = int(h)
 
 
@@ -200,7 +203,9 @@ def write_table(
     it_g: wp.array(dtype=wp.int32),
     matched: wp.array(dtype=wp.int32),
     outlier: wp.array(dtype=wp.int32),
+    misregistered: wp.array(dtype=wp.int32),
     shared_xy: wp.array2d(dtype=wp.float64),
+    cc_valid: wp.array(dtype=wp.int32),
     n: int,
     uv_pred: wp.array(dtype=wp.vec2d),
     quality: wp.array(dtype=wp.float64),
@@ -208,10 +213,15 @@ def write_table(
     cc_threshold: wp.float64,
     status: wp.array(dtype=wp.int32),
     n_dots: int,
+    with_prior: int,
     table: wp.array(dtype=TrackRow),
 ):
-    """The table's row i: the outlier test's verdict, MATCHED, the displacements and the model
-    correction (``track_pair``'s last steps)."""
+    """The table's row i: the outlier test's verdict, the registration's (``misregistered``; none given
+    with a prior), MATCHED, the displacements and the correction: the difference of the two rows of
+    ``shared_xy`` (the positions refitted with the pair's common peak and width, or the paper's
+    correlation as :func:`tracking.correction.paper_correction_stack` writes it), valid where finite or,
+    where ``cc_valid`` is given, where it says; a correction that is not finite gives way to the centroid
+    difference. ``dot_id`` is the prior's row, -1 without a prior."""
     i = wp.tid()
     nan = wp.float64(wp.nan)
     s = status[i]
@@ -219,6 +229,10 @@ def write_table(
     if m and outlier[i] != 0:
         s = s | OUTLIER
         m = False
+    if m and misregistered.shape[0] > 0:
+        if misregistered[i] != 0:
+            s = s | MISREGISTERED
+            m = False
     found_g = (s & FOUND_GRADIENT) != 0
     row = TrackRow()
     row.u = nan
@@ -229,12 +243,15 @@ def write_table(
         s = s | MATCHED
         u = x_g[i] - x_r[i]
         v = y_g[i] - y_r[i]
-        # the model correction: both positions refitted with the pair's common peak and width
         ucc = shared_xy[n + i, 0] - shared_xy[i, 0]
         vcc = shared_xy[n + i, 1] - shared_xy[i, 1]
-        if wp.isfinite(ucc) and wp.isfinite(vcc):
+        finite = wp.isfinite(ucc) and wp.isfinite(vcc)
+        valid = finite
+        if cc_valid.shape[0] > 0:
+            valid = cc_valid[i] != 0
+        if valid:
             s = s | CC_VALID
-        else:
+        if not finite:
             ucc = u
             vcc = v
         du = ucc - u
@@ -265,7 +282,9 @@ def write_table(
         row.u_pred = uv_pred[i][0]
         row.v_pred = uv_pred[i][1]
         row.pred_correlation = quality[i]
-    row.dot_id = wp.int64(i % n_dots)
+    row.dot_id = wp.int64(-1)
+    if with_prior != 0:
+        row.dot_id = wp.int64(i % n_dots)
     table[i] = row
 
 

@@ -4,57 +4,28 @@ again in the paper's wide window around the same prediction.
 With the correlation predictor, the gradient image's dots are first looked for in the narrow window of
 ``TrackingSettings.prior_radius`` around their predicted positions; a dot found in the reference image
 but missed there is looked for again in the wide window (``max_displacement`` plus a margin, or
-``search_radius``), whose result replaces the narrow one's (:func:`merge_wide`). Two dots may then end
+``search_radius``), whose result replaces the narrow one's (the flags add up). Two dots may then end
 up on one blob (peak pixel): the one nearer its prediction keeps it, the others are not found and
-flagged AMBIGUOUS (:func:`drop_shared_blobs`). ``track_pair`` takes these steps for one pair on the host
-(:mod:`tracking.pipeline`); :func:`wide_search_stack` takes them for every pair of a stack on one Warp
+flagged AMBIGUOUS. :func:`wide_search_stack` takes these steps for every pair of a stack on one Warp
 device, on identification's claim board (kernels in :mod:`tracking.wide_search_kernels`).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 from . import wide_search_kernels as wk
 from .claim_kernels import release_claims
-from .settings import DotStatus
 
-__all__ = ["drop_shared_blobs", "merge_wide", "wide_search_stack"]
+__all__ = ["wide_search_stack"]
 
 #: The per-dot results of an identification, in the order the merge kernel takes them.
 _FIELDS = ("x", "y", "eta", "i0", "iteration", "root", "flags")
 
 
-def merge_wide(found, wide, miss):
-    """The wide window's result ``wide`` (for the dots ``miss``) replaces the narrow one's in ``found``,
-    in place; the flags add up."""
-    for key in found:
-        if key == "flags":
-            found[key][miss] |= wide[key]
-        else:
-            found[key][miss] = wide[key]
-
-
-def drop_shared_blobs(found, pred):
-    """Where two dots ended up on one blob (peak pixel), keep the one nearer its prediction."""
-    ok = np.flatnonzero(np.isfinite(found["x"]))
-    if ok.size < 2:
-        return
-    key = found["root"][ok, 1] * (found["root"][ok, 0].max() + 1) + found["root"][ok, 0]
-    dist = np.hypot(found["x"][ok] - pred[ok, 0], found["y"][ok] - pred[ok, 1])
-    order = np.lexsort((dist, key))
-    dup = np.zeros(len(ok), dtype=bool)
-    dup[order[1:]] = key[order][1:] == key[order][:-1]
-    lose = ok[dup]
-    for name in ("x", "y", "eta", "i0"):
-        found[name][lose] = np.nan
-    found["iteration"][lose] = 0
-    found["flags"][lose] |= DotStatus.AMBIGUOUS
-
-
 def wide_search_stack(identify, r, g, pred, *, per_frame, pairs, window, board, device):
-    """:func:`merge_wide` and :func:`drop_shared_blobs` for every pair of a stack, in place in ``g``.
+    """The wide second search of every pair of a stack, in place in ``g``: its result replaces the narrow
+    one's, and where two dots ended up on one blob the one nearer its prediction keeps it.
 
     Parameters
     ----------
@@ -63,7 +34,8 @@ def wide_search_stack(identify, r, g, pred, *, per_frame, pairs, window, board, 
         for the ``n_ids`` dots ``ids`` (an int32 Warp array), returning fresh per-dot Warp arrays
         (``tracking.stack``'s ``_Stack.identify`` with ``wide=True``).
     r, g : dict of (M,) Warp arrays
-        The reference images' dots and the gradient images' dots of the narrow search (``_FIELDS``).
+        The reference images' dots and the gradient images' dots of the narrow search (``_FIELDS``, and
+        the host's ``"dotmap"`` where identification keeps them).
     pred : (M,) wp.vec2d Warp array
         The predicted gradient-image positions.
     per_frame, pairs : int, keyword-only
@@ -95,6 +67,9 @@ def wide_search_stack(identify, r, g, pred, *, per_frame, pairs, window, board, 
         return
     g2 = identify(miss, n_miss)
     launch(wk.merge_wide, n_miss, [miss, *(g2[k] for k in _FIELDS), *(g[k] for k in _FIELDS)])
+    if "dotmap" in g:  # the paper's correction's dot maps, on the host (identification's host engine)
+        rows = miss.numpy()[:n_miss]
+        g["dotmap"][rows] = g2["dotmap"][rows]
     key = wp.empty(m, dtype=wp.int32, device=device)
     launch(
         wk.claim_shared_blobs,

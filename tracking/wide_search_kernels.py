@@ -2,8 +2,7 @@
 their prediction missed, the wide window's result merged in, and the blobs two dots ended up on given to
 the one nearer its prediction.
 
-Kernels and ``@wp.func`` steps only; the host code is :mod:`tracking.wide_search` (``track_pair``'s
-form: :func:`tracking.wide_search.merge_wide` and :func:`tracking.wide_search.drop_shared_blobs`). Dots
+Kernels and ``@wp.func`` steps only; the host code is :func:`tracking.wide_search.wide_search_stack`. Dots
 are held flat: dot ``i`` of a call belongs to pair ``i // per_frame``. The blobs are claimed on the claim
 board of identification (:mod:`tracking.claim_kernels`: ``claim_key``, ``release_claims``).
 """
@@ -88,7 +87,7 @@ def claim_shared_blobs(
     key: wp.array(dtype=wp.int32),
     claim_dist: wp.array(dtype=wp.float64),
 ):
-    """``tracking.wide_search.drop_shared_blobs``, first half: the distance of the dot nearest its prediction
+    """Two dots on one blob, first half: the distance of the dot nearest its prediction
     on each blob."""
     i = wp.tid()
     f = i // per_frame
@@ -126,7 +125,7 @@ def drop_shared_losers(
     iteration: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
 ):
-    """``tracking.wide_search.drop_shared_blobs``, second half: the others on a blob are not found (AMBIGUOUS)."""
+    """Two dots on one blob, second half: the others on a blob are not found (AMBIGUOUS)."""
     i = wp.tid()
     k = key[i]
     if k >= 0 and claim_id[k] != i:

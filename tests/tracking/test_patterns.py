@@ -148,7 +148,7 @@ def test_each_step_of_a_run_without_a_prior_matches_its_reference(monkeypatch):
     ref, grad = squares_pair((128, 128), seed=5, amplitude=1.0)
     calls = record_steps(monkeypatch)
     a = track_pair(ref, grad, settings=TrackingSettings())
-    steps = ("measure_windows", "fit_dots", "neighbour_outliers_stack", "registration_offsets")
+    steps = ("measure_windows", "stack.fit_stack", "stack.neighbour_outliers_stack", "registration_offsets")
     assert all(calls[name] for name in steps)
     assert_steps_agree(calls, atol=1e-9)
     assert ((a["status"] & DotStatus.MISREGISTERED) != 0).sum() >= 5
