@@ -89,14 +89,15 @@ def _take_model(found, fit):
 def _fit_stack_reference(refs, grads, r, g, *, eta0, sat_frames, noise_frames, settings, take=True, **_):
     """What ``fit_stack`` computes, pair by pair (:func:`_fit_pair`): the fitted rows' fields (replaced
     only with ``take``) and the common-shape positions."""
+    refs, grads = np.asarray(refs), np.asarray(grads)  # (on the host: record_steps' _host)
     n = r["x"].shape[0] // refs.shape[0]
-    sat, noise = sat_frames.numpy().reshape(-1, 2), noise_frames.numpy().reshape(-1, 2)
+    sat, noise = np.asarray(sat_frames).reshape(-1, 2), np.asarray(noise_frames).reshape(-1, 2)
     out = {f"{k}_{which}": [] for k in _FOUND for which in "rg"}
     shared = [[], []]
     for b in range(refs.shape[0]):
         rows = slice(b * n, (b + 1) * n)
         founds = [{k: found[k].numpy()[rows].copy() for k in _FOUND} for found in (r, g)]
-        fits = _fit_pair((refs.numpy()[b], grads.numpy()[b]), founds, float(eta0[b]), sat[b], noise[b], settings)
+        fits = _fit_pair((refs[b], grads[b]), founds, float(eta0[b]), sat[b], noise[b], settings)
         for found, fit, which in zip(founds, fits, "rg", strict=True):
             if take:
                 _take_model(found, fit)
@@ -140,6 +141,11 @@ def _copy(result):
     return tuple(np.array(v) for v in result)
 
 
+def _host(a):
+    """A Warp array as a NumPy array (the references take host arrays; on a GPU the steps get device ones)."""
+    return a.numpy() if isinstance(a, wp.array) else a
+
+
 def record_steps(monkeypatch):
     """``{step: list of (warp result, reference result)}``, filled as the pipeline runs."""
     calls = {name: [] for name in STEPS}
@@ -147,7 +153,8 @@ def record_steps(monkeypatch):
         warp_step = getattr(caller, attr)
 
         def both(*args, device=None, _warp=warp_step, _ref=ref, _calls=calls[name], _name=name, **kw):
-            expected = _ref(*args, **kw)  # before the pipeline changes any input in place
+            # before the pipeline changes any input in place
+            expected = _ref(*(_host(a) for a in args), **{k: _host(v) for k, v in kw.items()})
             if isinstance(expected, np.ndarray):
                 expected = (expected,)
             got = _warp(*args, device=device, **kw)
