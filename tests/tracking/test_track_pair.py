@@ -263,9 +263,13 @@ def test_each_step_of_a_run_matches_its_reference(device, monkeypatch, paper):
     settings = TrackingSettings.paper(diameter=D) if paper else TrackingSettings(diameter=D)
     res = track_pair(ref, grad, prior_xy=xy, settings=settings, device=device)
     ran = {name for name, c in calls.items() if c}
+    # identification's host engine measures windows on the CPU and for the paper's estimators; a GPU's
+    # kernels for the default (measure_stack, against the same reference in test_pieces)
+    host = device == "cpu" or paper
     tests = {"stack.neighbour_outliers_stack", "stack.confirmed_by_neighbours_stack"}
-    assert ran == ({"measure_windows", *tests} if paper else {"measure_windows", "stack.fit_stack", *tests})
-    assert len(calls["measure_windows"]) >= 2  # the residual rounds too
+    assert ran == {*tests, *(["measure_windows"] if host else []), *([] if paper else ["stack.fit_stack"])}
+    if host:
+        assert len(calls["measure_windows"]) >= 2  # the residual rounds too
     assert_steps_agree(calls)
     ok = _check_no_nan_in_valid(res)
     assert ok.mean() >= 0.97
