@@ -18,10 +18,12 @@ from .ellipse_kernels import (
     ellipse_moment_kernel,
     ellipse_render,
     ellipse_start,
+    flag_set,
+    list_flagged,
 )
 from .settings import ELLIPSE_MOMENT_ITERATIONS, ELLIPSE_SWEEPS
 
-__all__ = ["ellipse_step"]
+__all__ = ["ellipse_step", "flagged_rows", "redraw_is_cheaper"]
 
 
 def ellipse_step(gradients, models, scales, params, frame, partner, prof, shift, *, half, max_shift, device=None):
@@ -58,26 +60,77 @@ def ellipse_step(gradients, models, scales, params, frame, partner, prof, shift,
     once, against the others' models of the sweep before; the rows that do not move keep their symmetric
     models), then ``ELLIPSE_MOMENT_ITERATIONS`` times each model moves to the first moment of its share of
     the light, the model image drawn again in between. Nothing is launched past ``ellipse_start`` where no
-    row moves.
+    row moves. Between two steps the moving rows' models are taken out again by drawing them with the
+    opposite sign (the model image is fixed-point: the others' image comes back to the bit) where their
+    stamps cover less than an eighth of the model images (:func:`redraw_is_cheaper`; a GPU stack's few
+    moving dots), else the others' image is copied back.
     """
     rows = params.shape[0]
     active = wp.empty(rows, dtype=wp.int32, device=device)
     ell = wp.empty((rows, 6), dtype=wp.float64, device=device)
     wp.launch(ellipse_start, dim=rows, inputs=[params, frame, partner, shift, active, ell], device=device)
-    if not active.numpy().any():
+    moving = flagged_rows(active, frame, device)[0].shape[0]
+    if not moving:
         return
     height, width = gradients.shape[1], gradients.shape[2]
 
-    def draw(symmetric, sign):
-        inputs = [params, frame, active, ell, prof, symmetric, sign, half, scales, height, width, models]
+    def draw(symmetric, sign, at=ell):
+        inputs = [params, frame, active, at, prof, symmetric, sign, half, scales, height, width, models]
         wp.launch(ellipse_render, dim=rows, inputs=inputs, device=device)
 
     draw(1, -1)  # the moving rows' symmetric models out: the model image of the others
-    others = wp.clone(models)
+    redraw = redraw_is_cheaper(moving, half, models.size)
+    others = None if redraw else wp.clone(models)
+    drawn = wp.empty_like(ell) if redraw else None  # the parameters the moving rows were drawn with
     step_inputs = [gradients, models, scales, params, frame, partner, active, half, ell]
-    for kernel, times in ((ellipse_fit_kernel, ELLIPSE_SWEEPS), (ellipse_moment_kernel, ELLIPSE_MOMENT_ITERATIONS)):
-        for _ in range(times):
+    steps = [ellipse_fit_kernel] * ELLIPSE_SWEEPS + [ellipse_moment_kernel] * ELLIPSE_MOMENT_ITERATIONS
+    for k, kernel in enumerate(steps):
+        if k and not redraw:
             wp.copy(models, others)
-            draw(0, 1)
-            wp.launch(kernel, dim=rows, inputs=step_inputs, device=device)
+        draw(0, 1)
+        if redraw and k + 1 < len(steps):
+            wp.copy(drawn, ell)
+        wp.launch(kernel, dim=rows, inputs=step_inputs, device=device)
+        if redraw and k + 1 < len(steps):
+            draw(0, -1, drawn)  # out again, as drawn
     wp.launch(ellipse_finish, dim=rows, inputs=[params, active, ell, float(max_shift), shift], device=device)
+
+
+def flagged_rows(flags, frame, device):
+    """The rows whose int32 ``flags`` are set, in order, and their ``frame``s: two (M,) int32 Warp arrays
+    on ``device``, listed there (a prefix sum; the host reads only their count, not the N flags).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> flags = wp.array(np.array([0, 1, 1, 0, 2], dtype=np.int32), device="cpu")
+    >>> frame = wp.array(np.array([0, 0, 1, 1, 3], dtype=np.int32), device="cpu")
+    >>> rows, frames = flagged_rows(flags, frame, "cpu")
+    >>> rows.numpy().tolist(), frames.numpy().tolist()
+    ([1, 2, 4], [0, 1, 3])
+    """
+    n = flags.shape[0]
+    if n == 0:
+        return wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=wp.int32, device=device)
+    set_ = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(flag_set, dim=n, inputs=[flags, set_], device=device)
+    start = wp.empty(n, dtype=wp.int32, device=device)
+    wp.utils.array_scan(set_, start, inclusive=False)
+    count = int(start[n - 1 :].numpy()[0] + set_[n - 1 :].numpy()[0])
+    rows = wp.empty(count, dtype=wp.int32, device=device)
+    frames = wp.empty(count, dtype=wp.int32, device=device)
+    wp.launch(list_flagged, dim=n, inputs=[set_, start, frame, rows, frames], device=device)
+    return rows, frames
+
+
+def redraw_is_cheaper(rows, half, pixels):
+    """Whether taking ``rows`` stamps of half-size ``half`` out of a model image of ``pixels`` pixels by
+    drawing them again with the opposite sign costs less than copying the image back: their stamps cover
+    less than an eighth of it.
+
+    Examples
+    --------
+    >>> redraw_is_cheaper(100, 6, 2 * 512 * 512), redraw_is_cheaper(5000, 6, 2 * 512 * 512)
+    (True, False)
+    """
+    return 8 * rows * (2 * half + 1) ** 2 < pixels

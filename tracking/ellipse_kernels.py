@@ -328,3 +328,26 @@ def ellipse_moment_kernel(
     b = reference_background(params, partner, i, True)
     if not ellipse_moment(gradients[f // 2], models, wp.float64(1.0) / scales[f], f, params, i, half, b, ell):
         active[i] = 2
+
+
+@wp.kernel
+def list_flagged(
+    flags: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    frame: wp.array(dtype=wp.int32),
+    rows: wp.array(dtype=wp.int32),
+    frames_of_rows: wp.array(dtype=wp.int32),
+):
+    """Row i, where flagged, at its place ``start[i]`` (the exclusive prefix sum of the flags) of the list of
+    flagged rows, in the rows' order, with its frame."""
+    i = wp.tid()
+    if flags[i] != 0:
+        rows[start[i]] = i
+        frames_of_rows[start[i]] = frame[i]
+
+
+@wp.kernel
+def flag_set(flags: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """1 where the flag is set (any value but 0), else 0: what the prefix sum of :func:`list_flagged` counts."""
+    i = wp.tid()
+    out[i] = int(flags[i] != 0)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .ellipse import flagged_rows, redraw_is_cheaper
 from .ellipse_kernels import ellipse_render
 from .kernel_step_kernels import (
     fit_column,
@@ -114,29 +115,29 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     part = wp.empty(n, dtype=wp.int32, device=device)
     wp.launch(kernel_rows, dim=n, inputs=[near.id, Z_STEP, params, shift, partner, live, frame, busy, part],
               device=device)  # fmt: skip
-    rows_host = np.flatnonzero(part.numpy()).astype(np.int32)
-    rows = wp.array(rows_host, dtype=wp.int32, device=device)
-    m = len(rows_host)
+    rows, frames_of_rows = flagged_rows(part, frame, device)  # listed on the device
+    m = rows.shape[0]
     # the model image of the live rows of the busy frames that do not take part: their symmetric models
     others = wp.empty(n, dtype=wp.int32, device=device)
     wp.launch(not_taking_part, dim=n, inputs=[live, part, frame, busy, others], device=device)
     models.zero_()
     wp.launch(ellipse_render, dim=n, inputs=[params, frame, others, params, prof, 1, 1, half, scales, height, width,
                                              models], device=device)  # fmt: skip
-    base = wp.clone(models)
+    # the taking-part rows are drawn in and taken out again after each use: by drawing them with the opposite
+    # sign (fixed point: to the bit) where that is cheaper than copying the others' image back
+    redraw = redraw_is_cheaper(m, half, frames * height * width)
+    base = None if redraw else wp.clone(models)
     ell = _prior_fit(refs, grads, models, base, scales, params, frame, partner, part, rows, half, device)
     state = _State(m, half, device)
     start = [params, frame, partner, shift, rows, ell, state.pos, state.flux, state.sigma, state.background,
              state.prior, state.kern]  # fmt: skip
     wp.launch(kernel_start, dim=m, inputs=start, device=device)
     if fit:  # the kernel fit's frame levels and scratch
-        level = _frame_levels(state.background.numpy(), frame.numpy()[rows_host], frames, device)
+        level = _frame_levels(state.background.numpy(), frames_of_rows.numpy(), frames, device)
         grid = stack_grid(frames, height, width, device)
         scratch = _Scratch(m, device)
-    wp.copy(models, base)  # the others; the taking-part rows are drawn in, and taken out again after each use
-    # out again by drawing them with the opposite sign (fixed point: to the bit) where their stamps cover less
-    # than an eighth of the model images (a GPU stack's few moving dots), else by copying the others back
-    redraw = 8 * m * (2 * half + 1) ** 2 < frames * height * width
+    if base is not None:
+        wp.copy(models, base)  # the others
 
     def accumulate(sign):
         if sign < 0 and not redraw:
@@ -166,7 +167,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     wp.launch(kernel_finish, dim=m, inputs=[params, partner, rows, state.pos, state.failed, float(max_shift), shift],
               device=device)  # fmt: skip
     if record is not None:
-        record.update(rows=rows_host, kernel=state.kern.numpy(), position=state.pos.numpy())
+        record.update(rows=rows.numpy(), kernel=state.kern.numpy(), position=state.pos.numpy())
 
 
 class _State:
@@ -279,19 +280,30 @@ def chunk_rows(device) -> int:
 
 def _prior_fit(refs, grads, models, base, scales, params, frame, partner, part, rows, half, device):
     """The elliptical fit of every taking-part row at once (both images), from the symmetric fit, against
-    the model image ``base`` of the others: ``(N, 6)`` Warp array of ``(F, x0, y0, r1, r2, r3)`` (rows not
-    taking part left unset)."""
+    the model image of the others (``models``; ``base`` its copy, or None where the taking-part rows are
+    taken out by drawing them with the opposite sign, the image left as it came): ``(N, 6)`` Warp array of
+    ``(F, x0, y0, r1, r2, r3)`` (rows not taking part left unset)."""
     n, m = params.shape[0], rows.shape[0]
     height, width = refs.shape[1], refs.shape[2]
     ell = wp.zeros((n, 6), dtype=wp.float64, device=device)
+    drawn = wp.empty_like(ell) if base is None else None  # the parameters the rows were drawn with
     unused = wp.empty((1, 1, 1), dtype=wp.float64, device=device)  # the symmetric models' profiles: not drawn
+
+    def draw(at, sign):
+        inputs = [params, frame, part, at, unused, 0, sign, half, scales, height, width, models]
+        wp.launch(ellipse_render, dim=n, inputs=inputs, device=device)
+
     wp.launch(prior_start, dim=m, inputs=[params, rows, ell], device=device)
     for _ in range(ELLIPSE_SWEEPS):
-        wp.copy(models, base)
-        wp.launch(ellipse_render, dim=n, inputs=[params, frame, part, ell, unused, 0, 1, half, scales, height, width,
-                                                 models], device=device)  # fmt: skip
+        if base is not None:
+            wp.copy(models, base)
+        draw(ell, 1)
+        if drawn is not None:
+            wp.copy(drawn, ell)
         wp.launch(prior_fit, dim=m, inputs=[refs, grads, models, scales, params, frame, partner, rows, half, ell],
                   device=device)  # fmt: skip
+        if drawn is not None:
+            draw(drawn, -1)
     return ell
 
 

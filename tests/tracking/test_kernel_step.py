@@ -150,3 +150,25 @@ def test_the_gpu_engine_of_the_kernel_fit_equals_the_reference(monkeypatch):
     assert_allclose(got["position"], want["position"], rtol=0, atol=1e-9)
     assert_allclose(d, d_ref, rtol=0, atol=1e-9)
     assert np.abs(np.asarray(want["kernel"]).sum(axis=1) - 1).max() > 1e-6  # kernels were fitted, not priors
+
+
+@pytest.mark.parametrize("distortion", ["ellipse", "kernel"])
+def test_moving_rows_taken_out_by_redrawing_or_by_copying_give_the_same_bits(device, distortion, monkeypatch):
+    """Between their steps the elliptical and the shared-kernel steps take the moving rows' models out of
+    the fixed-point model image again, by drawing them with the opposite sign or by copying the others'
+    image back (``ellipse.redraw_is_cheaper`` picks): the same table to the bit either way, most dots
+    moving (redrawing) or a few."""
+    from synthbos.tracking import ellipse, kernel_step
+
+    pairs = [_pair(seed, (96, 96)) for seed in (7, 8)]
+    refs = np.array([p[0] for p in pairs])
+    grads = np.array([p[1] for p in pairs])
+    prior = np.array([p[2][: min(len(q[2]) for q in pairs)] for p in pairs])
+    settings = TrackingSettings(distortion=distortion)
+    tables = {}
+    for redraw in (True, False):
+        for module in (ellipse, kernel_step):
+            monkeypatch.setattr(module, "redraw_is_cheaper", lambda *_, _r=redraw: _r)
+        tables[redraw] = track_pairs(refs, grads, prior_xy=prior, settings=settings, device=device)
+    assert ((tables[True]["status"] & DotStatus.DISTORTED) != 0).mean() > 0.9
+    assert tables[True].tobytes() == tables[False].tobytes()
