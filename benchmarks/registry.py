@@ -214,8 +214,8 @@ STACK_CPU_KERNELS = tuple(
 _TRACKING_CPU_KERNELS = tuple(
     name for name in _TRACKING_KERNELS if name != "synthbos.tracking.deform_kernels" and name not in _GPU_ENGINES
 )
-# track_pair with the default estimators is a stack of one: those of the stack too (on the CPU, deform_kernels
-# again left to its first launch)
+# track_pair is a stack of one: those of the stack too (on the CPU, deform_kernels again left to its first
+# launch)
 _DEFAULT_KERNELS = tuple(sorted({*_TRACKING_KERNELS, *STACK_KERNELS}))
 _DEFAULT_CPU_KERNELS = tuple(
     sorted({*_TRACKING_CPU_KERNELS, *STACK_CPU_KERNELS} - {"synthbos.tracking.deform_kernels"})
