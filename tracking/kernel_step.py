@@ -29,6 +29,7 @@ from .kernel_step_kernels import (
     kernel_moment,
     kernel_points,
     kernel_render,
+    kernel_reweigh,
     kernel_rows,
     kernel_start,
     not_taking_part,
@@ -97,8 +98,9 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
     (``ELLIPSE_SWEEPS`` sweeps of ``ellipse_fit_step``); then ``KERNEL_ITERATIONS`` times: in the first
     ``KERNEL_FITS``, every distorted row's kernel fit (``fit_rows_setup`` and an engine, chunked; the others keep their
     prior), every row's kernel model drawn (``kernel_render``) with its
-    reference partner's flux, the shares held to that flux (``KERNEL_FLUX_SWEEPS`` sweeps of
-    ``kernel_accumulate`` and ``kernel_hold``: each row's multiplier in the shares) and every row moved to
+    reference partner's flux, the shares held to that flux (``KERNEL_FLUX_SWEEPS`` sweeps of ``kernel_hold``,
+    each row's multiplier in the shares, and ``kernel_reweigh``, the stamps redrawn with the new multipliers
+    in one pass) and every row moved to
     its moment (``kernel_moment``). Nothing past ``kernel_frames`` runs where no row moves.
     """
     n = params.shape[0]
@@ -151,14 +153,16 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
             _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, device)  # swaps state.kern
         draw = [state.pos, state.flux, state.sigma, state.kern, half, state.stamp_prof, state.stamp]
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
+        accumulate(1)
         for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
-            accumulate(1)
             hold = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
                     state.kern, state.alpha, state.spare_alpha]  # fmt: skip
             wp.launch(kernel_hold, dim=m, inputs=hold, device=device)
-            accumulate(-1)
+            # the stamps redrawn with their new multipliers: out with the old and in with the new in one pass
+            reweigh = [rows, frame, state.pos, half, state.stamp, state.alpha, state.spare_alpha, scales, height,
+                       width, models]  # fmt: skip
+            wp.launch(kernel_reweigh, dim=m, inputs=reweigh, device=device)
             state.alpha, state.spare_alpha = state.spare_alpha, state.alpha
-        accumulate(1)
         moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
                   state.alpha, state.failed, state.spare_pos]  # fmt: skip
         wp.launch(kernel_moment, dim=m, inputs=moment, device=device)

@@ -770,6 +770,32 @@ def kernel_accumulate(
 
 
 @wp.kernel
+def kernel_reweigh(
+    rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d), half: int,
+    stamp: wp.array3d(dtype=wp.float64), alpha: wp.array(dtype=wp.float64), alpha_new: wp.array(dtype=wp.float64),
+    scales: wp.array(dtype=wp.float64), height: int, width: int, models: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    """Row p's model on its stamp, drawn times ``alpha``, redrawn times ``alpha_new`` in one pass: each pixel
+    gets the difference of the two fixed-point values, so the image is to the bit what ``kernel_accumulate``
+    out with ``alpha`` and in with ``alpha_new`` leave (integers: the sums do not depend on the order)."""
+    p = wp.tid()
+    if alpha_new[p] == alpha[p]:
+        return
+    f = frame[rows[p]]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    for r in range(n):
+        for c in range(n):
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                at = (f * height + oy + r) * width + ox + c
+                s = stamp[p, r, c]
+                d = to_fixed(alpha_new[p] * s, scales[f]) - to_fixed(alpha[p] * s, scales[f])
+                if d != wp.int64(0):
+                    wp.atomic_add(models, at, d)
+
+
+@wp.kernel
 def kernel_hold(
     refs: wp.array3d(dtype=wp.float64), grads: wp.array3d(dtype=wp.float64), models: wp.array(dtype=wp.int64),
     scales: wp.array(dtype=wp.float64), params: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
