@@ -161,7 +161,13 @@ def track_pair(
         if prior.ndim != 2 or prior.shape[1] != 2:
             raise SynthbosError(f"prior positions must be an Nx2 array, got shape {prior.shape}")
         if mapping is not None:
-            prior = np.asarray(mapping(prior), dtype=np.float64).reshape(-1, 2)
+            mapped = np.asarray(mapping(prior), dtype=np.float64)
+            if mapped.shape != prior.shape:
+                raise SynthbosError(
+                    f"the mapping must give one (x, y) per prior position, an array of shape {prior.shape}; "
+                    f"it gave shape {mapped.shape}"
+                )
+            prior = mapped
     tables = track_pairs(ref[None], grad[None], prior_xy=prior, mask=mask, settings=settings, device=device)
     return tables[0]
 

@@ -313,6 +313,8 @@ def test_bad_input_raises_one_clear_error():
         ((ref, grad), {"prior_xy": xy[:, :1]}, "Nx2"),
         ((ref, grad), {"prior_xy": xy + 500.0}, "no prior dot lies inside"),
         ((ref[0], grad[0]), {}, "2-D"),
+        ((ref, grad), {"prior_xy": xy, "mapping": lambda p: p[:, :1]}, r"mapping must give .* shape \(\d+, 1\)"),
+        ((ref.astype(complex), grad), {}, "real numbers"),
         ((np.full((64, 64), 1.0), np.full((64, 64), 1.0)), {"settings": TrackingSettings()}, "diameter"),
     ]
     for args, kw, text in cases:
