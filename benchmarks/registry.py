@@ -23,6 +23,7 @@ from dataclasses import replace
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
+from synthbos.tracking.identify import kernels_measure
 
 import synthbos
 from synthbos import SynthbosError
@@ -136,12 +137,17 @@ def stack_settings(name: str, overrides: dict):
     or None where they are tracked one by one (``track_pair``).
 
     Stacks hold the built-in trackers with a prior, whose result is two columns of one ``track_pair``
-    table (``tracking``, ``tracking-cc`` and the paper's procedure of each), whatever their settings.
+    table (``tracking``, ``tracking-cc``), with settings whose identification the stack's kernels measure
+    (``tracking.identify.kernels_measure``). The others (the paper's procedure, other centroids) identify
+    their dots with host code, pair by pair: in the process that drives the device that would take the
+    time of a stack's every pair in turn, so they are tracked item by item in the worker processes, each a
+    stack of one, side by side on the cores.
     """
     m = get_method(name)
     if name not in BUILT_IN or not m.uses_prior or getattr(m.run, "columns", None) is None:
         return None
-    return m.settings(overrides)
+    settings = m.settings(overrides)
+    return settings if kernels_measure(settings) else None
 
 
 def stacked_result(name: str, table, settings) -> MethodResult:

@@ -56,8 +56,8 @@ def check_stack(stack, methods, overrides_for) -> None:
         raise SynthbosError(f"--stack must be a whole number of pairs, 0 or more, got {stack!r}")
     if stack and not any(stack_settings(m, overrides_for(m)) is not None for m in methods):
         raise SynthbosError(f"--stack {stack}: none of the methods ({', '.join(methods)}) is tracked in stacks; "
-                            "stacks hold the built-in trackers with a prior (tracking, tracking-cc and their "
-                            "paper procedures)")
+                            "stacks hold the trackers whose identification runs as kernels (tracking, "
+                            "tracking-cc)")
 
 
 def describe_stacks(log, stack=None) -> str:

@@ -227,18 +227,17 @@ def test_stack_kernels_are_the_modules_track_pairs_launches(monkeypatch):
     assert not any(module.endswith(".gpu") for module in built)
 
 
-def test_stacks_hold_the_trackers_with_a_prior_and_load_their_kernels():
+def test_stacks_hold_the_trackers_whose_identification_is_kernels_and_load_their_kernels():
     run = _items("cuda:0")
     here, stacked, there = split_items(run, worker_device="cpu", stack=8)
-    assert [a[1] for a in here] == ["correlation"]
-    assert [a[1] for a in stacked] == ["tracking", "tracking-cc", "tracking-paper"]  # every estimator
-    assert there == []
-    assert split_items(run, stack=0)[1] == [] and stack_settings("tracking", {"centroid": "gaussian3"}) is not None
+    assert [a[1] for a in here] == ["correlation"] and [a[1] for a in stacked] == ["tracking", "tracking-cc"]
+    # the paper's procedure identifies its dots with host code: item by item (a stack of one), in the workers
+    assert there == [(*run[3][:-1], "cpu")]
+    assert split_items(run, stack=0)[1] == [] and stack_settings("tracking", {"centroid": "gaussian3"}) is None
     # the device process loads track_pairs's kernels on the processing device; the workers, those they launch
     kernels = campaign_kernels([], run, worker_device="cpu", stack=8)
     assert {(k, "cuda:0") for k in STACK_KERNELS} <= set(kernels)
-    assert worker_kernels(run, worker_device="cpu", stack=8) == []  # every tracker in stacks
-    assert {d for _, d in worker_kernels(run, worker_device="cpu", stack=0)} == {"cpu"}
+    assert {d for _, d in worker_kernels(run, worker_device="cpu", stack=8)} == {"cpu"}
     assert worker_kernels(_items("cuda:0", ("tracking", "tracking-cc")), worker_device="cpu", stack=8) == []
     # by default: stacks where tracking runs on a GPU, item by item on the CPU
     assert default_stack(run) == DEFAULT_STACK and default_stack(_items("cpu")) == 0
@@ -280,8 +279,8 @@ def test_a_gpu_stack_is_one_track_pairs_call_on_the_processing_device(plain, mon
          "--stack 4: none of the methods (correlation) is tracked in stacks"),
         (["paper", "--quick", "--device", "cpu", "--scheduler", "local", "--stack", "2", "-o", "camp"],
          "--stack 2: with --scheduler on CPU workers each pair is a task of its own"),
-        (["sweep", "--param", "noise=0", "--device", "cpu", "--methods", "correlation", "--stack", "2", "-o", "sw"],
-         "--stack 2: none of the methods (correlation) is tracked in stacks"),
+        (["sweep", "--param", "noise=0", "--device", "cpu", "--methods", "tracking-paper", "--stack", "2", "-o", "sw"],
+         "--stack 2: none of the methods (tracking-paper) is tracked in stacks"),
         (["regress", "--methods", "correlation", "--stack", "2", "-o", "rg"],
          "--stack 2: none of the methods (correlation) is tracked in stacks"),
     ],
