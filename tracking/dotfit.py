@@ -117,27 +117,6 @@ def _saturation(saturation, k):
     return np.broadcast_to(np.asarray(saturation, dtype=np.float64), (k,)).copy()
 
 
-def _fixed_point_scale(peak: float) -> float:
-    """Units per intensity of the fixed-point model images: a model pixel holds at most a few overlapping
-    dots' peaks, so ``2**50 / (16 peak)`` keeps it far inside int64 and resolves 1e-14 of the peak."""
-    return float(2.0**50 / (16.0 * max(peak, 1e-300)))
-
-
-def _frame_scales(peaks, frames_per_peak: int, device):
-    """The fixed-point scale of every frame on ``device``: :func:`_fixed_point_scale` of each peak (one per
-    pair of a stack, or one for all the frames of a single fit), repeated for its ``frames_per_peak``
-    frames. A pair's scale depends on its own dots only, so a pair's bits do not depend on its stack.
-
-    Examples
-    --------
-    >>> _frame_scales([2.0**40, 2.0**44], 2, "cpu").numpy().tolist()
-    [64.0, 64.0, 4.0, 4.0]
-    """
-    scales = [_fixed_point_scale(float(p)) for p in np.ravel(peaks)]
-    return wp.array(np.repeat(np.asarray(scales, dtype=np.float64), frames_per_peak), dtype=wp.float64,
-                    device=device)
-
-
 def _image_list(images):
     """The images as a list of 2-D float64 arrays (no copy where they already are)."""
     if isinstance(images, np.ndarray) and images.ndim == 2:
@@ -325,11 +304,30 @@ class _FitBuffers(NamedTuple):
     prof: wp.array
 
 
+#: Rows per thread of ``largest_peak``.
+_PEAK_CHUNK = 32
+
+
 def _frame_scales_of(params, live, frame, pairs, device):
-    """:func:`_frame_scales` of each pair's largest live peak, for its two frames."""
+    """The fixed-point scale of every frame (units per intensity of the model images), on the device: from
+    each pair's largest live peak, ``2**50 / (16 peak)`` for its two frames (``fit_kernels.frame_scales``).
+    A model pixel holds at most a few overlapping dots' peaks, so the scale keeps it far inside int64 and
+    resolves 1e-14 of the peak; a pair's scale depends on its own dots only, so a pair's bits do not depend
+    on its stack.
+
+    Examples
+    --------
+    >>> params = wp.array([[1.0, 1.0, 2.0**40, 1.0, 0.0], [1.0, 1.0, -(2.0**44), 1.0, 0.0]], dtype=wp.float64)
+    >>> ones = wp.array([1, 1], dtype=wp.int32)
+    >>> _frame_scales_of(params, ones, wp.array([1, 2], dtype=wp.int32), 2, "cpu").numpy().tolist()
+    [64.0, 64.0, 4.0, 4.0]
+    """
+    n = params.shape[0]
     peak = wp.zeros(pairs, dtype=wp.float64, device=device)
-    _launch(fk.largest_peak, params.shape[0], [params, live, frame, peak], device)
-    return _frame_scales(peak.numpy(), 2, device)
+    _launch(fk.largest_peak, (n + _PEAK_CHUNK - 1) // _PEAK_CHUNK, [params, live, frame, _PEAK_CHUNK, peak], device)
+    scales = wp.empty(2 * pairs, dtype=wp.float64, device=device)
+    _launch(fk.frame_scales, 2 * pairs, [peak, scales], device)
+    return scales
 
 
 def _fit_steps(refs, grads, rows, bufs, sat, width, *, half, render_half, iterations, max_move, device):

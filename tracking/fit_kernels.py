@@ -643,12 +643,39 @@ def largest_peak(
     params: wp.array2d(dtype=wp.float64),
     live: wp.array(dtype=wp.int32),
     frame: wp.array(dtype=wp.int32),
+    chunk: int,
     peak: wp.array(dtype=wp.float64),
 ):
-    """The largest |peak| of each pair's live rows (``peak[b]``, pair b: frames 2 b and 2 b + 1)."""
-    i = wp.tid()
-    if live[i] != 0:
-        wp.atomic_max(peak, frame[i] // 2, wp.abs(params[i, 2]))
+    """The largest |peak| of each pair's live rows (``peak[b]``, pair b: frames 2 b and 2 b + 1): thread t
+    takes rows ``t chunk`` .. ``(t + 1) chunk - 1`` and adds its maximum of each run of one pair's rows
+    (a stack's rows lie frame by frame: a few atomics per thread, not one per row on 400 addresses)."""
+    t = wp.tid()
+    n = params.shape[0]
+    b = int(-1)
+    m = wp.float64(0.0)
+    for i in range(t * chunk, wp.min((t + 1) * chunk, n)):
+        if live[i] != 0:
+            c = frame[i] // 2
+            if c != b:
+                if b >= 0:
+                    wp.atomic_max(peak, b, m)
+                b = c
+                m = wp.float64(0.0)
+            m = wp.max(m, wp.abs(params[i, 2]))
+    if b >= 0:
+        wp.atomic_max(peak, b, m)
+
+
+#: The fixed-point scale's numerator, 2**50 (``dotfit._frame_scales_of``).
+FIXED_RANGE = wp.constant(wp.float64(2.0**50))
+
+
+@wp.kernel
+def frame_scales(peak: wp.array(dtype=wp.float64), scales: wp.array(dtype=wp.float64)):
+    """Frame f's fixed-point scale from its pair's largest peak, ``2**50 / (16 peak)``
+    (``dotfit._frame_scales_of``), on the device: the host need not wait for the peaks."""
+    f = wp.tid()
+    scales[f] = FIXED_RANGE / (wp.float64(16.0) * wp.max(peak[f // 2], wp.float64(1e-300)))
 
 
 @wp.kernel
