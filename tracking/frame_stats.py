@@ -22,6 +22,7 @@ from .stats_kernels import (
     column_pass,
     frame_moments,
     frame_results,
+    segment_counts,
     segment_keys,
     segment_median,
 )
@@ -166,6 +167,10 @@ def frame_statistics(images, *, device=None):
     return out
 
 
+#: Entries per thread of the count of values taking part per segment (``stats_kernels.segment_counts``).
+COUNT_CHUNK = 32
+
+
 def segment_medians(values, valid, *, length, segments, device):
     """NumPy's median of each run of ``length`` values where ``valid`` (NaN for none), on the device.
 
@@ -196,7 +201,9 @@ def segment_medians(values, valid, *, length, segments, device):
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
     count = wp.zeros(segments, dtype=wp.int32, device=device)
     if n:
-        wp.launch(segment_keys, dim=n, inputs=[values, valid, length, keys, order, count], device=device)
+        wp.launch(segment_keys, dim=n, inputs=[values, valid, keys, order], device=device)
+        chunk = COUNT_CHUNK
+        wp.launch(segment_counts, dim=(n + chunk - 1) // chunk, inputs=[valid, length, chunk, count], device=device)
     starts = wp.array(np.arange(segments, dtype=np.int32) * length, dtype=wp.int32, device=device)
     ends = wp.array((np.arange(segments, dtype=np.int32) + 1) * length, dtype=wp.int32, device=device)
     wp.utils.segmented_sort_pairs(keys, order, n, starts, ends)

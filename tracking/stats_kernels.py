@@ -331,19 +331,36 @@ def frame_results(
 def segment_keys(
     values: wp.array(dtype=wp.float64),
     valid: wp.array(dtype=wp.int32),
-    length: int,
     keys: wp.array(dtype=wp.float32),
     order: wp.array(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
 ):
-    """Sort keys (the values rounded to float32, +inf where not taking part) and the count per segment."""
+    """Sort keys (the values rounded to float32, +inf where not taking part)."""
     i = wp.tid()
     order[i] = i
     if valid[i] != 0:
         keys[i] = wp.float32(values[i])
-        wp.atomic_add(count, i // length, 1)
     else:
         keys[i] = wp.float32(wp.inf)
+
+
+@wp.kernel
+def segment_counts(valid: wp.array(dtype=wp.int32), length: int, chunk: int, count: wp.array(dtype=wp.int32)):
+    """The count of values taking part per segment: thread t counts entries ``t chunk`` .. ``(t + 1) chunk -
+    1`` and adds each segment's share once (one atomic per segment it meets, not one per value)."""
+    t = wp.tid()
+    n = valid.shape[0]
+    s = int(-1)
+    c = int(0)
+    for i in range(t * chunk, wp.min((t + 1) * chunk, n)):
+        if i // length != s:
+            if c > 0:
+                wp.atomic_add(count, s, c)
+            s = i // length
+            c = 0
+        if valid[i] != 0:
+            c += 1
+    if c > 0:
+        wp.atomic_add(count, s, c)
 
 
 @wp.func
