@@ -77,6 +77,17 @@ def paper_correction_stack(r, g, *, device):
 
     ``r`` and ``g`` are the two images' dots (``"x"`` and ``"root"`` Warp arrays, ``"dotmap"`` an (M, c, c)
     NumPy array: :func:`tracking.identify.identify_near_predictions` keeps them for this correction).
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[-3:4, -3:4]
+    >>> spot = np.exp(-(xx**2 + yy**2) / 1.5)[None]  # one dot's map, the same in both images
+    >>> def dots(x, root):
+    ...     return {"x": wp.array([x], dtype=wp.float64, device="cpu"),
+    ...             "root": wp.array([root], dtype=wp.int32, device="cpu"), "dotmap": spot}
+    >>> shared, valid = paper_correction_stack(dots(10.0, [10, 5]), dots(12.0, [12, 6]), device="cpu")
+    >>> (shared.numpy()[1] - shared.numpy()[0]).round(6).tolist(), valid.numpy().tolist()
+    ([2.0, 1.0], [1])
     """
     both = np.flatnonzero(np.isfinite(r["x"].numpy()) & np.isfinite(g["x"].numpy()))
     m = len(r["dotmap"])
