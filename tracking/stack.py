@@ -140,10 +140,21 @@ class _Pairs:
         return (self.half_r, self.half_g, self.map_half, self.fit_half, self.render_half)
 
 
+def _image_of(first, b, name):
+    """How an error names image ``name`` of pair ``first + b`` (``first`` None: the only pair).
+
+    Examples
+    --------
+    >>> _image_of(None, 0, "reference"), _image_of(8, 2, "gradient")
+    ('the reference image', "pair 10's gradient image")
+    """
+    return f"the {name} image" if first is None else f"pair {first + b}'s {name} image"
+
+
 def _frame_statistics(images, name, settings, device, first, excluded=None):
     """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
     kernel takes it) and dot diameter, computed on the device (on the CPU by :func:`_host_statistics`);
-    the image checks (the pairs named from ``first``). With a mask (``excluded``), the
+    the image checks (the pairs named from ``first``; None: the only pair). With a mask (``excluded``), the
     noise of the pixels kept, by the host (the device's sort takes no mask)."""
     if wp.get_device(device).is_cpu:
         diameter = name == "reference" and settings.diameter is None
@@ -155,9 +166,9 @@ def _frame_statistics(images, name, settings, device, first, excluded=None):
             st["noise"] = np.array([estimate_noise(im, excluded=m) for im, m in zip(host, excluded, strict=True)])
     for b, why in enumerate(st["bad"]):
         if why == 1:
-            raise SynthbosError(f"pair {first + b}'s {name} image contains non-finite pixels (NaN or inf)")
+            raise SynthbosError(f"{_image_of(first, b, name)} contains non-finite pixels (NaN or inf)")
         if why == 2:
-            raise SynthbosError(f"pair {first + b}'s {name} image is all zero")
+            raise SynthbosError(f"{_image_of(first, b, name)} is all zero")
     sat = st["saturation"] if settings.saturation_level is None else np.full(len(st["bad"]), settings.saturation_level)
     return {"noise": st["noise"], "fill": st["fill"], "sat": np.minimum(sat, 1e300), "diameter": st["diameter"]}
 
@@ -250,7 +261,7 @@ def track_pairs(
     tables = [
         _track_turn(references[a:b] if turn < B else references, gradients[a:b] if turn < B else gradients,
                     prior if prior is None or prior.ndim == 2 else prior[a:b],
-                    None if excluded is None else excluded[a:b], settings, device, a)
+                    None if excluded is None else excluded[a:b], settings, device, a if B > 1 else None)
         for a, b in turns
     ]  # fmt: skip
     if prior is None:
@@ -289,8 +300,8 @@ def _stack_mask(mask, pairs, shape):
 
 
 def _track_turn(references, gradients, prior, excluded, settings, device, first):
-    """:func:`track_pairs` of pairs ``first ...`` (the pairs its errors name), checked, in one turn: the
-    (B, N) table, or without a prior the list of B tables."""
+    """:func:`track_pairs` of pairs ``first ...`` (the pairs its errors name; None: the only pair), checked,
+    in one turn: the (B, N) table, or without a prior the list of B tables."""
     refs = _upload(references, "reference", device, excluded)
     grads = _upload(gradients, "gradient", device, excluded)
     B = refs.shape[0]
@@ -300,7 +311,7 @@ def _track_turn(references, gradients, prior, excluded, settings, device, first)
     bad = ~(np.isfinite(d) & (d > 0))
     if bad.any():
         raise SynthbosError(
-            f"cannot estimate the dot diameter from pair {first + int(np.flatnonzero(bad)[0])}'s reference image; "
+            f"cannot estimate the dot diameter from {_image_of(first, int(np.flatnonzero(bad)[0]), 'reference')}; "
             "give it in settings"
         )
     geometry = [_Pairs(float(di), settings) for di in d]
