@@ -749,6 +749,28 @@ def held_sums(
     return out
 
 
+@wp.func
+def redraw_stamp(
+    rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d), half: int,
+    stamp: wp.array3d(dtype=wp.float64), p: int, out_of: wp.float64, into: wp.float64,
+    scales: wp.array(dtype=wp.float64), height: int, width: int, models: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    """Row p's model on its stamp, drawn times ``out_of``, redrawn times ``into``: each pixel of its frame's
+    fixed-point model image gets the difference of the two fixed-point values (0 draws nothing: in with 0
+    and ``alpha`` draws the stamp, out with ``alpha`` and 0 takes it out to the bit)."""
+    f = frame[rows[p]]
+    n = 2 * half + 1
+    ox = int(wp.rint(pos[p][0])) - half
+    oy = int(wp.rint(pos[p][1])) - half
+    for r in range(n):
+        for c in range(n):
+            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
+                s = stamp[p, r, c]
+                d = to_fixed(into * s, scales[f]) - to_fixed(out_of * s, scales[f])
+                if d != wp.int64(0):
+                    wp.atomic_add(models, (f * height + oy + r) * width + ox + c, d)
+
+
 @wp.kernel
 def kernel_accumulate(
     rows: wp.array(dtype=wp.int32), frame: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec2d), half: int,
@@ -758,15 +780,11 @@ def kernel_accumulate(
     """Row p's model on its stamp times its multiplier ``alpha`` into its frame's model image (fixed point),
     or with ``sign`` -1 out of it again, to the bit (the integer sums do not depend on the order)."""
     p = wp.tid()
-    f = frame[rows[p]]
-    n = 2 * half + 1
-    ox = int(wp.rint(pos[p][0])) - half
-    oy = int(wp.rint(pos[p][1])) - half
-    for r in range(n):
-        for c in range(n):
-            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
-                at = (f * height + oy + r) * width + ox + c
-                wp.atomic_add(models, at, wp.int64(sign) * to_fixed(alpha[p] * stamp[p, r, c], scales[f]))
+    zero = wp.float64(0.0)
+    if sign > 0:
+        redraw_stamp(rows, frame, pos, half, stamp, p, zero, alpha[p], scales, height, width, models)
+    else:
+        redraw_stamp(rows, frame, pos, half, stamp, p, alpha[p], zero, scales, height, width, models)
 
 
 @wp.kernel
@@ -775,24 +793,12 @@ def kernel_reweigh(
     stamp: wp.array3d(dtype=wp.float64), alpha: wp.array(dtype=wp.float64), alpha_new: wp.array(dtype=wp.float64),
     scales: wp.array(dtype=wp.float64), height: int, width: int, models: wp.array(dtype=wp.int64),
 ):  # fmt: skip
-    """Row p's model on its stamp, drawn times ``alpha``, redrawn times ``alpha_new`` in one pass: each pixel
-    gets the difference of the two fixed-point values, so the image is to the bit what ``kernel_accumulate``
-    out with ``alpha`` and in with ``alpha_new`` leave (integers: the sums do not depend on the order)."""
+    """Row p's model on its stamp, drawn times ``alpha``, redrawn times ``alpha_new`` in one pass: the image
+    is to the bit what ``kernel_accumulate`` out with ``alpha`` and in with ``alpha_new`` leave (integers:
+    the sums do not depend on the order)."""
     p = wp.tid()
-    if alpha_new[p] == alpha[p]:
-        return
-    f = frame[rows[p]]
-    n = 2 * half + 1
-    ox = int(wp.rint(pos[p][0])) - half
-    oy = int(wp.rint(pos[p][1])) - half
-    for r in range(n):
-        for c in range(n):
-            if oy + r >= 0 and oy + r < height and ox + c >= 0 and ox + c < width:
-                at = (f * height + oy + r) * width + ox + c
-                s = stamp[p, r, c]
-                d = to_fixed(alpha_new[p] * s, scales[f]) - to_fixed(alpha[p] * s, scales[f])
-                if d != wp.int64(0):
-                    wp.atomic_add(models, at, d)
+    if alpha_new[p] != alpha[p]:
+        redraw_stamp(rows, frame, pos, half, stamp, p, alpha[p], alpha_new[p], scales, height, width, models)
 
 
 @wp.kernel
