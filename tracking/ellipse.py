@@ -69,7 +69,7 @@ def ellipse_step(gradients, models, scales, params, frame, partner, prof, shift,
     active = wp.empty(rows, dtype=wp.int32, device=device)
     ell = wp.empty((rows, 6), dtype=wp.float64, device=device)
     wp.launch(ellipse_start, dim=rows, inputs=[params, frame, partner, shift, active, ell], device=device)
-    moving = flagged_rows(active, frame, device)[0].shape[0]
+    moving = _prefix_sum(active, device)[2]
     if not moving:
         return
     height, width = gradients.shape[1], gradients.shape[2]
@@ -109,18 +109,25 @@ def flagged_rows(flags, frame, device):
     >>> rows.numpy().tolist(), frames.numpy().tolist()
     ([1, 2, 4], [0, 1, 3])
     """
-    n = flags.shape[0]
-    if n == 0:
-        return wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=wp.int32, device=device)
-    set_ = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(flag_set, dim=n, inputs=[flags, set_], device=device)
-    start = wp.empty(n, dtype=wp.int32, device=device)
-    wp.utils.array_scan(set_, start, inclusive=False)
-    count = int(start[n - 1 :].numpy()[0] + set_[n - 1 :].numpy()[0])
+    set_, start, count = _prefix_sum(flags, device)
     rows = wp.empty(count, dtype=wp.int32, device=device)
     frames = wp.empty(count, dtype=wp.int32, device=device)
-    wp.launch(list_flagged, dim=n, inputs=[set_, start, frame, rows, frames], device=device)
+    if count:
+        wp.launch(list_flagged, dim=flags.shape[0], inputs=[set_, start, frame, rows, frames], device=device)
     return rows, frames
+
+
+def _prefix_sum(flags, device):
+    """``(set, start, count)``: 1 where an int32 flag is set, the exclusive prefix sum of that (each set
+    row's place in the list of set rows), and how many are set (the host reads that one number)."""
+    n = flags.shape[0]
+    set_ = wp.empty(n, dtype=wp.int32, device=device)
+    start = wp.empty(n, dtype=wp.int32, device=device)
+    if n == 0:
+        return set_, start, 0
+    wp.launch(flag_set, dim=n, inputs=[flags, set_], device=device)
+    wp.utils.array_scan(set_, start, inclusive=False)
+    return set_, start, int(start[n - 1 :].numpy()[0] + set_[n - 1 :].numpy()[0])
 
 
 def redraw_is_cheaper(rows, half, pixels):
