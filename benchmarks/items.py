@@ -274,20 +274,33 @@ def by_pair_and_noise(items) -> list[tuple]:
 
 
 def measure_item(pair, pair_path: str, method: str, noise: float, seeds, out: str, overrides: dict,
-                 device=None, *, images=None):
+                 device=None, *, images=None, settings=None):
     """The device half of :func:`score_item` on an already read ``pair``: the arguments of :func:`finish_item`.
 
-    ``images``: the item's noisy images when already made (:func:`item_images`).
+    ``images``: the item's noisy images when already made (:func:`item_images`); ``settings``: its
+    method's settings when already made (:func:`prepared_inputs`), else from ``overrides``.
     """
     m = get_method(method)
-    res = measure_pair(pair, method, noise_percent=noise, seeds=seeds, settings=m.settings(overrides),
-                       device=device, images=images)
+    res = measure_pair(pair, method, noise_percent=noise, seeds=seeds,
+                       settings=m.settings(overrides) if settings is None else settings, device=device, images=images)
     return pair_path, method, res, out, device
 
 
 def item_images(pair, args):
     """The noisy images a score item (:func:`measure_item` arguments without the pair) is measured on."""
     return noisy_pair(pair, noise_percent=args[2], seeds=args[3])
+
+
+def prepared_inputs(pair, run):
+    """The noisy images of ``run`` (score items measured on the same images) and each item's settings,
+    with what its method reads from the reference image read (``Method.prepare``; None for a method
+    that reads nothing): the host work that :func:`measure_item` would do first, done ahead."""
+    images = item_images(pair, run[0])
+    settings = []
+    for args in run:
+        m = get_method(args[1])
+        settings.append(None if m.prepare is None else m.prepare(images[0], m.settings(args[5]), args[-1]))
+    return images, settings
 
 
 def read_pair_cached(path: str):

@@ -116,6 +116,12 @@ class Method:
         The modules its run launches when it processes on the CPU, where that is fewer than ``kernels``
         (a Warp path taken on CUDA devices only); None: ``kernels``. A CPU campaign builds them before
         its work starts (``scheduling.run_items``), so list none the run may not launch there.
+    prepare : callable or None
+        ``prepare(reference, settings, device) -> settings``: the settings with what the run would read
+        from the reference image to choose its procedure already read (the correlation: a periodic or
+        a random pattern), so that the run does not read it again. A campaign calls it in the thread
+        that draws the noisy images, beside the device's work; the results are the same. None: the
+        run reads nothing of the kind.
     requires : tuple of str
         Modules its run imports that synthbos does not install by default (``synthbos methods`` tells
         whether they are there).
@@ -139,6 +145,7 @@ class Method:
     device_resident: bool = False
     kernels: tuple[str, ...] = ()
     cpu_kernels: tuple[str, ...] | None = None
+    prepare: Callable | None = None
     requires: tuple[str, ...] = ()
     source: str = ""
 

@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 from synthbos.correlation import CorrelationSettings, correlate_pair
+from synthbos.correlation.multigrid import pattern_settings
 from synthbos.tracking import DotStatus, TrackingSettings, is_valid, track_pair
 from synthbos.tracking.identify import kernels_measure
 
@@ -41,9 +42,17 @@ __all__ = ["BUILT_IN", "DENSE", "DOTS", "GRID", "KINDS", "METHODS", "STACK_CPU_K
 
 
 def _run_correlation(reference, gradient, *, prior_xy=None, settings=None, device=None, mask=None):
-    if device is not None:  # the processing device travels in the correlation settings
-        settings = replace(settings or CorrelationSettings(), device=str(device))
-    return correlation_result(correlate_pair(reference, gradient, settings=settings, mask=mask))
+    return correlation_result(correlate_pair(reference, gradient, settings=_on(settings, device), mask=mask))
+
+
+def _prepare_correlation(reference, settings, device=None):
+    """The correlation's settings with the pattern read from ``reference`` (``pattern_settings``)."""
+    return pattern_settings(reference, _on(settings, device))
+
+
+def _on(settings, device):
+    """Correlation ``settings`` on the processing ``device``, which travels in them (None: as they are)."""
+    return settings if device is None else replace(settings or CorrelationSettings(), device=str(device))
 
 
 def correlation_result(res) -> MethodResult:
@@ -235,7 +244,7 @@ BUILT_IN: dict[str, Method] = {
     for m in (
         Method("correlation", GRID, CorrelationSettings, _run_correlation,
                label="correlation (32→16 px)", color="#0072B2", linestyle="-", marker="o",
-               settings_key="correlation", device_resident=True,
+               settings_key="correlation", device_resident=True, prepare=_prepare_correlation,
                kernels=("synthbos.correlation.kernels", "synthbos.correlation.pass_kernels",
                         "synthbos.correlation.line_kernels"),
                cpu_kernels=("synthbos.correlation.kernels",)),  # the Warp pass runs on CUDA only

@@ -41,7 +41,7 @@ from multiprocessing import get_all_start_methods, get_context
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from synthbos.device import load_kernels, shared_by_threads
+from synthbos.device import launching, load_kernels
 
 __all__ = ["PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers",
            "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels", "run_items",
@@ -293,6 +293,13 @@ def submit_builds(pool, kernels) -> list:
     return [builds[tuple(pair)] for pair in kernels]
 
 
+def _launching(fn, *args):
+    """``fn(*args)`` inside ``synthbos.device.launching``: a thread that launches beside this process's
+    main thread, which may record a CUDA graph meanwhile."""
+    with launching():
+        return fn(*args)
+
+
 def pair_tasks(renders, scores):
     """Group a campaign's items by pair file: ``[(render args or None, [score args])]``, in campaign order.
 
@@ -401,7 +408,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     """
     from synthbos.raytrace import read_pair, write_pair  # here: scheduling stays free of the algorithm packages
 
-    from .items import finish_item, item_images, measure_item, process_items, render_only
+    from .items import finish_item, measure_item, prepared_inputs, process_items, render_only
     from .stacks import Stacks, default_stack
 
     stack = default_stack(scores) if stack is None else int(stack)
@@ -450,7 +457,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         with images_lock:
             if k in images:
                 return
-            images[k] = {r: noiser.submit(item_images, pair, run[0])
+            images[k] = {r: noiser.submit(prepared_inputs, pair, run)
                          for r, run in enumerate(same_image_runs(tasks[k][1]))
                          if any(split_items(run, worker_device=worker_device, stack=stack)[:2])}
 
@@ -458,7 +465,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         args = tasks[k][0] if k < len(tasks) else None
         if args is None:
             return None
-        fut = renderer.submit(render_only, args[0], args[2])
+        fut = renderer.submit(_launching, render_only, args[0], args[2])
         if pool is not None:  # the pair's noisy images are drawn as soon as it is rendered
             fut.add_done_callback(lambda f: f.cancelled() or f.exception() is not None or make_images(k, f.result()))
         return fut
@@ -517,9 +524,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         threading.Thread(target=_start_workers, args=(pool, workers - 1, pool_ready), daemon=True,
                          name="synthbos-start-workers").start()
     try:
-        # The render threads launch too: no CUDA graph capture here. The BLAS keeps to one thread here
-        # too: the workers have the other cores.
-        with bar, shared_by_threads(), threadpool_limits(limits=1):
+        # The render threads launch too (each render inside ``launching``: a graph is recorded here while
+        # none is in progress). The BLAS keeps to one thread here too: the workers have the other cores.
+        with bar, threadpool_limits(limits=1):
             rendering.extend(render(k) for k in range(ahead))
             start_jobs(final=False)
             for k, (render_args, items) in enumerate(tasks):
@@ -543,7 +550,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                 measured = []  # the pair's items measured here, every noise level: one worker scores them all
                 for r, run in enumerate(same_image_runs(items)):
                     here, stacked, there = split_items(run, worker_device=worker_device, stack=stack)
-                    noisy = prepared[r].result() if r in prepared else None
+                    noisy, settings = prepared[r].result() if r in prepared else (None, [None] * len(run))
+                    settings = dict(zip(map(id, run), settings, strict=True))
                     if stacked:
                         to_stack.append((noisy, stacked))
                     if pool is None:
@@ -551,7 +559,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    measured.extend(measure_item(pair, *args, images=noisy) for args in here)
+                    measured.extend(measure_item(pair, *args, images=noisy, settings=settings[id(args)]) for args in here)
                     if there:  # the workers read the pair file: they get the run once it is written
                         deferred.append((written, path, [], there, len(there)))
                         submit_ready(block=False)

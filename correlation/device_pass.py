@@ -27,7 +27,7 @@ from collections import OrderedDict
 import numpy as np
 
 from synthbos import SynthbosError
-from synthbos.device import graph_capture_allowed
+from synthbos.device import recording_graph
 
 from .deform import spline_weights
 from .passes import Measured, pass_schedule, run_passes
@@ -85,9 +85,9 @@ def device_supports(settings):
 
 
 def _graph_replay(device):
-    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`): not when
-    other threads launch work on the devices meanwhile (``synthbos.device.shared_by_threads``)."""
-    return USE_CUDA_GRAPH and device.is_cuda and graph_capture_allowed()
+    """Whether plans on this Warp device record and replay a graph (:data:`USE_CUDA_GRAPH`). Other
+    threads may launch meanwhile: the recording waits for them (``synthbos.device.recording_graph``)."""
+    return USE_CUDA_GRAPH and device.is_cuda
 
 
 class _Iteration:
@@ -133,6 +133,11 @@ class _Plan:
         self.outputs = None  # what the last walk of the schedule returned: the buffers of the result
         self.graph = None
         self.runs = 0
+        # The plan's own stream on a GPU: its uploads, launches and graph, recorded and replayed there
+        # whatever stream another thread makes the device's current one meanwhile (Warp's ``numpy()``
+        # switches it for its copy); None: the device's current stream (the CPU).
+        self.stream = wp.Stream(device) if wp.get_device(device).is_cuda else None
+        self.host = {}  # page-locked host copies of what the plan reads back (a GPU), by device array
         self.lock = threading.Lock()
 
     def _zeros(self, shape, dtype):
@@ -212,7 +217,29 @@ class _Plan:
     # ------------------------------------------------------- the steps (launches only, no host wait)
 
     def _launch(self, kernel, dim, inputs, block_dim=256):
-        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, block_dim=block_dim)
+        self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, block_dim=block_dim, stream=self.stream)
+
+    def _fetch(self, *arrays):
+        """NumPy copies of the plan's device ``arrays``, read on the plan's stream: they wait for its own
+        work only, not for what other threads queued on the device meanwhile (``numpy()`` reads on the
+        legacy stream, which waits for every stream's work)."""
+        wp = self.wp
+        if self.stream is None:  # the CPU: numpy() is a view of the plan's buffers, which its next run overwrites
+            return [a.numpy().copy() for a in arrays]
+        hosts = []
+        for a in arrays:
+            key = (a.ptr, a.shape, a.dtype)
+            if key not in self.host:
+                self.host[key] = wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
+            wp.copy(self.host[key], a, stream=self.stream)
+            hosts.append(self.host[key])
+        wp.synchronize_stream(self.stream)
+        return [h.numpy().copy() for h in hosts]
+
+    def _put(self, dest, host):
+        """Copy NumPy array ``host`` (``dest``'s dtype and shape) into ``dest`` on the plan's stream."""
+        wp = self.wp
+        wp.copy(dest, wp.array(np.ascontiguousarray(host), dtype=dest.dtype, device="cpu"), stream=self.stream)
 
     def _launch_all(self):
         """Every launch of one pair's passes: one walk of the schedule with this engine."""
@@ -266,6 +293,7 @@ class _Plan:
             inputs=[*images, *origin, g.step, nx, *outputs],
             block_dim=self.k.window_threads(step.size),
             device=self.device,
+            stream=self.stream,
         )
         return ps
 
@@ -318,7 +346,8 @@ class _Plan:
         """The launches of the filling (:func:`_launch_fill`); returns the buffers of the filled field."""
         it = self.iterations[step.index]
         return _launch_fill(
-            self.wp, self.k, self.device, measured.u, measured.v, flags, it.rep, it.todo, it.left, it.scratch
+            self.wp, self.k, self.device, measured.u, measured.v, flags, it.rep, it.todo, it.left, it.scratch,
+            stream=self.stream,
         )
 
     def _raw(self, index, dtype):
@@ -342,14 +371,14 @@ class _Plan:
             exact32 = arr.dtype in (np.float32, np.uint8, np.int8, np.uint16, np.int16)
             dtype = wp.float32 if exact32 else wp.float64
             raw = self._raw(idx, dtype)
-            raw.assign(np.ascontiguousarray(arr, dtype=np.float32 if exact32 else np.float64))
+            self._put(raw, np.asarray(arr, dtype=np.float32 if exact32 else np.float64))
             stats, summary = self.col_stats[idx], self.summary[idx]
             self._launch(lk.column_stats, w, [raw, stats], lk.LOOP_BLOCK)
             self._launch(lk.combine_stats, 1, [stats, float(h * w), summary], lk.LOOP_BLOCK)
             self._launch(lk.column_moments, w, [raw, summary, stats], lk.LOOP_BLOCK)
             self._launch(lk.combine_moments, 1, [stats, float(h * w), summary], lk.LOOP_BLOCK)
             raws.append(raw)
-        summary = self.summary.numpy()
+        (summary,) = self._fetch(self.summary)
         for arr, name, (_, _, lo, hi, bad, _) in zip(images, names, summary, strict=True):
             if bad > 0 or lo == hi:
                 raise raise_for(name, arr, int(bad))
@@ -363,39 +392,32 @@ class _Plan:
         self.upload(images, names, raise_for)
         if valid_px is None:
             if not self.valid_is_ones:
-                self.valid_px.fill_(1.0)
+                self._put(self.valid_px, np.ones(self.shape, dtype=np.float32))
                 self.valid_is_ones = True
         else:
-            self.valid_px.assign(np.ascontiguousarray(valid_px, dtype=np.float32))
+            self._put(self.valid_px, np.asarray(valid_px, dtype=np.float32))
             self.valid_is_ones = False
         for ps, m in zip(self.passes, masked, strict=True):
-            ps["masked"].assign(m.astype(np.int32))
+            self._put(ps["masked"], m.astype(np.int32))
         device = wp.get_device(self.device)
         use_graph = _graph_replay(device)
         if self.graph is None and self.runs > 0 and use_graph:
-            with wp.ScopedCapture(device=device) as capture:
+            with recording_graph(), wp.ScopedCapture(device=device, stream=self.stream) as capture:
                 self._launch_all()
             self.graph = capture.graph
         if self.graph is not None and use_graph:
-            wp.capture_launch(self.graph)
+            wp.capture_launch(self.graph, stream=self.stream)
         else:
             self._launch_all()
         self.runs += 1
         (u, v), measured, flags = self.outputs
-        # copies: on the CPU device .numpy() is a view of the plan's buffers, which the plan's next run
-        # (a cached plan, the next pair) overwrites
-        return {
-            "u": u.numpy().copy(),
-            "v": v.numpy().copy(),
-            "peak_ratio": measured.ratio.numpy().copy(),
-            "correlation": measured.coef.numpy().copy(),
-            "flags": flags.numpy().copy(),
-            "node": self.steps[-1].node,
-        }
+        u, v, ratio, coef, flags = self._fetch(u, v, measured.ratio, measured.coef, flags)
+        return {"u": u, "v": v, "peak_ratio": ratio, "correlation": coef, "flags": flags, "node": self.steps[-1].node}
 
 
-def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
-    """Launches of ``validation.replace_outliers(u, v, flags != 0)``; returns the arrays holding the result.
+def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch, stream=None):
+    """Launches of ``validation.replace_outliers(u, v, flags != 0)`` on ``stream`` (None: the device's
+    current one); returns the arrays holding the result.
 
     ``rep``: two pairs of (ny, nx) float64 arrays and ``todo`` two int32 arrays (ping-pong),
     ``left``: PARALLEL_SWEEPS int32, ``scratch``: ny nx float64.
@@ -403,24 +425,24 @@ def _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch):
     shape = u.shape
     (ua, va), (ub, vb) = rep
     ta, tb = todo
-    wp.launch(k.start_replacement, dim=shape, inputs=[u, v, flags, ua, va, ta], device=device)
-    left.zero_()
+    wp.launch(k.start_replacement, dim=shape, inputs=[u, v, flags, ua, va, ta, left], device=device, stream=stream)
     src, dst = (ua, va, ta), (ub, vb, tb)
     for sweep in range(PARALLEL_SWEEPS):
-        wp.launch(k.replacement_sweep, dim=shape, inputs=[*src, *dst, left, sweep], device=device)
+        wp.launch(k.replacement_sweep, dim=shape, inputs=[*src, *dst, left, sweep], device=device, stream=stream)
         src, dst = dst, src
-    wp.launch(k.finish_replacement, dim=1, inputs=[*src, left, PARALLEL_SWEEPS, MAX_SWEEPS, scratch], device=device)
+    wp.launch(k.finish_replacement, dim=1, inputs=[*src, left, PARALLEL_SWEEPS, MAX_SWEEPS, scratch], device=device,
+              stream=stream)
     return src[0], src[1]
 
 
-def _launch_fill(wp, k, device, u, v, flags, rep, todo, left, scratch, sweeps=FILL_SWEEPS):
+def _launch_fill(wp, k, device, u, v, flags, rep, todo, left, scratch, sweeps=FILL_SWEEPS, stream=None):
     """Launches of ``validation.fill_by_interpolation(u, v, flags != 0)`` (arguments of
     :func:`_launch_replacement`); returns the arrays holding the result."""
-    ru, _ = _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch)
+    ru, _ = _launch_replacement(wp, k, device, u, v, flags, rep, todo, left, scratch, stream=stream)
     (ua, va), (ub, vb) = rep
     src, dst = ((ua, va), (ub, vb)) if ru is ua else ((ub, vb), (ua, va))
     for _ in range(sweeps):
-        wp.launch(k.laplace_sweep, dim=u.shape, inputs=[*src, flags, *dst], device=device)
+        wp.launch(k.laplace_sweep, dim=u.shape, inputs=[*src, flags, *dst], device=device, stream=stream)
         src, dst = dst, src
     return src
 

@@ -56,6 +56,7 @@ __all__ = [
     "VectorFlag",
     "correlate_pair",
     "count_vectors",
+    "pattern_settings",
 ]
 
 
@@ -476,14 +477,50 @@ def correlate_pair(reference, gradient, *, settings=None, mask=None):
     return _result(out, settings)
 
 
+def pattern_settings(reference, settings=None, mask=None):
+    """``settings`` with an ``auto`` pattern resolved from ``reference`` (and ``mask``) as
+    :func:`correlate_pair` resolves it, which then reads no more from the image to choose it: work that
+    a caller may do ahead, in another thread (a campaign does it where it draws the noisy images).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pattern_settings(np.random.default_rng(0).random((64, 64))).pattern
+    'random'
+    """
+    settings = _settings(settings)
+    if settings.pattern != "auto":
+        return settings
+    a = _checker(settings)(reference, "reference image")
+    return _resolved(a, checked_mask(mask, a.shape), settings)
+
+
+def _settings(settings):
+    if settings is None:
+        return CorrelationSettings()
+    if not isinstance(settings, CorrelationSettings):
+        raise SynthbosError(f"settings must be a CorrelationSettings, got {type(settings).__name__}")
+    return settings
+
+
+def _checker(settings):
+    """How the images are checked (and on the host normalised; the Warp path normalises on the device)."""
+    return _checked_array if settings.uses_warp() else _checked_image
+
+
+def _resolved(a, excluded, settings):
+    """``settings`` with an ``auto`` pattern resolved from the checked reference image ``a``."""
+    if settings.pattern != "auto":
+        return settings
+    periodic = is_periodic(a if excluded is None else np.where(excluded, np.mean(a), a), settings.window_sizes[0])
+    return replace(settings, pattern="periodic" if periodic else "random")
+
+
 def _checked_inputs(reference, gradient, settings, mask):
     """``correlate_pair``'s inputs checked: the two images, the valid-pixel weights (None without a mask) and
     the settings with an ``auto`` pattern resolved from the reference image."""
-    if settings is None:
-        settings = CorrelationSettings()
-    if not isinstance(settings, CorrelationSettings):
-        raise SynthbosError(f"settings must be a CorrelationSettings, got {type(settings).__name__}")
-    checked = _checked_array if settings.uses_warp() else _checked_image  # Warp: normalised on the device
+    settings = _settings(settings)
+    checked = _checker(settings)
     a = checked(reference, "reference image")
     b = checked(gradient, "gradient image")
     if a.shape != b.shape:
@@ -494,10 +531,7 @@ def _checked_inputs(reference, gradient, settings, mask):
         raise SynthbosError(f"window size {biggest} px does not fit in the {shape[0]}x{shape[1]} px image")
     excluded = checked_mask(mask, shape)
     valid_px = None if excluded is None else (~excluded).astype(np.float32)
-    if settings.pattern == "auto":
-        periodic = is_periodic(a if excluded is None else np.where(excluded, np.mean(a), a), settings.window_sizes[0])
-        settings = replace(settings, pattern="periodic" if periodic else "random")
-    return a, b, valid_px, settings
+    return a, b, valid_px, _resolved(a, excluded, settings)
 
 
 def _result(out, settings):

@@ -624,9 +624,14 @@ def start_replacement(
     u_out: wp.array2d(dtype=wp.float64),
     v_out: wp.array2d(dtype=wp.float64),
     todo: wp.array2d(dtype=wp.int32),
+    left: wp.array(dtype=wp.int32),
 ):
-    """Copy the field; every flagged vector is to be replaced."""
+    """Copy the field; every flagged vector is to be replaced; the first thread clears the sweeps' counts
+    ``left`` (a launch on the caller's stream, where a memset would take the device's current one)."""
     i, j = wp.tid()
+    if i == 0 and j == 0:
+        for sweep in range(left.shape[0]):
+            left[sweep] = 0
     u_out[i, j] = u[i, j]
     v_out[i, j] = v[i, j]
     t = wp.int32(0)

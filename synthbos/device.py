@@ -14,19 +14,19 @@ import importlib
 import os
 import sys
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["check_device", "describe_device", "graph_capture_allowed", "init_warp", "load_kernels",
-           "resolve_device", "shared_by_threads"]
+__all__ = ["check_device", "describe_device", "init_warp", "launching", "load_kernels", "recording_graph",
+           "resolve_device"]
 
 # What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 _initialised = False
-_sharing_threads = 0  # how many shared_by_threads() blocks are open
 
 
 @contextlib.contextmanager
@@ -130,25 +130,92 @@ def describe_device(device: str) -> str:
     return f"device: {device} ({wp.get_device(device).name})"
 
 
-@contextlib.contextmanager
-def shared_by_threads():
-    """Within this block several threads of the process launch Warp work on the same devices.
+class _LaunchGate:
+    """Threads that launch Warp work side by side, and one that records a CUDA graph alone.
 
-    CUDA graph capture takes a stream for itself, and another thread's launch or allocation during
-    a capture breaks it (and that thread's call); code that records graphs asks
-    :func:`graph_capture_allowed` first and launches plainly inside such a block.
+    A graph records every launch on its device's stream while the capture is open, and another
+    thread's launch, copy or allocation meanwhile lands in the graph or breaks it (and that thread's
+    call). A thread that launches while others may record goes :meth:`launching`; a recorder
+    (:meth:`recording`) waits until no other thread is inside, and keeps new ones out (they wait) until
+    its capture is closed. Each records a graph once, so the wait is rare.
     """
-    global _sharing_threads
-    _sharing_threads += 1
-    try:
-        yield
-    finally:
-        _sharing_threads -= 1
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._inside: dict[int, int] = {}  # thread -> how deep inside launching()
+        self._recorder = None  # the thread recording now
+        self._waiting = 0  # recorders waiting: no new launching thread meanwhile
+
+    @contextlib.contextmanager
+    def launching(self):
+        me = threading.get_ident()
+        with self._cond:
+            while self._recorder not in (None, me) or (self._waiting and me not in self._inside):
+                self._cond.wait()
+            self._inside[me] = self._inside.get(me, 0) + 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._inside[me] -= 1
+                if not self._inside[me]:
+                    del self._inside[me]
+                self._cond.notify_all()
+
+    @contextlib.contextmanager
+    def recording(self):
+        me = threading.get_ident()
+        with self._cond:
+            self._waiting += 1
+            try:
+                while self._recorder is not None or any(t != me for t in self._inside):
+                    self._cond.wait()
+            finally:
+                self._waiting -= 1
+            self._recorder = me
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._recorder = None
+                self._cond.notify_all()
 
 
-def graph_capture_allowed() -> bool:
-    """False inside :func:`shared_by_threads`: do not record CUDA graphs."""
-    return _sharing_threads == 0
+_GATE = _LaunchGate()
+
+
+def launching():
+    """A block in which this thread launches Warp work while other threads of the process may record
+    CUDA graphs (:func:`recording_graph`): a campaign's render threads. It waits while a graph is being
+    recorded.
+
+    Examples
+    --------
+    >>> with launching():
+    ...     pass
+    """
+    return _GATE.launching()
+
+
+def recording_graph():
+    """A block in which this thread records a CUDA graph (``wp.ScopedCapture``) with the devices to
+    itself: it waits until no other thread is inside :func:`launching`, and keeps them out until it ends.
+
+    Examples
+    --------
+    >>> import threading
+    >>> inside = threading.Event(); leave = threading.Event()
+    >>> def render():
+    ...     with launching():
+    ...         inside.set(); leave.wait()
+    >>> t = threading.Thread(target=render); t.start(); _ = inside.wait()
+    >>> threading.Timer(0.05, leave.set).start()
+    >>> with recording_graph():  # waits for the other thread's block to end
+    ...     leave.is_set()
+    True
+    >>> t.join()
+    """
+    return _GATE.recording()
 
 
 def _warp_modules(name: str) -> list:

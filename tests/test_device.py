@@ -21,20 +21,47 @@ def test_device_is_resolved_and_described_once():
     assert resolve_device("cpu") == "cpu"
 
 
-def test_no_graph_capture_while_threads_share_the_devices():
+def test_a_graph_is_recorded_while_no_other_thread_launches():
+    """A recorder waits for the thread inside ``launching``; a thread that wants to launch meanwhile waits
+    for the recording to end; a recorder inside its own ``launching`` block does not wait for itself."""
+    import threading
+    import time
+
     from synthbos.correlation.device_pass import _graph_replay
 
-    from synthbos.device import graph_capture_allowed, shared_by_threads
+    from synthbos.device import launching, recording_graph
+
+    log = []
+    inside, leave = threading.Event(), threading.Event()
+
+    def render(name, started=None):
+        with launching():
+            log.append(f"{name} in")
+            if started is not None:
+                started.set()
+                leave.wait(5)
+            log.append(f"{name} out")
+
+    first = threading.Thread(target=render, args=("first", inside))
+    first.start()
+    assert inside.wait(5)
+    threading.Timer(0.1, leave.set).start()
+    with recording_graph():
+        log.append("recording")
+        second = threading.Thread(target=render, args=("second",))
+        second.start()
+        time.sleep(0.1)
+        log.append("recorded")
+    second.join(5)
+    first.join(5)
+    assert log == ["first in", "first out", "recording", "recorded", "second in", "second out"]
+    with launching(), recording_graph():
+        pass
 
     class Cuda:
         is_cuda = True
 
-    assert graph_capture_allowed() and _graph_replay(Cuda())
-    with shared_by_threads():
-        with shared_by_threads():
-            assert not graph_capture_allowed()
-        assert not _graph_replay(Cuda())
-    assert graph_capture_allowed()
+    assert _graph_replay(Cuda())
 
 
 def test_a_kernel_module_part_is_found_by_its_own_name_and_not_with_its_python_module():

@@ -344,3 +344,21 @@ def test_the_pipeline_asks_for_the_capped_host_processes(tmp_path, monkeypatch):
     with pytest.raises(Asked) as asked:
         run_campaign(SMALL, tmp_path / "c", device="cpu", progress=False, figures=False, pipeline=True)
     assert asked.value.args == (16,)
+
+
+def test_prepared_inputs_read_the_pattern_ahead_with_the_same_result(pair_file):
+    """A campaign reads the correlation's pattern where it draws the noisy images (``Method.prepare``);
+    the item measured with those settings is the item measured alone, settings and vectors."""
+    from synthbos.benchmarks.items import measure_item, prepared_inputs
+    from synthbos.raytrace import read_pair
+
+    pair = read_pair(pair_file)
+    run = [(str(pair_file), "correlation", 2.0, (3, 4), "c.npz", {}, "cpu"),
+           (str(pair_file), "tracking", 2.0, (3, 4), "t.npz", {}, "cpu")]
+    images, settings = prepared_inputs(pair, run)
+    assert settings[1] is None
+    assert settings[0].pattern == "random" and settings[0].device == "cpu"
+    ahead = measure_item(pair, *run[0], images=images, settings=settings[0])[2]
+    alone = measure_item(pair, *run[0])[2]
+    assert ahead.settings == alone.settings and ahead.settings["pattern"] == "random"
+    assert ahead.uv.tobytes() == alone.uv.tobytes()

@@ -135,6 +135,47 @@ def test_warp_path_replays_its_graph_for_the_next_pairs(device, monkeypatch):
     assert len(plans) == 1 and plans[0].graph is not None and plans[0].runs == 3
 
 
+def test_graph_recorded_and_replayed_while_another_thread_launches(device, monkeypatch):
+    """A campaign's render threads launch while the correlation records and replays its plan's graph
+    (``synthbos.device.launching``): every pair's field is the one the same pair gives alone."""
+    import threading
+
+    import warp as wp
+    from synthbos.correlation.pass_kernels import laplace_sweep
+
+    from synthbos.device import launching
+
+    monkeypatch.setattr(device_pass, "_graph_replay", lambda dev: True)
+    s = CorrelationSettings(backend="warp", device=device, window_sizes=(32, 16), iterations=(1, 2))
+    pairs = [synthetic_pair((96, 128), lambda x, y, k=k: (np.full_like(x, 0.3 * k), np.full_like(y, -0.2 * k)), seed=k)
+             for k in range(4)]
+    alone = [correlate_pair(a, b, settings=replace(s, backend="numpy")) for a, b in pairs]
+    stop = threading.Event()
+    launches = [0]
+
+    def render():  # another thread's kernels on the same device, as a campaign's render threads
+        z = [wp.zeros((64, 64), dtype=wp.float64, device=device) for _ in range(5)]
+        flags = wp.zeros((64, 64), dtype=wp.int32, device=device)
+        while not stop.is_set():
+            with launching():
+                wp.launch(laplace_sweep, dim=(64, 64), inputs=[z[0], z[1], flags, z[2], z[3]], device=device)
+                z[4].numpy()
+                launches[0] += 1
+
+    t = threading.Thread(target=render)
+    t.start()
+    try:
+        side_by_side = [correlate_pair(a, b, settings=s) for a, b in pairs]
+    finally:
+        stop.set()
+        t.join(10)
+    assert launches[0] > 0
+    for ref, dev in zip(alone, side_by_side, strict=True):
+        assert_same_field(ref, dev)
+    plans = [p for p in device_pass._plans.values() if p.settings == replace(s, pattern="random")]
+    assert len(plans) == 1 and plans[0].graph is not None and plans[0].runs == 4
+
+
 def test_prefilter_matches_scipy(device):
     """The device's cubic B-spline prefilter gives the coefficients of scipy.ndimage's (bspline3_coefficients)."""
     rng = np.random.default_rng(0)
