@@ -559,7 +559,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    measured.extend(measure_item(pair, *args, images=noisy, settings=settings[id(args)]) for args in here)
+                    measured.extend(measure_item(pair, *args, images=noisy, settings=settings[id(args)])
+                                    for args in here)
                     if there:  # the workers read the pair file: they get the run once it is written
                         deferred.append((written, path, [], there, len(there)))
                         submit_ready(block=False)
