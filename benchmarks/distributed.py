@@ -65,7 +65,8 @@ __all__ = ["DaskRunner", "campaign_runner", "check_address", "check_scheduler", 
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
-#: Environment variable giving a local GPU worker the size of its pool of host processes.
+#: Environment variable giving a local GPU worker the size of its pool of host processes; set by the user
+#: (a positive integer), it replaces each GPU worker's share of the cores (``pipeline_workers``).
 HOST_WORKERS_VAR = "SYNTHBOS_HOST_WORKERS"
 
 # Worker-process state: the runs told to stop, and the runs with an item in flight (run token -> count).
@@ -197,6 +198,16 @@ def pair_task(render, scores, token: str) -> int:
         with _LOCK:
             _IN_FLIGHT[token] -= 1
     return done
+
+
+def _host_workers_told() -> str | None:
+    """The user's :data:`HOST_WORKERS_VAR` where it is a positive integer (else None; anything else is refused)."""
+    told = os.environ.get(HOST_WORKERS_VAR, "").strip()
+    if not told:
+        return None
+    if not told.isdigit() or int(told) < 1:
+        raise SynthbosError(f"{HOST_WORKERS_VAR}={told!r}: give a positive number of host processes per GPU worker")
+    return told
 
 
 def host_workers() -> int:
@@ -463,7 +474,7 @@ class DaskRunner:
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
             share = max(n, len(gpus), len(host_gpus))
-            threads = {**_thread_share(share), HOST_WORKERS_VAR: str(pipeline_workers(share))}
+            threads = {**_thread_share(share), HOST_WORKERS_VAR: _host_workers_told() or str(pipeline_workers(share))}
             envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"
         else:

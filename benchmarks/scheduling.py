@@ -60,6 +60,11 @@ WORKER_NICE = 10
 #: Measured batches (each a few hundred kB) that may wait for ``run_pipeline``'s workers, per worker.
 PENDING_PER_WORKER = 16
 
+#: Threads that render ``run_pipeline``'s pairs: while one waits for its kernels, the other plans its pair
+#: or reads its images back. More pairs than threads are queued (``renders_ahead``), so that a thread
+#: that finishes takes the next pair at once instead of waiting for this process to ask for it.
+RENDER_THREADS = 2
+
 
 def default_workers() -> int:
     """The CPU cores this process may use."""
@@ -360,7 +365,7 @@ def same_image_runs(scores) -> list[list]:
 
 
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
-                 worker_device=None, jobs=(), renders_ahead: int = 2, on_items_done=None, stop=None, stack=None,
+                 worker_device=None, jobs=(), renders_ahead: int = 4, on_items_done=None, stop=None, stack=None,
                  stacks_log=None, pool=None) -> list:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
@@ -375,9 +380,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     given (score items end with their processing device). Consecutive items on the
     same noisy images (one noise level's methods) go to a worker together (``items.process_items``),
     so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
-    ``track_pair`` and one triangulation). Meanwhile ``renders_ahead`` threads render the next pairs
-    (when their files are missing): while one waits for its kernels, the other plans its pair or reads
-    its images back, so the device always has a render queued. This process measures a rendered pair
+    ``track_pair`` and one triangulation). Meanwhile :data:`RENDER_THREADS` threads render the next
+    ``renders_ahead`` pairs (when their files are missing): while one waits for its kernels, the other
+    plans its pair or reads its images back, so the device always has a render queued. This process measures a rendered pair
     from memory while a writer thread writes its file; the workers get its items once it is written. At most
     ``PENDING_PER_WORKER * workers`` batches wait for a worker, so memory stays bounded when the host is the
     slower side (while the workers start, the device goes on).
@@ -510,7 +515,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
                      nice=WORKER_NICE)
     ahead = max(1, int(renders_ahead))
-    renderer = ThreadPoolExecutor(ahead, thread_name_prefix="synthbos-render")
+    renderer = ThreadPoolExecutor(min(ahead, RENDER_THREADS), thread_name_prefix="synthbos-render")
     writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
     noiser = ThreadPoolExecutor(4, thread_name_prefix="synthbos-noise")
     images: dict = {}  # pair index -> {run index: future of its noisy images}

@@ -121,6 +121,30 @@ def test_local_workers_share_the_cores(monkeypatch):
     assert share("cpu", workers=8) == {"8"}
 
 
+def test_host_processes_per_gpu_worker_can_be_told(monkeypatch):
+    # each local GPU worker's pool of host processes: its share of the cores (at most 16), or the user's
+    # SYNTHBOS_HOST_WORKERS; anything but a positive number is refused in one line
+    from synthbos.benchmarks import distributed as dist
+
+    from synthbos import SynthbosError
+
+    monkeypatch.setattr(dist, "default_workers", lambda: 64)
+    monkeypatch.setattr(dist, "visible_gpus", lambda: ["0", "1", "2", "3"])
+
+    def told():
+        specs = dist.DaskRunner("local", device="cuda:0").local_worker_specs(distributed).values()
+        return {s["options"]["env"][dist.HOST_WORKERS_VAR] for s in specs}
+
+    monkeypatch.delenv(dist.HOST_WORKERS_VAR, raising=False)
+    assert told() == {str(dist.pipeline_workers(4))}
+    monkeypatch.setenv(dist.HOST_WORKERS_VAR, "6")
+    assert told() == {"6"}
+    for bad in ("0", "-2", "many"):
+        monkeypatch.setenv(dist.HOST_WORKERS_VAR, bad)
+        with pytest.raises(SynthbosError, match="positive number of host processes"):
+            told()
+
+
 def test_scheduler_errors_are_one_line(tmp_path, capsys):
     cfg = tmp_path / "base.toml"
     cfg.write_text(BASE_TOML)
