@@ -382,8 +382,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     so the work they share is done once there (``tracking`` and ``tracking-cc`` read one
     ``track_pair`` and one triangulation). Meanwhile :data:`RENDER_THREADS` threads render the next
     ``renders_ahead`` pairs (when their files are missing): while one waits for its kernels, the other
-    plans its pair or reads its images back, so the device always has a render queued. This process measures a rendered pair
-    from memory while a writer thread writes its file; the workers get its items once it is written. At most
+    plans its pair or reads its images back, so the device always has a render queued. This process
+    measures a rendered pair from memory while a writer thread writes its file; the workers get its items
+    once it is written. At most
     ``PENDING_PER_WORKER * workers`` batches wait for a worker, so memory stays bounded when the host is the
     slower side (while the workers start, the device goes on).
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
