@@ -39,21 +39,29 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:  # Ctrl-C while the modules load: one line, as in a command
         print("synthbos: interrupted", file=sys.stderr)
         return 130
-    try:
-        status = cli_main(argv)
-    except SystemExit as done:  # argparse's --help and usage errors
-        code = done.code
-        _STATUS.append(code if isinstance(code, int) else int(code is not None))
-        raise
+    status = cli_main(argv)
     if work_abandoned():
         # A thread abandoned inside a long C call: the interpreter's exit would wait for it (measured 5-6 s
         # of a render's Warp launch); its result is not wanted, so leave now.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(status)
+    return status
+
+
+def command() -> int:
+    """The ``synthbos`` command and ``python -m synthbos``: :func:`main`, whose status the last exit
+    handler then leaves with (:func:`_leave`). Called in a process of its own only: :func:`main` is the
+    one to call from Python."""
+    try:
+        status = main()
+    except SystemExit as done:  # argparse's --help and usage errors
+        code = done.code
+        _STATUS.append(code if isinstance(code, int) else int(code is not None))
+        raise
     _STATUS.append(int(status))
     return status
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(command())
