@@ -7,7 +7,9 @@ the one the host engine (:mod:`correlation.host_pass`) follows too; :class:`_Pla
 Warp launches. Everything that depends only on the geometry (the schedule's window grids, spline
 weights of the predictor, buffers) is prepared once per image shape and settings in a :class:`_Plan`
 and kept for the next pair; on CUDA devices the plan's launches are recorded into a CUDA graph at the
-second pair and replayed after that.
+second pair and replayed after that, on a stream of the plan's own. Where other threads launch on the
+device too (a campaign's render threads, inside ``synthbos.device.launching``), the recording waits until
+none is launching (``synthbos.device.recording_graph``).
 
 The filling of rejected vectors (``validation.fill_by_interpolation``) starts as
 ``validation.replace_outliers`` does, with a fixed number of parallel median sweeps
