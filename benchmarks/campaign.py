@@ -179,20 +179,21 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     if pipeline and scheduler is None:
         # The device work here; scoring, the tables and the figures in worker processes. A figure that
         # reads pair files only (fig4) is drawn as soon as they are rendered; the rest after the last item.
-        # The table's (noise level, method) groups are summarised side by side, one job each.
+        # The table's (noise level, method) groups are summarised side by side, one job each. After the last
+        # item the late figures start first: they take longest, and the summaries fill the other workers.
         groups = summary_groups(spec)
         floors = _pair_paths(spec, folder)
-        jobs = [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
-        jobs += [(pair_floor, (path,), {path}) for path in floors]  # each as soon as its pair is there
+        jobs = [(pair_floor, (path,), {path}) for path in floors]  # each as soon as its pair is there
         jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
+        jobs += [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
         parts = run_pipeline(renders, scores, workers=host, progress=progress,
                              worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
                              on_items_done=lambda: t_items.append(time.perf_counter()))
-        rows = [row for part in parts[: len(groups)] for row in part]
+        rows = [row for part in parts[len(floors) + len(figure_jobs) :] for row in part]
         write_tables(rows, folder)
-        write_tables(floor_rows(parts[len(groups) : len(groups) + len(floors)]), folder, stem="floor")
+        write_tables(floor_rows(parts[: len(floors)]), folder, stem="floor")
         timings["render and process"] = t_items[0] - t0
         timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
         return rows
