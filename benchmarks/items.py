@@ -291,15 +291,17 @@ def item_images(pair, args):
     return noisy_pair(pair, noise_percent=args[2], seeds=args[3])
 
 
-def prepared_inputs(pair, run):
-    """The noisy images of ``run`` (score items measured on the same images) and each item's settings,
-    with what its method reads from the reference image read (``Method.prepare``; None for a method
-    that reads nothing): the host work that :func:`measure_item` would do first, done ahead."""
+def prepared_inputs(pair, run, measured=()):
+    """The noisy images of ``run`` (score items measured on the same images), and the settings of those of
+    its ``measured`` items whose method reads something from the reference image (``Method.prepare``),
+    with that read, by ``id`` of the item: the host work that :func:`measure_item` would do first, done
+    ahead."""
     images = item_images(pair, run[0])
-    settings = []
-    for args in run:
+    settings = {}
+    for args in measured:
         m = get_method(args[1])
-        settings.append(None if m.prepare is None else m.prepare(images[0], m.settings(args[5]), args[-1]))
+        if m.prepare is not None:
+            settings[id(args)] = m.prepare(images[0], m.settings(args[5]), args[-1])
     return images, settings
 
 

@@ -463,9 +463,11 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         with images_lock:
             if k in images:
                 return
-            images[k] = {r: noiser.submit(prepared_inputs, pair, run)
-                         for r, run in enumerate(same_image_runs(tasks[k][1]))
-                         if any(split_items(run, worker_device=worker_device, stack=stack)[:2])}
+            images[k] = {}
+            for r, run in enumerate(same_image_runs(tasks[k][1])):
+                here, stacked, _ = split_items(run, worker_device=worker_device, stack=stack)
+                if here or stacked:
+                    images[k][r] = noiser.submit(prepared_inputs, pair, run, here)
 
     def render(k: int):
         args = tasks[k][0] if k < len(tasks) else None
@@ -556,8 +558,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                 measured = []  # the pair's items measured here, every noise level: one worker scores them all
                 for r, run in enumerate(same_image_runs(items)):
                     here, stacked, there = split_items(run, worker_device=worker_device, stack=stack)
-                    noisy, settings = prepared[r].result() if r in prepared else (None, [None] * len(run))
-                    settings = dict(zip(map(id, run), settings, strict=True))
+                    noisy, settings = prepared[r].result() if r in prepared else (None, {})
                     if stacked:
                         to_stack.append((noisy, stacked))
                     if pool is None:
@@ -565,7 +566,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                             finish_item(*measure_item(pair, *args), pair=pair)
                             bar.update(1)
                         continue
-                    measured.extend(measure_item(pair, *args, images=noisy, settings=settings[id(args)])
+                    measured.extend(measure_item(pair, *args, images=noisy, settings=settings.get(id(args)))
                                     for args in here)
                     if there:  # the workers read the pair file: they get the run once it is written
                         deferred.append((written, path, [], there, len(there)))

@@ -355,10 +355,12 @@ def test_prepared_inputs_read_the_pattern_ahead_with_the_same_result(pair_file):
     pair = read_pair(pair_file)
     run = [(str(pair_file), "correlation", 2.0, (3, 4), "c.npz", {}, "cpu"),
            (str(pair_file), "tracking", 2.0, (3, 4), "t.npz", {}, "cpu")]
-    images, settings = prepared_inputs(pair, run)
-    assert settings[1] is None
-    assert settings[0].pattern == "random" and settings[0].device == "cpu"
-    ahead = measure_item(pair, *run[0], images=images, settings=settings[0])[2]
+    images, settings = prepared_inputs(pair, run, run)
+    assert list(settings) == [id(run[0])]  # tracking reads nothing ahead
+    ahead_settings = settings[id(run[0])]
+    assert ahead_settings.pattern == "random" and ahead_settings.device == "cpu"
+    assert prepared_inputs(pair, run)[1] == {}  # nothing asked: nothing read
+    ahead = measure_item(pair, *run[0], images=images, settings=ahead_settings)[2]
     alone = measure_item(pair, *run[0])[2]
     assert ahead.settings == alone.settings and ahead.settings["pattern"] == "random"
     assert ahead.uv.tobytes() == alone.uv.tobytes()
