@@ -117,10 +117,11 @@ def check_scheduler(scheduler) -> dict | None:
     Returns ``{"address": ...}`` for an address, ``{"scheduler_file": ...}`` for a scheduler file whose
     JSON object names a valid ``address``. Anything else (a missing, empty, unreadable or over-large
     file, JSON that is not an object, no address, an unknown protocol, a bad port) is refused with
-    one line.
+    one line; for ``"local"``, so is a :data:`HOST_WORKERS_VAR` that is not a positive integer.
     """
     text = str(scheduler)
     if text == "local":
+        _host_workers_told()
         return None
     path = Path(text) if len(text) <= 4096 and "\0" not in text else None
     looks_like_file = path is not None and (text.endswith(".json") or path.is_file())

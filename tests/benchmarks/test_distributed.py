@@ -143,6 +143,17 @@ def test_host_processes_per_gpu_worker_can_be_told(monkeypatch):
         monkeypatch.setenv(dist.HOST_WORKERS_VAR, bad)
         with pytest.raises(SynthbosError, match="positive number of host processes"):
             told()
+        with pytest.raises(SynthbosError, match="positive number of host processes"):
+            dist.check_scheduler("local")  # before any work
+
+
+def test_a_bad_host_workers_value_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SYNTHBOS_HOST_WORKERS", "lots")
+    out = tmp_path / "q"
+    assert main(["paper", "--quick", "-q", "-o", str(out), "--scheduler", "local"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "SYNTHBOS_HOST_WORKERS='lots'" in err[0]
+    assert not out.exists()
 
 
 def test_scheduler_errors_are_one_line(tmp_path, capsys):
