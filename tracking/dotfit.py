@@ -28,7 +28,6 @@ import warp as wp
 
 from . import fit_kernels as fk
 from .ellipse import ellipse_step
-from .fit_kernels import render_dots_kernel
 from .frame_stats import segment_medians
 from .kernel_step import kernel_step
 from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
@@ -352,13 +351,7 @@ def _fit_steps(refs, grads, rows, bufs, sat, width, *, half, render_half, iterat
             bufs.models.zero_()
         else:
             bufs.models[:layer].zero_()
-        _launch(
-            render_dots_kernel,
-            n,
-            [cur, rows.frame, rows.partner, int(render_half), int(last), int(it == 0), bufs.prof, scales, H, W,
-             bufs.models],
-            device,
-        )  # fmt: skip
+        _render(cur, rows, render_half, last, it == 0, bufs.prof, scales, (H, W), bufs.models, device)
         _launch(
             fk.fit_step_stack,
             n,
@@ -512,8 +505,7 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
     n = rows.params.shape[0]
     scales = _frame_scales_of(rows.params, rows.live, rows.frame, refs.shape[0], device)
     models.zero_()
-    _launch(render_dots_kernel, n, [rows.params, rows.frame, rows.partner, half, 0, 1, prof, scales, H, W, models],
-            device)  # fmt: skip
+    _render(rows.params, rows, half, False, True, prof, scales, (H, W), models, device)
     shift = wp.empty(n, dtype=wp.vec3d, device=device)
     _launch(
         fk.moment_shift_stack,
@@ -535,6 +527,20 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
 
 
 # --- a stack of pairs on one Warp device ------------------------------------------------------------
+
+
+def _render(params, rows, half, common, profiles, prof, scales, shape, models, device):
+    """Add every row's model at ``params`` into the ``shape`` (H, W) model images ``models``
+    (``fit_kernels.render_dots_kernel``; with ``common``, the common-shape layer too; with ``profiles``, the
+    rows' stamp profiles into ``prof`` first). A thread per stamp column on a GPU, per row on the CPU: the
+    same bits (fixed-point sums)."""
+    n, half = params.shape[0], int(half)
+    parts = 2 * half + 1 if wp.get_device(device).is_cuda else 1
+    if profiles and parts > 1:
+        _launch(fk.dot_profiles_kernel, n, [params, half, prof], device)
+    inputs = [params, rows.frame, rows.partner, half, int(common), int(profiles and parts == 1), parts, prof, scales,
+              *shape, models]  # fmt: skip
+    _launch(fk.render_dots_kernel, n * parts, inputs, device)
 
 
 def _launch(kernel, dim, inputs, device):

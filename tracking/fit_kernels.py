@@ -145,6 +145,14 @@ def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
 
 
 @wp.kernel
+def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
+    """Dot i's profiles on its ``2 half + 1`` stamp into ``prof[i]`` (``dot_profiles``), ahead of a
+    :func:`render_dots_kernel` split over the stamps' columns."""
+    i = wp.tid()
+    dot_profiles(params, i, half, prof)
+
+
+@wp.kernel
 def render_dots_kernel(
     params: wp.array2d(dtype=wp.float64),
     frame: wp.array(dtype=wp.int32),
@@ -152,23 +160,28 @@ def render_dots_kernel(
     half: int,
     common: int,
     profiles: int,
+    parts: int,
     prof: wp.array3d(dtype=wp.float64),
     scales: wp.array(dtype=wp.float64),
     height: int,
     width: int,
     models: wp.array(dtype=wp.int64),
 ):
-    """Add dot i's model (no background) on its ``2 half + 1`` stamp into its image's model images.
+    """Add each dot's model (no background) on its ``2 half + 1`` stamp into its image's model images.
 
+    Thread t draws the stamp columns ``t % parts, t % parts + parts, ...`` of dot ``i = t // parts``:
+    ``parts = 1``, the whole stamp (one thread per dot, the CPU's engine); ``parts = 2 half + 1``, one
+    column (a GPU's: a warp's neighbouring threads add to neighbouring pixels).
     ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;
     if ``common``, ``models[1, f]``: the same at the pair's common shape, linearised in sigma. ``prof``
-    holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit),
-    they are computed here first, from ``params``.
+    holds the dot's profiles on its stamp (``dot_profiles``); if ``profiles`` (the first render of a fit,
+    ``parts = 1`` only: else :func:`dot_profiles_kernel` first), they are computed here first, from ``params``.
     The images are fixed point (units of ``1 / scales[f]`` for frame f: one scale per pair, so a pair's
     bits do not depend on the other pairs of a stack) added with integer atomics, so overlapping
-    dots sum to the same bits in any thread order: CUDA fits are reproducible run to run.
+    dots sum to the same bits in any thread order and any split: CUDA fits are reproducible run to run.
     """
-    i = wp.tid()
+    t = wp.tid()
+    i = t // parts
     scale = scales[frame[i]]
     if profiles != 0:
         dot_profiles(params, i, half, prof)
@@ -182,34 +195,31 @@ def render_dots_kernel(
     r1 = wp.min(n, height - oy)
     base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
     a = params[i, 2]
+    c = int(c0 + t - i * parts)
     if common == 0:
-        r = int(r0)
-        while r < r1:
-            apy = a * prof[i, 3, r]
-            at = base + r * width
-            c = int(c0)
-            while c < c1:
-                wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
-                c += 1
-            r += 1
+        while c < c1:
+            px = prof[i, 0, c]
+            r = int(r0)
+            while r < r1:
+                wp.atomic_add(models, base + r * width + c, to_fixed(a * prof[i, 3, r] * px, scale))
+                r += 1
+            c += parts
     else:  # both images in one pass over the stamp; the partner's shape is a scattered read
         cs = common_shape(params, partner, i)
         ds = cs[1] - params[i, 3]
         layer = models.shape[0] // 2
-        r = int(r0)
-        while r < r1:
-            py = prof[i, 3, r]
-            spy = prof[i, 5, r]
-            apy = a * py
-            at = base + r * width
-            c = int(c0)
-            while c < c1:
-                px = prof[i, 0, c]
-                wp.atomic_add(models, at + c, to_fixed(apy * px, scale))
-                shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
-                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
-                c += 1
-            r += 1
+        while c < c1:
+            px = prof[i, 0, c]
+            sx = prof[i, 2, c]
+            r = int(r0)
+            while r < r1:
+                py = prof[i, 3, r]
+                at = base + r * width + c
+                wp.atomic_add(models, at, to_fixed(a * py * px, scale))
+                shared = cs[0] * (py * px + ds * (prof[i, 5, r] * px + py * sx))
+                wp.atomic_add(models, at + layer, to_fixed(shared, scale))
+                r += 1
+            c += parts
 
 
 @wp.func

@@ -12,9 +12,10 @@ frame its bands'.
 
 The order statistics (the median of every fourth row and column, the lower quartile of the horizontal
 differences) come from one sorted buffer: each frame owns ``n_frame`` slots, first its ``n_noise``
-differences, then its ``n_fill`` sub-sampled pixels, so that after sorting by value and then (stably) by
-segment, the ``k``-th smallest value of a segment sits at a known index. NaN never enters the buffer (it
-is written as +inf and the segment flagged), so the sort's placement of NaN does not matter.
+differences, then its ``n_fill`` sub-sampled pixels. The slots are sorted by the values' float32 keys and
+then (stably) by segment, so that the ``k``-th smallest value of a segment lies at a known index, or
+among the few values beside it that share its key (:func:`order_statistic`). NaN never enters the buffer
+(it is written as +inf and the segment flagged), so the sort's placement of NaN does not matter.
 
 The last section takes the median of each segment of a flat array (a stack's per-pair medians: the
 first round's peaks, the fit's starting widths), sorted by float32 keys.
@@ -48,8 +49,9 @@ def column_pass(
     row_step: int,
     n_noise: int,
     n_frame: int,
-    keys: wp.array(dtype=wp.float64),
-    segment: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
+    keys: wp.array(dtype=wp.float32),
+    slots: wp.array(dtype=wp.int32),
     col_min: wp.array3d(dtype=wp.float64),
     col_max: wp.array3d(dtype=wp.float64),
     col_count: wp.array3d(dtype=wp.int32),
@@ -57,9 +59,9 @@ def column_pass(
     col_flags: wp.array3d(dtype=wp.int32),
 ):
     """Column ``j`` of band ``b`` of frame ``f``: its extremes, how many pixels equal its maximum, its sum
-    and flags; and the sort keys it owns (the differences ``|I[i, j+1] - I[i, j]|`` of every
-    ``row_step``-th row, segment ``2 f``, and the pixels of every fourth row when ``j % 4 == 0``, segment
-    ``2 f + 1``)."""
+    and flags; and the values it owns (the differences ``|I[i, j+1] - I[i, j]|`` of every ``row_step``-th
+    row, segment ``2 f``, and the pixels of every fourth row when ``j % 4 == 0``, segment ``2 f + 1``), each
+    with its float32 sort key and its slot."""
     f, b, j = wp.tid()
     h = images.shape[1]
     w = images.shape[2]
@@ -95,16 +97,18 @@ def column_pass(
                     flags = flags | NOISE_NAN
                     d = wp.float64(wp.inf)
                 k = base + (i // row_step) * (w - 1) + j
-                keys[k] = d
-                segment[k] = 2 * f
+                values[k] = d
+                keys[k] = wp.float32(d)
+                slots[k] = k
         if (i & 3) == 0 and (j & 3) == 0:
             s = v
             if wp.isnan(s):
                 flags = flags | FILL_NAN
                 s = wp.float64(wp.inf)
             k = base + n_noise + (i >> 2) * fill_cols + (j >> 2)
-            keys[k] = s
-            segment[k] = 2 * f + 1
+            values[k] = s
+            keys[k] = wp.float32(s)
+            slots[k] = k
     col_min[f, b, j] = vmin
     col_max[f, b, j] = vmax
     col_count[f, b, j] = count
@@ -262,8 +266,19 @@ def band_lags(lags: wp.array3d(dtype=wp.vec4d), band_total: wp.array3d(dtype=wp.
 
 
 @wp.kernel(module=GPU_MODULE)
+def segment_of_slot(slots: wp.array(dtype=wp.int32), n_frame: int, n_noise: int, segment: wp.array(dtype=wp.int32)):
+    """The segment of the value in each sorted position: ``2 f`` for frame f's differences, ``2 f + 1``
+    for its sub-sampled pixels."""
+    p = wp.tid()
+    k = slots[p]
+    f = k // n_frame
+    segment[p] = 2 * f + wp.where(k - f * n_frame < n_noise, 0, 1)
+
+
+@wp.kernel(module=GPU_MODULE)
 def frame_results(
-    sorted_keys: wp.array(dtype=wp.float64),
+    slots: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.float64),
     frame_flags: wp.array(dtype=wp.int32),
     lags: wp.array3d(dtype=wp.vec4d),
     n_frame: int,
@@ -276,8 +291,9 @@ def frame_results(
     noise: wp.array(dtype=wp.float64),
     diameter: wp.array(dtype=wp.float64),
 ):
-    """Frame ``f``'s order statistics from the sorted buffer, and its dot diameter from the lag sums.
+    """Frame ``f``'s order statistics from the sorted slots, and its dot diameter from the lag sums.
 
+    ``slots``: the values' slots sorted by segment, then by float32 key (:func:`order_statistic`).
     ``noise``: the lower quartile of the differences (``q_index = int(0.25 (n_noise - 1))``, ``q_frac``
     the remainder), interpolated as ``tracking.identify._lower_quartile`` does, over ``noise_scale``.
     ``fill``: the median of the sub-sampled pixels (mean of the middle two for an even count). Either is
@@ -292,10 +308,10 @@ def frame_results(
     if (flags & NOISE_NAN) != 0:
         q = wp.float64(wp.nan)
     elif n_noise > 0:
-        a = sorted_keys[base + q_index]
+        a = order_statistic(slots, values, base, n_noise, q_index)
         b = a
         if q_index + 1 < n_noise:
-            b = sorted_keys[base + q_index + 1]
+            b = order_statistic(slots, values, base, n_noise, q_index + 1)
         if q_frac >= wp.float64(0.5):
             q = b - (b - a) * (wp.float64(1.0) - q_frac)
         else:
@@ -309,9 +325,10 @@ def frame_results(
     if (flags & FILL_NAN) != 0:
         med = wp.float64(wp.nan)
     elif n_fill % 2 == 1:
-        med = sorted_keys[start + k]
+        med = order_statistic(slots, values, start, n_fill, k)
     else:
-        med = (sorted_keys[start + k - 1] + sorted_keys[start + k]) / wp.float64(2.0)
+        lower = order_statistic(slots, values, start, n_fill, k - 1)
+        med = (lower + order_statistic(slots, values, start, n_fill, k)) / wp.float64(2.0)
     fill[f] = med
 
     s = summed_lags(lags, f, 0, lags.shape[1])
@@ -364,22 +381,35 @@ def segment_counts(valid: wp.array(dtype=wp.int32), length: int, chunk: int, cou
 
 
 @wp.func
+def count_at_most(order: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.float64), at: int, g0: int, g1: int,
+                  v: wp.float64) -> int:  # fmt: skip
+    """How many of ``values[order[at + p]]``, ``g0 <= p < g1``, are at most ``v``."""
+    c = int(0)
+    for p in range(g0, g1):
+        if values[order[at + p]] <= v:
+            c += 1
+    return c
+
+
+@wp.func
 def order_statistic(
-    keys: wp.array(dtype=wp.float32),
     order: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.float64),
     base: int,
     count: int,
     k: int,
 ) -> wp.float64:
-    """The k-th smallest (from 0) float64 value of a segment sorted by its float32 keys: rounding to float32
-    keeps the order but for values that round alike, so the k-th lies among those sharing its key."""
-    key = keys[base + k]
+    """The k-th smallest (from 0) of a segment's ``count`` float64 values ``values[order[base + p]]``, the
+    order sorted by their float32 keys (the values rounded to float32): rounding keeps the order but for
+    values that round alike, so the k-th lies among those sharing its key, a group found by the keys
+    and searched by counting. A large group is first narrowed by bisecting its value range; then the group's
+    values are stepped through from below. Exact: the value NumPy's sort puts there."""
+    key = wp.float32(values[order[base + k]])
     g0 = k
-    while g0 > 0 and keys[base + g0 - 1] == key:
+    while g0 > 0 and wp.float32(values[order[base + g0 - 1]]) == key:
         g0 -= 1
     g1 = k + 1
-    while g1 < count and keys[base + g1] == key:
+    while g1 < count and wp.float32(values[order[base + g1]]) == key:
         g1 += 1
     lo = values[order[base + g0]]
     hi = lo
@@ -387,24 +417,36 @@ def order_statistic(
         v = values[order[base + p]]
         lo = wp.min(lo, v)
         hi = wp.max(hi, v)
-    if lo == hi:
-        return lo
     want = k - g0
-    for p in range(g0, g1):
-        v = values[order[base + p]]
-        rank = int(0)
-        for q in range(g0, g1):
-            u = values[order[base + q]]
-            if u < v or (u == v and q < p):
-                rank += 1
-        if rank == want:
-            return v
-    return lo
+    if lo == hi or count_at_most(order, values, base, g0, g1, lo) > want:
+        return lo
+    # count_at_most(a) <= want < count_at_most(hi) from here on
+    a = lo
+    b = hi
+    steps = int(0)
+    while g1 - g0 > 32 and steps < 2200:
+        mid = a * wp.float64(0.5) + b * wp.float64(0.5)
+        if not (mid > a and mid < b):
+            break
+        if count_at_most(order, values, base, g0, g1, mid) > want:
+            b = mid
+        else:
+            a = mid
+        steps += 1
+    while True:
+        m = hi
+        for p in range(g0, g1):
+            v = values[order[base + p]]
+            if v > a and v < m:
+                m = v
+        if m == hi or count_at_most(order, values, base, g0, g1, m) > want:
+            return m
+        a = m
+    return hi
 
 
 @wp.kernel
 def segment_median(
-    keys: wp.array(dtype=wp.float32),
     order: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.float64),
     count: wp.array(dtype=wp.int32),
@@ -420,8 +462,8 @@ def segment_median(
         return
     base = s * length
     k = c // 2
-    upper = order_statistic(keys, order, values, base, c, k)
+    upper = order_statistic(order, values, base, c, k)
     if c % 2 == 1:
         median[s] = upper
     else:
-        median[s] = (order_statistic(keys, order, values, base, c, k - 1) + upper) / wp.float64(2.0)
+        median[s] = (order_statistic(order, values, base, c, k - 1) + upper) / wp.float64(2.0)

@@ -39,6 +39,7 @@ def _stack(shape, seed):
         frames.append(img)
     frames.append(np.round(_dots(rng, shape, 3.0, 20.0, 0.7)))  # many ties in both order statistics
     frames.append(_dots(rng, shape, 2.5, 1.0, 0.01) - 0.6)  # negative values
+    frames.append(1.0 + rng.normal(0.0, 1e-12, shape))  # every pixel of the fill's sub-sample one float32 key
     frames.append(np.zeros(shape))
     frames.append(np.full(shape, 2.0))
     on_grid = _dots(rng, shape, 3.0, 1.0, 0.01)
@@ -144,3 +145,30 @@ def test_segment_medians_are_numpys(device):
     assert np.isnan(got[3]) and np.isnan(want[3])
     assert_array_equal(got, want)
     assert got[4] == (values[4, 5] + values[4, 9]) / 2
+
+
+@pytest.mark.parametrize("length", [33, 400])
+def test_segment_medians_resolve_large_ties_exactly(device, length):
+    """Segments whose values share a float32 key by the hundreds (the order statistic bisects their range
+    first, then steps): distinct values 1 + k 1e-13, repeated ones, values past float32's range beside
+    inf, and signed zeros; NumPy's median to the bit."""
+    rng = np.random.default_rng(11)
+    values = np.stack([
+        1.0 + rng.integers(0, length // 3, length) * 1e-13,
+        1.0 + rng.permutation(length) * 1e-14,
+        np.where(rng.random(length) < 0.3, np.inf, 1e300 * rng.uniform(1.0, 1e8, length)),
+        np.where(rng.random(length) < 0.5, -0.0, 0.0) + rng.integers(0, 2, length) * 1e-320,
+        np.repeat(rng.normal(0.0, 1.0, 3), length // 3 + 1)[:length],
+    ])  # fmt: skip
+    valid = np.ones(values.shape, dtype=bool)
+    valid[1, ::7] = False
+    got = segment_medians(
+        wp.array(values.ravel(), dtype=wp.float64, device=device),
+        wp.array(valid.ravel().astype(np.int32), dtype=wp.int32, device=device),
+        length=length,
+        segments=len(values),
+        device=device,
+    ).numpy()
+    want = np.array([np.median(v[m]) for v, m in zip(values, valid, strict=True)])
+    assert_array_equal(got, want)
+    assert np.unique(np.float32(values[1])).size == 1  # one key for a whole segment
