@@ -17,12 +17,13 @@ import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["check_device", "describe_device", "init_warp", "launching", "load_kernels", "recording_graph",
-           "resolve_device"]
+__all__ = ["check_device", "copy_to_host", "describe_device", "init_warp", "launching", "load_kernels",
+           "recording_graph", "resolve_device"]
 
 # What Warp's native library prints when no CUDA driver can be loaded: expected on a CPU machine.
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -216,6 +217,79 @@ def recording_graph():
     >>> t.join()
     """
     return _GATE.recording()
+
+
+#: Page-locked staging of :func:`copy_to_host`: buffers of this many bytes, as many as host threads that
+#: copy them on.
+STAGE_BYTES = 8 << 20
+STAGE_BUFFERS = 4
+
+
+class _Staging:
+    """A CUDA device's page-locked buffers, copy stream and host threads (:func:`copy_to_host`)."""
+
+    def __init__(self, device):
+        with launching():  # a page-locked allocation must not fall inside another thread's graph recording
+            self.buffers = [wp.empty(STAGE_BYTES, dtype=wp.uint8, device="cpu", pinned=True)
+                            for _ in range(STAGE_BUFFERS)]  # fmt: skip
+        self.views = [b.numpy() for b in self.buffers]
+        self.stream = wp.Stream(device)
+        self.threads = ThreadPoolExecutor(STAGE_BUFFERS, thread_name_prefix="synthbos-copy")
+        self.lock = threading.Lock()  # one copy at a time through them
+
+
+_staging: dict = {}
+_staging_lock = threading.Lock()
+
+
+def copy_to_host(src, out):
+    """Copy the contiguous Warp array ``src`` into the C-contiguous NumPy array ``out`` of as many bytes, after
+    the work queued on ``src``'s device; return ``out``.
+
+    From a CUDA device the copy goes through a few page-locked buffers (``STAGE_BUFFERS`` of ``STAGE_BYTES``,
+    made once per device): the device copies chunk after chunk into them on a stream of its own, and host
+    threads copy each chunk on into ``out`` as it lands. A copy into pageable memory is bound by one host
+    thread's memcpy: a 246 MB table took 23-25 ms on an H100 host, 12-14 ms this way (2026-11-27).
+
+    Examples
+    --------
+    >>> import numpy as np, warp as wp
+    >>> init_warp()
+    >>> copy_to_host(wp.array(np.arange(4.0), dtype=wp.float64, device="cpu"), np.empty(4))
+    array([0., 1., 2., 3.])
+    """
+    nbytes = out.nbytes
+    if not out.flags.c_contiguous or not src.is_contiguous or src.capacity != nbytes:
+        raise ValueError(f"copy_to_host needs contiguous arrays of one size, got {src.capacity} and {nbytes} bytes")
+    if nbytes == 0:
+        return out
+    raw = wp.array(ptr=src.ptr, dtype=wp.uint8, shape=(nbytes,), device=src.device)
+    if not src.device.is_cuda:
+        wp.copy(wp.array(ptr=out.ctypes.data, dtype=wp.uint8, shape=(nbytes,), device="cpu"), raw)
+        return out
+    flat = out.reshape(-1).view(np.uint8)
+    with _staging_lock:
+        if src.device.alias not in _staging:
+            _staging[src.device.alias] = _Staging(src.device)
+        st = _staging[src.device.alias]
+    with st.lock:
+        st.stream.wait_stream(wp.get_stream(src.device))
+        pending = [None] * STAGE_BUFFERS
+        for k, lo in enumerate(range(0, nbytes, STAGE_BYTES)):
+            n, b = min(STAGE_BYTES, nbytes - lo), k % STAGE_BUFFERS
+            if pending[b] is not None:
+                pending[b].result()  # the buffer's last chunk has been copied on
+            wp.copy(st.buffers[b], raw, 0, lo, n, stream=st.stream)
+            pending[b] = st.threads.submit(_land, st.stream.record_event(), st.views[b], flat, lo, n)
+        for p in pending:
+            if p is not None:
+                p.result()
+    return out
+
+
+def _land(ready, staged, flat, lo, n):
+    wp.synchronize_event(ready)
+    flat[lo : lo + n] = staged[:n]
 
 
 def _warp_modules(name: str) -> list:

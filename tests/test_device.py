@@ -214,3 +214,32 @@ def test_a_steps_gpu_engine_is_a_module_named_under_its_kernel_module(monkeypatc
     monkeypatch.setattr(scheduling, "threadpool_limits", lambda limits: None)
     scheduling.die_with_parent(1, kernels=[(claim_kernels.GPU_MODULE, "cpu")])
     assert loaded == [claim_kernels.GPU_MODULE]
+
+
+def test_copy_to_host_lands_every_chunk_after_the_queued_work(device):
+    """A table of 2.6 staging buffers and an odd tail, assigned by work still queued when the copy starts
+    (on a GPU: through the page-locked buffers); a struct array; a wrong size is refused."""
+    import numpy as np
+    import pytest
+    import warp as wp
+    from synthbos.tracking.settings import TRACK_DTYPE
+
+    from synthbos.device import STAGE_BYTES, copy_to_host, init_warp
+
+    init_warp()
+    n = int(2.6 * STAGE_BYTES) // 8 + 3
+    src = wp.zeros(n, dtype=wp.float64, device=device)
+    values = np.arange(n, dtype=np.float64) * 0.5
+    src.assign(values)  # queued on the device's stream
+    out = np.full(n, -1.0)
+    assert copy_to_host(src, out) is out
+    np.testing.assert_array_equal(out, values)
+    rows = np.zeros(1001, dtype=TRACK_DTYPE)
+    rows["u"] = np.linspace(0.0, 1.0, 1001)
+    rows["status"] = np.arange(1001)
+    table = wp.array(rows.view(np.uint8), dtype=wp.uint8, device=device)
+    got = np.empty(1001, dtype=TRACK_DTYPE)
+    copy_to_host(table, got)
+    assert got.tobytes() == rows.tobytes()
+    with pytest.raises(ValueError, match="one size"):
+        copy_to_host(src, np.empty(n - 1))

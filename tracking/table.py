@@ -18,6 +18,8 @@ import threading
 import numpy as np
 import warp as wp
 
+from synthbos.device import copy_to_host
+
 from . import table_kernels as tk
 from .settings import TRACK_DTYPE, DotStatus
 
@@ -145,8 +147,9 @@ def table_rows(r, g, matched, outlier, correction, uv_pred, quality, status, *, 
 class HostTable:
     """The (M,) ``TRACK_DTYPE`` array that the device's table is copied into, its pages touched by a host
     thread as soon as it is made, while the device works: first-touch page faults on the ~230 MB of a
-    400-pair stack cost tens of milliseconds, and the host only waits for the device meanwhile. (A
-    page-locked buffer copies faster but takes longer to allocate and to free than the copy saves.)"""
+    400-pair stack cost tens of milliseconds, and the host only waits for the device meanwhile. The copy
+    goes through page-locked buffers made once (``synthbos.device.copy_to_host``): a page-locked table
+    would copy faster still but takes longer to allocate and to free than the copy saves."""
 
     def __init__(self, rows):
         self.out = np.empty(rows, dtype=TRACK_DTYPE)
@@ -156,11 +159,7 @@ class HostTable:
     def fetch(self, table):
         """Copy the device's (M,) ``TrackRow`` table into :attr:`out` and return it."""
         self.toucher.join()
-        if len(self.out):
-            view = wp.array(ptr=self.out.ctypes.data, dtype=tk.TrackRow, shape=(len(self.out),), device="cpu")
-            wp.copy(view, table)
-            wp.synchronize_device(table.device)
-        return self.out
+        return copy_to_host(table, self.out)
 
 
 def _touch_pages(flat):
