@@ -16,7 +16,7 @@ the maximum-likelihood estimate and reaches the Cramer-Rao bound (:mod:`tracking
 the array-program reference that defines the result. :func:`fit_stack` runs ``track_pair``'s model fit
 (the joint fit, the first-moment step, the fit's results taken) for every pair of a stack on one device.
 One pair and a stack take the same steps (``_fit_steps``, ``_moment_codes``) through the same kernels
-(``tracking.fit_kernels.fit_step_stack``, ``moment_shift_stack``): one pair is a stack of one.
+(``tracking.fit_kernels.fit_step_stack``, ``tracking.moment_kernels.moment_shift_stack``): one pair is a stack of one.
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ import numpy as np
 import warp as wp
 
 from . import fit_kernels as fk
+from . import moment_kernels as mk
 from .ellipse import ellipse_step
 from .frame_stats import segment_medians
 from .kernel_step import kernel_step
-from .moment_kernels import MAX_SHIFT_PX, moment_moves_kernel
 from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, distortion_options, start_width
 from .workspace import scratch
 
@@ -273,7 +273,7 @@ def fit_dots(
         scratch("fit_params_next", (n, 5), wp.float64, device),
         scratch("fit_ok", (n,), wp.int32, device),
         scratch("fit_shared", (n, 2), wp.float64, device),
-        scratch("fit_profiles", (n, 6, 2 * render_half + 1), wp.float64, device),
+        _profiles("fit_profiles", n, render_half, device),
     )
     cur = _fit_steps(refs, grads, rows, bufs, sat, width, half=half, render_half=render_half, iterations=iterations,
                      max_move=max_move, device=device)  # fmt: skip
@@ -380,7 +380,7 @@ def moment_shifts(
     saturation=None,
     noise=None,
     chi2=25.0,
-    max_shift=MAX_SHIFT_PX,
+    max_shift=mk.MAX_SHIFT_PX,
     ellipse=False,
     kernel=False,
     kernels=None,
@@ -423,7 +423,7 @@ def moment_shifts(
         Where the dot is an undistorted spot under noise, a shift this large is a chance event of
         probability ``exp(-chi2 / 2)`` (3.7e-6 at 25), so the fit keeps its Cramer-Rao precision there.
     max_shift : float, keyword-only
-        A larger shift (px) is not applied (default ``MAX_SHIFT_PX``, 1 px).
+        A larger shift (px) is not applied (default ``tracking.moment_kernels.MAX_SHIFT_PX``, 1 px).
     ellipse : bool; kernel : bool or "prior", keyword-only
         The elliptical moment step (:func:`tracking.ellipse.ellipse_step`: moving gradient-image dots share
         the light by fitted elliptical models), then the shared-kernel step (implies ``ellipse``; "prior":
@@ -476,7 +476,7 @@ def moment_shifts(
     live.fill_(1)
     rows = _Rows(_on_device(np.take(p, order, axis=0), wp.float64, device), fr, pa, live)
     models = scratch("moment_models", (k * refs.shape[1] * refs.shape[2],), wp.int64, device)
-    prof = scratch("moment_profiles", (n, 6, 2 * half + 1), wp.float64, device)
+    prof = _profiles("moment_profiles", n, half, device)
     sat = wp.array(np.minimum(_saturation(saturation, k), 1e300), dtype=wp.float64, device=device)
     sig = wp.array(_noise(noise, k), dtype=wp.float64, device=device)
     record = {} if kernels is not None else None
@@ -486,7 +486,7 @@ def moment_shifts(
         at = np.argsort(order[record["rows"]])
         kernels.update(rows=order[record["rows"]][at], kernel=record["kernel"][at], position=record["position"][at])
     moved = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
+    wp.launch(mk.moment_moves_kernel, dim=n, inputs=[out, pa, moved], device=device)
     applied = moved.numpy()[back].astype(bool)
     return np.where(applied[:, None], np.take(out.numpy()[:, :2], back, axis=0), 0.0), applied
 
@@ -508,7 +508,7 @@ def _moment_codes(refs, grads, rows, models, prof, sat, noise, *, half, chi2, ma
     _render(rows.params, rows, half, False, True, prof, scales, (H, W), models, device)
     shift = wp.empty(n, dtype=wp.vec3d, device=device)
     _launch(
-        fk.moment_shift_stack,
+        mk.moment_shift_stack,
         n,
         [
             refs, grads, models, scales, rows.params, rows.frame, rows.partner, rows.live, sat, noise, half,
@@ -630,20 +630,34 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
         wp.empty_like(start),
         wp.zeros(rows, dtype=wp.int32, device=device),
         wp.full((rows, 2), np.nan, dtype=wp.float64, device=device),
-        _large("fit_profiles", (rows, 6, 2 * render_half + 1), wp.float64, device),
+        _profiles("fit_profiles", rows, render_half, device, large=True),
     )
     cur = _fit_steps(refs, grads, sorted_rows, bufs, sat, width, half=half, render_half=render_half,
                      iterations=s.fit_iterations, max_move=FIT_MAX_MOVE_PX, device=device)  # fmt: skip
     moved = wp.zeros(rows, dtype=wp.int32, device=device)
     if s.distortion != "none":
         shift = _moment_codes(refs, grads, sorted_rows._replace(params=cur), bufs.models[: 2 * B * H * W], bufs.prof,
-                              sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=MAX_SHIFT_PX,
+                              sat, noise_frames, half=render_half, chi2=s.distortion_chi2, max_shift=mk.MAX_SHIFT_PX,
                               **distortion_options(s.distortion), device=device)  # fmt: skip
-        _launch(fk.apply_moment_shift, rows, [shift, sorted_rows.partner, cur, bufs.shared, moved], device)
+        _launch(mk.apply_moment_shift, rows, [shift, sorted_rows.partner, cur, bufs.shared, moved], device)
     # back in the rows' order (the parameters into ``start``, which the sorted rows copied)
     out = (start, wp.empty_like(bufs.ok), wp.empty_like(bufs.shared), wp.empty_like(moved))
     _launch(fk.scatter_rows, rows, [order, cur, bufs.ok, bufs.shared, moved, *out], device)
     return out[0], out[1], out[2], live, out[3]
+
+
+def _profiles(name, rows, half, device, *, large=False):
+    """The (rows, 6, 2 half + 1) stamp profiles of ``fit_kernels.dot_profiles``, one thread's rows each:
+    on the CPU the thread's workspace, a row's profiles side by side (its thread walks them); on a GPU
+    the memory of a (6, 2 half + 1, rows) array seen through a transposed view, so that the rows of a warp's
+    threads lie side by side and the warp reads and writes whole cache lines (``large``: a new array; else
+    the thread's workspace too)."""
+    width = 2 * int(half) + 1
+    if wp.get_device(device).is_cpu:
+        return scratch(name, (rows, 6, width), wp.float64, device)
+    shape = (6, width, rows)
+    memory = wp.empty(shape, dtype=wp.float64, device=device) if large else scratch(name, shape, wp.float64, device)
+    return memory.transpose((2, 0, 1))
 
 
 def _large(name, shape, dtype, device):

@@ -7,10 +7,11 @@ Kernels and ``@wp.func`` steps only; the host code lives in :mod:`tracking.dotfi
 Windows are held flat, pixel ``p`` of a ``w x w`` window at row ``p // w``, column ``p % w``.
 
 The last section holds the model fit of a stack of pairs (:func:`model_starts` ... :func:`take_model`), whose
-step and first-moment kernels also serve one pair or one image (a stack of one):
+step kernel also serves one pair or one image (a stack of one):
 rows ``0 ... M - 1`` are the reference-image dots of every pair, ``M ... 2 M - 1`` their gradient-image
 dots, and row ``i``'s model frame ``2 b`` (``2 b + 1``) is pair ``b``'s reference (gradient) image; the
-step is :func:`fit_dot_step`, the first-moment step :mod:`tracking.moment_kernels`' ``moment_shift``.
+step is :func:`fit_dot_step`. The first-moment step's kernels on the same rows are
+:mod:`tracking.moment_kernels`' ``moment_shift_stack`` and ``apply_moment_shift``.
 """
 
 import warp as wp
@@ -18,7 +19,6 @@ import warp as wp
 from synthbos.device import quiet_warp
 
 from .kernel_constants import DISTORTED, FIT_FALLBACK
-from .moment_kernels import moment_shift, moves, reference_background, reference_spread2
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
@@ -144,6 +144,56 @@ def to_fixed(value: wp.float64, scale: wp.float64) -> wp.int64:
     return wp.int64(wp.floor(value * scale + wp.float64(0.5)))
 
 
+@wp.func
+def draw_stamp(
+    params: wp.array2d(dtype=wp.float64),
+    partner: wp.array(dtype=wp.int32),
+    prof: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    i: int,
+    common: int,
+    first: int,
+    step: int,
+    c1: int,
+    r0: int,
+    r1: int,
+    base: int,
+    width: int,
+    scale: wp.float64,
+):
+    """Dot i's stamp columns ``first, first + step, ... < c1`` of its rows ``r0 ... r1 - 1`` into the model
+    images (:func:`render_dots_kernel`; ``base``: the flat index of the stamp's pixel (0, 0))."""
+    a = params[i, 2]
+    if common == 0:
+        r = int(r0)
+        while r < r1:
+            apy = a * prof[i, 3, r]
+            at = base + r * width
+            c = int(first)
+            while c < c1:
+                wp.atomic_add(models, at + c, to_fixed(apy * prof[i, 0, c], scale))
+                c += step
+            r += 1
+    else:  # both images in one pass over the stamp; the partner's shape is a scattered read
+        cs = common_shape(params, partner, i)
+        ds = cs[1] - params[i, 3]
+        layer = models.shape[0] // 2
+        r = int(r0)
+        while r < r1:
+            py = prof[i, 3, r]
+            spy = prof[i, 5, r]
+            apy = a * py
+            at = base + r * width
+            c = int(first)
+            while c < c1:
+                px = prof[i, 0, c]
+                wp.atomic_add(models, at + c, to_fixed(apy * px, scale))
+                shared = cs[0] * (py * px + ds * (spy * px + py * prof[i, 2, c]))
+                wp.atomic_add(models, at + layer + c, to_fixed(shared, scale))
+                c += step
+            r += 1
+
+
 @wp.kernel
 def dot_profiles_kernel(params: wp.array2d(dtype=wp.float64), half: int, prof: wp.array3d(dtype=wp.float64)):
     """Dot i's profiles on its ``2 half + 1`` stamp into ``prof[i]`` (``dot_profiles``), ahead of a
@@ -194,32 +244,11 @@ def render_dots_kernel(
     r0 = wp.max(-oy, 0)
     r1 = wp.min(n, height - oy)
     base = (frame[i] * height + oy) * width + ox  # flat index of the stamp's pixel (0, 0)
-    a = params[i, 2]
-    c = int(c0 + t - i * parts)
-    if common == 0:
-        while c < c1:
-            px = prof[i, 0, c]
-            r = int(r0)
-            while r < r1:
-                wp.atomic_add(models, base + r * width + c, to_fixed(a * prof[i, 3, r] * px, scale))
-                r += 1
-            c += parts
-    else:  # both images in one pass over the stamp; the partner's shape is a scattered read
-        cs = common_shape(params, partner, i)
-        ds = cs[1] - params[i, 3]
-        layer = models.shape[0] // 2
-        while c < c1:
-            px = prof[i, 0, c]
-            sx = prof[i, 2, c]
-            r = int(r0)
-            while r < r1:
-                py = prof[i, 3, r]
-                at = base + r * width + c
-                wp.atomic_add(models, at, to_fixed(a * py * px, scale))
-                shared = cs[0] * (py * px + ds * (prof[i, 5, r] * px + py * sx))
-                wp.atomic_add(models, at + layer, to_fixed(shared, scale))
-                r += 1
-            c += parts
+    if parts == 1:  # a literal step: the CPU's compiler unrolls the whole stamp's loop
+        draw_stamp(params, partner, prof, models, i, common, int(c0), 1, int(c1), int(r0), int(r1), base, width, scale)
+    else:
+        draw_stamp(params, partner, prof, models, i, common, int(c0) + t - i * parts, parts, int(c1), int(r0), int(r1),
+                   base, width, scale)  # fmt: skip
 
 
 @wp.func
@@ -734,72 +763,6 @@ def fit_step_stack(
             gradients[b], models, inv_scale, params, start, f, i, has_partner, saturation[f], half, render_half,
             common, max_move, lo, hi, prof, out, ok, shared_xy,
         )  # fmt: skip
-
-
-@wp.kernel
-def moment_shift_stack(
-    references: wp.array3d(dtype=wp.float64),
-    gradients: wp.array3d(dtype=wp.float64),
-    models: wp.array(dtype=wp.int64),
-    scales: wp.array(dtype=wp.float64),
-    params: wp.array2d(dtype=wp.float64),
-    frame: wp.array(dtype=wp.int32),
-    partner: wp.array(dtype=wp.int32),
-    live: wp.array(dtype=wp.int32),
-    saturation: wp.array(dtype=wp.float64),
-    noise: wp.array(dtype=wp.float64),
-    half: int,
-    chi2: wp.float64,
-    max_shift: wp.float64,
-    prof: wp.array3d(dtype=wp.float64),
-    shift: wp.array(dtype=wp.vec3d),
-):
-    """``moment_shift`` of row i (model frame ``2 b``: pair b's reference image, ``2 b + 1`` its gradient
-    image; ``noise`` per frame); ``apply_moment_shift`` then moves the rows."""
-    i = wp.tid()
-    shift[i] = wp.vec3d()
-    if live[i] == 0:
-        return
-    f = frame[i]
-    inv_scale = wp.float64(1.0) / scales[f]
-    b = f // 2
-    bg = reference_background(params, partner, i, f % 2 == 1)
-    s2 = reference_spread2(params, partner, i)
-    if f % 2 == 0:
-        shift[i] = moment_shift(
-            references[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
-            prof,
-        )  # fmt: skip
-    else:
-        shift[i] = moment_shift(
-            gradients[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
-            prof,
-        )  # fmt: skip
-
-
-@wp.kernel
-def apply_moment_shift(
-    shift: wp.array(dtype=wp.vec3d),
-    partner: wp.array(dtype=wp.int32),
-    params: wp.array2d(dtype=wp.float64),
-    shared_xy: wp.array2d(dtype=wp.float64),
-    moved: wp.array(dtype=wp.int32),
-):
-    """The model fit's first-moment step (:func:`tracking.dotfit.fit_stack`), in place: where row i
-    ``moves``, its position moves by its shift, and its common-shape position (where it has one) becomes
-    that moved position: the shift is measured about the own fit's centre, and the moved position is the
-    mean of the dot's light,
-    which both corrections then read."""
-    i = wp.tid()
-    moved[i] = 0
-    if moves(shift, partner, i):
-        d = shift[i]
-        params[i, 0] = params[i, 0] + d[0]
-        params[i, 1] = params[i, 1] + d[1]
-        if wp.isfinite(shared_xy[i, 0]):
-            shared_xy[i, 0] = params[i, 0]
-            shared_xy[i, 1] = params[i, 1]
-        moved[i] = 1
 
 
 @wp.kernel

@@ -73,7 +73,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
         Fitted parameters of every row.
     frame, partner, live : Warp int32 arrays (N,)
         Frame of each row, the row of its partner in the other image (-1 for none), and whether it was fitted.
-    prof : Warp float64 array (N, 6, 2 half + 1)
+    prof : Warp float64 array (6, 2 half + 1, N)
         The rows' profiles on their stamps (``render_dots_kernel``): the rows that do not take part are
         drawn with their symmetric models.
     shift : Warp vec3d array (N,)
@@ -154,14 +154,21 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
         draw = [state.pos, state.flux, state.sigma, state.kern, half, state.stamp_prof, state.stamp]
         wp.launch(kernel_render, dim=m, inputs=draw, device=device)
         accumulate(1)
-        for _ in range(KERNEL_FLUX_SWEEPS):  # the shares held to the reference flux
+        # The shares held to the reference flux: each sweep, the multipliers from one buffer into the other
+        # (kernel_hold), then the stamps redrawn with them, out with the old and in with the new in one pass
+        # (kernel_reweigh). The two ways of each launch are recorded once and replayed: Warp packs no
+        # arguments again (240 launches per stack).
+        sweeps = []
+        for old, new in ((state.alpha, state.spare_alpha), (state.spare_alpha, state.alpha)):
             hold = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
-                    state.kern, state.alpha, state.spare_alpha]  # fmt: skip
-            wp.launch(kernel_hold, dim=m, inputs=hold, device=device)
-            # the stamps redrawn with their new multipliers: out with the old and in with the new in one pass
-            reweigh = [rows, frame, state.pos, half, state.stamp, state.alpha, state.spare_alpha, scales, height,
-                       width, models]  # fmt: skip
-            wp.launch(kernel_reweigh, dim=m, inputs=reweigh, device=device)
+                    state.kern, old, new]  # fmt: skip
+            reweigh = [rows, frame, state.pos, half, state.stamp, old, new, scales, height, width, models]
+            sweeps.append([wp.launch(k, dim=m, inputs=a, device=device, record_cmd=True)
+                           for k, a in ((kernel_hold, hold), (kernel_reweigh, reweigh))])  # fmt: skip
+        for sweep in range(KERNEL_FLUX_SWEEPS if m else 0):  # (Warp records no launch of no threads)
+            for launch in sweeps[sweep % 2]:
+                launch.launch()
+        if KERNEL_FLUX_SWEEPS % 2:
             state.alpha, state.spare_alpha = state.spare_alpha, state.alpha
         moment = [refs, grads, models, scales, params, rows, frame, half, state.stamp, state.background, state.pos,
                   state.alpha, state.failed, state.spare_pos]  # fmt: skip
@@ -359,8 +366,11 @@ def _fit_kernels(refs, grads, rows, frame, level, state, scratch, grid, shift, d
         wp.launch(fit_rows_normal, dim=(n, taps2), inputs=[sc.prof, sc.weights, sc.count, sc.normal], device=device)
         wp.launch(fit_rows_ridge, dim=n, inputs=[start, sc.count, sc.normal, sc.rhs, state.prior, sc.failed],
                   device=device)  # fmt: skip
-        for j in range(taps2):
-            wp.launch(fit_column, dim=(n, taps2), inputs=[j, sc.count, sc.normal, sc.diag, sc.failed], device=device)
+        column = wp.launch(fit_column, dim=(n, taps2), inputs=[0, sc.count, sc.normal, sc.diag, sc.failed],
+                           device=device, record_cmd=True)  # fmt: skip
+        for j in range(taps2):  # recorded once, replayed column after column
+            column.set_param_at_index(0, j)
+            column.launch()
         wp.launch(fit_rows_solve, dim=n, inputs=[start, sc.count, sc.normal, sc.diag, sc.rhs, sc.failed, state.kern,
                                                  state.spare], device=device)  # fmt: skip
     state.kern, state.spare = state.spare, state.kern

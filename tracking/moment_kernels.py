@@ -9,7 +9,7 @@ tells which share of each pixel's light belongs to which dot, and the dot's own 
 symmetric part exactly. Only the residual (image less background less every model) is left to weigh.
 
 The host code lives in :mod:`tracking.dotfit` (for one pair and for a stack of pairs, both through
-``tracking.fit_kernels.moment_shift_stack``); the NumPy reference, ``tracking.reference.moment_shifts_numpy``,
+:func:`moment_shift_stack`); the NumPy reference, ``tracking.reference.moment_shifts_numpy``,
 defines the result.
 """
 
@@ -179,3 +179,72 @@ def moment_moves_kernel(
     """``moves`` of dot i."""
     i = wp.tid()
     moved[i] = int(moves(shift, partner, i))
+
+
+# --- the step on a stack of pairs (tracking.dotfit) ------------------------------------------------
+
+
+@wp.kernel
+def moment_shift_stack(
+    references: wp.array3d(dtype=wp.float64),
+    gradients: wp.array3d(dtype=wp.float64),
+    models: wp.array(dtype=wp.int64),
+    scales: wp.array(dtype=wp.float64),
+    params: wp.array2d(dtype=wp.float64),
+    frame: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    live: wp.array(dtype=wp.int32),
+    saturation: wp.array(dtype=wp.float64),
+    noise: wp.array(dtype=wp.float64),
+    half: int,
+    chi2: wp.float64,
+    max_shift: wp.float64,
+    prof: wp.array3d(dtype=wp.float64),
+    shift: wp.array(dtype=wp.vec3d),
+):
+    """``moment_shift`` of row i (model frame ``2 b``: pair b's reference image, ``2 b + 1`` its gradient
+    image; ``noise`` per frame); ``apply_moment_shift`` then moves the rows."""
+    i = wp.tid()
+    shift[i] = wp.vec3d()
+    if live[i] == 0:
+        return
+    f = frame[i]
+    inv_scale = wp.float64(1.0) / scales[f]
+    b = f // 2
+    bg = reference_background(params, partner, i, f % 2 == 1)
+    s2 = reference_spread2(params, partner, i)
+    if f % 2 == 0:
+        shift[i] = moment_shift(
+            references[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+    else:
+        shift[i] = moment_shift(
+            gradients[b], models, inv_scale, f, params, i, half, bg, s2, saturation[f], noise[f], chi2, max_shift,
+            prof,
+        )  # fmt: skip
+
+
+@wp.kernel
+def apply_moment_shift(
+    shift: wp.array(dtype=wp.vec3d),
+    partner: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+    shared_xy: wp.array2d(dtype=wp.float64),
+    moved: wp.array(dtype=wp.int32),
+):
+    """The model fit's first-moment step (:func:`tracking.dotfit.fit_stack`), in place: where row i
+    ``moves``, its position moves by its shift, and its common-shape position (where it has one) becomes
+    that moved position: the shift is measured about the own fit's centre, and the moved position is the
+    mean of the dot's light,
+    which both corrections then read."""
+    i = wp.tid()
+    moved[i] = 0
+    if moves(shift, partner, i):
+        d = shift[i]
+        params[i, 0] = params[i, 0] + d[0]
+        params[i, 1] = params[i, 1] + d[1]
+        if wp.isfinite(shared_xy[i, 0]):
+            shared_xy[i, 0] = params[i, 0]
+            shared_xy[i, 1] = params[i, 1]
+        moved[i] = 1

@@ -1,11 +1,13 @@
 """The model fit's render: split over the stamps' columns (a GPU's engine) it draws the same fixed-point
-images, to the bit, as a thread per dot (the CPU's), its profiles computed in it or ahead of it."""
+images, to the bit, as a thread per dot (the CPU's), its profiles computed in it or ahead of it, in the
+fit's own profiles array (on a GPU a transposed view) or a contiguous one."""
 
 import numpy as np
 import pytest
 import warp as wp
 from numpy.testing import assert_array_equal
 from synthbos.tracking import fit_kernels as fk
+from synthbos.tracking.dotfit import _profiles
 
 H, W, HALF = 40, 56, 4
 
@@ -24,7 +26,11 @@ def _rows(rng, n, frames):
 def _render(device, params, frame, partner, frames, *, common, parts):
     n = len(params)
     p = wp.array(params, dtype=wp.float64, device=device)
-    prof = wp.zeros((n, 6, 2 * HALF + 1), dtype=wp.float64, device=device)
+    # split: the fit's own profiles array (on a GPU a transposed view, a warp's dots side by side)
+    if parts > 1:
+        prof = _profiles("test_profiles", n, HALF, device, large=True)
+    else:
+        prof = wp.zeros((n, 6, 2 * HALF + 1), dtype=wp.float64, device=device)
     scales = wp.array(np.linspace(2.0**30, 2.0**31, frames), dtype=wp.float64, device=device)
     models = wp.zeros(2 * frames * H * W, dtype=wp.int64, device=device)
     if parts > 1:
