@@ -32,7 +32,7 @@ from .ellipse import ellipse_step
 from .frame_stats import segment_medians
 from .kernel_step import kernel_step
 from .settings import FIT_MAX_MOVE_PX, MODEL_WIDTH_RANGE, distortion_options, start_width
-from .workspace import scratch
+from .workspace import per_thread, scratch
 
 __all__ = [
     "PARAMS",
@@ -647,17 +647,11 @@ def _fit_rows(refs, grads, r, g, eta0_host, sat, noise_frames, half, render_half
 
 
 def _profiles(name, rows, half, device, *, large=False):
-    """The (rows, 6, 2 half + 1) stamp profiles of ``fit_kernels.dot_profiles``, one thread's rows each:
-    on the CPU the thread's workspace, a row's profiles side by side (its thread walks them); on a GPU
-    the memory of a (6, 2 half + 1, rows) array seen through a transposed view, so that the rows of a warp's
-    threads lie side by side and the warp reads and writes whole cache lines (``large``: a new array; else
-    the thread's workspace too)."""
-    width = 2 * int(half) + 1
-    if wp.get_device(device).is_cpu:
-        return scratch(name, (rows, 6, width), wp.float64, device)
-    shape = (6, width, rows)
-    memory = wp.empty(shape, dtype=wp.float64, device=device) if large else scratch(name, shape, wp.float64, device)
-    return memory.transpose((2, 0, 1))
+    """The (rows, 6, 2 half + 1) stamp profiles of ``fit_kernels.dot_profiles``, a row's its thread's
+    (:func:`tracking.workspace.per_thread`: on a GPU a warp's rows side by side): the thread's workspace,
+    or with ``large`` on a GPU a new array (its memory pool keeps them)."""
+    on_gpu = not wp.get_device(device).is_cpu
+    return per_thread((rows, 6, 2 * int(half) + 1), wp.float64, device, name=None if large and on_gpu else name)
 
 
 def _large(name, shape, dtype, device):

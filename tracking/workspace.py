@@ -17,7 +17,7 @@ import warp as wp
 
 from synthbos import SynthbosError
 
-__all__ = ["hold_freed_memory", "on_device", "scratch"]
+__all__ = ["hold_freed_memory", "on_device", "per_thread", "scratch"]
 
 #: The share of a GPU's memory that its CUDA memory pool keeps when freed (:func:`hold_freed_memory`).
 POOL_HOLD = 0.25
@@ -81,6 +81,29 @@ def on_device(a, dtype, ndim, device, name):
         pairs = " (x, y)" if dtype == wp.vec2d else ""
         raise SynthbosError(f"{name} must be a {ndim}-D array{pairs}, got shape {np.shape(a)}")
     return wp.array(np.ascontiguousarray(arr), dtype=dtype, device=wp.get_device(device))
+
+
+def per_thread(shape, dtype, device, *, name=None):
+    """A ``shape`` array whose first axis is the kernel's thread, each thread's part its own: ``name``, the
+    thread's workspace (:func:`scratch`), else a new array.
+
+    On the CPU it is contiguous: one thread walks its own part. On a GPU it is the memory of an array
+    with that axis last, seen through a transposed view: the parts of a warp's threads lie side by side,
+    so the warp reads and writes whole cache lines (the model fit's stamp profiles: 10.7 -> 1.1 ms for
+    a 400-pair stack on an H100). The kernels index it the same either way.
+
+    Examples
+    --------
+    >>> from synthbos.device import init_warp
+    >>> init_warp()
+    >>> a = per_thread((5, 6, 3), wp.float64, "cpu")
+    >>> a.shape, a.is_contiguous
+    ((5, 6, 3), True)
+    """
+    on_cpu = wp.get_device(device).is_cpu
+    layout = tuple(shape) if on_cpu else (*shape[1:], shape[0])
+    memory = wp.empty(layout, dtype=dtype, device=device) if name is None else scratch(name, layout, dtype, device)
+    return memory if on_cpu else memory.transpose((len(shape) - 1, *range(len(shape) - 1)))
 
 
 def hold_freed_memory(device):
