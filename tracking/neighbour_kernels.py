@@ -26,19 +26,21 @@ wp.set_module_options({"enable_backward": False})  # forward-only kernels: no ad
 
 
 @wp.func
-def keep_nearest(d: wp.float64, p: wp.float64, found: int, base: int, k: int, near: wp.array(dtype=wp.vec2d)) -> int:
+def keep_nearest(
+    d: wp.float64, p: wp.float64, found: int, base: int, step: int, k: int, near: wp.array(dtype=wp.vec2d)
+) -> int:
     """Insert point ``p`` at squared distance ``d`` into the ascending list of the ``k`` nearest
-    ``near[base:base + k]`` (``(squared distance, index)``, ties broken by the lower index, so the set does
-    not depend on the visiting order); return the new count. The caller has checked that ``p`` belongs
+    ``near[base + j step]``, ``j < k`` (``(squared distance, index)``, ties broken by the lower index, so the
+    set does not depend on the visiting order); return the new count. The caller has checked that ``p`` belongs
     there (``found < k`` or it comes before the last entry)."""
     m = wp.min(found, k - 1)
     while m > 0:
-        e = near[base + m - 1]
+        e = near[base + (m - 1) * step]
         if not (e[0] > d or (e[0] == d and e[1] > p)):
             break
-        near[base + m] = e
+        near[base + m * step] = e
         m -= 1
-    near[base + m] = wp.vec2d(d, p)
+    near[base + m * step] = wp.vec2d(d, p)
     return wp.min(found + 1, k)
 
 
@@ -54,6 +56,7 @@ def scan_cells(
     limit: wp.float64,
     found: int,
     base: int,
+    step: int,
     k: int,
     near: wp.array(dtype=wp.vec2d),
 ) -> int:
@@ -63,7 +66,7 @@ def scan_cells(
     f = found
     worst = wp.vec2d(limit, wp.float64(0.0))
     if f == k:
-        worst = near[base + k - 1]
+        worst = near[base + (k - 1) * step]
     j = int(j0)
     while j < j1:  # (cheaper than a range with a step of either sign)
         c = cell_xy[j]
@@ -75,9 +78,9 @@ def scan_cells(
             if p != own:
                 pf = wp.float64(p)
                 if f < k or d < worst[0] or pf < worst[1]:
-                    f = keep_nearest(d, pf, f, base, k, near)
+                    f = keep_nearest(d, pf, f, base, step, k, near)
                     if f == k:
-                        worst = near[base + k - 1]
+                        worst = near[base + (k - 1) * step]
         j += 1
     return f
 
@@ -97,10 +100,11 @@ def nearest_in_grid(
     cell_points: wp.array(dtype=wp.int32),
     cell_xy: wp.array(dtype=wp.vec2d),
     base: int,
+    step: int,
     k: int,
     near: wp.array(dtype=wp.vec2d),
 ) -> int:
-    """The ``k`` nearest points of ``(qx, qy)`` but ``own`` into ``near[base:base + k]`` (squared
+    """The ``k`` nearest points of ``(qx, qy)`` but ``own`` into ``near[base + j step]``, ``j < k`` (squared
     distance, index; ascending, ties to the lower index), from the grid whose cell ``c`` is
     ``first_cell + c`` of ``cell_start``; return how many were found.
 
@@ -147,6 +151,7 @@ def nearest_in_grid(
                     limit,
                     found,
                     base,
+                    step,
                     k,
                     near,
                 )
@@ -163,13 +168,14 @@ def plane_fit(
     xy: wp.array(dtype=wp.vec2d),
     uv: wp.array(dtype=wp.vec2d),
     base: int,
+    step: int,
     k: int,
     near: wp.array(dtype=wp.vec2d),
     work: wp.array(dtype=wp.vec4d),
     resid: wp.array(dtype=wp.float64),
     network: wp.array2d(dtype=wp.int32),
 ) -> wp.vec3d:
-    """Least squares plane ``f = c + G d`` through the vectors of the ``k`` points in ``near[base:]``
+    """Least squares plane ``f = c + G d`` through the vectors of the ``k`` points ``near[base + j step]``
     (offsets ``d`` from q): ``(f_u(q), f_v(q), median distance of their vectors from the plane)``, with
     ``work`` and ``resid`` as scratch rows of length k (the points' offsets from q and vectors, the
     squared distances of their vectors from the fit); ``network`` is ``median_network(k)``."""
@@ -180,11 +186,11 @@ def plane_fit(
     fmv = wp.float64(0.0)
     j = int(0)
     while j < k:
-        p = int(near[base + j][1])
+        p = int(near[base + j * step][1])
         pxy = xy[p]
         puv = uv[p]
         w = wp.vec4d(pxy[0] - qx, pxy[1] - qy, puv[0], puv[1])
-        work[base + j] = w
+        work[base + j * step] = w
         dmx += w[0]
         dmy += w[1]
         fmu += w[2]
@@ -203,7 +209,7 @@ def plane_fit(
     byv = wp.float64(0.0)
     j = int(0)
     while j < k:
-        w = work[base + j]
+        w = work[base + j * step]
         ex = w[0] - dmx
         ey = w[1] - dmy
         gu = w[2] - fmu
@@ -226,18 +232,18 @@ def plane_fit(
     gyv = (sxx * byv - sxy * bxv) / det
     j = int(0)
     while j < k:
-        w = work[base + j]
+        w = work[base + j * step]
         ex = w[0] - dmx
         ey = w[1] - dmy
         gu = w[2] - fmu - ex * gxu - ey * gyu
         gv = w[3] - fmv - ex * gxv - ey * gyv
-        resid[base + j] = gu * gu + gv * gv
+        resid[base + j * step] = gu * gu + gv * gv
         j += 1
     # median of the distances: the middle squares put in place by the compare-exchange network
     t = int(0)
     while t < network.shape[0]:
-        a = base + network[t, 0]
-        c = base + network[t, 1]
+        a = base + network[t, 0] * step
+        c = base + network[t, 1] * step
         va = resid[a]
         vc = resid[c]
         resid[a] = wp.min(va, vc)
@@ -245,9 +251,10 @@ def plane_fit(
         t += 1
     spread = wp.float64(0.0)
     if k % 2 == 1:
-        spread = wp.sqrt(resid[base + k / 2])
+        spread = wp.sqrt(resid[base + (k / 2) * step])
     else:
-        spread = wp.float64(0.5) * (wp.sqrt(resid[base + k / 2 - 1]) + wp.sqrt(resid[base + k / 2]))
+        upper = wp.sqrt(resid[base + (k / 2) * step])
+        spread = wp.float64(0.5) * (wp.sqrt(resid[base + (k / 2 - 1) * step]) + upper)
     return wp.vec3d(fmu - dmx * gxu - dmy * gyu, fmv - dmx * gxv - dmy * gyv, spread)
 
 
@@ -457,11 +464,13 @@ def neighbour_fit_stack_kernel(
 
     Thread t of ``threads`` takes the queries ``query_order[t], query_order[t + threads], ...`` up to
     ``query_start[-1]`` (their number: queries in the order of their cells, so neighbouring threads
-    read the same points). ``near``, ``work`` and ``resid`` hold ``rows`` scratch rows of length ``k``;
-    thread t's start at ``(t % rows) * k``. ``network`` is ``tracking.windows.median_network(k)``."""
+    read the same points). ``near``, ``work`` and ``resid`` hold ``rows`` scratch rows of length ``k``,
+    interleaved: thread t's entry j at ``j rows + t % rows``, so that a warp's threads read and write
+    neighbouring entries (on the CPU one row). ``network`` is ``tracking.windows.median_network(k)``."""
     tid = wp.tid()
     k = neighbours.shape[1]
-    base = (tid % rows) * k
+    base = tid % rows
+    step = rows
     total = query_start[query_start.shape[0] - 1]
     t = int(tid)
     while t < total:
@@ -487,15 +496,16 @@ def neighbour_fit_stack_kernel(
             cell_points,
             cell_xy,
             base,
+            step,
             k,
             near,
         )
         if store_neighbours != 0:
             j = int(0)
             while j < k:
-                neighbours[g, j] = int(near[base + j][1])
+                neighbours[g, j] = int(near[base + j * step][1])
                 j += 1
-        f = plane_fit(qxy[0], qxy[1], xy, uv, base, k, near, work, resid, network)
+        f = plane_fit(qxy[0], qxy[1], xy, uv, base, step, k, near, work, resid, network)
         value[g] = wp.vec2d(f[0], f[1])
         spread[g] = f[2]
         t += threads
