@@ -207,6 +207,7 @@ STACK_KERNELS = (
     "synthbos.tracking.fit_kernels",
     "synthbos.tracking.identify_kernels",
     "synthbos.tracking.kernel_step_kernels",
+    "synthbos.tracking.moment_kernels",
     "synthbos.tracking.neighbour_kernels",
     "synthbos.tracking.predict_fft_kernels",
     "synthbos.tracking.predict_kernels",
