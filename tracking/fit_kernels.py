@@ -219,7 +219,8 @@ def render_dots_kernel(
 ):
     """Add each dot's model (no background) on its ``2 half + 1`` stamp into its image's model images.
 
-    Thread t draws the stamp columns ``t % parts, t % parts + parts, ...`` of dot ``i = t // parts``:
+    Thread t draws the stamp columns ``c0 + t % parts, c0 + t % parts + parts, ...`` (``c0``: the first
+    inside the image) of dot ``i = t // parts``:
     ``parts = 1``, the whole stamp (one thread per dot, the CPU's engine); ``parts = 2 half + 1``, one
     column (a GPU's: a warp's neighbouring threads add to neighbouring pixels).
     ``models``: the model images ``[2, frames, height, width]`` flat. ``models[0, f]``: ``I0 p_x p_y``;

@@ -73,7 +73,7 @@ def kernel_step(refs, grads, models, scales, params, frame, partner, live, prof,
         Fitted parameters of every row.
     frame, partner, live : Warp int32 arrays (N,)
         Frame of each row, the row of its partner in the other image (-1 for none), and whether it was fitted.
-    prof : Warp float64 array (6, 2 half + 1, N)
+    prof : Warp float64 array (N, 6, 2 half + 1)
         The rows' profiles on their stamps (``render_dots_kernel``): the rows that do not take part are
         drawn with their symmetric models.
     shift : Warp vec3d array (N,)
