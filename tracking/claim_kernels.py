@@ -328,6 +328,13 @@ def repeat_rows(one: wp.array(dtype=wp.vec2d), per_frame: int, out: wp.array(dty
     out[i] = one[i % per_frame]
 
 
+@wp.kernel
+def row_numbers(out: wp.array(dtype=wp.int32)):
+    """Every row's own number: ``out[i] = i`` (the ids of all rows, made where they are used)."""
+    i = wp.tid()
+    out[i] = i
+
+
 @wp.kernel(module=GPU_MODULE)
 def measured_peaks(
     ids: wp.array(dtype=wp.int32),

@@ -151,16 +151,18 @@ def _image_of(first, b, name):
     return f"the {name} image" if first is None else f"pair {first + b}'s {name} image"
 
 
-def _frame_statistics(images, name, settings, device, first, excluded=None):
+def _frame_statistics(images, name, settings, device, first, excluded=None, launched=None):
     """Per pair (host arrays of B values): noise, fill, saturation level (capped at 1e300 as the window
     kernel takes it) and dot diameter, computed on the device (on the CPU by :func:`_host_statistics`);
     the image checks (the pairs named from ``first``; None: the only pair). With a mask (``excluded``), the
-    noise of the pixels kept, by the host (the device's sort takes no mask)."""
+    noise of the pixels kept, by the host (the device's sort takes no mask). On a GPU, ``launched`` is the
+    device's :func:`tracking.frame_stats.frame_statistics` of ``images``, launched ahead: both stacks'
+    are launched before either is read, so that the device does not wait for the host in between."""
     if wp.get_device(device).is_cpu:
         diameter = name == "reference" and settings.diameter is None
         st = _host_statistics(images.numpy(), diameter=diameter, excluded=excluded)
     else:
-        st = {k: v.numpy() for k, v in frame_statistics(images, device=device).items()}
+        st = {k: v.numpy() for k, v in launched.items()}
         if excluded is not None:
             host = images.numpy()
             st["noise"] = np.array([estimate_noise(im, excluded=m) for im, m in zip(host, excluded, strict=True)])
@@ -305,8 +307,11 @@ def _track_turn(references, gradients, prior, excluded, settings, device, first)
     refs = _upload(references, "reference", device, excluded)
     grads = _upload(gradients, "gradient", device, excluded)
     B = refs.shape[0]
-    st_r = _frame_statistics(refs, "reference", settings, device, first, excluded)
-    st_g = _frame_statistics(grads, "gradient", settings, device, first, excluded)
+    launched = [None, None]
+    if wp.get_device(device).is_cuda:
+        launched = [frame_statistics(a, device=device) for a in (refs, grads)]
+    st_r = _frame_statistics(refs, "reference", settings, device, first, excluded, launched[0])
+    st_g = _frame_statistics(grads, "gradient", settings, device, first, excluded, launched[1])
     d = np.full(B, float(settings.diameter)) if settings.diameter is not None else st_r["diameter"]
     bad = ~(np.isfinite(d) & (d > 0))
     if bad.any():
@@ -314,7 +319,8 @@ def _track_turn(references, gradients, prior, excluded, settings, device, first)
             f"cannot estimate the dot diameter from {_image_of(first, int(np.flatnonzero(bad)[0]), 'reference')}; "
             "give it in settings"
         )
-    geometry = [_Pairs(float(di), settings) for di in d]
+    shared = {di: _Pairs(di, settings) for di in set(d.tolist())}  # (once per diameter: usually one for all)
+    geometry = [shared[di] for di in d.tolist()]
     groups: dict = {}
     for b, g in enumerate(geometry):
         groups.setdefault(g.key(), []).append(b)
@@ -432,7 +438,8 @@ def _dots_from_prior(st, prior):
         wp.launch(ck.repeat_rows, dim=M, inputs=[one, N, on_device], device=device)
     else:
         on_device = st.arr(prior.reshape(M, 2), wp.vec2d)
-    all_ids = st.arr(np.arange(M, dtype=np.int32), wp.int32)
+    all_ids = wp.empty(M, dtype=wp.int32, device=device)
+    wp.launch(ck.row_numbers, dim=M, inputs=[all_ids], device=device)
     r = ident.identify(st.refs, 0, on_device, all_ids, M, wide=False)
     base = wp.empty(M, dtype=wp.vec2d, device=device)
     wp.launch(ik.reference_or_prior, dim=M, inputs=[r["x"], r["y"], on_device, base], device=device)
@@ -545,11 +552,7 @@ def _predict(refs, grads, base, B, N, settings, device, excluded=None):
     H, W = refs.shape[1:]
     count = wp.zeros(B, dtype=wp.int32, device=device)
     wp.launch(ik.count_inside, dim=B * N, inputs=[base, N, H, W, count], device=device)
-    plans = {}
-    for b, n_in in enumerate(count.numpy()):
-        sizes, density = predictor_passes((H, W), int(n_in), settings.predictor_windows)
-        key = (tuple(sizes), tuple(pooling_block(density, z) for z in sizes))
-        plans.setdefault(key, (sizes, density, []))[2].append(b)
+    plans = _pass_plans(count.numpy(), (H, W), settings.predictor_windows)
     xy = base.reshape((B, N))
     if len(plans) == 1:
         ((sizes, density, _),) = plans.values()
@@ -568,6 +571,29 @@ def _predict(refs, grads, base, B, N, settings, device, excluded=None):
         wp.array(uv.reshape(-1, 2), dtype=wp.vec2d, device=device),
         wp.array(q.ravel(), dtype=wp.float64, device=device),
     )
+
+
+def _pass_plans(inside, shape, windows):
+    """The predictor's pass schedules of pairs with ``inside`` dots inside their ``shape`` (H, W) images:
+    ``{key: (sizes, density, pairs)}``, one entry per distinct schedule (its tile sizes and pooling blocks,
+    :func:`tracking.predict.predictor_passes`), with the density of the fewest dots that give it and its
+    pairs in order. Each distinct count is worked out once: a stack's pairs mostly share one.
+
+    Examples
+    --------
+    >>> plans = _pass_plans(np.array([5120, 5120, 40, 5120]), (512, 512), (64, 32, 16, 16))
+    >>> [(sizes, pairs) for sizes, _, pairs in plans.values()]
+    [([64], [2]), ([64, 32, 16, 16], [0, 1, 3])]
+    """
+    plans, keys = {}, []
+    counts, which = np.unique(inside, return_inverse=True)
+    for n_in in counts:
+        sizes, density = predictor_passes(shape, int(n_in), windows)
+        keys.append((tuple(sizes), tuple(pooling_block(density, z) for z in sizes)))
+        plans.setdefault(keys[-1], (sizes, density, []))
+    for b, c in enumerate(which.tolist()):
+        plans[keys[c]][2].append(b)
+    return plans
 
 
 def _predict_on_host(refs, grads, base, B, N, settings, device, excluded=None):
