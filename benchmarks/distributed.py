@@ -213,16 +213,15 @@ def _host_workers_told() -> str | None:
 
 def host_workers() -> int:
     """On a worker: the size of its pipeline's pool of host processes. A local GPU worker is told (its
-    share of the host's cores); on a joined cluster, this host's cores over its visible GPUs; 1 in a
-    daemonic worker process (Dask's default), which may not start processes of its own."""
+    share of the host's cores); on a joined cluster, :data:`HOST_WORKERS_VAR` where the worker's host sets
+    it, else this host's cores over its visible GPUs; 1 in a daemonic worker process (Dask's default),
+    which may not start processes of its own."""
     import multiprocessing
 
     if multiprocessing.current_process().daemon:
         return 1
-    told = os.environ.get(HOST_WORKERS_VAR, "")
-    if told.isdigit() and int(told) > 0:
-        return int(told)
-    return pipeline_workers(len(visible_gpus()))
+    told = _host_workers_told()  # (a bad value is refused here too, in the same line as by the runner)
+    return int(told) if told else pipeline_workers(len(visible_gpus()))
 
 
 def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -> int:

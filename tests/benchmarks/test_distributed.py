@@ -147,6 +147,22 @@ def test_host_processes_per_gpu_worker_can_be_told(monkeypatch):
             dist.check_scheduler("local")  # before any work
 
 
+def test_a_worker_reads_host_workers_by_the_runners_rule(monkeypatch):
+    """``host_workers`` on a worker takes the variable where it is a positive number and refuses anything
+    else as the runner does; unset, this host's cores over its GPUs."""
+    from synthbos.benchmarks import distributed as dist
+
+    from synthbos import SynthbosError
+
+    monkeypatch.setenv(dist.HOST_WORKERS_VAR, " 7 ")
+    assert dist.host_workers() == 7
+    monkeypatch.setenv(dist.HOST_WORKERS_VAR, "0")
+    with pytest.raises(SynthbosError, match="positive number of host processes"):
+        dist.host_workers()
+    monkeypatch.delenv(dist.HOST_WORKERS_VAR)
+    assert dist.host_workers() == dist.pipeline_workers(len(dist.visible_gpus()))
+
+
 def test_a_bad_host_workers_value_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("SYNTHBOS_HOST_WORKERS", "lots")
     out = tmp_path / "q"
