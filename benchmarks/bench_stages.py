@@ -42,6 +42,7 @@ again with ``--process-device cpu`` (rendering on the GPU, processing in CPU wor
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -180,8 +181,8 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     """Best time of ``track_pairs`` on ``batch`` noisy copies of ``pair``: from images already on the device
     (``seconds``, as a pipeline that keeps them there) and from NumPy stacks (``seconds_host``, the upload
     included), host tables out both times, and without the first-moment step (``seconds_symmetric``, from
-    images on the device); dots per second, and the largest difference from ``track_pair`` on the first
-    copy."""
+    images on the device); dots per second, the largest difference from ``track_pair`` on the first
+    copy, and whether every call from images on the device gave the same bytes (``calls_identical``)."""
     from synthbos.tracking import TrackingSettings, track_pair
     from synthbos.tracking.stack import track_pairs
 
@@ -189,7 +190,18 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     refs = np.stack([np.asarray(r, dtype=np.float64) for r, _ in noisy])
     grads = np.stack([np.asarray(g, dtype=np.float64) for _, g in noisy])
     on_device = [wp.array(a, dtype=wp.float64, device=device) for a in (refs, grads)]
-    seconds, tables = _best(lambda: track_pairs(*on_device, prior_xy=prior, device=device), repeats, device)
+    made, digests = [], []  # every call's table, hashed between the timed calls: the same bytes each time?
+
+    def run():
+        made.append(track_pairs(*on_device, prior_xy=prior, device=device))
+        return made[-1]
+
+    def hash_made():
+        while made:
+            digests.append(hashlib.md5(made.pop().tobytes()).hexdigest())
+
+    seconds, tables = _best(run, repeats, device, before=hash_made)
+    hash_made()
     seconds_host, _ = _best(lambda: track_pairs(refs, grads, prior_xy=prior, device=device), repeats, device)
     symmetric = TrackingSettings(distortion="none")  # the same without the first-moment step, for its cost
     seconds_symmetric, _ = _best(
@@ -206,7 +218,8 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     return {"pairs": batch, "dots": dots, "seconds": seconds, "dots_per_second": dots / seconds,
             "seconds_host": seconds_host, "dots_per_second_host": dots / seconds_host,
             "seconds_symmetric": seconds_symmetric, "dots_per_second_symmetric": dots / seconds_symmetric,
-            "max_difference_px": diff, "status_equal": same_status}
+            "max_difference_px": diff, "status_equal": same_status, "calls": len(digests),
+            "calls_identical": len(set(digests)) == 1}
 
 
 def paper_full_wall_time(device: str, *, process_device=None, workers=None, folder=None) -> dict:
@@ -295,7 +308,8 @@ def main(argv=None):
                   f"({tb['seconds_host']:.4f} s = {tb['dots_per_second_host']:.3g} dots/s from NumPy images; "
                   f"without the first-moment step {tb['dots_per_second_symmetric']:.3g} dots/s); "
                   f"largest difference from track_pair on the first pair {tb['max_difference_px']:.2e} px, "
-                  f"status equal: {tb['status_equal']}")
+                  f"status equal: {tb['status_equal']}; the {tb['calls']} calls' tables "
+                  f"{'the same bytes' if tb['calls_identical'] else 'NOT the same bytes'}")
     paper = None
     if args.paper_full:
         cuda = [d for d in args.devices if d.startswith("cuda")]

@@ -210,6 +210,8 @@ def test_bench_stages_times_batched_tracking():
     assert run["stages"]["tracking, batched"] == pytest.approx(tb["seconds"] / 3)
     # the batch's first pair is track_pair's result
     assert tb["status_equal"] and tb["max_difference_px"] < 1e-9
+    # the warm-up and the timed call, from images on the device: the same bytes
+    assert tb["calls"] == 2 and tb["calls_identical"]
 
 
 def test_an_error_in_the_pipeline_stops_it_and_a_rerun_finishes(plain, tmp_path, monkeypatch):
