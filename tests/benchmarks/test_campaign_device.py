@@ -208,7 +208,7 @@ def test_bench_stages_times_batched_tracking():
     assert tb["pairs"] == 3 and tb["dots"] == 3 * run["dots"]
     assert tb["dots_per_second"] == pytest.approx(tb["dots"] / tb["seconds"])
     assert run["stages"]["tracking, batched"] == pytest.approx(tb["seconds"] / 3)
-    # the batch's first pair is track_pair's result
+    # the batch's first and last pairs are track_pair's results
     assert tb["status_equal"] and tb["max_difference_px"] < 1e-9
     # the warm-up and the timed call, from images on the device: the same bytes
     assert tb["calls"] == 2 and tb["calls_identical"]
