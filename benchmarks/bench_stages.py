@@ -182,7 +182,8 @@ def _time_batch(pair, prior, device, *, batch, repeats, noise_percent):
     (``seconds``, as a pipeline that keeps them there) and from NumPy stacks (``seconds_host``, the upload
     included), host tables out both times, and without the first-moment step (``seconds_symmetric``, from
     images on the device); dots per second, the largest difference from ``track_pair`` on the first and
-    the last copy (and whether their status bits are the same), and whether every call from images on the device gave the same bytes (``calls_identical``)."""
+    the last copy (and whether their status bits are the same), and whether every call from images on the
+    device gave the same bytes (``calls_identical``)."""
     from synthbos.tracking import TrackingSettings, track_pair
     from synthbos.tracking.stack import track_pairs
 
