@@ -16,6 +16,7 @@ from synthbos.correlation.pass_kernels import three_point_offset
 
 from synthbos.device import quiet_warp
 
+from .fit_kernels import to_fixed
 from .kernel_constants import (
     AMBIGUOUS,
     CLIP_HI,
@@ -260,12 +261,37 @@ def waiting_points(
         points[i] = wp.vec3(-1.0e6 - 61.0 * float(i % 4093), -1.0e6 - 67.0 * float((i // 4093) % 4093), -1.0e6)
 
 
+#: The residual's stamps are added in fixed point, ``STAMP_RANGE`` units per frame's median peak
+#: (``stamp_scale``): integer sums do not depend on the order in which the threads add them, so the
+#: residual image (and every dot measured on it) has the same bits on every run. A pixel holds a few
+#: dots' stamps, far inside int64 (2**23 median peaks), resolved to 1e-12 of the peak.
+STAMP_RANGE = wp.constant(wp.float64(2.0**40))
+
+
+@wp.func
+def stamp_scale(ref_peak: wp.float64) -> wp.float64:
+    """Fixed-point units per intensity of a frame's stamps, from its median peak ``ref_peak`` (1 if it
+    has none)."""
+    p = wp.abs(ref_peak)
+    if not (wp.isfinite(p) and p > wp.float64(0.0)):
+        p = wp.float64(1.0)
+    return STAMP_RANGE / p
+
+
+@wp.func
+def stamp_box(xi: wp.float64, yi: wp.float64, e0: wp.float64) -> wp.vec3i:
+    """The stamp of a dot at ``(xi, yi)``: centre pixel (column, row) and half-width
+    ceil(``STAMP_WIDTHS`` eta0)."""
+    return wp.vec3i(int(wp.rint(xi)), int(wp.rint(yi)), int(wp.ceil(STAMP_WIDTHS * e0)))
+
+
 @wp.kernel(module=GPU_MODULE)
-def subtract_near_waiting(
+def stamp_near_waiting(
     grid: wp.uint64,
     ids: wp.array(dtype=wp.int32),
     per_frame: int,
     z_step: float,
+    round_: int,
     active: wp.array(dtype=wp.int32),
     pred: wp.array(dtype=wp.vec2d),
     todo: wp.array(dtype=wp.int32),
@@ -275,12 +301,14 @@ def subtract_near_waiting(
     i0: wp.array(dtype=wp.float64),
     eta0: wp.array(dtype=wp.float64),
     reach: wp.array(dtype=wp.float64),
+    ref_peak: wp.array(dtype=wp.float64),
     subtracted: wp.array(dtype=wp.int32),
-    residual: wp.array3d(dtype=wp.float64),
+    stamps: wp.array3d(dtype=wp.int64),
 ):
-    """Eq. 2 where it matters: a found dot within ``reach`` of a dot still to find leaves the residual
-    image (its sampled Gaussian, width clipped to ``RESIDUAL_WIDTH_CLIP`` eta0, stamp half-width
-    ceil(``RESIDUAL_STAMP_WIDTHS`` eta0))."""
+    """Eq. 2 where it matters: a found dot within ``reach`` of a dot still to find is marked
+    ``subtracted = round_`` and adds its sampled Gaussian (width clipped to ``RESIDUAL_WIDTH_CLIP`` eta0,
+    stamp :func:`stamp_box`) to ``stamps`` in fixed point (:func:`stamp_scale`);
+    :func:`apply_stamps` then takes them from the residual image."""
     i = ids[wp.tid()]
     f = i // per_frame
     if active[f] == 0 or subtracted[i] != 0 or not wp.isfinite(x[i]):
@@ -298,24 +326,71 @@ def subtract_near_waiting(
                 near = True
     if not near:
         return
-    subtracted[i] = 1
+    subtracted[i] = round_
     e0 = eta0[f]
     e = wp.clamp(eta[i], CLIP_LO * e0, CLIP_HI * e0)
-    rad = int(wp.ceil(STAMP_WIDTHS * e0))
-    cx = int(wp.rint(xi))
-    cy = int(wp.rint(yi))
+    box = stamp_box(xi, yi, e0)
     inv = wp.float64(1.0) / (wp.float64(2.0) * e * e)
     a = i0[i]
-    height = residual.shape[1]
-    width = residual.shape[2]
-    for rr in range(cy - rad, cy + rad + 1):
+    scale = stamp_scale(ref_peak[f])
+    height = stamps.shape[1]
+    width = stamps.shape[2]
+    for rr in range(box[1] - box[2], box[1] + box[2] + 1):
         if rr >= 0 and rr < height:
             ty = wp.float64(rr) - yi
             gy = wp.exp(-(ty * ty) * inv)
-            for cc in range(cx - rad, cx + rad + 1):
+            for cc in range(box[0] - box[2], box[0] + box[2] + 1):
                 if cc >= 0 and cc < width:
                     tx = wp.float64(cc) - xi
-                    wp.atomic_sub(residual, f, rr, cc, a * gy * wp.exp(-(tx * tx) * inv))
+                    wp.atomic_add(stamps, f, rr, cc, to_fixed(a * gy * wp.exp(-(tx * tx) * inv), scale))
+
+
+@wp.kernel(module=GPU_MODULE)
+def apply_stamps(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    round_: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    ref_peak: wp.array(dtype=wp.float64),
+    subtracted: wp.array(dtype=wp.int32),
+    image: wp.array3d(dtype=wp.float64),
+    stamps: wp.array3d(dtype=wp.int64),
+    residual: wp.array3d(dtype=wp.float64),
+):
+    """The residual where the dots subtracted in ``round_`` lie: ``image`` less all the stamps so far.
+    Every dot whose stamp covers a pixel writes the same value there, so the order does not matter."""
+    i = ids[wp.tid()]
+    f = i // per_frame
+    if subtracted[i] != round_:
+        return
+    box = stamp_box(x[i], y[i], eta0[f])
+    inv_scale = wp.float64(1.0) / stamp_scale(ref_peak[f])
+    for rr in range(wp.max(box[1] - box[2], 0), wp.min(box[1] + box[2] + 1, stamps.shape[1])):
+        for cc in range(wp.max(box[0] - box[2], 0), wp.min(box[0] + box[2] + 1, stamps.shape[2])):
+            residual[f, rr, cc] = image[f, rr, cc] - wp.float64(stamps[f, rr, cc]) * inv_scale
+
+
+@wp.kernel(module=GPU_MODULE)
+def clear_stamps(
+    ids: wp.array(dtype=wp.int32),
+    per_frame: int,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    eta0: wp.array(dtype=wp.float64),
+    subtracted: wp.array(dtype=wp.int32),
+    stamps: wp.array3d(dtype=wp.int64),
+):
+    """``stamps`` zero again where the subtracted dots left theirs (ready for the next call)."""
+    i = ids[wp.tid()]
+    f = i // per_frame
+    if subtracted[i] == 0:
+        return
+    box = stamp_box(x[i], y[i], eta0[f])
+    for rr in range(wp.max(box[1] - box[2], 0), wp.min(box[1] + box[2] + 1, stamps.shape[1])):
+        for cc in range(wp.max(box[0] - box[2], 0), wp.min(box[0] + box[2] + 1, stamps.shape[2])):
+            stamps[f, rr, cc] = wp.int64(0)
 
 
 # --- a stack's priors and the first round's peaks ----------------------------------------------------

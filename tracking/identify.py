@@ -602,6 +602,9 @@ class StackIdentification:
         self.claim_id = wp.full(cells, np.iinfo(np.int32).max, dtype=wp.int32, device=device)
         self.board = (self.hp, self.wpad, self.claim_dist, self.claim_id)
         self.residual = wp.empty_like(refs)
+        # the fixed-point sums of the stamps taken from the residual (claim_kernels.stamp_near_waiting), all
+        # zero between calls of identify (each clears what it used); the CPU identifies on the host
+        self.stamps = None if self.on_cpu else wp.zeros(refs.shape, dtype=wp.int64, device=device)
         self.grid = wp.HashGrid(128, 128, 64, device=device)
         self.on_host = self.on_cpu or not kernels_measure(settings)
 
@@ -763,11 +766,20 @@ class StackIdentification:
                 self.launch(ck.waiting_points, M, [pred, todo, self.N, _Z_STEP, points])
                 self.grid.build(points, float(np.max(reach_px)) + 1.0)
                 self.launch(
-                    ck.subtract_near_waiting,
+                    ck.stamp_near_waiting,
                     n_ids,
                     [
-                        self.grid.id, ids, self.N, _Z_STEP, active, pred, todo, out["x"], out["y"], out["eta"],
-                        out["i0"], self.eta0, reach, subtracted, self.residual,
+                        self.grid.id, ids, self.N, _Z_STEP, it, active, pred, todo, out["x"], out["y"], out["eta"],
+                        out["i0"], self.eta0, reach, ref_peak, subtracted, self.stamps,
                     ],
                 )  # fmt: skip
+                self.launch(
+                    ck.apply_stamps,
+                    n_ids,
+                    [
+                        ids, self.N, it, out["x"], out["y"], self.eta0, ref_peak, subtracted, image, self.stamps,
+                        self.residual,
+                    ],
+                )  # fmt: skip
+        self.launch(ck.clear_stamps, n_ids, [ids, self.N, out["x"], out["y"], self.eta0, subtracted, self.stamps])
         return out

@@ -269,3 +269,65 @@ def test_pairs_per_call_on_the_cpu_is_unbounded():
     from synthbos.tracking.stack import pairs_per_call
 
     assert pairs_per_call((512, 512), 5120, "cpu") is None
+
+
+def test_stamps_leave_the_residual_in_any_order():
+    """Identification's GPU engine takes found dots near a waiting dot out of the residual image in
+    fixed point (``claim_kernels.stamp_near_waiting``, ``apply_stamps``): the residual has the same bits
+    whatever order the threads run in (here: the dots' ids forward and reversed, their stamps
+    overlapping), is Eq. 2's (``subtract_gaussians``) to 1e-11 of the peak, and the stamps are left zero."""
+    import warp as wp
+    from synthbos.tracking import claim_kernels as ck
+    from synthbos.tracking.residual import subtract_gaussians
+    from synthbos.tracking.settings import RESIDUAL_STAMP_WIDTHS, RESIDUAL_WIDTH_CLIP
+
+    rng = np.random.default_rng(7)
+    per_frame, shape, eta0 = 8, (2, 24, 28), 1.1
+    # frame 0: six found dots crowded around a waiting one (row 0), one found dot far away (row 7);
+    # frame 1: its copy, nothing waiting
+    crowd = np.array([12.3, 11.6]) + rng.uniform(-2.5, 2.5, (6, 2))
+    xy = np.vstack([[12.3, 11.6], crowd, [2.0, 3.0]])
+    xy = np.vstack([xy, xy])
+    found = np.ones(2 * per_frame, bool)
+    found[0] = False
+    x = np.where(found, xy[:, 0], np.nan)
+    i0, eta = rng.uniform(0.3, 2.0, 2 * per_frame), rng.uniform(0.4, 2.0, 2 * per_frame)
+    image = rng.uniform(0.0, 1.0, shape)
+    todo = np.where(found, 0, np.r_[1, np.zeros(2 * per_frame - 1)]).astype(np.int32)
+    reach = np.full(2, 6.0)
+
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device="cpu")
+
+    def run(ids):
+        residual, stamps = arr(image, wp.float64), wp.zeros(shape, dtype=wp.int64, device="cpu")
+        subtracted = wp.zeros(2 * per_frame, dtype=wp.int32, device="cpu")
+        points = wp.empty(2 * per_frame, dtype=wp.vec3, device="cpu")
+        pred, todo_ = arr(xy, wp.vec2d), arr(todo, wp.int32)
+        wp.launch(ck.waiting_points, 2 * per_frame, [pred, todo_, per_frame, 1000.0, points], device="cpu")
+        grid = wp.HashGrid(16, 16, 4, device="cpu")
+        grid.build(points, 7.0)
+        ids = arr(ids, wp.int32)
+        fx, fy = arr(x, wp.float64), arr(xy[:, 1], wp.float64)
+        e0, peak, one = arr([eta0, eta0], wp.float64), arr([1.3, 1.3], wp.float64), arr([1, 1], wp.int32)
+        wp.launch(ck.stamp_near_waiting, len(ids), [grid.id, ids, per_frame, 1000.0, 1, one, pred, todo_, fx, fy,
+                  arr(eta, wp.float64), arr(i0, wp.float64), e0, arr(reach, wp.float64), peak, subtracted, stamps],
+                  device="cpu")  # fmt: skip
+        wp.launch(ck.apply_stamps, len(ids), [ids, per_frame, 1, fx, fy, e0, peak, subtracted, arr(image, wp.float64),
+                  stamps, residual], device="cpu")  # fmt: skip
+        wp.launch(ck.clear_stamps, len(ids), [ids, per_frame, fx, fy, e0, subtracted, stamps], device="cpu")
+        return residual.numpy(), subtracted.numpy(), stamps.numpy()
+
+    ids = np.arange(2 * per_frame)
+    forward, subtracted, stamps = run(ids)
+    backward, _, _ = run(ids[::-1].copy())
+    assert forward.tobytes() == backward.tobytes()
+    assert_array_equal(subtracted, np.r_[0, np.ones(6), np.zeros(9)])  # the six near the waiting dot only
+    assert not stamps.any()
+    lo, hi = RESIDUAL_WIDTH_CLIP
+    near = np.arange(1, 7)
+    expect = subtract_gaussians(image[0], xy[near], i0[near], np.clip(eta[near], lo * eta0, hi * eta0),
+                                radius=int(np.ceil(RESIDUAL_STAMP_WIDTHS * eta0)))  # fmt: skip
+    assert np.abs(expect - image[0]).max() > 0.5  # the stamps overlap and take real light
+    assert_allclose(forward[0], expect, rtol=0, atol=1e-11 * 1.3)
+    assert_array_equal(forward[1], image[1])
