@@ -401,6 +401,100 @@ def group_member(tid: int, group: int, n_dots: int):
     return g - block * n_dots, block * group + (tid - g * group)
 
 
+#: The int64 cells of a CUDA block's spot tiles in shared memory (32 KB): ``render_rays`` with ``tile_side > 0``
+#: sums its block's spots there and adds each cell to the image once (``spot_tiles``).
+SPOT_CELLS = 4096
+#: The widest spot tile (cells a side) a group of threads gets, however few groups share the block.
+SPOT_SIDE_MAX = 24
+SPOT_ADD = wp.constant(0)
+SPOT_READ = wp.constant(1)
+SPOT_CLEAR = wp.constant(2)
+SPOT_SYNC = wp.constant(3)
+
+
+@wp.func_native(f"""
+#if defined(__CUDA_ARCH__)
+__shared__ long long spot_cells[{SPOT_CELLS}];
+if (op == 0) {{
+    atomicAdd((unsigned long long*)&spot_cells[idx], (unsigned long long)value);
+    return 0;
+}}
+if (op == 1) return spot_cells[idx];
+if (op == 2) {{
+    spot_cells[idx] = 0;
+    return 0;
+}}
+__syncthreads();
+return 0;
+#else
+return 0;
+#endif
+""")
+def spot_cell(op: int, idx: int, value: wp.int64) -> wp.int64:
+    """The block's shared spot cells on CUDA (one static array for every call): ``SPOT_ADD`` adds ``value``
+    to cell ``idx`` (an atomic in shared memory), ``SPOT_READ`` returns it, ``SPOT_CLEAR`` sets it to 0,
+    ``SPOT_SYNC`` waits for every thread of the block (every thread must call it). 0 on the CPU."""
+    ...
+
+
+@wp.func
+def spot_tile_corner(nominal: wp.vec2, side: int) -> wp.vec2i:
+    """The (column, row) of the first cell of a dot's spot tile: ``side`` cells a side centred on the
+    pixel nearest its nominal position."""
+    half = side / 2
+    return wp.vec2i(int(wp.round(nominal[0])) - half, int(wp.round(nominal[1])) - half)
+
+
+@wp.func
+def deposit_gaussian_tiled(
+    image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float, base: int, corner: wp.vec2i,
+    side: int,
+):
+    """``deposit_gaussian_plain``'s numbers, each pixel's into its cell of the thread's spot tile in shared
+    memory (``side`` x ``side`` cells from cell ``base``, its first at pixel ``corner``) where it falls in
+    the tile, else into the image."""
+    c0 = int(wp.round(px[0]))
+    r0 = int(wp.round(px[1]))
+    inv = 1.0 / (wp.sqrt(2.0) * sen.sigma_px)
+    hw = sen.half_width
+    for dr in range(-hw, hw + 1):
+        row = r0 + dr
+        if row >= 0 and row < sen.height:
+            fy = 0.5 * (wp.erf((float(row) + 0.5 - px[1]) * inv) - wp.erf((float(row) - 0.5 - px[1]) * inv))
+            tr = row - corner[1]
+            for dc in range(-hw, hw + 1):
+                col = c0 + dc
+                if col >= 0 and col < sen.width:
+                    fx = 0.5 * (wp.erf((float(col) + 0.5 - px[0]) * inv) - wp.erf((float(col) - 0.5 - px[0]) * inv))
+                    v = wp.int64(wp.floor(energy * fx * fy * IMAGE_SCALE + 0.5))
+                    tc = col - corner[0]
+                    if tr >= 0 and tr < side and tc >= 0 and tc < side:
+                        spot_cell(SPOT_ADD, base + tr * side + tc, v)
+                    else:
+                        wp.atomic_add(image, row, col, v)
+
+
+@wp.func
+def flush_spot_tiles(
+    image: wp.array2d(dtype=wp.int64), nominal_px: wp.array(dtype=wp.vec2), launch_order: wp.array(dtype=wp.int32),
+    tid: int, lane: int, block_dim: int, group: int, side: int,
+):
+    """Add every non-zero cell of the block's spot tiles to the image (after ``SPOT_SYNC``): the block's
+    threads take the cells in turn; tile ``s`` is that of the block's group ``s``, whose dot gives its
+    corner. Only pixels on the image were summed into a cell."""
+    n_dots = launch_order.shape[0]
+    area = side * side
+    first = tid - lane
+    for k in range(lane, (block_dim / group) * area, block_dim):
+        v = spot_cell(SPOT_READ, k, wp.int64(0))
+        if v != wp.int64(0):
+            s = k / area
+            cell = k - s * area
+            slot, _ = group_member(first + s * group, group, n_dots)
+            corner = spot_tile_corner(nominal_px[launch_order[slot]], side)
+            wp.atomic_add(image, corner[1] + cell / side, corner[0] + cell - (cell / side) * side, v)
+
+
 @wp.func
 def fixed(value: wp.float64, scale: wp.float64):
     """``value`` in fixed point: the nearest integer to value * scale."""
@@ -472,6 +566,8 @@ def render_rays(
     rays_per_thread: int,
     scale2: wp.float64,
     scale3: wp.float64,
+    block_dim: int,
+    tile_side: int,
     image: wp.array2d(dtype=wp.int64),
     sum_x: wp.array(dtype=wp.int64),
     sum_y: wp.array(dtype=wp.int64),
@@ -494,16 +590,31 @@ def render_rays(
     on (seed, dot, ray), and the images and sums are accumulated in fixed point, so every order gives
     the same bits.
 
+    On CUDA with ``tile_side > 0`` (``spot_tile_side``; launched in whole blocks of ``block_dim`` threads,
+    a multiple of ``group``), each group's spots are summed in a ``tile_side``-square tile of the block's
+    shared memory centred on its dot's nominal pixel, and each tile's cells are added to the image once at
+    the end (``flush_spot_tiles``): a few atomics in the image per dot and block instead of one per pixel
+    of every spot. Pixels off the tile go to the image directly. The same integer sums, so the same bits.
+
     Per dot: ``sum_x``, ``sum_y`` (offsets of the landing positions from the nominal position, units
     of 1 / POSITION_SCALE px), ``sums`` (N, 7): the sums of their products (see ``moment_terms``).
     """
     n_dots = dots.shape[0]
-    slot, chunk = group_member(wp.tid(), group, n_dots)
+    tid = wp.tid()
+    slot, chunk = group_member(tid, group, n_dots)
     r0 = chunk * rays_per_thread
-    if r0 >= ray_count:
+    tiled = compiled_for_cpu() == 0 and tile_side > 0
+    if r0 >= ray_count and not tiled:
         return
     dot = launch_order[slot]
-    r1 = wp.min(r0 + rays_per_thread, ray_count)
+    r1 = wp.min(r0 + rays_per_thread, ray_count)  # r1 <= r0: a tiled launch's idle thread
+    lane = tid % block_dim
+    base = (lane / group) * tile_side * tile_side
+    corner = spot_tile_corner(nominal_px[dot], tile_side)
+    if tiled:
+        for k in range(lane, (block_dim / group) * tile_side * tile_side, block_dim):
+            spot_cell(SPOT_CLEAR, k, wp.int64(0))
+        spot_cell(SPOT_SYNC, 0, wp.int64(0))
     acc_x = wp.int64(0)
     acc_y = wp.int64(0)
     acc = vec7l()
@@ -522,7 +633,10 @@ def render_rays(
         px = sensor_to_pixel(sen, xs)
         if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
             n_lost += 1
-        deposit_gaussian(image, sen, px, sen.energy)
+        if tiled:
+            deposit_gaussian_tiled(image, sen, px, sen.energy, base, corner, tile_side)
+        else:
+            deposit_gaussian(image, sen, px, sen.energy)
         d = px - nominal_px[dot]
         acc_x += wp.int64(wp.floor(d[0] * POSITION_SCALE + 0.5))
         acc_y += wp.int64(wp.floor(d[1] * POSITION_SCALE + 0.5))
@@ -542,6 +656,9 @@ def render_rays(
         wp.atomic_add(lost, dot, n_lost)
     if n_tir > 0:
         wp.atomic_add(tir, dot, n_tir)
+    if tiled:
+        spot_cell(SPOT_SYNC, 0, wp.int64(0))
+        flush_spot_tiles(image, nominal_px, launch_order, tid, lane, block_dim, group, tile_side)
 
 
 @wp.kernel
