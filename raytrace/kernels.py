@@ -448,22 +448,25 @@ def spot_tile_corner(nominal: wp.vec2, side: int) -> wp.vec2i:
 @wp.func
 def deposit_gaussian_tiled(
     image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float, base: int, corner: wp.vec2i,
-    side: int,
+    side: int, turn: int,
 ):
     """``deposit_gaussian_plain``'s numbers, each pixel's into its cell of the thread's spot tile in shared
     memory (``side`` x ``side`` cells from cell ``base``, its first at pixel ``corner``) where it falls in
-    the tile, else into the image."""
+    the tile, else into the image. Each row's columns are taken from the ``turn``-th on (modulo the
+    window), so that the threads of a group, whose spots share cells, add to different cells at a time
+    (atomics on one address from a warp's threads run one after another)."""
     c0 = int(wp.round(px[0]))
     r0 = int(wp.round(px[1]))
     inv = 1.0 / (wp.sqrt(2.0) * sen.sigma_px)
     hw = sen.half_width
+    n = 2 * hw + 1
     for dr in range(-hw, hw + 1):
         row = r0 + dr
         if row >= 0 and row < sen.height:
             fy = 0.5 * (wp.erf((float(row) + 0.5 - px[1]) * inv) - wp.erf((float(row) - 0.5 - px[1]) * inv))
             tr = row - corner[1]
-            for dc in range(-hw, hw + 1):
-                col = c0 + dc
+            for k in range(n):
+                col = c0 + (k + turn) % n - hw
                 if col >= 0 and col < sen.width:
                     fx = 0.5 * (wp.erf((float(col) + 0.5 - px[0]) * inv) - wp.erf((float(col) - 0.5 - px[0]) * inv))
                     v = wp.int64(wp.floor(energy * fx * fy * IMAGE_SCALE + 0.5))
@@ -634,7 +637,7 @@ def render_rays(
         if px[0] < -0.5 or px[1] < -0.5 or px[0] > float(sen.width) - 0.5 or px[1] > float(sen.height) - 0.5:
             n_lost += 1
         if tiled:
-            deposit_gaussian_tiled(image, sen, px, sen.energy, base, corner, tile_side)
+            deposit_gaussian_tiled(image, sen, px, sen.energy, base, corner, tile_side, lane % group)
         else:
             deposit_gaussian(image, sen, px, sen.energy)
         d = px - nominal_px[dot]
