@@ -315,34 +315,24 @@ DEPOSIT_WINDOW = wp.constant(97)
 
 
 @wp.func
-def deposit_gaussian(image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float):
+def deposit_gaussian(image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float, turn: int):
     """Add a Gaussian spot of total ``energy`` centred at pixel coordinates px, integrated over each
     pixel with erf, into the fixed-point ``image`` (units of 1 / IMAGE_SCALE) with atomics: each pixel
     adds floor(energy * fx * fy * IMAGE_SCALE + 0.5), fx and fy half the difference of erf at its column's
     and row's edges. The CPU's ``deposit_gaussian_cached`` computes the same numbers with 16 erf calls
-    instead of 112 (7 x 7 px); CUDA, where its array would live in local memory, keeps the plain loop."""
+    instead of 112 (7 x 7 px); CUDA, where its array would live in local memory, keeps the plain loop,
+    each row's columns from the ``turn``-th on (see ``deposit_gaussian_tiled``)."""
     if compiled_for_cpu() != 0 and 2 * sen.half_width + 1 <= DEPOSIT_WINDOW:
         deposit_gaussian_cached(image, sen, px, energy)
     else:
-        deposit_gaussian_plain(image, sen, px, energy)
+        deposit_gaussian_plain(image, sen, px, energy, turn)
 
 
 @wp.func
-def deposit_gaussian_plain(image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float):
-    """``deposit_gaussian`` pixel by pixel: two erf calls for each pixel's fx, two for each row's fy."""
-    c0 = int(wp.round(px[0]))
-    r0 = int(wp.round(px[1]))
-    inv = 1.0 / (wp.sqrt(2.0) * sen.sigma_px)
-    hw = sen.half_width
-    for dr in range(-hw, hw + 1):
-        row = r0 + dr
-        if row >= 0 and row < sen.height:
-            fy = 0.5 * (wp.erf((float(row) + 0.5 - px[1]) * inv) - wp.erf((float(row) - 0.5 - px[1]) * inv))
-            for dc in range(-hw, hw + 1):
-                col = c0 + dc
-                if col >= 0 and col < sen.width:
-                    fx = 0.5 * (wp.erf((float(col) + 0.5 - px[0]) * inv) - wp.erf((float(col) - 0.5 - px[0]) * inv))
-                    wp.atomic_add(image, row, col, wp.int64(wp.floor(energy * fx * fy * IMAGE_SCALE + 0.5)))
+def deposit_gaussian_plain(image: wp.array2d(dtype=wp.int64), sen: Sensor, px: wp.vec2, energy: float, turn: int):
+    """``deposit_gaussian`` pixel by pixel (two erf calls for each pixel's fx, two for each row's fy), every
+    pixel into the image: ``deposit_gaussian_tiled`` without a tile."""
+    deposit_gaussian_tiled(image, sen, px, energy, 0, wp.vec2i(0, 0), 0, turn)
 
 
 @wp.func
@@ -639,7 +629,7 @@ def render_rays(
         if tiled:
             deposit_gaussian_tiled(image, sen, px, sen.energy, base, corner, tile_side, lane % group)
         else:
-            deposit_gaussian(image, sen, px, sen.energy)
+            deposit_gaussian(image, sen, px, sen.energy, lane % group)
         d = px - nominal_px[dot]
         acc_x += wp.int64(wp.floor(d[0] * POSITION_SCALE + 0.5))
         acc_y += wp.int64(wp.floor(d[1] * POSITION_SCALE + 0.5))
@@ -691,7 +681,7 @@ def deposit_spots(
 ):
     """Deposit one Gaussian spot per entry (used by tests to compare against the NumPy reference)."""
     i = wp.tid()
-    deposit_gaussian(image, sen, px[i], energy[i])
+    deposit_gaussian(image, sen, px[i], energy[i], i)
 
 
 # ``render_rays`` for each medium struct, held to at most 80 or 64 registers a thread on CUDA or not
