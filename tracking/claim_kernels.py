@@ -285,6 +285,16 @@ def stamp_box(xi: wp.float64, yi: wp.float64, e0: wp.float64) -> wp.vec3i:
     return wp.vec3i(int(wp.rint(xi)), int(wp.rint(yi)), int(wp.ceil(STAMP_WIDTHS * e0)))
 
 
+@wp.func
+def stamp_pixels(box: wp.vec3i, height: int, width: int) -> wp.vec4i:
+    """The pixels of stamp ``box`` (:func:`stamp_box`) inside a ``height`` x ``width`` frame: rows
+    ``[0, 1)`` and columns ``[2, 3)`` of the result."""
+    return wp.vec4i(
+        wp.max(box[1] - box[2], 0), wp.min(box[1] + box[2] + 1, height),
+        wp.max(box[0] - box[2], 0), wp.min(box[0] + box[2] + 1, width),
+    )  # fmt: skip
+
+
 @wp.kernel(module=GPU_MODULE)
 def stamp_near_waiting(
     grid: wp.uint64,
@@ -329,20 +339,16 @@ def stamp_near_waiting(
     subtracted[i] = round_
     e0 = eta0[f]
     e = wp.clamp(eta[i], CLIP_LO * e0, CLIP_HI * e0)
-    box = stamp_box(xi, yi, e0)
     inv = wp.float64(1.0) / (wp.float64(2.0) * e * e)
     a = i0[i]
     scale = stamp_scale(ref_peak[f])
-    height = stamps.shape[1]
-    width = stamps.shape[2]
-    for rr in range(box[1] - box[2], box[1] + box[2] + 1):
-        if rr >= 0 and rr < height:
-            ty = wp.float64(rr) - yi
-            gy = wp.exp(-(ty * ty) * inv)
-            for cc in range(box[0] - box[2], box[0] + box[2] + 1):
-                if cc >= 0 and cc < width:
-                    tx = wp.float64(cc) - xi
-                    wp.atomic_add(stamps, f, rr, cc, to_fixed(a * gy * wp.exp(-(tx * tx) * inv), scale))
+    px = stamp_pixels(stamp_box(xi, yi, e0), stamps.shape[1], stamps.shape[2])
+    for rr in range(px[0], px[1]):
+        ty = wp.float64(rr) - yi
+        gy = wp.exp(-(ty * ty) * inv)
+        for cc in range(px[2], px[3]):
+            tx = wp.float64(cc) - xi
+            wp.atomic_add(stamps, f, rr, cc, to_fixed(a * gy * wp.exp(-(tx * tx) * inv), scale))
 
 
 @wp.kernel(module=GPU_MODULE)
@@ -365,10 +371,10 @@ def apply_stamps(
     f = i // per_frame
     if subtracted[i] != round_:
         return
-    box = stamp_box(x[i], y[i], eta0[f])
     inv_scale = wp.float64(1.0) / stamp_scale(ref_peak[f])
-    for rr in range(wp.max(box[1] - box[2], 0), wp.min(box[1] + box[2] + 1, stamps.shape[1])):
-        for cc in range(wp.max(box[0] - box[2], 0), wp.min(box[0] + box[2] + 1, stamps.shape[2])):
+    px = stamp_pixels(stamp_box(x[i], y[i], eta0[f]), stamps.shape[1], stamps.shape[2])
+    for rr in range(px[0], px[1]):
+        for cc in range(px[2], px[3]):
             residual[f, rr, cc] = image[f, rr, cc] - wp.float64(stamps[f, rr, cc]) * inv_scale
 
 
@@ -387,9 +393,9 @@ def clear_stamps(
     f = i // per_frame
     if subtracted[i] == 0:
         return
-    box = stamp_box(x[i], y[i], eta0[f])
-    for rr in range(wp.max(box[1] - box[2], 0), wp.min(box[1] + box[2] + 1, stamps.shape[1])):
-        for cc in range(wp.max(box[0] - box[2], 0), wp.min(box[0] + box[2] + 1, stamps.shape[2])):
+    px = stamp_pixels(stamp_box(x[i], y[i], eta0[f]), stamps.shape[1], stamps.shape[2])
+    for rr in range(px[0], px[1]):
+        for cc in range(px[2], px[3]):
             stamps[f, rr, cc] = wp.int64(0)
 
 

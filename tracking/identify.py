@@ -602,11 +602,11 @@ class StackIdentification:
         self.claim_id = wp.full(cells, np.iinfo(np.int32).max, dtype=wp.int32, device=device)
         self.board = (self.hp, self.wpad, self.claim_dist, self.claim_id)
         self.residual = wp.empty_like(refs)
-        # the fixed-point sums of the stamps taken from the residual (claim_kernels.stamp_near_waiting), all
-        # zero between calls of identify (each clears what it used); the CPU identifies on the host
-        self.stamps = None if self.on_cpu else wp.zeros(refs.shape, dtype=wp.int64, device=device)
         self.grid = wp.HashGrid(128, 128, 64, device=device)
         self.on_host = self.on_cpu or not kernels_measure(settings)
+        # the fixed-point sums of the stamps taken from the residual (claim_kernels.stamp_near_waiting), all
+        # zero between calls of identify (each clears what it used); only the kernels' engine uses them
+        self.stamps = None if self.on_host else wp.zeros(refs.shape, dtype=wp.int64, device=device)
 
     def arr(self, a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
