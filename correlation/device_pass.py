@@ -141,6 +141,14 @@ class _Plan:
         self.stream = wp.Stream(device) if wp.get_device(device).is_cuda else None
         self.host = {}  # page-locked host copies of what the plan reads back (a GPU), by device array
         self.lock = threading.Lock()
+        self._settle()
+
+    def _settle(self):
+        """Wait for the buffers just made: Warp zeroes and fills a new device array on the device's current
+        stream, not the plan's, and nothing orders the two; a zeroing left in the queue could land after
+        the plan's own upload (an image read back constant 0 by a second process driving the same GPU)."""
+        if self.stream is not None:
+            self.wp.synchronize_device(self.device)
 
     def _zeros(self, shape, dtype):
         return self.wp.zeros(shape, dtype=dtype, device=self.device)
@@ -357,6 +365,7 @@ class _Plan:
         key = (index, dtype)
         if key not in self.raw:
             self.raw[key] = wp.zeros(self.shape, dtype=dtype, device=self.device)
+            self._settle()
         return self.raw[key]
 
     def upload(self, images, names, raise_for):
