@@ -34,7 +34,7 @@ import numpy as np
 from synthbos import atomic_output
 
 from .campaign import run_campaign
-from .distributed import DaskRunner, visible_gpus
+from .distributed import LOCAL_WORKERS_PER_GPU, DaskRunner, visible_gpus
 from .spec import FULL, CampaignSpec
 
 __all__ = ["campaign_spec", "main", "run_scaling"]
@@ -88,8 +88,8 @@ def _same_scores(first: Path, other: Path) -> bool:
     return True
 
 
-def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None, per_gpu: int = 1, folder=None,
-                progress=False, **spec_options) -> list[dict]:
+def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None, per_gpu: int = LOCAL_WORKERS_PER_GPU,
+                folder=None, progress=False, **spec_options) -> list[dict]:
     """Time the campaign on each count of ``counts`` (GPUs, or CPU workers); return one row per count."""
     rows, outs = [], []
     on_gpu = device.startswith("cuda")
@@ -172,8 +172,10 @@ def _plain_table(rows, gpus, args) -> str:
     with tempfile.TemporaryDirectory(prefix="synthbos-plain-") as tmp:
         spec_options = {"pixels": args.pixels, "rays": args.rays, "noise": [float(v) for v in args.noise.split(",")]}
         share = max(1, default_workers() // max(1, len(gpus)))
+        # every core, and a GPU worker's share (once where they are the same: a second campaign into the same
+        # folder would find its work done)
         plain = [run_plain(device=args.device, pairs=first["pairs"], workers=w, folder=tmp, **spec_options)
-                 for w in (default_workers(), share)]  # every core, and a GPU worker's share
+                 for w in sorted({default_workers(), share}, reverse=True)]
     best = max(plain, key=lambda p: p["pairs_per_s"])  # like with like: the faster of the two
     lines = [f"Without Dask on one GPU ({first['pairs']} pairs): "
              + "; ".join(f"{p['workers']} processes {p['pairs_per_s']:.3f} pairs/s ({p['campaign_s']:.1f} s)"
@@ -193,7 +195,8 @@ def main(argv=None):
     parser.add_argument("--device", default="cuda:0", help="cuda:0 (each worker's own GPU) or cpu (CPU workers)")
     parser.add_argument("--gpus", default=None, help="GPUs to pin workers to, e.g. 0,1,2,3 (default: all visible)")
     parser.add_argument("--counts", default="1,2,4", help="GPU (or CPU worker) counts to time, e.g. 1,2,4")
-    parser.add_argument("--per-gpu", type=int, default=1, help="workers per GPU")
+    parser.add_argument("--per-gpu", type=int, default=LOCAL_WORKERS_PER_GPU,
+                        help=f"workers per GPU (default: {LOCAL_WORKERS_PER_GPU}, as --scheduler local starts)")
     parser.add_argument("--pairs-per-gpu", type=int, default=20, help="pairs per GPU (or CPU worker): weak scaling")
     parser.add_argument("--pairs", type=int, default=None, help="pairs in every campaign instead: strong scaling")
     parser.add_argument("--pixels", type=int, default=512)

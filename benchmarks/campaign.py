@@ -23,6 +23,7 @@ from .integrate import floor_current, pair_floor
 from .items import by_pair_and_noise, render_item, score_items
 from .registry import check_available, get_method
 from .scheduling import (
+    PIPELINE_DRIVERS,
     PIPELINE_WORKER_DEVICE,
     default_workers,
     pipeline_workers,
@@ -37,14 +38,14 @@ from .stacks import check_stack
 from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import floor_rows, summarise, summary_groups, summary_rows
 
-__all__ = ["PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_spec", "resolve_process_device",
-           "run_campaign", "write_summary"]
+__all__ = ["PIPELINE_DRIVERS", "PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_drivers",
+           "check_spec", "resolve_process_device", "run_campaign", "write_summary"]
 
 
 
 def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progress=True, figures=True,
                  scheduler=None, wait=False, process_device=None, pipeline=None, worker_device=None, timings=None,
-                 stack=None, stacks=None):
+                 stack=None, stacks=None, drivers=None, drivers_log=None):
     """Render, process and score a campaign in ``folder``, skipping finished items; return the summary.
 
     ``device`` renders; ``process_device`` runs the methods (default: ``device``, and the CPU when
@@ -69,6 +70,11 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
     runs the pipeline (unless ``pipeline`` is False, which is refused), so the CPU runs the same
     orchestration as a GPU; the results equal the item-by-item ones to floating-point rounding.
     ``stacks`` (a list, optional) receives one entry per ``track_pairs`` call (``stacks.Stacks``).
+
+    ``drivers``: processes that drive the GPU in the pipeline, this one included, each taking the next
+    pair no one has taken (``benchmarks.drivers``); None: :data:`PIPELINE_DRIVERS` when processing on a
+    GPU, else 1. The files are the same whatever the count. ``drivers_log`` (a list, optional) receives
+    the pairs each of them took.
 
     Everything a user can get wrong (the configuration, the methods and their settings, the folder) is
     checked before any work starts. The folder is locked (``folder/.lock``) for the campaign's life: a
@@ -97,6 +103,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         check_scheduler(scheduler)  # so does a bad --scheduler, even for a finished campaign
     methods = [get_method(name) for name in spec.methods]
     check_campaign_stack(stack, spec, device=device, scheduler=scheduler, pipeline=pipeline)
+    check_drivers(drivers)
     if pipeline is None:
         pipeline = process_device.startswith("cuda") or bool(stack)
     make_folder(folder)
@@ -104,7 +111,7 @@ def run_campaign(spec: CampaignSpec, folder, *, device=None, workers=None, progr
         return _run_locked(spec, folder, methods, device=device, workers=workers, progress=progress,
                            figures=figures, scheduler=scheduler, process_device=process_device, pipeline=pipeline,
                            worker_device=worker_device, timings={} if timings is None else timings, stack=stack,
-                           stacks=stacks)
+                           stacks=stacks, drivers=drivers, drivers_log=drivers_log)
 
 
 def check_campaign_stack(stack, spec: CampaignSpec, *, device=None, scheduler=None, pipeline=None) -> None:
@@ -120,6 +127,14 @@ def check_campaign_stack(stack, spec: CampaignSpec, *, device=None, scheduler=No
     if scheduler is not None and not on_pipeline:
         raise SynthbosError(f"--stack {stack}: with --scheduler on CPU workers each pair is a task of its own; "
                             "stacks are tracked by GPU workers (--device cuda), which run the pipeline")
+
+
+def check_drivers(drivers) -> None:
+    """Refuse, in one line, a count of processes driving the GPU (``drivers``) that is not a whole number >= 1."""
+    if drivers is None:
+        return
+    if isinstance(drivers, bool) or not isinstance(drivers, int) or drivers < 1:
+        raise SynthbosError(f"--drivers must be a whole number of processes, 1 or more, got {drivers!r}")
 
 
 def resolve_process_device(device=None, process_device=None) -> str:
@@ -146,7 +161,7 @@ def check_spec(spec: CampaignSpec, device=None, process_device=None) -> None:
 
 
 def _run_locked(spec, folder, methods, *, device, workers, progress, figures, scheduler, process_device, pipeline,
-                worker_device=None, timings, stack=None, stacks=None):
+                worker_device=None, timings, stack=None, stacks=None, drivers=None, drivers_log=None):
     t0 = time.perf_counter()
     check_folder(folder, spec)
     # Temporary files of a run killed while writing (SIGKILL): no one else writes here while we hold the lock.
@@ -188,12 +203,16 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         jobs += [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
+        if drivers is None:
+            drivers = PIPELINE_DRIVERS if process_device.startswith("cuda") else 1
         parts = run_pipeline(renders, scores, workers=host, progress=progress,
-                             worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks,
-                             on_items_done=lambda: t_items.append(time.perf_counter()))
+                             worker_device=there, jobs=jobs, stack=stack, stacks_log=stacks, drivers=drivers,
+                             drivers_log=drivers_log, on_items_done=lambda: t_items.append(time.perf_counter()))
         rows = [row for part in parts[len(floors) + len(figure_jobs) :] for row in part]
         write_tables(rows, folder)
-        write_tables(floor_rows(parts[: len(floors)]), folder, stem="floor")
+        # a pair another driver took: its floor is in its file (``pair_floor`` reads it)
+        made = [pair_floor(path) if part is None else part for path, part in zip(floors, parts, strict=False)]
+        write_tables(floor_rows(made), folder, stem="floor")
         timings["render and process"] = t_items[0] - t0
         timings["tables and figures, after the last item"] = time.perf_counter() - t_items[0]
         return rows

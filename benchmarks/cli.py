@@ -31,7 +31,7 @@ from synthbos.values import error_line
 
 from .advice import failure_advice, failure_reason
 from .calibrate import calibrate_from_grid, dots_from_mapping
-from .campaign import check_campaign_stack, check_spec, run_campaign
+from .campaign import PIPELINE_DRIVERS, check_campaign_stack, check_spec, run_campaign
 from .items import nominal_positions
 from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
@@ -302,14 +302,17 @@ def _paper(args):
           f"noise {', '.join(f'{n:g}' for n in spec.noise_percent)} %, {spec.config['rays']['per_dot']} rays/dot) "
           f"-> {out}")
     t0 = time.perf_counter()
-    timings, stacks = {}, []
+    timings, stacks, drivers = {}, [], []
     rows = run_campaign(spec, out, device=device, process_device=process_device, workers=args.workers,
                         progress=not args.quiet, scheduler=args.scheduler, wait=args.wait,
-                        worker_device=worker_device, timings=timings, stack=args.stack, stacks=stacks)
+                        worker_device=worker_device, timings=timings, stack=args.stack, stacks=stacks,
+                        drivers=args.drivers, drivers_log=drivers)
     print(format_summary(rows))
     if (out / "floor.json").exists():
         print(format_floor(json.loads((out / "floor.json").read_text())))
     _stacks_note(stacks, args.stack)
+    if len(drivers) > 1:
+        print(f"{len(drivers)} processes drove {device}, taking {' + '.join(map(str, drivers))} pairs")
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     print(f"results: {out / 'results.csv'}, {out / 'results.json'}; figures: {out / 'fig4.png'}, "
           f"{out / 'fig5.png'}, {out / 'fig_density.png'}, {out / 'fig_budget.png'} (and .pdf, .svg) "
@@ -380,7 +383,7 @@ def _sweep(args):
     rows = run_sweep(base, params, args.out, size=args.size, device=device,
                      methods=_method_list(args.methods) if args.methods else None,
                      process_device=process_device, worker_device=worker_device,
-                     workers=args.workers, stack=args.stack, stacks=stacks,
+                     workers=args.workers, stack=args.stack, stacks=stacks, drivers=args.drivers,
                      progress=not args.quiet, scheduler=args.scheduler, wait=args.wait)
     _stacks_note(stacks, args.stack)
     print(f"sweep: {len(rows)} rows -> {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}, "
@@ -456,6 +459,23 @@ def _add_stack_option(p, *, cpu_only=False) -> None:
                    help="track the tracking items in stacks: the noisy images of every noise level of up to N "
                         "pairs in one batched call on the processing device (tracking.stack.track_pairs), the "
                         f"results equal to rounding; 0: item by item in the worker processes ({where})")
+
+
+def _add_drivers_option(p) -> None:
+    p.add_argument("--drivers", type=_driver_count, default=None, metavar="N",
+                   help=f"processes that drive the GPU, each taking the next pair no one has taken, with its share "
+                        f"of --workers (default: {PIPELINE_DRIVERS}; the files are the same whatever N; for GPU "
+                        "workers that share GPUs, started before the campaign, use --scheduler local)")
+
+
+def _driver_count(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of processes, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more processes, got {n}")
+    return n
 
 
 def _stack_count(text):
@@ -685,6 +705,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "plugins' methods: synthbos methods lists them)")
         _add_scheduler_option(p)
         _add_stack_option(p)
+        _add_drivers_option(p)
         p.set_defaults(func=_paper, interrupted=_KEPT)
 
     p = sub.add_parser("regress", help="CI guard: compare a small campaign's error percentiles with the baseline")
@@ -723,6 +744,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait", action="store_true", help=_WAIT_HELP)
     _add_scheduler_option(p)
     _add_stack_option(p)
+    _add_drivers_option(p)
     p.set_defaults(func=_sweep, interrupted=_KEPT)
 
     p = sub.add_parser("methods", help="list the registered methods: kind, source package and version")

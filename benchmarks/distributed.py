@@ -1,7 +1,8 @@
 """Campaigns and sweeps on a Dask cluster: the GPUs of one node, or many nodes through a scheduler.
 
 ``--scheduler local`` starts a local Dask cluster (a ``distributed.SpecCluster``, the class that
-``LocalCluster`` builds on) with one single-threaded worker process per GPU, each pinned to its GPU
+``LocalCluster`` builds on) with :data:`LOCAL_WORKERS_PER_GPU` single-threaded worker processes per GPU
+(or ``--workers`` in all), each pinned to its GPU
 through ``CUDA_VISIBLE_DEVICES`` so that its ``cuda:0`` is that GPU (dask-cuda's rule), or ``--workers``
 CPU workers when the campaign renders on the CPU. ``--scheduler tcp://HOST:PORT`` or
 ``--scheduler FILE.json`` (a scheduler file) joins a running cluster instead (``dask scheduler`` and
@@ -60,14 +61,19 @@ from .scheduling import (
     worker_kernels,
 )
 
-__all__ = ["DaskRunner", "campaign_runner", "check_address", "check_scheduler", "pair_task", "pipeline_task",
-           "run_pairs", "shards", "visible_gpus"]
+__all__ = ["LOCAL_WORKERS_PER_GPU", "DaskRunner", "campaign_runner", "check_address", "check_scheduler", "pair_task",
+           "pipeline_task", "run_pairs", "shards", "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
 #: Environment variable giving a local GPU worker the size of its pool of host processes; set by the user
 #: (a positive integer), it replaces each GPU worker's share of the cores (``pipeline_workers``).
 HOST_WORKERS_VAR = "SYNTHBOS_HOST_WORKERS"
+#: Local GPU workers per GPU unless ``--workers`` says otherwise: two pipelines share each GPU, each with
+#: half the GPU's share of the cores. One H100 (16 cores), 50 pairs of the full campaign, warm workers
+#: (2026-11-27/28): 3.6 pairs/s with one worker, 5.0 and 4.6 with two, 5.3 with three; the plain campaign
+#: on the same machines 3.7 and 2.9 pairs/s (docs/benchmarks.md).
+LOCAL_WORKERS_PER_GPU = 2
 
 # Worker-process state: the runs told to stop, and the runs with an item in flight (run token -> count).
 _STOPPED: set[str] = set()
@@ -470,10 +476,11 @@ class DaskRunner:
             gpus = self.gpus if self.gpus is not None else host_gpus
             if not gpus:
                 raise SynthbosError(f"--device {cuda[0]} but no CUDA device is visible")
-            n = self.workers or len(gpus)
+            n = self.workers or len(gpus) * LOCAL_WORKERS_PER_GPU
             pinned = [gpus[i % len(gpus)] for i in range(n)]
             names = [f"gpu{g}" if n == len(gpus) else f"gpu{g}-{i}" for i, g in enumerate(pinned)]
-            share = max(n, len(gpus), len(host_gpus))
+            per_gpu = -(-n // len(gpus))  # workers sharing one GPU: each gets that share of a GPU's cores
+            share = max(n, per_gpu * len(gpus), per_gpu * len(host_gpus))
             threads = {**_thread_share(share), HOST_WORKERS_VAR: _host_workers_told() or str(pipeline_workers(share))}
             envs = [{"CUDA_VISIBLE_DEVICES": g, **threads} for g in pinned]
             self.description = f"local cluster of {n} GPU worker(s) on GPU(s) {', '.join(pinned)}"

@@ -33,20 +33,23 @@ import signal
 import sys
 import threading
 import time
+import traceback
 import weakref
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
-from multiprocessing import get_all_start_methods, get_context
 
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from synthbos import SynthbosError
 from synthbos.device import launching, load_kernels
 
-__all__ = ["PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels", "default_workers",
-           "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels", "run_items",
-           "run_pipeline", "same_image_runs", "score_kernels", "split_items", "submit_builds", "worker_kernels",
-           "worker_pool"]
+from .drivers import Claims, driver_context, join_drivers, start_drivers, stop_drivers
+
+__all__ = ["PIPELINE_DRIVERS", "PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels",
+           "default_workers", "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels",
+           "run_items", "run_pipeline", "same_image_runs", "score_kernels", "split_items", "submit_builds",
+           "worker_kernels", "worker_pool"]
 
 #: Where a GPU campaign's worker processes run the methods that are not device resident (tracking), unless
 #: told otherwise. On an H200 host with 16 cores, ``paper --full`` took 13.7-15.5 s with them on the CPU and
@@ -59,6 +62,12 @@ _PR_SET_PDEATHSIG = 1
 WORKER_NICE = 10
 #: Measured batches (each a few hundred kB) that may wait for ``run_pipeline``'s workers, per worker.
 PENDING_PER_WORKER = 16
+
+#: Processes that drive one GPU through a campaign's pipeline unless told (``run_pipeline(drivers=...)``,
+#: ``--drivers``). One: on one H100 (2026-11-28), ``paper --full`` took 22.0 and 23.0 s with one, 22.7 and
+#: 23.7 s with two and 26.6 s with three, the helpers started inside the run (Dask GPU workers that share a
+#: GPU, started before the run, are faster: ``distributed.LOCAL_WORKERS_PER_GPU``; docs/benchmarks.md).
+PIPELINE_DRIVERS = 1
 
 #: Threads that render ``run_pipeline``'s pairs: while one waits for its kernels, the other plans its pair
 #: or reads its images back. More pairs than threads are queued (``renders_ahead``), so that a thread
@@ -156,12 +165,8 @@ def _pool(workers: int, preload=(), kernels=(), nice: int = 0):
     ``preload`` modules (and the items' module) once and forks each worker from itself, so the workers
     begin with them imported (never with CUDA initialised: the fork server imports only); elsewhere
     each worker is a fresh interpreter that imports them itself."""
-    preload = sorted({"synthbos.benchmarks.items", *preload})
-    if "forkserver" in get_all_start_methods():
-        context = get_context("forkserver")
-        context.set_forkserver_preload(preload)  # before its start
-    else:
-        context = get_context("spawn")
+    preload = _pool_preload(preload)
+    context = driver_context(preload)
     return ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=die_with_parent,
                                initargs=(os.getpid(), tuple(preload), tuple(kernels), nice))
 
@@ -366,7 +371,7 @@ def same_image_runs(scores) -> list[list]:
 
 def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "render+process",
                  worker_device=None, jobs=(), renders_ahead: int = 4, on_items_done=None, stop=None, stack=None,
-                 stacks_log=None, pool=None) -> list:
+                 stacks_log=None, pool=None, drivers: int = 1, drivers_log=None, claims=None, driver: int = 0) -> list:
     """Run a campaign's items with the device work here and the host work in ``workers - 1`` processes.
 
     Pair after pair, this process reads the pair and, for each of its score items whose method is
@@ -388,6 +393,15 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     ``PENDING_PER_WORKER * workers`` batches wait for a worker, so memory stays bounded when the host is the
     slower side (while the workers start, the device goes on).
     With ``workers <= 1`` everything runs here, item after item (``worker_device`` still applies).
+
+    ``drivers``: processes that drive the device, this one included (``benchmarks.drivers``). With more
+    than one, this process starts ``drivers - 1`` helpers, each running this pipeline with its own
+    threads and ``workers // drivers - 1`` host processes; every process takes the next pair no one has
+    taken (``claims``: the shared :class:`~synthbos.benchmarks.drivers.Claims` a helper is given). A job
+    of one pair runs in the process that took that pair; the other jobs, and the results returned,
+    are this process's, after every helper has finished (a job run by a helper returns None here).
+    ``drivers_log`` (a list) receives the pairs each process took (this one first). ``claims`` and
+    ``driver`` (its number) are a helper's.
 
     ``stack``: pairs per stack of tracking items (``stacks``). With ``stack`` > 0 this process also
     tracks the items of the trackers whose settings ``track_pairs`` runs (``registry.stack_settings``),
@@ -420,11 +434,42 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     stack = default_stack(scores) if stack is None else int(stack)
     stacks = Stacks(stack, log=stacks_log) if stack else None
     tasks = pair_tasks(renders, scores)
+    task_of = {str(r[1]) if r is not None else str(items[0][0]): k for k, (r, items) in enumerate(tasks)}
+    own_pool = pool is None
+    # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
+    preload = sorted({fn.__module__ for fn, _, _ in jobs} | {__name__, "synthbos.benchmarks.stacks"})
+    lead = claims is None  # this process runs the jobs of several pairs and returns the results
+    helpers = []
+    drivers = max(1, min(int(drivers), len(tasks))) if own_pool and workers > 1 and lead else 1
+    if drivers > 1:  # first: the fork server imports while this process loads its kernels
+        context = driver_context(_pool_preload(preload))
+        claims = Claims(len(tasks), context)
+        options = {"workers": max(2, workers // drivers), "worker_device": worker_device, "jobs": jobs,
+                   "renders_ahead": renders_ahead, "stack": stack}
+        helpers = start_drivers(drivers - 1, _drive, (renders, scores, claims, options), context)
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
     pending: dict = {}  # future -> how many items it scores
+    taken: list = []  # the tasks this process took, in order (every task, without helpers)
     waiting = list(range(len(jobs)))  # jobs not yet started
     started: dict = {}  # job index -> its future (or its result, without a pool)
-    have: set = {str(args[1]) for args in renders}  # pair files still to be rendered: not there yet
+    writing: set = {str(args[1]) for args in renders}  # pair files this process may render: not yet waited for
+
+    def advance(n: int) -> None:
+        """Count ``n`` finished items on the bar (with helpers: every process's, ``Claims.advance``)."""
+        if claims is None:
+            bar.update(n)
+        else:
+            bar.update(claims.advance(n) - bar.n)
+
+    def owns(pairs) -> bool:
+        """Whether this process runs a job of ``pairs``: a job of one pair where it took that pair (or, the
+        lead, where no task has it), any other job where it is the lead."""
+        if claims is None:
+            return True
+        if pairs is not None and len(pairs) == 1:
+            k = task_of.get(str(next(iter(pairs))))
+            return lead if k is None else k in taken
+        return lead
 
     def collect(block: bool) -> None:
         if not pending:
@@ -432,7 +477,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         done, _ = wait(pending, timeout=None if block else 0, return_when=FIRST_COMPLETED)
         for fut in done:
             fut.result()  # a worker's error stops the campaign here
-            bar.update(pending.pop(fut))
+            advance(pending.pop(fut))
 
     def start_jobs(final: bool) -> None:
         if pool is not None and not pool_ready.is_set():
@@ -441,19 +486,21 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             pool_ready.wait()
         for j in list(waiting):
             fn, args, pairs = jobs[j]
-            if not (final or (pairs is not None and set(map(str, pairs)).isdisjoint(have))):
+            if not owns(pairs):
+                continue
+            if not (final or (pairs is not None and all(os.path.exists(p) for p in map(str, pairs)))):
                 continue
             waiting.remove(j)
             started[j] = pool.submit(fn, *args) if pool is not None else fn(*args)
             if pool is None:
-                bar.update(1)
+                advance(1)
 
     def file_written(written, path) -> None:
         """Wait for the pair file ``path`` being ``written`` (the workers and the jobs read it), once; start
         the jobs it completes."""
-        if written is not None and path in have:
+        if written is not None and path in writing:
             written.result()
-            have.discard(path)
+            writing.discard(path)
             start_jobs(final=False)
 
     def make_images(k: int, pair) -> None:
@@ -470,13 +517,20 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     images[k][r] = noiser.submit(prepared_inputs, pair, run, here)
 
     def render(k: int):
-        args = tasks[k][0] if k < len(tasks) else None
+        args = tasks[k][0]
         if args is None:
             return None
         fut = renderer.submit(_launching, render_only, args[0], args[2])
         if pool is not None:  # the pair's noisy images are drawn as soon as it is rendered
             fut.add_done_callback(lambda f: f.cancelled() or f.exception() is not None or make_images(k, f.result()))
         return fut
+
+    def take_next() -> None:
+        """Take the next task (from ``claims`` with helpers, else the next in order) and start its render."""
+        k = claims.take(driver) if claims is not None else (len(taken) if len(taken) < len(tasks) else None)
+        if k is not None:
+            taken.append(k)
+            rendering.append(render(k))
 
     def submit_ready(block: bool) -> None:
         """Hand the measured runs to the workers, in order, once their pair file is written and the
@@ -503,49 +557,57 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             if pool is None:
                 for host in hosts:
                     finish_item(*host)
-                    bar.update(1)
+                    advance(1)
             else:
                 deferred.append((written, path, hosts, [], len(hosts)))
         submit_ready(block=False)
 
-    # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
-    preload = sorted({fn.__module__ for fn, _, _ in jobs})
-    load_kernels(campaign_kernels(renders, scores, worker_device=worker_device, stack=stack))  # at once: a cold cache
-    own_pool = pool is None
-    if not own_pool:
-        pool = pool()
-    elif workers > 1:
-        pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
-                     nice=WORKER_NICE)
+    def poll() -> None:
+        """While the helpers finish: the bar, and the jobs whose pair files they wrote."""
+        advance(0)
+        start_jobs(final=False)
+
     ahead = max(1, int(renders_ahead))
-    renderer = ThreadPoolExecutor(min(ahead, RENDER_THREADS), thread_name_prefix="synthbos-render")
-    writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
-    noiser = ThreadPoolExecutor(4, thread_name_prefix="synthbos-noise")
-    images: dict = {}  # pair index -> {run index: future of its noisy images}
+    images: dict = {}  # task index -> {run index: future of its noisy images}
     images_lock = threading.Lock()
     deferred: deque = deque()  # (pair file being written, its path, measured batch, worker items, count)
-    rendering = []
+    rendering = []  # the render of each task taken, in the order taken (None: its file is there)
     pool_ready = threading.Event()
-    if pool is None or not own_pool:
-        pool_ready.set()
-    else:  # a thread starts the workers (the fork server imports first), so this one can go on
-        threading.Thread(target=_start_workers, args=(pool, workers - 1, pool_ready), daemon=True,
-                         name="synthbos-start-workers").start()
+    threads = []  # the render, writer and noise threads, once started
     try:
+        load_kernels(campaign_kernels(renders, scores, worker_device=worker_device, stack=stack))  # a cold cache
+        if not own_pool:
+            pool = pool()
+        elif workers > 1:
+            pool = _pool(workers - 1, preload, worker_kernels(scores, worker_device=worker_device, stack=stack),
+                         nice=WORKER_NICE)
+        renderer = ThreadPoolExecutor(min(ahead, RENDER_THREADS), thread_name_prefix="synthbos-render")
+        writer = ThreadPoolExecutor(2, thread_name_prefix="synthbos-write")
+        noiser = ThreadPoolExecutor(4, thread_name_prefix="synthbos-noise")
+        threads = [renderer, noiser, writer]  # shut down in this order: a pair file being written is finished
+        if pool is None or not own_pool:
+            pool_ready.set()
+        else:  # a thread starts the workers (the fork server imports first), so this one can go on
+            threading.Thread(target=_start_workers, args=(pool, workers - 1, pool_ready), daemon=True,
+                             name="synthbos-start-workers").start()
         # The render threads launch too (each render inside ``launching``: a graph is recorded here while
         # none is in progress). The BLAS keeps to one thread here too: the workers have the other cores.
         with bar, threadpool_limits(limits=1):
-            rendering.extend(render(k) for k in range(ahead))
+            for _ in range(ahead):
+                take_next()
             start_jobs(final=False)
-            for k, (render_args, items) in enumerate(tasks):
+            i = 0
+            while i < len(taken):
                 if stop is not None and stop():
                     break
-                rendering.append(render(k + ahead))  # the next pairs render while this one is processed
+                take_next()  # the next pairs render while this one is processed
+                k = taken[i]
+                render_args, items = tasks[k]
                 written = None
-                if rendering[k] is not None:  # this process measures from the rendered pair in memory
-                    pair = rendering[k].result()
+                if rendering[i] is not None:  # this process measures from the rendered pair in memory
+                    pair = rendering[i].result()
                     written = writer.submit(write_pair, render_args[1], pair)
-                    bar.update(1)
+                    advance(1)
                 else:
                     pair = read_pair(items[0][0]) if items else None
                 path = None if render_args is None else str(render_args[1])
@@ -564,7 +626,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     if pool is None:
                         for args in [*here, *there]:
                             finish_item(*measure_item(pair, *args), pair=pair)
-                            bar.update(1)
+                            advance(1)
                         continue
                     measured.extend(measure_item(pair, *args, images=noisy, settings=settings.get(id(args)))
                                     for args in here)
@@ -581,32 +643,61 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     stacks.add((written, path), pair, to_stack)
                     hand_out(stacks.take())
                 submit_ready(block=False)
+                i += 1
             if stacks is not None:  # the pairs started are finished (also when told to stop)
                 stacks.flush()
                 hand_out(stacks.take())
             submit_ready(block=True)
             while pending:
                 collect(block=True)
+            if helpers:
+                join_drivers(helpers, claims, poll=poll)
+            if drivers_log is not None:
+                drivers_log.extend(claims.counts(drivers) if helpers else [len(taken)])
             if on_items_done is not None:
                 on_items_done()
             start_jobs(final=True)
             results = []
             for j in range(len(jobs)):
-                if pool is None:
+                if j not in started:  # another process's job
+                    results.append(None)
+                elif pool is None:
                     results.append(started[j])
-                    continue
-                results.append(started[j].result())
-                bar.update(1)
+                else:
+                    results.append(started[j].result())
+                    advance(1)
             return results
     except BaseException:
+        stop_drivers(helpers)
         for fut in [*pending, *(f for f in rendering if f is not None)]:
             fut.cancel()
         for fut in started.values() if pool is not None else ():
             fut.cancel()
         raise
     finally:
-        renderer.shutdown(wait=True)
-        noiser.shutdown(wait=True)
-        writer.shutdown(wait=True)  # a pair file being written is finished (atomic files)
+        for executor in threads:
+            executor.shutdown(wait=True)
         if pool is not None and own_pool:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _pool_preload(preload) -> list[str]:
+    """The modules the fork server imports before its first fork: ``preload`` and the items' (``_pool``)."""
+    return sorted({"synthbos.benchmarks.items", *preload})
+
+
+def _drive(renders, scores, claims, options: dict, driver: int, campaign_pid: int) -> None:
+    """A helper that drives the device beside the campaign's process (``run_pipeline(drivers=...)``):
+    the same pipeline over the pairs it takes from ``claims``; a failure is left with ``claims`` and
+    ends the process with status 1."""
+    die_with_parent(campaign_pid)
+    try:
+        from synthbos.device import init_warp
+
+        init_warp()
+        run_pipeline(renders, scores, progress=False, claims=claims, driver=driver, **options)
+    except BaseException as err:  # reported to the campaign's process, which raises it
+        text = str(err) if isinstance(err, SynthbosError) else "".join(
+            traceback.format_exception_only(type(err), err)).strip()
+        claims.fail(f"a process that drove the GPU beside the campaign's: {text}")
+        sys.exit(1)

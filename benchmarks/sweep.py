@@ -29,7 +29,7 @@ from synthbos.raytrace import DEFAULT_CONFIG, load_config
 
 from synthbos import SynthbosError, atomic_output, check_output_folder, folder_lock, make_folder
 
-from .campaign import check_campaign_stack, check_spec, resolve_process_device, run_campaign
+from .campaign import check_campaign_stack, check_drivers, check_spec, resolve_process_device, run_campaign
 from .figures import sweep_budget_figure, sweep_figure
 from .registry import get_method
 from .spec import FULL, QUICK, REGRESS, CampaignSpec
@@ -129,7 +129,7 @@ def _slug(name, value):
 
 def run_sweep(base_config: dict, params, folder, *, size="regress", device=None, workers=None, progress=True,
               scheduler=None, wait=False, process_device=None, worker_device=None, methods=None, stack=None,
-              stacks=None):
+              stacks=None, drivers=None):
     """Run the sweep; write sweep.csv, sweep.json, sweep.png and sweep_budget.png in ``folder``; return the rows.
 
     ``sweep_budget.png`` (``figures.sweep_budget_figure``) is left out when the pairs hold no ray covariance.
@@ -140,8 +140,8 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     ``methods`` (names) replaces the campaign size's default methods at every point.
     With ``scheduler`` (see ``run_campaign``) one Dask client serves the whole sweep and all its points
     run together, so every worker stays busy however few pairs a point has.
-    ``stack`` (pairs per stack of tracking items) and ``stacks`` (the log of ``track_pairs`` calls) are
-    those of ``run_campaign``, for every point.
+    ``stack`` (pairs per stack of tracking items), ``stacks`` (the log of ``track_pairs`` calls) and
+    ``drivers`` (processes that drive the GPU) are those of ``run_campaign``, for every point.
     """
     if not 1 <= len(params) <= 2:
         raise SynthbosError("give one or two --param options")
@@ -159,6 +159,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
     if methods is not None:
         spec0 = replace(spec0, methods=tuple(methods))
     check_campaign_stack(stack, spec0, device=device, scheduler=scheduler)
+    check_drivers(drivers)
     if any(name == "window" for name, _ in params) and not any(
             get_method(m).settings_key == "correlation" for m in spec0.methods):
         raise SynthbosError(f"sweep parameter window sets the correlation windows; none of the methods "
@@ -185,7 +186,7 @@ def run_sweep(base_config: dict, params, folder, *, size="regress", device=None,
         if progress and runner is None:
             print(f"sweep point {label}")
         point_rows = run_campaign(spec, folder / "points" / label, device=device, process_device=process_device,
-                                  worker_device=worker_device, stack=stack, stacks=stacks,
+                                  worker_device=worker_device, stack=stack, stacks=stacks, drivers=drivers,
                                   workers=workers, progress=progress, figures=False, scheduler=runner, wait=wait)
         return [{"param": name1, "param_value": v1, "param2": name2, "param2_value": v2, **r} for r in point_rows]
 

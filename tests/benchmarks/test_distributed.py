@@ -95,7 +95,9 @@ def test_local_gpu_workers_are_pinned_one_per_gpu():
         assert all(s["options"]["nthreads"] == 1 for s in specs.values())
         return {name: s["options"]["env"]["CUDA_VISIBLE_DEVICES"] for name, s in specs.items()}
 
-    assert pins(gpus=["0", "1", "2", "3"]) == {"gpu0": "0", "gpu1": "1", "gpu2": "2", "gpu3": "3"}
+    assert pins(gpus=["0", "1", "2", "3"], workers=4) == {"gpu0": "0", "gpu1": "1", "gpu2": "2", "gpu3": "3"}
+    # by default LOCAL_WORKERS_PER_GPU (two) pipelines share each GPU
+    assert pins(gpus=["0", "1"]) == {"gpu0-0": "0", "gpu1-1": "1", "gpu0-2": "0", "gpu1-3": "1"}
     assert pins(gpus=["2", "3"], workers=3) == {"gpu2-0": "2", "gpu3-1": "3", "gpu2-2": "2"}
     cpu = DaskRunner("local", device="cpu", workers=2).local_worker_specs(distributed)
     assert list(cpu) == ["cpu0", "cpu1"]
@@ -116,8 +118,11 @@ def test_local_workers_share_the_cores(monkeypatch):
         specs = dist.DaskRunner("local", device=device, **kw).local_worker_specs(distributed).values()
         return {s["options"]["env"][var] for s in specs for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
 
-    assert {n: share("cuda:0", gpus=["0", "1", "2", "3"][:n]) for n in (1, 2, 4)} == {1: {"16"}, 2: {"16"}, 4: {"16"}}
-    assert share("cuda:0", gpus=["0", "1"], workers=8) == {"8"}
+    assert {n: share("cuda:0", gpus=["0", "1", "2", "3"][:n], workers=n) for n in (1, 2, 4)} == {
+        1: {"16"}, 2: {"16"}, 4: {"16"}}
+    # two workers per GPU (the default): half a GPU's share each, on 1, 2 or 4 of the GPUs
+    assert {n: share("cuda:0", gpus=["0", "1", "2", "3"][:n]) for n in (1, 2, 4)} == {1: {"8"}, 2: {"8"}, 4: {"8"}}
+    assert share("cuda:0", gpus=["0", "1"], workers=8) == {"4"}  # four to a GPU: a quarter of its 16 cores
     assert share("cpu", workers=8) == {"8"}
 
 
@@ -136,7 +141,7 @@ def test_host_processes_per_gpu_worker_can_be_told(monkeypatch):
         return {s["options"]["env"][dist.HOST_WORKERS_VAR] for s in specs}
 
     monkeypatch.delenv(dist.HOST_WORKERS_VAR, raising=False)
-    assert told() == {str(dist.pipeline_workers(4))}
+    assert told() == {str(dist.pipeline_workers(4 * dist.LOCAL_WORKERS_PER_GPU))}
     monkeypatch.setenv(dist.HOST_WORKERS_VAR, "6")
     assert told() == {"6"}
     for bad in ("0", "-2", "many"):

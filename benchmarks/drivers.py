@@ -1,0 +1,136 @@
+"""Several processes driving one GPU: the pairs of a pipeline shared out as each process becomes free.
+
+One process that drives a GPU through a campaign (``scheduling.run_pipeline``) keeps the device only
+partly busy: its render threads, noise threads, device loop and writers share one interpreter lock,
+and the device waits for the host between their launches. Two or three such processes on one GPU,
+each with its own threads and host processes, fill it better (one H100, 50 pairs of the full
+campaign through Dask GPU workers on the same GPU, 2026-11-27: 3.6 pairs/s with one, 5.0 with two,
+5.3 with three; docs/benchmarks.md).
+
+The process that runs the campaign starts the others (*helpers*) from the multiprocessing fork server,
+which has the campaign's modules imported and never initialises CUDA, so a helper starts without
+importing anything and initialises CUDA itself. Every process takes the next pair that no one has
+taken (:class:`Claims`: a counter in shared memory), so a helper that starts late, or a pair that
+takes long, leaves no process idle while pairs remain. Each pair's results depend only on its seeds,
+so which process takes it never changes a file.
+"""
+
+from __future__ import annotations
+
+import os
+from multiprocessing import get_all_start_methods, get_context
+
+from synthbos import SynthbosError
+
+__all__ = ["Claims", "driver_context", "join_drivers", "start_drivers", "stop_drivers"]
+
+
+def driver_context(preload=()):
+    """The multiprocessing context that starts helpers and host processes: the fork server where there is
+    one (it imports ``preload`` once, before its first fork), else spawn."""
+    if "forkserver" in get_all_start_methods():
+        context = get_context("forkserver")
+        context.set_forkserver_preload(sorted(preload))  # no effect once the server runs
+        return context
+    return get_context("spawn")
+
+
+class Claims:
+    """The ``n`` tasks of a pipeline shared by the processes that drive one device.
+
+    :meth:`take` gives each caller the next task no process has taken (None once all are taken);
+    :meth:`advance` counts finished items across the processes (for one progress bar); a helper that
+    fails leaves its message with :meth:`fail`, which the campaign's process reads (:meth:`failures`).
+    Made in the campaign's process and handed to each helper as it starts.
+
+    Examples
+    --------
+    >>> claims = Claims(3, driver_context())
+    >>> claims.take(0), claims.take(1), claims.take(0), claims.take(1)
+    (0, 1, 2, None)
+    >>> claims.counts(2)
+    [2, 1]
+    >>> claims.advance(3), claims.advance(0)
+    (3, 3)
+    """
+
+    def __init__(self, n: int, context):
+        self.n = int(n)
+        self._next = context.Value("q", 0)
+        self._done = context.Value("q", 0)
+        self._taker = context.Array("b", max(1, self.n), lock=False)  # which process took each task
+        self._errors = context.SimpleQueue()
+
+    def take(self, driver: int = 0) -> int | None:
+        """The next task no process has taken, now taken by process number ``driver`` (None: none left)."""
+        with self._next.get_lock():
+            k = self._next.value
+            if k >= self.n:
+                return None
+            self._next.value = k + 1
+            self._taker[k] = int(driver)
+            return k
+
+    def counts(self, drivers: int) -> list[int]:
+        """The tasks each of the processes numbered ``0 .. drivers - 1`` took."""
+        with self._next.get_lock():
+            taken = list(self._taker[: self._next.value])
+        return [taken.count(d) for d in range(int(drivers))]
+
+    def advance(self, n: int) -> int:
+        """Add ``n`` finished items; return the count over every process."""
+        with self._done.get_lock():
+            self._done.value += int(n)
+            return self._done.value
+
+    def fail(self, message: str) -> None:
+        self._errors.put(str(message))
+
+    def failures(self) -> list[str]:
+        out = []
+        while not self._errors.empty():
+            out.append(self._errors.get())
+        return out
+
+
+def start_drivers(n: int, target, args, context) -> list:
+    """Start ``n`` helper processes running ``target(*args, number, campaign_pid)`` (``number``: 1 .. n,
+    this process being 0; ``campaign_pid``: this process, which they die with) in ``context``
+    (:func:`driver_context`); return them.
+
+    Not daemonic: a helper starts host processes of its own.
+    """
+    procs = []
+    for i in range(int(n)):
+        proc = context.Process(target=target, args=(*args, i + 1, os.getpid()), name=f"synthbos-driver-{i + 1}")
+        proc.start()
+        procs.append(proc)
+    return procs
+
+
+def join_drivers(procs, claims: Claims, *, poll=None, interval: float = 0.2) -> None:
+    """Wait for the helpers ``procs``, calling ``poll()`` every ``interval`` seconds meanwhile (a progress
+    bar, jobs whose files are now there); raise the first failure one of them reported, or name one
+    that ended without reporting (killed)."""
+    for proc in procs:
+        while proc.is_alive():
+            proc.join(interval)
+            if poll is not None:
+                poll()
+    failures = claims.failures()
+    if failures:
+        raise SynthbosError(failures[0])
+    for proc in procs:
+        if proc.exitcode != 0:
+            raise SynthbosError(f"{proc.name}, a process that drove the GPU, ended with exit status {proc.exitcode} "
+                                "before its pairs were done; run the campaign again to finish them")
+
+
+def stop_drivers(procs) -> None:
+    """End the helpers ``procs`` at once (the campaign failed or was interrupted): their finished items
+    are in their files, the ones in flight are lost, as in any interrupted run."""
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
+    for proc in procs:
+        proc.join(5)

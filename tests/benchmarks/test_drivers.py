@@ -1,0 +1,119 @@
+"""Several processes driving one device through a campaign's pipeline (``benchmarks.drivers``,
+``scheduling.run_pipeline(drivers=...)``): every pair taken once, the same files whatever the count,
+a helper's failure reported in one line."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from dataclasses import replace
+
+import pytest
+from synthbos.benchmarks import drivers as drv
+from synthbos.benchmarks.campaign import run_campaign
+from synthbos.benchmarks.cli import main
+from synthbos.benchmarks.spec import REGRESS
+
+from synthbos import SynthbosError
+
+
+def _take_all(claims, driver, out):
+    """A process that takes tasks until none is left, and reports them."""
+    mine = []
+    while (k := claims.take(driver)) is not None:
+        mine.append(k)
+        time.sleep(0.001)
+    out.put((driver, mine))
+
+
+def _fail(claims, number, campaign_pid):
+    claims.fail("pair s0_p03.h5: the render failed")
+    sys.exit(1)
+
+
+def _killed(claims, number, campaign_pid):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_claims_give_every_task_to_one_process():
+    context = drv.driver_context()
+    claims = drv.Claims(200, context)
+    out = context.SimpleQueue()
+    procs = [context.Process(target=_take_all, args=(claims, d, out)) for d in range(3)]
+    for p in procs:
+        p.start()
+    got = dict(out.get() for _ in procs)
+    for p in procs:
+        p.join(30)
+    taken = [k for d in got for k in got[d]]
+    assert sorted(taken) == list(range(200))  # each task once
+    assert claims.counts(3) == [len(got[d]) for d in range(3)]
+    assert claims.take(0) is None
+
+
+def test_a_helper_failure_is_raised_in_one_line():
+    context = drv.driver_context()
+    claims = drv.Claims(4, context)
+    procs = drv.start_drivers(1, _fail, (claims,), context)
+    with pytest.raises(SynthbosError, match=r"^pair s0_p03.h5: the render failed$"):
+        drv.join_drivers(procs, claims)
+
+
+def test_a_killed_helper_is_named():
+    context = drv.driver_context()
+    claims = drv.Claims(4, context)
+    procs = drv.start_drivers(1, _killed, (claims,), context)
+    with pytest.raises(SynthbosError, match=r"synthbos-driver-1.*exit status -9.*run the campaign again"):
+        drv.join_drivers(procs, claims)
+
+
+def test_two_drivers_write_the_same_files(tmp_path, monkeypatch):
+    """A CPU pipeline (as a GPU campaign runs) with a helper: every score file, the results and the floor
+    table are the same bytes as with one process, and the helper took pairs (this process waits, after its
+    first pair, until the helper has taken one, so both take part however fast the machine is)."""
+    spec = replace(REGRESS, snapshots=(0, 2, 4), pairs_per_snapshot=2,
+                   config={"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 20}})
+    take = drv.Claims.take
+
+    def patient(self, driver=0):
+        k = take(self, driver)
+        deadline = time.monotonic() + 120
+        while k is not None and k > 0 and self.counts(2)[1] == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return k
+
+    logs = {}
+    for name, n in (("one", 1), ("two", 2)):
+        if n == 2:
+            monkeypatch.setattr(drv.Claims, "take", patient)
+        logs[name] = []
+        run_campaign(spec, tmp_path / name, device="cpu", pipeline=True, workers=3, drivers=n, progress=False,
+                     drivers_log=logs[name])
+    assert logs["one"] == [6]
+    assert len(logs["two"]) == 2 and sum(logs["two"]) == 6 and min(logs["two"]) >= 1, logs
+    one, two = tmp_path / "one", tmp_path / "two"
+    names = sorted(p.name for p in (one / "scores").glob("*.npz"))
+    assert len(names) == 6 * 2 * 3
+    for name in names:
+        assert (one / "scores" / name).read_bytes() == (two / "scores" / name).read_bytes(), name
+    for table in ("results.csv", "floor.csv"):
+        assert (one / table).read_bytes() == (two / table).read_bytes(), table
+    assert sorted(p.name for p in (two / "floors").iterdir()) == sorted(p.name for p in (one / "floors").iterdir())
+
+
+@pytest.mark.parametrize(("value", "message"), [("0", "must be 1 or more processes, got 0"),
+                                              ("two", "must be a whole number of processes, got 'two'")])
+def test_a_bad_driver_count_is_a_usage_error(tmp_path, capsys, value, message):
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        main(["paper", "--quick", "--device", "cpu", "--drivers", value, "-o", str(out)])
+    assert exit_.value.code == 2 and f"--drivers: {message}" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_run_campaign_refuses_a_bad_driver_count(tmp_path):
+    with pytest.raises(SynthbosError, match="--drivers must be a whole number"):
+        run_campaign(REGRESS, tmp_path / "x", device="cpu", drivers=0)
+    assert not (tmp_path / "x").exists()
