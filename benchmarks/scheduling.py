@@ -65,8 +65,10 @@ PENDING_PER_WORKER = 16
 
 #: Processes that drive one GPU through a campaign's pipeline unless told (``run_pipeline(drivers=...)``,
 #: ``--drivers``). One: on one H100 (2026-11-28), ``paper --full`` took 22.0 and 23.0 s with one, 22.7 and
-#: 23.7 s with two and 26.6 s with three, the helpers started inside the run (Dask GPU workers that share a
-#: GPU, started before the run, are faster: ``distributed.LOCAL_WORKERS_PER_GPU``; docs/benchmarks.md).
+#: 23.7 s with two and 26.6 s with three. Two measured the pairs 1.39 times as fast, but the campaign's
+#: process waited 2.4 s for the first helper to start before it loaded its kernels; helpers now start in
+#: a thread, not yet measured on a GPU (Dask GPU workers that share a GPU, started before the run, are
+#: faster: ``distributed.LOCAL_WORKERS_PER_GPU``; docs/benchmarks.md).
 PIPELINE_DRIVERS = 1
 
 #: Threads that render ``run_pipeline``'s pairs: while one waits for its kernels, the other plans its pair
@@ -439,14 +441,20 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
     preload = sorted({fn.__module__ for fn, _, _ in jobs} | {__name__, "synthbos.benchmarks.stacks"})
     lead = claims is None  # this process runs the jobs of several pairs and returns the results
-    helpers = []
+    helpers = []  # the helper processes, once started
     drivers = max(1, min(int(drivers), len(tasks))) if own_pool and workers > 1 and lead else 1
-    if drivers > 1:  # first: the fork server imports while this process loads its kernels
+    starting = None  # the thread that starts them
+    if drivers > 1:
         context = driver_context(_pool_preload(preload))
         claims = Claims(len(tasks), context)
         options = {"workers": max(2, workers // drivers), "worker_device": worker_device, "jobs": jobs,
                    "renders_ahead": renders_ahead, "stack": stack}
-        helpers = start_drivers(drivers - 1, _drive, (renders, scores, claims, options), context)
+        # In a thread: a start waits for the fork server, which imports the modules first (2.4 s on an H100's
+        # host), while this process loads its kernels and starts rendering meanwhile.
+        starting = threading.Thread(
+            target=lambda: helpers.extend(start_drivers(drivers - 1, _drive, (renders, scores, claims, options),
+                                                        context)), name="synthbos-start-drivers", daemon=True)
+        starting.start()
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
     pending: dict = {}  # future -> how many items it scores
     taken: list = []  # the tasks this process took, in order (every task, without helpers)
@@ -650,10 +658,11 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             submit_ready(block=True)
             while pending:
                 collect(block=True)
-            if helpers:
+            if starting is not None:
+                starting.join()
                 join_drivers(helpers, claims, poll=poll)
             if drivers_log is not None:
-                drivers_log.extend(claims.counts(drivers) if helpers else [len(taken)])
+                drivers_log.extend(claims.counts(drivers) if starting is not None else [len(taken)])
             if on_items_done is not None:
                 on_items_done()
             start_jobs(final=True)
@@ -668,6 +677,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
                     advance(1)
             return results
     except BaseException:
+        if starting is not None:
+            starting.join()
         stop_drivers(helpers)
         for fut in [*pending, *(f for f in rendering if f is not None)]:
             fut.cancel()
