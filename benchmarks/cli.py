@@ -814,8 +814,11 @@ def _silence_stdout() -> None:
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:  # Ctrl-C while the options are read (a loaded machine): one line, nothing started
+        print("synthbos: interrupted", file=sys.stderr)
+        return 130
     shown = warnings.showwarning
     warnings.showwarning = _one_line_warnings(shown)
     try:

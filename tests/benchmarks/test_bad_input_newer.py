@@ -448,3 +448,17 @@ def test_gladstone_dale_of_zero_is_refused(tmp_path, capsys):
     cfg.write_text("[volume]\ngladstone_dale_m3_per_kg = 0.0\n")
     _error_line(capsys, ["render", cfg, "-o", tmp_path / "p.h5"], "gladstone_dale_m3_per_kg", "> 0")
     assert _listing(tmp_path) == ["k0.toml"]
+
+
+def test_ctrl_c_while_the_options_are_read_prints_one_line(monkeypatch, capsys):
+    """A Ctrl-C that lands while argparse reads the options (seen at 2 s on a loaded 2-core machine):
+    one line and status 130, not argparse's traceback."""
+    from synthbos.benchmarks import cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["paper", "--quick"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err.strip().splitlines() == ["synthbos: interrupted"] and captured.out == ""

@@ -84,7 +84,7 @@ def test_a_module_handed_to_a_pool_once_is_not_handed_again():
 def test_one_pool_runs_two_calls_and_builds_the_next_calls_kernels_after_the_items(tmp_path, monkeypatch):
     cache = tmp_path / "kernels"
     monkeypatch.setenv("WARP_CACHE_PATH", str(cache))
-    monkeypatch.setattr("synthbos.benchmarks.scheduling.get_context", lambda method: get_context("spawn"))
+    monkeypatch.setattr("synthbos.benchmarks.drivers.get_context", lambda method: get_context("spawn"))
     later = [("synthbos.tracking.moment_kernels", "cpu")]
     with worker_pool(2) as pool:
         run_items([(-3,), (4,)], abs, workers=2, desc="", progress=False, pool=pool, build_after=later)
