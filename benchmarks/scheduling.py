@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from synthbos import SynthbosError
-from synthbos.device import launching, load_kernels
+from synthbos.device import init_warp, launching, load_kernels
 
 from .drivers import Claims, driver_context, join_drivers, start_drivers, stop_drivers
 
@@ -439,13 +439,13 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     task_of = {str(r[1]) if r is not None else str(items[0][0]): k for k, (r, items) in enumerate(tasks)}
     own_pool = pool is None
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
-    preload = sorted({fn.__module__ for fn, _, _ in jobs} | {__name__, "synthbos.benchmarks.stacks"})
+    preload = sorted({fn.__module__ for fn, _, _ in jobs})
     lead = claims is None  # this process runs the jobs of several pairs and returns the results
     helpers = []  # the helper processes, once started
     drivers = max(1, min(int(drivers), len(tasks))) if own_pool and workers > 1 and lead else 1
     starting = None  # the thread that starts them
     if drivers > 1:
-        context = driver_context(_pool_preload(preload))
+        context = driver_context(_pool_preload([*preload, __name__, "synthbos.benchmarks.stacks"]))
         claims = Claims(len(tasks), context)
         options = {"workers": max(2, workers // drivers), "worker_device": worker_device, "jobs": jobs,
                    "renders_ahead": renders_ahead, "stack": stack}
@@ -703,8 +703,6 @@ def _drive(renders, scores, claims, options: dict, driver: int, campaign_pid: in
     ends the process with status 1."""
     die_with_parent(campaign_pid)
     try:
-        from synthbos.device import init_warp
-
         init_warp()
         run_pipeline(renders, scores, progress=False, claims=claims, driver=driver, **options)
     except BaseException as err:  # reported to the campaign's process, which raises it
