@@ -1,7 +1,8 @@
 """Throughput of a campaign on 1, 2, 4 ... GPUs through ``--scheduler local``: pairs per second and efficiency.
 
-For each GPU count N the benchmark starts a local Dask cluster of one worker per GPU (the first N of
-``--gpus``, each pinned to its GPU), warms every worker up (imports, Warp kernels, one tiny pair
+For each GPU count N the benchmark starts a local Dask cluster of ``--per-gpu`` workers per GPU (default
+two, as ``--scheduler local`` starts; the first N of ``--gpus``, each worker pinned to its GPU), warms
+every worker up (imports, Warp kernels, one tiny pair
 rendered and scored), then runs the paper's campaign (five snapshots, every method at every noise
 level) in a fresh folder, every pair rendered, processed and scored, exactly as
 ``synthbos paper --scheduler local`` does. Throughput is pairs per second of that campaign (cluster
