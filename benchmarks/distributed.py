@@ -49,6 +49,7 @@ from tqdm.auto import tqdm
 from synthbos import SynthbosError
 from synthbos.values import shorten
 
+from .drivers import ignoring_sigint_forkserver, quiet_resource_tracker
 from .integrate import floor_current, pair_floor
 from .items import render_item, score_item
 from .scheduling import (
@@ -322,11 +323,6 @@ def _remove_stale_temporaries(paths) -> None:
 # Ctrl-C, which closes the scheduler under workers still busy, would otherwise print their lost heartbeats.
 WORKER_LOG_LEVEL = logging.CRITICAL
 
-# The warning multiprocessing's resource tracker prints at its exit for the semaphores of worker processes
-# that a Ctrl-C ended (it removes them all the same): noise after the one line of an interrupted run.
-_TRACKER_WARNING = "ignore:resource_tracker:UserWarning"
-
-
 def _leave_sigint_to_the_client() -> None:
     """In a local cluster's worker: ignore SIGINT (Ctrl-C), which the client handles by closing the cluster;
     the worker would otherwise end with a traceback. Runs on the worker's event loop, its main thread."""
@@ -351,31 +347,6 @@ def _deferred_sigint():
         raise KeyboardInterrupt
 
 
-def _ignoring_sigint_forkserver() -> None:
-    """Start multiprocessing's fork server (if not yet running) with SIGINT ignored, for the local cluster's
-    workers (``distributed.worker.multiprocessing-method`` "forkserver"): every worker forked from it then
-    ignores SIGINT from its first instruction, so a terminal's Ctrl-C while the cluster starts (which
-    reaches the whole process group) ends no worker with a traceback; this process closes them. Only
-    the server's launch, a fraction of a second, runs with SIGINT ignored here."""
-    from multiprocessing import forkserver
-
-    main = threading.current_thread() is threading.main_thread()
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-    try:
-        forkserver.ensure_running()
-    finally:
-        if old is not None:
-            signal.signal(signal.SIGINT, old)
-
-
-def _quiet_resource_tracker() -> None:
-    """Silence the resource tracker's leak warning in the processes a local cluster starts (they read it from
-    ``PYTHONWARNINGS``), and in the tracker they start."""
-    current = os.environ.get("PYTHONWARNINGS", "")
-    if _TRACKER_WARNING not in current.split(","):
-        os.environ["PYTHONWARNINGS"] = ",".join(w for w in (current, _TRACKER_WARNING) if w)
-
-
 class DaskRunner:
     """A Dask client for a campaign or a sweep: a local cluster it starts, or a cluster it joins.
 
@@ -384,12 +355,14 @@ class DaskRunner:
     scheduler : str
         ``"local"``, a scheduler address (``tcp://host:port``) or a scheduler file (JSON).
     device : str, optional
-        The campaign's Warp device: a ``cuda`` device makes a local cluster one worker per GPU.
+        The campaign's Warp device: a ``cuda`` device makes a local cluster of GPU workers,
+        :data:`LOCAL_WORKERS_PER_GPU` per GPU.
     process_device : str, optional
         The campaign's processing device, when it differs from ``device``; a ``cuda`` one also makes
-        the local cluster one worker per GPU.
+        the local cluster of GPU workers.
     workers : int, optional
-        Local cluster: how many workers (default one per GPU, or every CPU core for CPU workers);
+        Local cluster: how many workers (default :data:`LOCAL_WORKERS_PER_GPU` per GPU, or every CPU core
+        for CPU workers);
         with more workers than GPUs they share the GPUs in turn.
     gpus : sequence of str, optional
         Local cluster: the GPUs to pin workers to (default every visible one).
@@ -446,8 +419,8 @@ class DaskRunner:
 
             # A terminal's Ctrl-C reaches the whole process group; this process closes the workers in order,
             # and the workers, forked from a fork server that ignores SIGINT, ignore it from their start.
-            _quiet_resource_tracker()
-            _ignoring_sigint_forkserver()
+            quiet_resource_tracker()
+            ignoring_sigint_forkserver()
             # Not daemonic: a GPU worker runs the pipeline, with a pool of host processes of its own.
             with _deferred_sigint(), dask.config.set({"distributed.worker.multiprocessing-method": "forkserver",
                                                       "distributed.worker.daemon": False}):

@@ -18,11 +18,18 @@ so which process takes it never changes a file.
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from multiprocessing import get_all_start_methods, get_context
 
 from synthbos import SynthbosError
 
-__all__ = ["Claims", "driver_context", "join_drivers", "start_drivers", "stop_drivers"]
+__all__ = ["Claims", "driver_context", "ignoring_sigint_forkserver", "join_drivers", "quiet_resource_tracker",
+           "start_drivers", "stop_drivers"]
+
+# The warning multiprocessing's resource tracker prints at its exit for the semaphores of processes that a
+# Ctrl-C ended (it removes them all the same): noise after the one line of an interrupted run.
+_TRACKER_WARNING = "ignore:resource_tracker:UserWarning"
 
 
 def driver_context(preload=()):
@@ -33,6 +40,31 @@ def driver_context(preload=()):
         context.set_forkserver_preload(sorted(preload))  # no effect once the server runs
         return context
     return get_context("spawn")
+
+
+def quiet_resource_tracker() -> None:
+    """Silence the resource tracker's leak warning in the processes started from now on (they read it from
+    ``PYTHONWARNINGS``), and in the tracker, where this process has not started it yet."""
+    current = os.environ.get("PYTHONWARNINGS", "")
+    if _TRACKER_WARNING not in current.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(w for w in (current, _TRACKER_WARNING) if w)
+
+
+def ignoring_sigint_forkserver() -> None:
+    """Start multiprocessing's fork server (if not yet running) with SIGINT ignored: every process forked
+    from it (a local Dask cluster's workers, a campaign's helpers and host processes) then ignores SIGINT
+    from its first instruction, so a terminal's Ctrl-C, which reaches the whole process group, ends none
+    of them with a traceback of its own (the server's imports included); the campaign's process stops
+    them. Only the server's launch, a fraction of a second, runs with SIGINT ignored here."""
+    from multiprocessing import forkserver
+
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        forkserver.ensure_running()
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
 
 
 class Claims:

@@ -44,7 +44,15 @@ from tqdm.auto import tqdm
 from synthbos import SynthbosError
 from synthbos.device import init_warp, launching, load_kernels
 
-from .drivers import Claims, driver_context, join_drivers, start_drivers, stop_drivers
+from .drivers import (
+    Claims,
+    driver_context,
+    ignoring_sigint_forkserver,
+    join_drivers,
+    quiet_resource_tracker,
+    start_drivers,
+    stop_drivers,
+)
 
 __all__ = ["PIPELINE_DRIVERS", "PIPELINE_MAX_WORKERS", "PIPELINE_WORKER_DEVICE", "build_in_pool", "campaign_kernels",
            "default_workers", "die_with_parent", "host_pool", "pair_tasks", "pipeline_workers", "render_kernels",
@@ -446,6 +454,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     starting = None  # the thread that starts them
     if drivers > 1:
         context = driver_context(_pool_preload([*preload, __name__, "synthbos.benchmarks.stacks"]))
+        if context.get_start_method() == "forkserver":  # a Ctrl-C: one line, from this process
+            quiet_resource_tracker()
+            ignoring_sigint_forkserver()
         claims = Claims(len(tasks), context)
         options = {"workers": max(2, workers // drivers), "worker_device": worker_device, "jobs": jobs,
                    "renders_ahead": renders_ahead, "stack": stack}

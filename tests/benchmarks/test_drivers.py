@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -117,3 +118,44 @@ def test_run_campaign_refuses_a_bad_driver_count(tmp_path):
     with pytest.raises(SynthbosError, match="--drivers must be a whole number"):
         run_campaign(REGRESS, tmp_path / "x", device="cpu", drivers=0)
     assert not (tmp_path / "x").exists()
+
+
+def _interrupted(tmp_path, delay, out):
+    """``paper --quick`` on the CPU pipeline with two drivers, and a terminal's Ctrl-C (the whole process group)
+    after ``delay`` seconds; returns the command line. Asserts one line, status 130, no process of the run's
+    session left and no temporary file."""
+    argv = [sys.executable, "-m", "synthbos", "paper", "--quick", "--device", "cpu", "--stack", "2", "--drivers", "2",
+            "-q", "-o", str(out)]
+    proc = subprocess.Popen(argv, cwd=tmp_path, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    time.sleep(delay)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("Warp")]
+    assert proc.returncode == 130 and lines == ["synthbos: interrupted; finished items are kept, re-run to resume"], err
+    deadline = time.monotonic() + 15  # (the processes of the session end as their parents do: seconds)
+    while (left := subprocess.run(["pgrep", "-s", str(proc.pid)], capture_output=True, text=True).stdout.split()) \
+            and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert left == [], left  # no helper, fork server or host process of the session
+    if out.exists():
+        assert not list(out.rglob(".*.tmp"))
+    return argv
+
+
+def test_ctrl_c_while_the_helper_starts_prints_one_line(tmp_path):
+    """A Ctrl-C while the fork server imports the helper's modules: one line (the server, started with
+    SIGINT ignored, prints no traceback of its own; the resource tracker no warning)."""
+    _interrupted(tmp_path, 4.0, tmp_path / "camp")
+
+
+@pytest.mark.slow
+def test_ctrl_c_with_helpers_then_a_run_again_gives_the_same_results(tmp_path, request):
+    markexpr = request.config.getoption("markexpr") or ""
+    if "slow" not in markexpr or "not slow" in markexpr:
+        pytest.skip("two quick campaigns, minutes on two cores; select with -m slow")
+    out = tmp_path / "camp"
+    argv = _interrupted(tmp_path, 12.0, out)
+    assert subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600).returncode == 0
+    assert main(["paper", "--quick", "--device", "cpu", "-q", "-o", str(tmp_path / "one")]) == 0
+    assert (out / "results.csv").read_bytes() == (tmp_path / "one" / "results.csv").read_bytes()
