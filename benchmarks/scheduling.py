@@ -444,7 +444,8 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     stack = default_stack(scores) if stack is None else int(stack)
     stacks = Stacks(stack, log=stacks_log) if stack else None
     tasks = pair_tasks(renders, scores)
-    task_of = {str(r[1]) if r is not None else str(items[0][0]): k for k, (r, items) in enumerate(tasks)}
+    task_paths = [str(r[1]) if r is not None else str(items[0][0]) for r, items in tasks]  # each task's pair file
+    task_of = {path: k for k, path in enumerate(task_paths)}
     own_pool = pool is None
     # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
     preload = sorted({fn.__module__ for fn, _, _ in jobs})
@@ -469,6 +470,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     bar = tqdm(total=len(renders) + len(scores) + len(jobs), desc=desc, unit="item", disable=not progress)
     pending: dict = {}  # future -> how many items it scores
     taken: list = []  # the tasks this process took, in order (every task, without helpers)
+    mine: set = set()  # their pair files
     waiting = list(range(len(jobs)))  # jobs not yet started
     started: dict = {}  # job index -> its future (or its result, without a pool)
     writing: set = {str(args[1]) for args in renders}  # pair files this process may render: not yet waited for
@@ -486,9 +488,15 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         if claims is None:
             return True
         if pairs is not None and len(pairs) == 1:
-            k = task_of.get(str(next(iter(pairs))))
-            return lead if k is None else k in taken
+            path = str(next(iter(pairs)))
+            return lead if path not in task_of else path in mine
         return lead
+
+    def written_all(pairs) -> bool:
+        """Whether every pair file of a job is there: one this process may render once it has waited for
+        its writing (``file_written``), one another process took once it is on the disk."""
+        return all(p not in writing or (claims is not None and p not in mine and os.path.exists(p))
+                   for p in map(str, pairs))
 
     def collect(block: bool) -> None:
         if not pending:
@@ -507,7 +515,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
             fn, args, pairs = jobs[j]
             if not owns(pairs):
                 continue
-            if not (final or (pairs is not None and all(os.path.exists(p) for p in map(str, pairs)))):
+            if not (final or (pairs is not None and written_all(pairs))):
                 continue
             waiting.remove(j)
             started[j] = pool.submit(fn, *args) if pool is not None else fn(*args)
@@ -549,6 +557,7 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
         k = claims.take(driver) if claims is not None else (len(taken) if len(taken) < len(tasks) else None)
         if k is not None:
             taken.append(k)
+            mine.add(task_paths[k])
             rendering.append(render(k))
 
     def submit_ready(block: bool) -> None:
