@@ -468,24 +468,30 @@ def _add_drivers_option(p) -> None:
                         "workers that share GPUs, started before the campaign, use --scheduler local)")
 
 
-def _driver_count(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number of processes, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be 1 or more processes, got {n}")
-    return n
+def _count(of: str, least: int, at_least: str):
+    """An argparse type: a whole number (``of``: " of pairs", ...) of at least ``least``, which
+    ``at_least`` says in the message.
+
+    Examples
+    --------
+    >>> _count(" of pairs", 0, "0 or more pairs")("3")
+    3
+    """
+    def count(text):
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number{of}, got {text!r}") from None
+        if n < least:
+            raise argparse.ArgumentTypeError(f"must be {at_least}, got {n}")
+        return n
+
+    return count
 
 
-def _stack_count(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number of pairs, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 (item by item) or more pairs, got {n}")
-    return n
+_driver_count = _count(" of processes", 1, "1 or more processes")
+_stack_count = _count(" of pairs", 0, "0 (item by item) or more pairs")
+_workers = _count("", 1, "at least 1")
 
 
 def _worker_device(args, process_device: str):
@@ -500,16 +506,6 @@ def _worker_device(args, process_device: str):
 
 
 _WAIT_HELP = "if another run holds the folder, wait for it to finish (default: refuse at once)"
-
-
-def _workers(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
