@@ -405,12 +405,12 @@ SPOT_SYNC = wp.constant(3)
 @wp.func_native(f"""
 #if defined(__CUDA_ARCH__)
 __shared__ long long spot_cells[{SPOT_CELLS}];
-if (op == 0) {{
+if (op == {SPOT_ADD}) {{
     atomicAdd((unsigned long long*)&spot_cells[idx], (unsigned long long)value);
     return 0;
 }}
-if (op == 1) return spot_cells[idx];
-if (op == 2) {{
+if (op == {SPOT_READ}) return spot_cells[idx];
+if (op == {SPOT_CLEAR}) {{
     spot_cells[idx] = 0;
     return 0;
 }}
