@@ -9,6 +9,11 @@ level) in a fresh folder, every pair rendered, processed and scored, exactly as
 start-up and warm-up excluded; the rate with them is reported too). Speed-up is against the first
 count; efficiency is speed-up / (N / N_first).
 
+With a GPU, the baseline is the same campaign on one GPU without Dask, and for each N > 1 the host's own
+limit: N plain campaigns at once, one per GPU, each with a GPU's share of the cores (the most the host
+gives N GPUs with no scheduler between them; ``--no-side-by-side`` skips it). On a host whose cores slow
+each other down when all are busy, that limit is below N times one campaign alone.
+
 By default the campaign grows with N (``--pairs-per-gpu``, weak scaling: every count runs as long, so
 start-up effects weigh the same); ``--pairs`` fixes it instead (strong scaling). Seeds depend only on
 the snapshot and pair index, so the pairs every count has in common must have bit-identical scores:
@@ -25,6 +30,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -32,13 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
-from synthbos import atomic_output
+from synthbos import SynthbosError, atomic_output
 
 from .campaign import run_campaign
 from .distributed import LOCAL_WORKERS_PER_GPU, DaskRunner, visible_gpus
 from .spec import FULL, CampaignSpec
 
-__all__ = ["campaign_spec", "main", "run_scaling"]
+__all__ = ["campaign_spec", "main", "run_scaling", "run_side_by_side"]
 
 
 def campaign_spec(pairs: int, *, pixels: int = 512, rays: int = 1000, noise=(0.0, 1.0, 3.0, 5.0)) -> CampaignSpec:
@@ -154,6 +162,80 @@ def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) 
             "pairs_per_s": n_pairs / seconds, "folder": out}
 
 
+def run_side_by_side(units, *, device: str, pairs: int, workers: int, folder, gpus=None, **spec_options) -> dict:
+    """Time ``len(units)`` plain campaigns at once without Dask, one per GPU of ``units`` (``device`` "cuda:0":
+    each in its own process that sees only its GPU; "cpu": CPU campaigns), each of ``pairs`` pairs with
+    ``workers`` processes, every timed campaign started at one moment after all their warm-ups: the most
+    this host gives that many GPUs with no scheduler between them, against which a Dask run is read.
+
+    Returns ``campaigns`` (each one's ``campaign_s`` and ``pairs_per_s``), ``pairs_per_s`` (their sum),
+    ``units`` and ``identical_results`` (their ``results.json`` the same bytes)."""
+    folder = Path(folder)
+    procs = []
+    try:
+        for i, unit in enumerate(units):
+            env = dict(os.environ)
+            if device.startswith("cuda"):
+                env["CUDA_VISIBLE_DEVICES"] = str(unit)
+            job = {"device": device, "pairs": pairs, "workers": workers, "folder": str(folder / f"side-{i}"),
+                   "spec": spec_options}
+            procs.append(subprocess.Popen(
+                [sys.executable, "-c", "from synthbos.benchmarks.bench_scaling import _side_child; _side_child()",
+                 json.dumps(job)], env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True))
+        for proc in procs:  # each has warmed up
+            _child_line(proc, lambda line: line == "ready", "its warm-up")
+        for proc in procs:
+            proc.stdin.write("go\n")
+            proc.stdin.flush()
+        campaigns = [json.loads(_child_line(proc, lambda line: line.startswith("{"), "its campaign")) for proc in procs]
+        for proc in procs:
+            if proc.wait() != 0:
+                raise SynthbosError(f"a side-by-side campaign ended with exit status {proc.returncode}")
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    results = {(Path(c["folder"]) / "results.json").read_bytes() for c in campaigns}
+    return {"units": len(units), "campaigns": campaigns, "pairs_per_s": sum(c["pairs_per_s"] for c in campaigns),
+            "identical_results": len(results) == 1}
+
+
+def _child_line(proc, wanted, what: str) -> str:
+    """The first line of ``proc``'s output that ``wanted`` accepts (others, such as notes, are passed over)."""
+    for line in proc.stdout:
+        if wanted(line.strip()):
+            return line.strip()
+    raise SynthbosError(f"a side-by-side campaign failed in {what} (exit status {proc.wait()})")
+
+
+def _side_child() -> None:
+    """One campaign of :func:`run_side_by_side`: warm up, print ``ready``, wait for a line on stdin, run the
+    timed campaign and print its time as one line of JSON."""
+    job = json.loads(sys.argv[1])
+    try:
+        _side_campaign(job)
+    except SynthbosError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _side_campaign(job: dict) -> None:
+    spec_options = job["spec"]
+    folder, device, workers = Path(job["folder"]), job["device"], job["workers"]
+    tiny = campaign_spec(1, pixels=96, rays=10, noise=spec_options.get("noise", (0.0,)))
+    run_campaign(tiny, folder / "warm", device=device, workers=workers, progress=False, figures=False)
+    print("ready", flush=True)
+    sys.stdin.readline()
+    spec = campaign_spec(job["pairs"], **spec_options)
+    out = folder / "plain"
+    t0 = time.perf_counter()
+    run_campaign(spec, out, device=device, workers=workers, progress=False, figures=False)
+    seconds = time.perf_counter() - t0
+    n_pairs = len(spec.pair_keys())
+    print(json.dumps({"folder": str(out), "campaign_s": seconds, "pairs_per_s": n_pairs / seconds}), flush=True)
+
+
 def format_table(rows, unit: str) -> str:
     lines = [f"| {unit}s | workers | pairs | start-up + warm-up s | campaign s | pairs/s | pairs/s with start-up "
              f"| speed-up | efficiency | common pairs bit-identical |",
@@ -188,6 +270,24 @@ def _plain_table(rows, gpus, args) -> str:
         ideal = r["units"] * best["pairs_per_s"]
         r["efficiency_vs_plain"] = r["pairs_per_s"] / ideal
         lines.append(f"| {r['units']} | {r['pairs_per_s']:.3f} | {ideal:.3f} | {r['efficiency_vs_plain']:.2f} |")
+    if args.side_by_side:
+        alone = next(p for p in plain if p["workers"] == share)
+        lines += ["", f"The host's own limit: N plain campaigns at once, one per GPU, {share} processes each, "
+                      f"against one alone ({alone['pairs_per_s']:.3f} pairs/s):", "",
+                  "| GPUs | pairs/s through Dask | N plain campaigns at once, pairs/s | each against one alone "
+                  "| Dask against them | their results the same |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for r in rows:
+            if r["units"] < 2:
+                continue
+            with tempfile.TemporaryDirectory(prefix="synthbos-side-") as tmp:
+                side = run_side_by_side(gpus[: r["units"]], device=args.device, workers=share, folder=tmp,
+                                        pairs=math.ceil(r["pairs"] / r["units"]), **spec_options)
+            r["side_by_side_pairs_per_s"] = side["pairs_per_s"]
+            r["efficiency_vs_side_by_side"] = r["pairs_per_s"] / side["pairs_per_s"]
+            each = side["pairs_per_s"] / (r["units"] * alone["pairs_per_s"])
+            lines.append(f"| {r['units']} | {r['pairs_per_s']:.3f} | {side['pairs_per_s']:.3f} | {each:.2f} "
+                         f"| {r['efficiency_vs_side_by_side']:.2f} | {'yes' if side['identical_results'] else 'NO'} |")
     return "\n".join(lines)
 
 
@@ -209,6 +309,9 @@ def main(argv=None):
     parser.add_argument("--no-plain", dest="plain", action="store_false",
                         help="skip the baseline: the same campaign on one GPU without Dask (every core, and the "
                              "cores a Dask GPU worker gets)")
+    parser.add_argument("--no-side-by-side", dest="side_by_side", action="store_false",
+                        help="skip the host's own limit: for each count N > 1, N plain campaigns at once, one per "
+                             "GPU, each with a GPU's share of the cores (needs the baseline)")
     args = parser.parse_args(argv)
     counts = [int(c) for c in args.counts.split(",")]
     on_gpu = args.device.startswith("cuda")

@@ -14,6 +14,15 @@ def _warp_devices():
     return devices
 
 
+@pytest.fixture
+def slow_only(request):
+    """The project's rule for the longest ``slow`` tests (a minute or more on two cores, or a cluster): they
+    run only when selected (``-m slow``); other ``slow`` tests run in the default suite too."""
+    markexpr = request.config.getoption("markexpr") or ""
+    if "slow" not in markexpr or "not slow" in markexpr:
+        pytest.skip("long on two cores; select with -m slow")
+
+
 def pytest_generate_tests(metafunc):
     # Any test that takes a ``device`` argument runs once per Warp device: test_x[cpu], test_x[cuda:0].
     if "device" in metafunc.fixturenames:

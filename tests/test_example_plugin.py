@@ -88,10 +88,7 @@ def test_installed_plugin_is_listed_and_processes_a_pair(plugin_python, tmp_path
 
 
 @pytest.mark.slow
-def test_installed_plugin_runs_through_paper_quick(plugin_python, tmp_path, request):
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("minutes on two cores; select with -m slow")
+def test_installed_plugin_runs_through_paper_quick(slow_only, plugin_python, tmp_path):
     out = tmp_path / "paper"
     _run([plugin_python, "-m", "synthbos", "paper", "--quick", "--methods", "correlation,phase-correlation",
           "--out", out, "-q"], cwd=tmp_path, timeout=3600)

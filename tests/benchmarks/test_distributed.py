@@ -303,13 +303,6 @@ def test_a_worker_killed_mid_campaign_loses_only_its_item(plain, external_cluste
     assert_same_results(plain, out)
 
 
-@pytest.fixture
-def slow_only(request):
-    """The project's rule: ``slow`` tests run only when selected (``-m slow``)."""
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("tens of seconds; select with -m slow")
-
 
 def _snapshot(folder):
     return {p: p.stat().st_mtime_ns for p in Path(folder).rglob("*") if p.is_file()}

@@ -363,13 +363,6 @@ def test_the_stack_reaches_dask_pipeline_tasks(monkeypatch):
         dist.DaskRunner("local", device="cpu").run_pairs([], [], stack=2)
 
 
-@pytest.fixture
-def slow_only(request):
-    """The project's rule: ``slow`` tests run only when selected (``-m slow``)."""
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("a local Dask cluster, about 15 s; select with -m slow")
-
 
 @pytest.mark.slow
 def test_a_stacked_campaign_on_a_local_dask_cluster(slow_only, plain, tmp_path):

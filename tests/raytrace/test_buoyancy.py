@@ -140,11 +140,8 @@ def test_main_writes_a_snapshot_file(tmp_path):
 
 
 @pytest.mark.slow
-def test_regeneration_reproduces_embedded_file(request):
+def test_regeneration_reproduces_embedded_file(slow_only):
     """The full default run (about a minute) gives back the embedded snapshots (run with -m slow)."""
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("about a minute; select with -m slow")
     dens, times, attrs = read_snapshots()
     run = run_buoyancy(workers=2)
     assert attrs["seed"] == DEFAULT_PARAMS["seed"]

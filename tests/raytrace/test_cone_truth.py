@@ -169,11 +169,8 @@ def test_cone_truth_on_3d_fields(name, volume, device):
 @pytest.mark.slow
 @pytest.mark.parametrize(("name", "volume"), [("blob", {**BLOB, "grid": [128, 128, 64]}),
                                               ("oblique sinusoid", {**OBLIQUE, "grid": [256, 256, 64]})])
-def test_cone_truth_on_3d_fields_fine_grids(name, volume, device, request):
+def test_cone_truth_on_3d_fields_fine_grids(name, volume, device, slow_only):
     """The same on the issue's grid (256 x 256 x 64 for the sinusoid), 256 x 256 px, 200 rays per dot."""
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("tens of seconds on two cores; select with -m slow")
     gap, chief_gap, rms_d = _cone_gap(volume, pixels=256, rays=200, device=device)
     print(f"\n{name}: rms traced {rms_d:.4f} px; traced vs cone {gap * 100:.3f} %, "
           f"vs chief ray {chief_gap * 100:.1f} %")
