@@ -18,7 +18,7 @@ from synthbos.raytrace import checks, plan_render
 from synthbos import SynthbosError, folder_lock, make_folder
 from synthbos.device import check_device
 
-from .figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS, campaign_figure
+from .campaign_figures import CAMPAIGN_FIGURES, FIRST_PAIR_FIGURES, FORMATS
 from .integrate import floor_current, pair_floor
 from .items import by_pair_and_noise, render_item, score_items
 from .registry import check_available, get_method
@@ -199,7 +199,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
         groups = summary_groups(spec)
         floors = _pair_paths(spec, folder)
         jobs = [(pair_floor, (path,), {path}) for path in floors]  # each as soon as its pair is there
-        jobs += [(campaign_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
+        jobs += [(draw_figure, args, _figure_pairs(args[0], spec, folder)) for args in figure_jobs]
         jobs += [(summary_rows, (spec, str(folder), noise, m), None) for noise, m in groups]
         t_items = []
         there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
@@ -239,7 +239,7 @@ def _run_locked(spec, folder, methods, *, device, workers, progress, figures, sc
     timings["render and process"] = t1 - t0
     timings["tables"] = t2 - t1
     if figure_jobs:  # side by side in worker processes: matplotlib draws on one core
-        run_items(figure_jobs, campaign_figure, workers=min(len(figure_jobs), host),
+        run_items(figure_jobs, draw_figure, workers=min(len(figure_jobs), host),
                   desc="figures", progress=progress)
         timings["figures"] = time.perf_counter() - t2
     return rows
@@ -258,12 +258,12 @@ def _resume_note(folder, *, n_pairs: int, n_scores: int, renders: int, scores: i
 def campaign_order(spec: CampaignSpec) -> list:
     """The campaign's pairs in the order they are rendered and processed: the first pair of every
     snapshot, then the others (pair after pair within a snapshot), so that what is drawn from first
-    pairs (``figures.FIRST_PAIR_FIGURES``) can start early. Every item depends only on its own key."""
+    pairs (``campaign_figures.FIRST_PAIR_FIGURES``) can start early. Every item depends only on its own key."""
     return sorted(spec.pair_keys(), key=lambda key: key[1] > 0)
 
 
 def _figure_jobs(spec: CampaignSpec, folder, *, workers: int) -> list[tuple]:
-    """``campaign_figure`` arguments: one job per figure drawn early (``FIRST_PAIR_FIGURES``); for those
+    """:func:`draw_figure` arguments: one job per figure drawn early (``FIRST_PAIR_FIGURES``); for those
     drawn from the scores at the end, one per figure and format where ``workers`` processes can draw them all
     side by side (they finish sooner), else one per figure, drawn once and saved in every format (on two
     cores, the quick campaign's figures 9.5 -> 6 s: a figure's layout is most of its cost).
@@ -282,6 +282,24 @@ def _figure_jobs(spec: CampaignSpec, folder, *, workers: int) -> list[tuple]:
         jobs += [(stem, spec, str(folder), fmts) for fmts in formats]
     return jobs
 
+
+def draw_figure(stem: str, spec: CampaignSpec, folder, formats=None) -> str:
+    """Draw the campaign figure ``stem`` into ``folder`` (``figures.campaign_figure``); return its stem path.
+    A campaign's worker processes run it: matplotlib is imported where a figure is drawn, not in the
+    campaign's process, and ahead of the first job (``preload``: the module a worker imports before its
+    first job, ``scheduling.run_pipeline``).
+
+    Examples
+    --------
+    >>> draw_figure.preload
+    'synthbos.benchmarks.figures'
+    """
+    from .figures import campaign_figure
+
+    return campaign_figure(stem, spec, folder, formats)
+
+
+draw_figure.preload = "synthbos.benchmarks.figures"
 
 def _figure_pairs(stem: str, spec: CampaignSpec, folder):
     """The pair files a campaign figure reads, when it reads nothing else (None: it reads scores too)."""

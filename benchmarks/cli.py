@@ -37,11 +37,8 @@ from .plugins import PluginWarning
 from .process import load_image, process_pair, process_settings, read_dots_csv, result_setup, write_result
 from .registry import BUILT_IN, DENSE, GRID, default_methods, get_method, method_names, methods_table
 from .regress import BASELINE, run_regress
-from .show_density import plot_density_file, plot_snapshots, snapshot_table
-from .show_result import plot_result
 from .spec import FULL, QUICK
 from .stacks import DEFAULT_STACK, describe_stacks
-from .sweep import parse_parameter, run_sweep
 from .tables import format_floor, format_summary
 
 __all__ = ["build_parser", "in_worker_thread", "main", "work_abandoned"]
@@ -371,6 +368,8 @@ def _regress(args):
 
 
 def _sweep(args):
+    from .sweep import parse_parameter, run_sweep  # here, as the plots': matplotlib only where a command draws
+
     base = merge_tables(setup_tables(args.setup), read_toml(args.config) if args.config else {})
     params = [parse_parameter(p) for p in args.param]
     if args.out is None:
@@ -393,6 +392,10 @@ def _sweep(args):
 
 
 def _show_density(args):
+    # The plotting modules load here, not with the command line: matplotlib took 0.6 s of every command's
+    # start (an H200's host), and a campaign's process never draws (its workers do).
+    from .show_density import plot_density_file, plot_snapshots, snapshot_table
+
     if args.density is not None:  # a density file of 'synthbos integrate'
         if args.snapshots is not None:
             raise SynthbosError("give a density file or --snapshots, not both")
@@ -408,6 +411,8 @@ def _show_density(args):
 
 
 def _show_result(args):
+    from .show_result import plot_result  # here, as in _show_density
+
     out = check_output_file(args.output, inputs=[args.result, args.pair], what="-o")
     summary = plot_result(args.result, out, pair=args.pair)
     print(f"wrote {out}\n{summary}")

@@ -31,6 +31,8 @@ from synthbos import SynthbosError, atomic_output
 from synthbos.values import shorten
 
 from . import scoring
+from .campaign_figures import CAMPAIGN_FIGURES as _CAMPAIGN_STEMS
+from .campaign_figures import FIRST_PAIR_FIGURES, FORMATS
 from .registry import METHODS
 from .storage import DENSITY_TRUTHS, load_density_map, load_scores, pair_path
 from .tables import split_masks
@@ -69,7 +71,6 @@ def figure_format(out) -> str:
     return kind
 
 
-FORMATS = ("png", "pdf", "svg")  # a 300 dpi PNG to look at, a vector PDF to print, a vector SVG to edit
 _DPI = 300
 
 #: Figure widths (in): one journal column, two columns. Every figure is drawn at one of them, so that its
@@ -882,10 +883,9 @@ def sweep_budget_figure(points, path, *, param_label, formats=None):
     return save_figure(fig, path, formats=formats)
 
 
-#: A campaign's figures: file stem -> the function that draws it (``f(spec, folder, path, *, formats=None)``).
-CAMPAIGN_FIGURES = {"fig4": figure4, "fig5": figure5, "fig_density": figure_density, "fig_budget": figure_budget}
-#: The campaign figures that read only the first pair file of each snapshot (a campaign draws them early).
-FIRST_PAIR_FIGURES = frozenset({"fig4"})
+#: A campaign's figures: file stem (``campaign_figures.CAMPAIGN_FIGURES``) -> the function that draws it
+#: (``f(spec, folder, path, *, formats=None)``).
+CAMPAIGN_FIGURES = dict(zip(_CAMPAIGN_STEMS, (figure4, figure5, figure_density, figure_budget), strict=True))
 
 
 def campaign_figure(stem: str, spec, folder, formats=None) -> str:

@@ -447,8 +447,9 @@ def run_pipeline(renders, scores, *, workers: int, progress: bool, desc: str = "
     task_paths = [str(r[1]) if r is not None else str(items[0][0]) for r, items in tasks]  # each task's pair file
     task_of = {path: k for k, path in enumerate(task_paths)}
     own_pool = pool is None
-    # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``).
-    preload = sorted({fn.__module__ for fn, _, _ in jobs})
+    # The workers start with the jobs' modules (matplotlib for figures) imported, as with the items' (``_pool``):
+    # a job function's own module, or the one its ``preload`` attribute names (``campaign.draw_figure``).
+    preload = sorted({getattr(fn, "preload", fn.__module__) for fn, _, _ in jobs})
     lead = claims is None  # this process runs the jobs of several pairs and returns the results
     helpers = []  # the helper processes, once started
     drivers = max(1, min(int(drivers), len(tasks))) if own_pool and workers > 1 and lead else 1

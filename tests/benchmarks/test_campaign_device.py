@@ -139,10 +139,11 @@ def test_bad_process_device_is_one_line_and_writes_nothing(pair_file, tmp_path, 
 def test_paper_and_sweep_pass_the_devices_on(plain, tmp_path, capsys, monkeypatch):
     """``--device`` renders and processes, ``--process-device`` overrides the processing device."""
     import synthbos.benchmarks.cli as cli
+    import synthbos.benchmarks.sweep as sweep
 
     calls = []
     monkeypatch.setattr(cli, "run_campaign", lambda spec, out, **kw: calls.append(kw) or plain[1])
-    monkeypatch.setattr(cli, "run_sweep", lambda *a, **kw: calls.append(kw) or [])
+    monkeypatch.setattr(sweep, "run_sweep", lambda *a, **kw: calls.append(kw) or [])
     assert main(["paper", "--quick", "--device", "cpu", "--out", str(tmp_path / "a"), "-q"]) == 0
     assert main(["paper", "--quick", "--device", "cpu", "--process-device", "cpu", "--out", str(tmp_path / "b"),
                  "-q"]) == 0

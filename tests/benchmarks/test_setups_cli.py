@@ -4,7 +4,7 @@ one line, exit status 2, nothing written."""
 from pathlib import Path
 
 import pytest
-from synthbos.benchmarks import cli
+from synthbos.benchmarks import cli, sweep
 from synthbos.benchmarks.cli import main, paper_spec
 from synthbos.benchmarks.spec import QUICK
 from synthbos.raytrace import load_config, read_pair, setup_tables
@@ -66,7 +66,7 @@ def test_paper_and_sweep_pass_the_setup_on(tmp_path, monkeypatch):
         return []
 
     monkeypatch.setattr(cli, "run_campaign", fake_campaign)
-    monkeypatch.setattr(cli, "run_sweep", fake_sweep)
+    monkeypatch.setattr(sweep, "run_sweep", fake_sweep)
     monkeypatch.chdir(tmp_path)
     assert main(["paper", "--quick", "--setup", "narrow", "--device", "cpu", "-q"]) == 0
     spec, out = seen["campaign"]

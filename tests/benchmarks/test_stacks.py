@@ -300,7 +300,7 @@ def test_a_negative_stack_is_a_usage_error(capsys):
 
 
 def test_the_stack_option_reaches_the_campaigns(tmp_path, monkeypatch, capsys):
-    from synthbos.benchmarks import cli
+    from synthbos.benchmarks import cli, sweep
 
     seen = []
 
@@ -316,7 +316,7 @@ def test_the_stack_option_reaches_the_campaigns(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert seen == [3, None]
     assert "tracking in stacks: 1 track_pairs call on cpu, up to 3 pairs (12 image pairs) per call (stack 3)" in out
-    monkeypatch.setattr(cli, "run_sweep", lambda *a, stack, stacks, **kw: seen.append(stack) or [])
+    monkeypatch.setattr(sweep, "run_sweep", lambda *a, stack, stacks, **kw: seen.append(stack) or [])
     assert main(["sweep", "--param", "noise=0", "--device", "cpu", "--stack", "0", "-q", "-o",
                  str(tmp_path / "s")]) == 0
     monkeypatch.setattr(cli, "run_regress", lambda *, stack, stacks, **kw: (seen.append(stack), ([], []))[1])
