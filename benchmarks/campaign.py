@@ -39,7 +39,7 @@ from .storage import check_folder, pair_path, score_path, write_tables
 from .tables import floor_rows, summarise, summary_groups, summary_rows
 
 __all__ = ["PIPELINE_DRIVERS", "PIPELINE_WORKER_DEVICE", "campaign_order", "check_campaign_stack", "check_drivers",
-           "check_spec", "resolve_process_device", "run_campaign", "write_summary"]
+           "check_spec", "draw_figure", "resolve_process_device", "run_campaign", "write_summary"]
 
 
 
@@ -300,6 +300,7 @@ def draw_figure(stem: str, spec: CampaignSpec, folder, formats=None) -> str:
 
 
 draw_figure.preload = "synthbos.benchmarks.figures"
+
 
 def _figure_pairs(stem: str, spec: CampaignSpec, folder):
     """The pair files a campaign figure reads, when it reads nothing else (None: it reads scores too)."""
