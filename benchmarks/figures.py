@@ -72,6 +72,11 @@ def figure_format(out) -> str:
 
 
 _DPI = 300
+#: What each figure reads of the score files (``storage.load_scores``): the error CDFs split at the threshold,
+#: the density error CDFs, the error budget against the in-cone spread.
+_CDF_FIELDS = ("error", "grad_error", "true_mag", "threshold")
+_DENSITY_FIELDS = tuple(f"density_{t}_rel" for t in DENSITY_TRUTHS)
+_BUDGET_FIELDS = ("error", "spread", "true_mag", "threshold")
 
 #: Figure widths (in): one journal column, two columns. Every figure is drawn at one of them, so that its
 #: text keeps the size it was drawn with when the figure is printed.
@@ -555,7 +560,7 @@ def figure5(spec, folder, path, *, formats=None):
     for r, noise in enumerate(noises):
         curves = {c: [] for c in range(len(cols))}
         for method in spec.methods:
-            sc = load_scores(spec, folder, method, noise)
+            sc = load_scores(spec, folder, method, noise, fields=_CDF_FIELDS)
             thresholds = sc["threshold"] if thresholds is None else thresholds
             masks = split_masks(sc)
             for c, (quantity, split) in enumerate(cols):
@@ -684,7 +689,7 @@ def _density_cdfs(axes, spec, folder, method, noises, *, last_row):
     """One fig_density row's two CDF panels (cone truth, chief-ray truth), with the row's legend at the right."""
     style = method_style(method)
     widths = np.linspace(1.4, 0.8, len(noises))
-    scores = [load_scores(spec, folder, method, noise) for noise in noises]  # once for both truths
+    scores = [load_scores(spec, folder, method, noise, fields=_DENSITY_FIELDS) for noise in noises]  # both truths
     for c, truth in enumerate(DENSITY_TRUTHS):
         for k, (noise, sc) in enumerate(zip(noises, scores, strict=True)):
             e = sc[f"density_{truth}_rel"]
@@ -783,7 +788,7 @@ def figure_budget(spec, folder, path, *, formats=None):
     before the ray covariance was recorded.
     """
     noises, methods = list(spec.noise_percent), list(spec.methods)
-    scores = {(m, n): load_scores(spec, folder, m, n) for m in methods for n in noises}
+    scores = {(m, n): load_scores(spec, folder, m, n, fields=_BUDGET_FIELDS) for m in methods for n in noises}
     if not _has_spread(scores.values()):
         return None
     splits = (("below", "<"), ("above", "≥"))
@@ -851,7 +856,7 @@ def sweep_budget_figure(points, path, *, param_label, formats=None):
     for k, (_, spec, folder) in enumerate(points):
         for m in spec.methods:
             for n in spec.noise_percent:
-                scores[(k, m, None if noise_swept else n)] = load_scores(spec, folder, m, n)
+                scores[(k, m, None if noise_swept else n)] = load_scores(spec, folder, m, n, fields=_BUDGET_FIELDS)
     if not _has_spread(scores.values()):
         return None
     colors = plt.get_cmap("cividis")(np.linspace(0.0, 0.9, len(points)))

@@ -21,8 +21,8 @@ import numpy as np
 
 from synthbos import SynthbosError, atomic_output
 
-__all__ = ["DENSITY_TRUTHS", "check_folder", "load_density_map", "load_scores", "pair_path", "save_scores",
-           "score_path", "write_tables"]
+__all__ = ["DENSITY_TRUTHS", "SCORE_FIELDS", "check_folder", "load_density_map", "load_scores", "pair_path",
+           "save_scores", "score_path", "write_tables"]
 
 DENSITY_TRUTHS = ("cone", "chief")  # the renderer's two density truths: each dot's cone of rays, its chief ray
 
@@ -63,32 +63,54 @@ def save_scores(path, scores: dict) -> None:
         np.savez(f, **scores)
 
 
-def load_scores(spec, folder, method: str, noise: float) -> dict:
+#: What :func:`load_scores` can give: each pooled array or count, by name.
+SCORE_FIELDS = ("error", "true_mag", "grad_error", "threshold", "spread", "measured", "expected",
+                *(f"density_{t}{rel}" for t in DENSITY_TRUTHS for rel in ("", "_rel")))
+
+
+def load_scores(spec, folder, method: str, noise: float, fields=None) -> dict:
     """Concatenate the scores of one method and noise level over all pairs of a campaign.
 
     ``process_device`` is the processing device(s) of those scores, sorted and joined by "+". ``spread``
     (the in-cone spread at each point, px) is NaN for score files written before it was recorded.
+    ``fields`` (names of :data:`SCORE_FIELDS`, default all) chooses what is read: a figure that draws
+    a few of them reads only those arrays of the 50-600 files (each array of a file costs about as much
+    to read as a small file).
+
+    Examples
+    --------
+    >>> from synthbos.benchmarks.spec import QUICK
+    >>> load_scores(QUICK, "no-such-folder", "tracking", 0.0, fields=("errors",))
+    Traceback (most recent call last):
+    ...
+    ValueError: load_scores: unknown fields ['errors']; choose from SCORE_FIELDS
     """
-    parts = {"error": [], "true_mag": [], "grad_error": [], "threshold": [], "spread": [], "measured": 0,
-             "expected": 0}
+    wanted = set(SCORE_FIELDS if fields is None else fields)
+    if wanted - set(SCORE_FIELDS):
+        raise ValueError(f"load_scores: unknown fields {sorted(wanted - set(SCORE_FIELDS))}; choose from SCORE_FIELDS")
+    parts = {k: (0 if k in ("measured", "expected") else []) for k in SCORE_FIELDS if k in wanted}
     devices = set()
-    for truth in DENSITY_TRUTHS:
-        parts[f"density_{truth}"], parts[f"density_{truth}_rel"] = [], []
+    truths = [t for t in DENSITY_TRUTHS if {f"density_{t}", f"density_{t}_rel"} & wanted]
     for s, p in spec.pair_keys():
         with np.load(score_path(folder, s, p, noise, method)) as z:
-            n = len(z["error"])
-            for truth in DENSITY_TRUTHS:  # |error| in kg/m^3 and relative to the pair's truth range
+            n = len(z["error"]) if {"error", "threshold", "spread"} & wanted else 0
+            for truth in truths:  # |error| in kg/m^3 and relative to the pair's truth range
                 e = np.abs(z[f"density_error_{truth}"]) if f"density_error_{truth}" in z else np.zeros(0)
-                rng = float(z[f"density_range_{truth}"]) if f"density_range_{truth}" in z else np.nan
-                parts[f"density_{truth}"].append(e)
-                parts[f"density_{truth}_rel"].append(e / rng if rng > 0 else np.full(len(e), np.nan))
-            parts["error"].append(z["error"])
-            parts["true_mag"].append(z["true_mag"])
-            parts["grad_error"].append(z["grad_error"])
-            parts["threshold"].append(np.full(n, float(z["threshold"])))
-            parts["spread"].append(z["spread"] if "spread" in z else np.full(n, np.nan))  # older scores: none
-            parts["measured"] += int(z["measured"])
-            parts["expected"] += int(z["expected"])
+                if f"density_{truth}" in parts:
+                    parts[f"density_{truth}"].append(e)
+                if f"density_{truth}_rel" in parts:
+                    rng = float(z[f"density_range_{truth}"]) if f"density_range_{truth}" in z else np.nan
+                    parts[f"density_{truth}_rel"].append(e / rng if rng > 0 else np.full(len(e), np.nan))
+            for k in ("error", "true_mag", "grad_error"):
+                if k in parts:
+                    parts[k].append(z[k])
+            if "threshold" in parts:
+                parts["threshold"].append(np.full(n, float(z["threshold"])))
+            if "spread" in parts:
+                parts["spread"].append(z["spread"] if "spread" in z else np.full(n, np.nan))  # older scores: none
+            for k in ("measured", "expected"):
+                if k in parts:
+                    parts[k] += int(z[k])
             devices.add(str(z["process_device"]) if "process_device" in z else "unknown")
     out = {k: (np.concatenate(v) if isinstance(v, list) else v) for k, v in parts.items()}
     out["process_device"] = "+".join(sorted(devices))

@@ -17,7 +17,7 @@ from synthbos.benchmarks.campaign import run_campaign, write_summary
 from synthbos.benchmarks.cli import main
 from synthbos.benchmarks.registry import GRID, get_method
 from synthbos.benchmarks.spec import REGRESS
-from synthbos.benchmarks.storage import load_scores, pair_path, score_path
+from synthbos.benchmarks.storage import SCORE_FIELDS, load_scores, pair_path, score_path
 from synthbos.raytrace import read_pair
 from synthbos.raytrace.pairfile import Pair, in_cone_spread_px
 
@@ -154,6 +154,23 @@ def test_results_table_splits_errors_by_spread(spread_campaign):
                    == ("tracking", 0.0, "all", "displacement"))
     assert all(tracked[f"n_{b}"] > 0 for b in names)  # the synthesised spread reaches every bin
 
+
+def test_scores_loaded_field_by_field_are_the_whole_loads(spread_campaign):
+    """A figure reads only the arrays it draws (``load_scores(fields=...)``): each is the whole load's."""
+    folder, _ = spread_campaign
+    for method in TINY.methods:
+        whole = load_scores(TINY, folder, method, 3.0)
+        assert sorted(k for k in whole if k != "process_device") == sorted(SCORE_FIELDS)
+        assert len(whole["error"]) > 10 and np.isfinite(whole["density_cone_rel"]).any()
+        for fields in (("error", "spread", "true_mag", "threshold"), ("density_cone_rel", "density_chief"),
+                       ("measured",)):
+            part = load_scores(TINY, folder, method, 3.0, fields=fields)
+            assert sorted(part) == sorted([*fields, "process_device"])
+            for k in fields:
+                np.testing.assert_array_equal(part[k], whole[k])
+            assert part["process_device"] == whole["process_device"] == "cpu"
+    with pytest.raises(ValueError, match="unknown fields"):
+        load_scores(TINY, folder, TINY.methods[0], 3.0, fields=("errors",))
 
 def test_budget_figure_drawn_with_spread_and_skipped_without(spread_campaign, tmp_path, capsys):
     folder, _ = spread_campaign
