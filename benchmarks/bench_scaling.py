@@ -142,9 +142,11 @@ def run_scaling(counts, *, device: str, pairs=None, pairs_per_gpu=20, gpus=None,
     return rows
 
 
-def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) -> dict:
+def run_plain(*, device: str, pairs: int, workers=None, folder, before=None, **spec_options) -> dict:
     """Time the same campaign without Dask (``scheduling.run_pipeline`` in this process, ``workers``
-    processes, default every core) on one GPU, after a warm-up here: the baseline of the efficiency."""
+    processes, default every core) on one GPU, after a warm-up here: the baseline of the efficiency.
+    ``before``, when given, is called between the warm-up and the timed campaign (:func:`run_side_by_side`'s
+    campaigns wait there for each other)."""
     from .scheduling import default_workers
 
     spec = campaign_spec(pairs, **spec_options)
@@ -153,6 +155,8 @@ def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) 
     tiny = campaign_spec(1, pixels=96, rays=10, noise=spec_options.get("noise", (0.0,)))
     run_campaign(tiny, folder / f"warm-{workers or 'all'}", device=device, workers=workers, progress=False,
                  figures=False)
+    if before is not None:
+        before()
     out = folder / f"plain-{workers or 'all'}"
     t0 = time.perf_counter()
     run_campaign(spec, out, device=device, workers=workers, progress=False, figures=False)
@@ -162,7 +166,7 @@ def run_plain(*, device: str, pairs: int, workers=None, folder, **spec_options) 
             "pairs_per_s": n_pairs / seconds, "folder": out}
 
 
-def run_side_by_side(units, *, device: str, pairs: int, workers: int, folder, gpus=None, **spec_options) -> dict:
+def run_side_by_side(units, *, device: str, pairs: int, workers: int, folder, **spec_options) -> dict:
     """Time ``len(units)`` plain campaigns at once without Dask, one per GPU of ``units`` (``device`` "cuda:0":
     each in its own process that sees only its GPU; "cpu": CPU campaigns), each of ``pairs`` pairs with
     ``workers`` processes, every timed campaign started at one moment after all their warm-ups: the most
@@ -221,19 +225,14 @@ def _side_child() -> None:
 
 
 def _side_campaign(job: dict) -> None:
-    spec_options = job["spec"]
-    folder, device, workers = Path(job["folder"]), job["device"], job["workers"]
-    tiny = campaign_spec(1, pixels=96, rays=10, noise=spec_options.get("noise", (0.0,)))
-    run_campaign(tiny, folder / "warm", device=device, workers=workers, progress=False, figures=False)
-    print("ready", flush=True)
-    sys.stdin.readline()
-    spec = campaign_spec(job["pairs"], **spec_options)
-    out = folder / "plain"
-    t0 = time.perf_counter()
-    run_campaign(spec, out, device=device, workers=workers, progress=False, figures=False)
-    seconds = time.perf_counter() - t0
-    n_pairs = len(spec.pair_keys())
-    print(json.dumps({"folder": str(out), "campaign_s": seconds, "pairs_per_s": n_pairs / seconds}), flush=True)
+    def ready():  # warmed up: say so, and wait for the others
+        print("ready", flush=True)
+        sys.stdin.readline()
+
+    r = run_plain(device=job["device"], pairs=job["pairs"], workers=job["workers"], folder=job["folder"],
+                  before=ready, **job["spec"])
+    print(json.dumps({"folder": str(r["folder"]), "campaign_s": r["campaign_s"], "pairs_per_s": r["pairs_per_s"]}),
+          flush=True)
 
 
 def format_table(rows, unit: str) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from synthbos.benchmarks.bench_scaling import campaign_spec, run_side_by_side
 from synthbos.benchmarks.campaign import run_campaign
@@ -22,7 +24,7 @@ def test_side_by_side_campaigns_give_the_plain_campaigns_results(slow_only, tmp_
     # the same files as the campaign run here
     run_campaign(campaign_spec(5, **TINY), tmp_path / "here", device="cpu", workers=1, progress=False, figures=False)
     here = (tmp_path / "here" / "results.json").read_bytes()
-    assert here == (tmp_path / "side" / "side-0" / "plain" / "results.json").read_bytes()
+    assert here == (Path(side["campaigns"][0]["folder"]) / "results.json").read_bytes()
 
 
 def test_a_side_by_side_campaign_that_fails_is_reported(tmp_path, capfd):
