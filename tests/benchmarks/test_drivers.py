@@ -54,19 +54,15 @@ def test_claims_give_every_task_to_one_process():
     assert claims.take(0) is None
 
 
-def test_a_helper_failure_is_raised_in_one_line():
+@pytest.mark.parametrize(("target", "message"), [
+    (_fail, r"^pair s0_p03.h5: the render failed$"),  # a helper's failure, in one line
+    (_killed, r"synthbos-driver-1.*exit status -9.*run the campaign again"),  # a killed helper, named
+])
+def test_a_helper_that_fails_or_dies_is_reported_in_one_line(target, message):
     context = drv.driver_context()
     claims = drv.Claims(4, context)
-    procs = drv.start_drivers(1, _fail, (claims,), context)
-    with pytest.raises(SynthbosError, match=r"^pair s0_p03.h5: the render failed$"):
-        drv.join_drivers(procs, claims)
-
-
-def test_a_killed_helper_is_named():
-    context = drv.driver_context()
-    claims = drv.Claims(4, context)
-    procs = drv.start_drivers(1, _killed, (claims,), context)
-    with pytest.raises(SynthbosError, match=r"synthbos-driver-1.*exit status -9.*run the campaign again"):
+    procs = drv.start_drivers(1, target, (claims,), context)
+    with pytest.raises(SynthbosError, match=message):
         drv.join_drivers(procs, claims)
 
 
