@@ -146,10 +146,7 @@ def test_ctrl_c_while_the_helper_starts_prints_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_with_helpers_then_a_run_again_gives_the_same_results(tmp_path, request):
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("two quick campaigns, minutes on two cores; select with -m slow")
+def test_ctrl_c_with_helpers_then_a_run_again_gives_the_same_results(tmp_path, slow_only):
     out = tmp_path / "camp"
     argv = _interrupted(tmp_path, 12.0, out)
     assert subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600).returncode == 0

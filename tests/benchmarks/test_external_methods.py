@@ -62,11 +62,8 @@ def test_optical_flow_beats_the_target_on_a_quick_pair_at_every_noise_level():
 
 
 @pytest.mark.slow
-def test_optical_flow_quick_campaign(tmp_path, request):
+def test_optical_flow_quick_campaign(tmp_path, slow_only):
     """The whole quick campaign (minutes on two cores; run with -m slow)."""
-    markexpr = request.config.getoption("markexpr") or ""
-    if "slow" not in markexpr or "not slow" in markexpr:
-        pytest.skip("minutes; select with -m slow")
     pytest.importorskip("skimage")
     from synthbos.benchmarks.campaign import run_campaign
 
