@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from synthbos import SynthbosError
+from synthbos.shipped_kernels import seed_kernel_cache
 
 __all__ = ["check_device", "copy_to_host", "describe_device", "init_warp", "launching", "load_kernels",
            "recording_graph", "resolve_device"]
@@ -84,13 +85,15 @@ def quiet_warp() -> None:
 
 def init_warp() -> None:
     """Initialise Warp once, quietly (:func:`quiet_warp`): no greeting, no module-load lines, no
-    missing-driver warning."""
+    missing-driver warning; then put the CPU kernels shipped with the package into Warp's kernel cache
+    where it lacks them (:func:`synthbos.shipped_kernels.seed_kernel_cache`)."""
     quiet_warp()
     global _initialised
     if _initialised:
         return
     with _filtered_native_stderr(_NO_DRIVER):
         wp.init()  # a no-op if Warp was initialised already
+    seed_kernel_cache()
     _initialised = True
 
 

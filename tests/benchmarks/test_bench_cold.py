@@ -32,7 +32,25 @@ def test_each_repeat_runs_cold_on_an_empty_cache_then_warm_on_the_same(tmp_path)
     report = bench_cold._report(rows)
     assert "results.csv identical in every run: NO" in report  # the script's results differ cold and warm
     ratio = rows[0]["wall_s"] / rows[1]["wall_s"]
-    assert f"first run / warm run: {ratio:.2f}, " in report
+    assert f"first run (shipped CPU kernels) / warm run: {ratio:.2f}, " in report
+    assert "every kernel compiled" not in report
+
+
+# Writes into results.csv whether it was asked to copy no shipped kernel.
+_SWITCH = """
+import os, sys
+open(os.path.join(sys.argv[1], "results.csv"), "w").write(os.environ.get("SYNTHBOS_SHIPPED_KERNELS", "unset"))
+"""
+
+
+def test_the_compiled_run_copies_no_shipped_kernel_and_has_a_cache_of_its_own(tmp_path):
+    rows = bench_cold.cold_and_warm([sys.executable, "-c", _SWITCH, "{out}"], repeats=1, workdir=tmp_path,
+                                    compiled=True)
+    assert [r["run"] for r in rows] == ["cold", "warm", "compiled"]
+    assert [r["results_md5"] for r in rows] == [_md5("unset"), _md5("unset"), _md5("0")]
+    assert rows[0]["cache"] == rows[1]["cache"] != rows[2]["cache"]
+    ratio = rows[2]["wall_s"] / rows[1]["wall_s"]
+    assert f"first run, every kernel compiled / warm run: {ratio:.2f}" in bench_cold._report(rows)
 
 
 def test_a_failing_command_is_one_line_with_its_last_error(tmp_path):
