@@ -80,6 +80,11 @@ def _checked(table: dict, where: str) -> dict:
     if not out["z_d_mm"] < out["target_distance_mm"]:
         raise SynthbosError(f"{where}: setup.z_d_mm = {out['z_d_mm']:g} must be less than setup.target_distance_mm = "
                             f"{out['target_distance_mm']:g}: the flow lies between the target and the lens")
+    near, far = out["z_d_mm"] - out["depth_mm"] / 2, out["z_d_mm"] + out["depth_mm"] / 2
+    if not (near > 0 and far < out["target_distance_mm"]):
+        raise SynthbosError(f"{where}: the flow (setup.z_d_mm = {out['z_d_mm']:g} +- setup.depth_mm / 2 = "
+                            f"{near:g} ... {far:g} mm from the target) must lie between the target (0) and the lens "
+                            f"(setup.target_distance_mm = {out['target_distance_mm']:g})")
     if "focal_length_mm" in out and not out["focal_length_mm"] < out["target_distance_mm"]:
         raise SynthbosError(f"{where}: setup.focal_length_mm = {out['focal_length_mm']:g} must be less than "
                             f"setup.target_distance_mm = {out['target_distance_mm']:g} (a real image)")

@@ -96,6 +96,8 @@ BAD = [
     ({**SETUP, "magnification": 0.1}, "exactly one of magnification, focal_length_mm, target_mm_per_px"),
     ({k: v for k, v in SETUP.items() if k != "focal_length_mm"}, "exactly one of"),
     ({**SETUP, "z_d_mm": 1000.0}, "setup.z_d_mm = 1000 must be less than setup.target_distance_mm = 1000"),
+    ({**SETUP, "z_d_mm": 999.0, "depth_mm": 100.0}, "949 ... 1049 mm from the target) must lie between the target"),
+    ({**SETUP, "z_d_mm": 10.0, "depth_mm": 100.0}, "-40 ... 60 mm from the target) must lie between the target"),
     ({**SETUP, "depth_mm": -1.0}, "setup.depth_mm must be > 0 and <= 100000, got -1.0"),
     ({**SETUP, "depth_mm": "ten"}, "setup.depth_mm must be a number"),
     ({**SETUP, "ambient_density_kg_m3": float("nan")}, "setup.ambient_density_kg_m3 must be finite"),
