@@ -41,7 +41,7 @@ from synthbos.correlation.peak import three_point_offset
 from . import predict_kernels as pk
 from .deform_kernels import deform_nearest_kernel
 from .predict_tiles import correlate_tiles, prepare_kernels
-from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_RESOLVED_PX
+from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_PEAK_TIE, PREDICTOR_RESOLVED_PX
 from .workspace import on_device, scratch
 
 __all__ = [
@@ -676,7 +676,7 @@ def _searched_planes(spectra, tb, partial, wt, shape, size, *, whole):
     if whole:
         top = 0  # the whole plane is searched
         pl, norm, usable, energy = _correlate_tiles(spectra, tb, partial, wt, shape, size)
-        r, c = np.divmod(np.argmax(pl.reshape(len(pl), -1), axis=1), size)
+        r, c = np.divmod(peak_index(pl, centre=half), size)
         return pl, norm, usable, energy, r, c, top
     # the coarser pass placed the window: look for the residual within a quarter
     lo, m = half - size // 4, 2 * (size // 4) + 1
@@ -687,8 +687,51 @@ def _searched_planes(spectra, tb, partial, wt, shape, size, *, whole):
     stop = min(max(lo + m - 1, int(np.rint(lo + m - 0.5))) + 2, size)
     pl, norm, usable, energy = _correlate_tiles(spectra, tb, partial, wt, shape, size, rows=(top, stop))
     search = pl[:, lo - top : lo - top + m, lo : lo + m]
-    r, c = np.divmod(np.argmax(search.reshape(len(pl), -1), axis=1), m)
+    r, c = np.divmod(peak_index(search, centre=half - lo), m)
     return pl, norm, usable, energy, r + lo, c + lo, top
+
+
+#: :data:`PREDICTOR_PEAK_TIE`'s share of the largest sample a peak must reach, as float32 (the planes' type).
+PEAK_KEEP = np.float32(1.0 - PREDICTOR_PEAK_TIE)
+#: A peak is the largest sample within this many samples along each axis (a 5 x 5 square): lattice peaks
+#: lie a grid's pitch apart (5 px or more for dots of 2 px or more), a broad peak's shoulder next to its top.
+PEAK_REACH = 2
+
+
+def peak_index(blocks, *, centre):
+    """Each searched block's correlation peak, as a flat index (row * m + column) into its ``(m, m)`` block.
+
+    The largest sample (the first, row by row), unless other peaks (samples no smaller than any other of
+    the :data:`PEAK_REACH` samples around them inside the block, so not the shoulder of a broad peak) reach
+    :data:`PEAK_KEEP` times it: then, of those and it, the one nearest the sample ``(centre, centre)`` (the
+    first, row by row, of equals). A regular dot grid whose pitch divides the tile has a peak at every
+    lattice shift; the nearest is the smallest displacement (:data:`PREDICTOR_PEAK_TIE`).
+
+    Examples
+    --------
+    >>> b = np.zeros((1, 5, 5), np.float32)
+    >>> b[0, 0, 0], b[0, 2, 3], b[0, 4, 4] = 1.0, 0.95, 0.5
+    >>> divmod(int(peak_index(b, centre=2)[0]), 5)  # 0.95 ties 1.0 and lies nearer the centre
+    (2, 3)
+    >>> b[0, 2, 3] = 0.8
+    >>> divmod(int(peak_index(b, centre=2)[0]), 5)
+    (0, 0)
+    """
+    k, m = blocks.shape[0], blocks.shape[-1]
+    flat = blocks.reshape(k, -1)
+    at = np.argmax(flat, axis=1)
+    keep = flat[np.arange(k), at] * PEAK_KEEP
+    several = np.count_nonzero(flat >= keep[:, None], axis=1) > 1
+    if not several.any():
+        return at
+    sub = blocks[several]
+    reach = 2 * PEAK_REACH + 1
+    around = ndimage.maximum_filter(sub, size=(1, reach, reach), mode="constant", cval=-np.inf)
+    local = (sub >= keep[several, None, None]) & (sub >= around)
+    d2 = (np.arange(m) - centre) ** 2
+    dist = np.where(local, d2[:, None] + d2[None, :], np.iinfo(np.int64).max)
+    at[several] = np.argmin(dist.reshape(len(sub), -1), axis=1)
+    return at
 
 
 def _pooled_coefficient(coef, usable, energy, k):

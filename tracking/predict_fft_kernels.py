@@ -13,9 +13,27 @@ from synthbos.correlation.pass_kernels import centred_complex, cross_spectrum, r
 from synthbos.device import quiet_warp
 
 from .predict_kernels import TileGrid, row_runs, runs
+from .settings import PREDICTOR_PEAK_TIE
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
+
+#: ``predict.PEAK_KEEP``: the share of a plane's largest sample that another peak must reach to compete.
+PEAK_KEEP = wp.constant(wp.float32(1.0 - PREDICTOR_PEAK_TIE))
+#: ``predict.PEAK_REACH``: a peak is the largest sample within this many samples along each axis.
+PEAK_REACH = wp.constant(2)
+
+
+@wp.func
+def is_peak(planes: wp.array2d(dtype=wp.float32), row0: int, r: int, c: int, lo: int, m: int) -> bool:
+    """Whether sample (r, c) of the plane from row ``row0`` is no smaller than any other within ``PEAK_REACH``
+    samples along each axis inside the searched block (``lo`` ... ``lo + m - 1``)."""
+    v = planes[row0 + r, c]
+    for rr in range(wp.max(r - PEAK_REACH, lo), wp.min(r + PEAK_REACH + 1, lo + m)):
+        for cc in range(wp.max(c - PEAK_REACH, lo), wp.min(c + PEAK_REACH + 1, lo + m)):
+            if planes[row0 + rr, cc] > v:
+                return False
+    return True
 
 
 # --- the correlation of each tile pair ---------------------------------------------------------------------
@@ -317,19 +335,28 @@ def search_peaks(
     m: int,
     peak: wp.array3d(dtype=wp.int32),
 ):
-    """Index (row * size + column) of the first maximum, row by row, of tile (pair, i, j)'s plane over the
-    ``m`` x ``m`` samples from (``lo``, ``lo``) (``np.argmax`` of the searched block)."""
+    """Index (row * size + column) of tile (pair, i, j)'s peak in its plane's ``m`` x ``m`` samples from
+    (``lo``, ``lo``): ``predict.peak_index`` of the searched block (its largest sample, or of the peaks
+    within ``PEAK_KEEP`` of it the one nearest the plane's centre; the first, row by row, of equals)."""
     b, i, j = wp.tid()
     if not runs(changed, b, p):
         return
     n = grid.size
     row0 = ((b * grid.ny + i) * grid.nx + j) * n
     best = planes[row0 + lo, lo]
-    at = lo * n + lo
+    for r in range(lo, lo + m):
+        for c in range(lo, lo + m):
+            best = wp.max(best, planes[row0 + r, c])
+    keep = best * PEAK_KEEP
+    half = n // 2
+    at = int(-1)
+    near = int(0)
     for r in range(lo, lo + m):
         for c in range(lo, lo + m):
             v = planes[row0 + r, c]
-            if v > best:
-                best = v
-                at = r * n + c
+            if v >= keep:
+                d2 = (r - half) * (r - half) + (c - half) * (c - half)
+                if (at < 0 or d2 < near) and is_peak(planes, row0, r, c, lo, m):
+                    at = r * n + c
+                    near = d2
     peak[b, i, j] = at

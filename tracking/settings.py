@@ -151,6 +151,13 @@ EDGE_CUT_PX = 0.5
 #: tracker's needs.
 PREDICTOR_RESOLVED_PX = 0.25
 
+#: A predictor tile's correlation peak is its plane's largest sample unless other local maxima reach within
+#: this fraction of it: then the one nearest the searched displacement (zero in the first pass, the coarser
+#: field's in the others). A regular dot grid whose pitch divides the tile correlates circularly alike at
+#: every lattice shift (peaks equal to the noise); the nearest is the smallest displacement the images
+#: allow, as the paper's search around each dot's own position assumes.
+PREDICTOR_PEAK_TIE = 0.1
+
 #: A predictor tile (and the predictor's significance box) takes part only where at least this fraction
 #: of its reference pixels is not masked.
 PREDICTOR_MIN_VALID_FRACTION = 0.25

@@ -13,6 +13,7 @@ from _synth import dot_pattern, smooth_displacement
 from numpy.testing import assert_allclose, assert_array_equal
 from synthbos.raytrace.dots import draw_dots
 from synthbos.tracking import predict
+from synthbos.tracking import predict_fft_kernels as fk
 from synthbos.tracking import predict_kernels as pk
 from synthbos.tracking.predict import dots_inside, predict_displacement, predict_displacement_stack, predictor_passes
 from synthbos.tracking.predict_tiles import correlate_tiles, uses_tile_fft
@@ -250,3 +251,48 @@ def test_the_default_passes_tile_kernels_are_among_the_modules_a_campaign_compil
         # 256 threads failed the 32-sample tile FFT's build on an H100, 2026-11-27)
         threads = [predict_tiles._cuda_threads("centre", size)] + [size // 2] * (len(kernels) - 1)
         assert [k.module.options["block_dim"] for k in kernels] == threads, size
+
+
+def _grid_pair(pitch, shift, size, seed):
+    """A regular grid of 3 px dots (the first at half a pitch from the corner), and the same grid moved
+    by ``shift``, with noise; and the grid's positions."""
+    rng = np.random.default_rng(seed)
+    line = np.arange(pitch / 2, size, pitch)
+    xy = np.stack(np.meshgrid(line, line), axis=-1).reshape(-1, 2)
+    ref = draw_dots((size, size), xy, D) + NOISE * rng.standard_normal((size, size))
+    grad = draw_dots((size, size), xy + np.asarray(shift), D) + NOISE * rng.standard_normal((size, size))
+    return ref, grad, xy
+
+
+@pytest.mark.parametrize(("pitch", "shift"), [(8, (1.2, -0.7)), (8, (0.2, 0.1)), (16, (3.0, 1.0))])
+def test_a_dot_grid_whose_pitch_divides_the_tiles_is_predicted_at_its_smallest_shift(device, pitch, shift):
+    """Every tile of a grid whose pitch divides it (8 and 16 px in 64, 32 and 16 px tiles) correlates
+    circularly alike at every lattice shift; the predictor takes the nearest peak (``peak_index``), on the
+    host and in the stack, where the first maximum fell on any of them (predictions up to 48 px off)."""
+    ref, grad, xy = _grid_pair(pitch, shift, 128, seed=pitch)
+    uv, quality = predict_displacement(ref, grad, xy)
+    assert np.abs(uv - np.asarray(shift)).max() < 0.1
+    assert np.median(quality) > 0.9
+    _compare(ref[None], grad[None], xy[None], device, label=f"grid {pitch} px")
+
+
+def test_the_stack_peak_search_is_the_host_rule_on_ties(device):
+    """``search_peaks`` on planes of several equal peaks, a plateau and a peak just inside and just outside
+    the tie: ``predict.peak_index`` of each searched block, in the first pass and a later one."""
+    n, nb = 16, 3
+    rng = np.random.default_rng(4)
+    planes = (0.2 * rng.random((nb, 2, 2, n, n))).astype(np.float32)
+    for b, i, j in np.ndindex(nb, 2, 2):
+        for k, (r, c) in enumerate([(2, 2), (2 + i, 10), (9 + j, 12), (13, 5)]):
+            planes[b, i, j, r, c] = np.float32(1.0 - 0.05 * k * b)  # ties for b = 0, 0.95 and 0.9 for b = 1 ...
+    planes[2, 1, 1, 8:10, 7] = 1.5  # a plateau of two samples
+    g = pk.TileGrid()
+    g.top, g.left, g.row_step, g.col_step, g.size, g.ny, g.nx = 0, 0, n, n, n, 2, 2
+    changed = wp.zeros((nb, 1), dtype=wp.int32, device=device)
+    flat = wp.array(planes.reshape(-1, n), dtype=wp.float32, device=device)
+    for lo, m in ((0, n), (n // 2 - n // 4, 2 * (n // 4) + 1)):
+        peak = wp.zeros((nb, 2, 2), dtype=wp.int32, device=device)
+        wp.launch(fk.search_peaks, dim=(nb, 2, 2), inputs=[flat, changed, 0, g, lo, m, peak], device=device)
+        block = planes.reshape(-1, n, n)[:, lo : lo + m, lo : lo + m]
+        r, c = np.divmod(predict.peak_index(block, centre=n // 2 - lo), m)
+        assert_array_equal(peak.numpy().ravel(), (r + lo) * n + c + lo)
