@@ -97,7 +97,8 @@ class Method:
         Whether the method takes predicted reference-image dot positions.
     settings_key : str
         The table of a process configuration (and the campaign spec's field) holding its settings;
-        methods that share a settings class share it. Empty: the method's name.
+        methods that share a settings class share it. Empty (the default): the method's name, which it
+        then holds.
     make_settings : callable or None
         Builds the settings from overrides (default: ``settings_class``): how one algorithm is registered
         a second time with another procedure, e.g. the paper's exact tracking procedure
@@ -148,6 +149,10 @@ class Method:
     prepare: Callable | None = None
     requires: tuple[str, ...] = ()
     source: str = ""
+
+    def __post_init__(self):
+        if not self.settings_key:
+            object.__setattr__(self, "settings_key", self.name)
 
     def kernels_on(self, device) -> tuple[str, ...]:
         """The modules of the Warp kernels its run launches on ``device`` ("cpu", "cuda:0"; None: the CPU)."""

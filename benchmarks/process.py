@@ -402,10 +402,6 @@ def apply_invert(reference, gradient):
     return c - reference, c - gradient
 
 
-def _table_key(method):
-    return method.settings_key or method.name
-
-
 def process_tables() -> tuple[str, ...]:
     """The tables a process configuration may hold: ``image``, ``setup`` and every settings table."""
     return ("image", "setup", *_settings_tables())
@@ -415,7 +411,7 @@ def _settings_tables():
     """Table name -> a registered method that reads it (the first one in the registry)."""
     tables = {}
     for m in METHODS.values():
-        tables.setdefault(_table_key(m), m)
+        tables.setdefault(m.settings_key, m)
     return tables
 
 
@@ -721,7 +717,7 @@ def process_settings(method, *, config=None, flags=None, image=None):
     settings, ImageOptions
     """
     m = get_method(method)
-    table = _table_key(m)
+    table = m.settings_key
     cfg = read_process_config(config) if config is not None else {"image": ImageOptions()}
     values = dict(cfg.get(table, {}))
     for name, given in (flags or {}).items():

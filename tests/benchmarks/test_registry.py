@@ -1,5 +1,7 @@
 """The method registry: names select implementations, settings and the paper's tracking procedure."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
@@ -18,6 +20,14 @@ def test_every_entry_is_complete_and_styles_are_distinct():
     assert len({m.color for m in METHODS.values()}) == len(METHODS)
     assert set(default_methods()) == {"correlation", "tracking", "tracking-cc"}
     assert set(default_methods()) < set(method_names())
+
+
+def test_a_method_without_a_settings_key_reads_the_table_of_its_name():
+    """A plugin that names no ``settings_key`` (docs/plugins.md: by default the name) holds its name there,
+    so the registry's checks hold with a plugin installed."""
+    mine = dataclasses.replace(get_method("correlation"), name="phase-correlation", settings_key="")
+    assert mine.settings_key == "phase-correlation"
+    assert dataclasses.replace(mine, name="other").settings_key == "phase-correlation"  # once set, kept
 
 
 def test_settings_from_overrides_and_unknown_keys():

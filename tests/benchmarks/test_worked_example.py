@@ -87,10 +87,10 @@ def test_worked_example(tmp_path, capsys):
 
     # 4. Process, with the configuration file (mask, automatic inversion of dark dots).
     assert main(["process", "--reference", f"{t}/ref.tif", "--gradient", f"{t}/grad.tif",
-                 "--method", "tracking-cc", "--dots", f"{t}/dots.csv", "--config", f"{t}/process.toml",
+                 "--method", "tracking-cc", "--dots", f"{t}/dots.csv", "--settings", f"{t}/process.toml",
                  "-o", f"{t}/tracking.h5"]) == 0
     assert main(["process", "--reference", f"{t}/ref.tif", "--gradient", f"{t}/grad.tif",
-                 "--method", "correlation", "--config", f"{t}/process.toml", "-o", f"{t}/correlation.h5"]) == 0
+                 "--method", "correlation", "--settings", f"{t}/process.toml", "-o", f"{t}/correlation.h5"]) == 0
     out = capsys.readouterr().out
     assert "inverted" in out and "measured" in out and "masked" in out
     with h5py.File(tmp_path / "tracking.h5") as f:
