@@ -789,7 +789,7 @@ def calibrate_grid(image, spacing, *, order=3, origin_xy=None, threshold=None, e
         raise SynthbosError(f"grid spacing must be a positive number, got {spacing!r}")
     if a.size == 0 or a.min() == a.max():
         what = f"blank (every pixel {a.flat[0]:g})" if a.size else "empty"
-        raise SynthbosError(f"no regular dot grid found in the calibration image: it is {what}")
+        raise SynthbosError(f"the calibration image is {what}: no dot grid to find")
     h, w = a.shape
     spacing = float(spacing)
     n_terms = len(_terms(order))

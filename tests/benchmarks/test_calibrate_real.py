@@ -60,13 +60,13 @@ def test_white_is_zero_grid_read_the_right_way_up(tmp_path, capsys):
     _check_dots(out, xy)
 
 
-def test_no_grid_one_line_naming_invert_nothing_written(tmp_path, capsys):
+def test_no_grid_one_line_naming_invert_unless_blank_nothing_written(tmp_path, capsys):
     rng = np.random.default_rng(13)
     random_dots = 100 + 3000 * draw_dots(SHAPE, rng.uniform(0, 448, (1200, 2)), 4.0) + rng.normal(0, 5, SHAPE)
     bright_grid, _, _ = real_like_grid(SHAPE, 8.0, seed=14, n_missing=0, n_spurious=0)
     images = {
         "random.tif": (random_dots, [], r"no regular dot grid .*\d+ bright blobs, \d on one lattice"),
-        "blank.tif": (np.full(SHAPE, 800.0), [], "it is blank"),
+        "blank.tif": (np.full(SHAPE, 800.0), [], "the calibration image is blank \\(every pixel 800\\): no dot grid"),
         "bright.tif": (bright_grid, ["--invert"], "dark blobs?, .* --invert was given: leave it out"),
     }
     for name, (image, extra, message) in images.items():
@@ -75,6 +75,6 @@ def test_no_grid_one_line_naming_invert_nothing_written(tmp_path, capsys):
         assert _calibrate(tmp_path / name, out, "--mapping-out", str(mapping), *extra) == 2
         err = capsys.readouterr().err.strip()
         print(err)
-        assert "\n" not in err and len(err) <= 200 and "--invert" in err, err
+        assert "\n" not in err and len(err) <= 200 and ("--invert" in err) == (name != "blank.tif"), err
         assert __import__("re").search(message, err), err
         assert not out.exists() and not mapping.exists()
