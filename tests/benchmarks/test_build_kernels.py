@@ -18,6 +18,8 @@ from synthbos.benchmarks.scheduling import (
     worker_pool,
 )
 
+from synthbos.shipped_kernels import DISABLE_ENV
+
 
 def test_methods_name_the_kernels_they_launch_on_each_device():
     corr, track = get_method("correlation"), get_method("tracking")
@@ -50,6 +52,7 @@ def test_item_lists_give_each_module_once_per_device():
 def test_the_pool_builds_each_named_module_and_only_those(tmp_path, monkeypatch):
     cache = tmp_path / "kernels"
     monkeypatch.setenv("WARP_CACHE_PATH", str(cache))  # the spawned processes' own, empty kernel cache
+    monkeypatch.setenv(DISABLE_ENV, "0")  # and none of the shipped CPU kernels copied into it
     wanted = ["synthbos.tracking.moment_kernels", "synthbos.tracking.neighbour_kernels"]
     with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
         build_in_pool(pool, [(name, "cpu") for name in wanted])
@@ -84,6 +87,7 @@ def test_a_module_handed_to_a_pool_once_is_not_handed_again():
 def test_one_pool_runs_two_calls_and_builds_the_next_calls_kernels_after_the_items(tmp_path, monkeypatch):
     cache = tmp_path / "kernels"
     monkeypatch.setenv("WARP_CACHE_PATH", str(cache))
+    monkeypatch.setenv(DISABLE_ENV, "0")
     monkeypatch.setattr("synthbos.benchmarks.drivers.get_context", lambda method: get_context("spawn"))
     later = [("synthbos.tracking.moment_kernels", "cpu")]
     with worker_pool(2) as pool:
