@@ -66,13 +66,10 @@ def test_shipped_modules_are_those_warp_builds_from_this_code():
     cpu = wp.get_device("cpu")
     shipped = sorted(p.name for p in folder.iterdir() if p.is_dir())
     assert len(shipped) >= 10
-    current = {}
-    for name in shipped:
-        module = user_modules.get(name[len("wp_") : -len("_1234567")])  # wp_<module name>_<7-digit hash>
-        current[name] = None if module is None else module.get_module_identifier(1)
-    stale = [name for name, now in current.items() if now != name]
+    modules = {name: user_modules.get(name[len("wp_") : -len("_1234567")]) for name in shipped}  # wp_<name>_<hash>
+    stale = [name for name, m in modules.items() if m is None or m.get_module_identifier(1) != name]
     assert not stale, f"shipped CPU kernels out of date ({stale}): run python -m synthbos.shipped_kernels"
-    objects = {name: user_modules[name[3:-8]]._get_compile_output_name(cpu, block_dim=1) for name in shipped}
+    objects = {name: m._get_compile_output_name(cpu, block_dim=1) for name, m in modules.items()}
     if not all(Path(folder, name, obj).exists() for name, obj in objects.items()):
         pytest.skip("the shipped objects were built for another CPU target than this machine's")
     assert all(Path(folder, name, f"{name}.meta").exists() for name in shipped)

@@ -574,7 +574,8 @@ def predict_displacement(
     uv : (N, 2) float array
         Predicted displacement (u, v) in pixels: the last pass's tile field (the mean shift by which
         the gradient image was moved back, the coarser field rounded at every pixel, plus the tile's
-        correlation peak by a three-point Gaussian fit; a tile failing the normalised median test
+        correlation peak (:func:`peak_index`: on a regular dot grid, of the lattice's equal peaks the one
+        nearest the searched displacement) by a three-point Gaussian fit; a tile failing the normalised median test
         against its eight neighbours takes their median), bilinearly interpolated from the tile
         centres to ``xy`` (linearly extrapolated beyond the outer centres).
     quality : (N,) float array
