@@ -359,4 +359,6 @@ def search_peaks(
                 if (at < 0 or d2 < near) and is_peak(planes, row0, r, c, lo, m):
                     at = r * n + c
                     near = d2
+    if at < 0:  # no sample compares (a plane of NaN): the block's first, as before any rule
+        at = lo * n + lo
     peak[b, i, j] = at
