@@ -765,7 +765,11 @@ def process_pair(method, reference, gradient, *, settings=None, options=None, pr
         raise SynthbosError(f"the images are {w} x {h} px; processing needs at least {MIN_IMAGE_PX} x "
                             f"{MIN_IMAGE_PX} px")
     if prior_xy is not None:
-        check_prior(prior_xy, np.shape(reference))
+        outside = check_prior(prior_xy, np.shape(reference))
+        if outside and notes is not None:
+            h, w = np.shape(reference)
+            notes.append(f"{outside} of the {len(prior_xy)} dots of the prior lie outside the {w} x {h} px image: "
+                         "they are not measured")
     mask = None
     if options.mask is not None:
         mask = load_mask(options.mask, np.shape(reference), excludes=options.mask_excludes, notes=notes)
@@ -814,9 +818,16 @@ def result_setup(image_shape, *, pair=None, pair_path=None, setup_file=None, con
     return setup_attr(geometry_from_setup(table, image_shape, where=where), where)
 
 
-def check_prior(prior_xy, shape) -> None:
+def check_prior(prior_xy, shape) -> int:
     """Refuse a tracking prior that can only give nonsense: the same dot twice (two positions closer than
-    ``DUPLICATE_PX``), or no position inside the ``(H, W)`` image."""
+    ``DUPLICATE_PX``), or no position inside the ``(H, W)`` image. Returns how many positions lie outside
+    it (a target larger than the view: those dots are not measured).
+
+    Examples
+    --------
+    >>> check_prior([[10.0, 10.0], [5000.0, 20.0]], (256, 256))
+    1
+    """
     from scipy.spatial import cKDTree
 
     xy = np.asarray(prior_xy, dtype=np.float64).reshape(-1, 2)
@@ -832,3 +843,4 @@ def check_prior(prior_xy, shape) -> None:
         lo, hi = xy.min(axis=0), xy.max(axis=0)
         raise SynthbosError(f"no dot of the prior lies in the {w} x {h} px image (x {lo[0]:.4g} .. {hi[0]:.4g}, "
                             f"y {lo[1]:.4g} .. {hi[1]:.4g} px): wrong units or another image?")
+    return int(np.count_nonzero(~inside))

@@ -344,6 +344,21 @@ def test_prior_with_duplicates_or_outside_the_image_is_refused(files, tmp_path, 
     assert not out.exists()
 
 
+def test_prior_with_some_dots_outside_the_image_is_measured_with_a_note(files, tmp_path, capsys):
+    """A target larger than the view: the dots of the prior outside the image are named in a note, not refused."""
+    from synthbos.benchmarks.cli import main
+    from synthbos.benchmarks.items import nominal_positions
+    from synthbos.raytrace import read_pair
+
+    xy = np.concatenate([nominal_positions(read_pair(files / "p.h5")), [[500.0, 20.0], [-40.0, 50.0]]])
+    (tmp_path / "wide.csv").write_text("x,y\n" + "".join(f"{x},{y}\n" for x, y in xy))
+    out = tmp_path / "r.h5"
+    assert main(["process", str(files / "p.h5"), "--method", "tracking-cc", "--dots", str(tmp_path / "wide.csv"),
+                 "-o", str(out)]) == 0
+    assert f"note: 2 of the {len(xy)} dots of the prior lie outside the 96 x 96 px image" in capsys.readouterr().out
+    assert out.exists()
+
+
 def test_calibration_target_with_no_dot_in_the_image(tmp_path, capsys):
     terms = [[i, j] for i in range(2) for j in range(2 - i)]
     mapping = {"format": "synthbos-soloff-mapping", "version": 1, "order": 1, "terms": terms,
