@@ -41,7 +41,7 @@ from synthbos.correlation.peak import three_point_offset
 from . import predict_kernels as pk
 from .deform_kernels import deform_nearest_kernel
 from .predict_tiles import correlate_tiles, prepare_kernels
-from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_PEAK_TIE, PREDICTOR_RESOLVED_PX
+from .settings import PREDICTOR_MIN_VALID_FRACTION, PREDICTOR_PEAK_REACH, PREDICTOR_PEAK_TIE, PREDICTOR_RESOLVED_PX
 from .workspace import on_device, scratch
 
 __all__ = [
@@ -694,16 +694,13 @@ def _searched_planes(spectra, tb, partial, wt, shape, size, *, whole):
 
 #: :data:`PREDICTOR_PEAK_TIE`'s share of the largest sample a peak must reach, as float32 (the planes' type).
 PEAK_KEEP = np.float32(1.0 - PREDICTOR_PEAK_TIE)
-#: A peak is the largest sample within this many samples along each axis (a 5 x 5 square): lattice peaks
-#: lie a grid's pitch apart (5 px or more for dots of 2 px or more), a broad peak's shoulder next to its top.
-PEAK_REACH = 2
 
 
 def peak_index(blocks, *, centre):
     """Each searched block's correlation peak, as a flat index (row * m + column) into its ``(m, m)`` block.
 
     The largest sample (the first, row by row), unless other peaks (samples no smaller than any other of
-    the :data:`PEAK_REACH` samples around them inside the block, so not the shoulder of a broad peak) reach
+    the :data:`PREDICTOR_PEAK_REACH` samples around them inside the block, so not the shoulder of a broad peak) reach
     :data:`PEAK_KEEP` times it: then, of those and it, the one nearest the sample ``(centre, centre)`` (the
     first, row by row, of equals). A regular dot grid whose pitch divides the tile has a peak at every
     lattice shift; the nearest is the smallest displacement (:data:`PREDICTOR_PEAK_TIE`).
@@ -726,7 +723,7 @@ def peak_index(blocks, *, centre):
     if not several.any():
         return at
     sub = blocks[several]
-    reach = 2 * PEAK_REACH + 1
+    reach = 2 * PREDICTOR_PEAK_REACH + 1
     around = ndimage.maximum_filter(sub, size=(1, reach, reach), mode="constant", cval=-np.inf)
     local = (sub >= keep[several, None, None]) & (sub >= around)
     d2 = (np.arange(m) - centre) ** 2

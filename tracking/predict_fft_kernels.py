@@ -13,15 +13,15 @@ from synthbos.correlation.pass_kernels import centred_complex, cross_spectrum, r
 from synthbos.device import quiet_warp
 
 from .predict_kernels import TileGrid, row_runs, runs
-from .settings import PREDICTOR_PEAK_TIE
+from .settings import PREDICTOR_PEAK_REACH, PREDICTOR_PEAK_TIE
 
 quiet_warp()  # no banner or module-load lines from library code (synthbos.device)
 wp.set_module_options({"enable_backward": False})  # forward-only kernels: no adjoint code to compile
 
 #: ``predict.PEAK_KEEP``: the share of a plane's largest sample that another peak must reach to compete.
 PEAK_KEEP = wp.constant(wp.float32(1.0 - PREDICTOR_PEAK_TIE))
-#: ``predict.PEAK_REACH``: a peak is the largest sample within this many samples along each axis.
-PEAK_REACH = wp.constant(2)
+#: ``settings.PREDICTOR_PEAK_REACH``: a peak is the largest sample within this many samples along each axis.
+PEAK_REACH = wp.constant(PREDICTOR_PEAK_REACH)
 
 
 @wp.func

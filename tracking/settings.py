@@ -157,6 +157,10 @@ PREDICTOR_RESOLVED_PX = 0.25
 #: every lattice shift (peaks equal to the noise); the nearest is the smallest displacement the images
 #: allow, as the paper's search around each dot's own position assumes.
 PREDICTOR_PEAK_TIE = 0.1
+#: A peak of a predictor tile's correlation plane is its largest sample within this many samples along each
+#: axis (a 5 x 5 square): lattice peaks lie a grid's pitch apart (5 px or more for dots of 2 px or more), a
+#: broad peak's shoulder next to its top.
+PREDICTOR_PEAK_REACH = 2
 
 #: A predictor tile (and the predictor's significance box) takes part only where at least this fraction
 #: of its reference pixels is not masked.
