@@ -74,8 +74,7 @@ def _warm_up(device: str, folder: str) -> float:
 def _warm_up_pipeline(device: str, folder: str) -> float:
     """On a GPU worker: a tiny campaign through :func:`distributed.pipeline_task`, so the worker's own
     pool of host processes (its fork server, imports, kernels) is started the way the baseline's is."""
-    from .distributed import pipeline_task, shards
-    from .scheduling import pair_tasks
+    from .distributed import pipeline_task
 
     t0 = time.perf_counter()
     spec = campaign_spec(1, pixels=96, rays=10)
@@ -83,8 +82,7 @@ def _warm_up_pipeline(device: str, folder: str) -> float:
     renders = [(spec.pair_config(s, p), str(out / f"{s}-{p}.h5"), device) for s, p in spec.pair_keys()[:1]]
     scores = [(renders[0][1], m, 1.0, (1, 2), str(out / f"{m}.npz"), {}, device) for m in spec.methods]
     out.mkdir(parents=True)
-    for shard in shards(pair_tasks(renders, scores), 1):
-        pipeline_task(*shard, f"warm-{out.name}")
+    pipeline_task(renders, scores, f"warm-{out.name}")
     return time.perf_counter() - t0
 
 

@@ -9,22 +9,24 @@ CPU workers when the campaign renders on the CPU. ``--scheduler tcp://HOST:PORT`
 ``dask worker`` by hand, dask-jobqueue on SLURM or PBS, dask-cuda's ``LocalCUDACluster``); its workers
 must import this same synthbos and see the campaign folder at the same path.
 
-On CPU workers the unit of work is the pair: one task renders a pair (when its file is missing) and
-then processes and scores it with every method at every noise level on the same worker, reading the
-pair file it has just written, so images never travel through the scheduler; only file paths, settings
-and item counts do. A GPU worker instead runs the single-node pipeline (``scheduling.run_pipeline``)
-over its share of the pairs, with its own pool of host processes (its share of the host's cores), so
-that it keeps its GPU as busy as a campaign without Dask does: one task per GPU worker, each holding
-every ``len(workers)``-th pair. Every file is written atomically by the worker that makes it, and
-finished files are skipped, so the folder layout and the resume are those of a run in one process,
-and since every seed comes from the campaign spec the results are byte-identical to it whatever the
-number and kind of workers.
+On CPU workers the unit of work is the pair: one task renders a pair (when its file is missing) and then
+processes and scores it with every method at every noise level on the same worker, reading the pair file
+it has just written, so images never travel through the scheduler; only file paths, settings and item
+counts do. A GPU worker instead runs the single-node pipeline (``scheduling.run_pipeline``) over the pairs
+it takes, with its own pool of host processes (its share of the host's cores), so that it keeps its GPU as
+busy as a campaign without Dask does: one task per GPU worker, each given every pair, and each taking the
+next pair no worker has taken as it frees up (``drivers.FileClaims``: a file per pair, created atomically,
+in a folder of the run beside the pair files), so a faster worker does more pairs and none waits at the
+end for a slower one. Every file is written atomically by the worker that makes it, and finished files are
+skipped, so the folder layout and the resume are those of a run in one process, and since every seed comes
+from the campaign spec the results are byte-identical to it whatever the number and kind of workers.
 
-Failures: a worker that dies loses only the item it was writing; the scheduler hands its task to
-another worker, which skips the files already there. Interrupting the client (Ctrl-C) cancels every
-task: a cluster this module started is shut down with its worker processes; on a cluster that was
-joined, each worker stops after the item it is writing (an atomic write, seconds on a GPU), and the
-client waits for that before it returns, so no task is left writing into the folder (a second Ctrl-C
+Failures: a worker that dies loses only the item it was writing; the scheduler hands its task to another
+worker, which skips the files already there (a pipeline task's pairs stay taken: once the other workers
+are done the client runs the pairs still missing again, with new claims). Interrupting the client (Ctrl-C)
+cancels every task: a cluster this module started is shut down with its worker processes; on a cluster
+that was joined, each worker stops after the item it is writing (an atomic write, seconds on a GPU), and
+the client waits for that before it returns, so no task is left writing into the folder (a second Ctrl-C
 stops waiting).
 
 Dask is imported only here, and only when a scheduler is asked for.
@@ -37,6 +39,7 @@ import importlib.util
 import json
 import logging
 import os
+import shutil
 import signal
 import threading
 import time
@@ -49,7 +52,7 @@ from tqdm.auto import tqdm
 from synthbos import SynthbosError
 from synthbos.values import shorten
 
-from .drivers import ignoring_sigint_forkserver, quiet_resource_tracker
+from .drivers import FileClaims, ignoring_sigint_forkserver, quiet_resource_tracker
 from .integrate import floor_current, pair_floor
 from .items import render_item, score_item
 from .scheduling import (
@@ -62,8 +65,9 @@ from .scheduling import (
     worker_kernels,
 )
 
-__all__ = ["LOCAL_WORKERS_PER_GPU", "DaskRunner", "campaign_runner", "check_address", "check_scheduler", "pair_task",
-           "pipeline_task", "run_pairs", "shards", "visible_gpus"]
+__all__ = ["LOCAL_WORKERS_PER_GPU", "PIPELINE_ROUNDS", "DaskRunner",
+           "campaign_runner", "check_address", "check_scheduler", "pair_task",
+           "pipeline_task", "run_pairs", "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
@@ -75,6 +79,9 @@ HOST_WORKERS_VAR = "SYNTHBOS_HOST_WORKERS"
 #: (2026-11-27/28): 3.6 pairs/s with one worker, 5.0 and 4.6 with two, 5.3 with three; the plain campaign
 #: on the same machines 3.7 and 2.9 pairs/s (docs/benchmarks.md).
 LOCAL_WORKERS_PER_GPU = 2
+#: Rounds of pipeline tasks a run may take: the first runs every pair; a later one only the pairs left
+#: missing when the workers of the one before had finished (a worker died with pairs it had taken).
+PIPELINE_ROUNDS = 3
 
 # Worker-process state: the runs told to stop, and the runs with an item in flight (run token -> count).
 _STOPPED: set[str] = set()
@@ -187,7 +194,7 @@ def pair_task(render, scores, token: str) -> int:
     """Render one pair (``render`` args, or None when its file exists) and score it (``scores`` args).
 
     Runs on a worker; skips every output that exists and stops between items once the run ``token``
-    is told to stop. Returns the number of items it wrote.
+    is told to stop. Returns ``(items written, 1)`` (one pair, as :func:`pipeline_task` counts).
     """
     done = 0
     with _LOCK:
@@ -205,7 +212,7 @@ def pair_task(render, scores, token: str) -> int:
     finally:
         with _LOCK:
             _IN_FLIGHT[token] -= 1
-    return done
+    return done, 1
 
 
 def _host_workers_told() -> str | None:
@@ -231,15 +238,19 @@ def host_workers() -> int:
     return int(told) if told else pipeline_workers(len(visible_gpus()))
 
 
-def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -> int:
-    """Run a share of a campaign's pairs through the single-node pipeline (``scheduling.run_pipeline``)
-    on this GPU worker, with :func:`host_workers` host processes and its tracking items in stacks of
-    ``stack`` pairs (None: the pipeline's default, stacks on a GPU), and its pairs' density floors
-    (``integrate.pair_floor``) in those processes; skips what exists and starts no further pair once run
-    ``token`` is told to stop. Returns the number of items it wrote."""
+def pipeline_task(renders, scores, token: str, worker_device=None, stack=None, claims=None) -> tuple[int, int]:
+    """Run a campaign's pairs through the single-node pipeline (``scheduling.run_pipeline``) on this GPU
+    worker, with :func:`host_workers` host processes and its tracking items in stacks of ``stack`` pairs
+    (None: the pipeline's default, stacks on a GPU), and its pairs' density floors
+    (``integrate.pair_floor``) in those processes; starts no further pair once run ``token`` is told to
+    stop. ``claims`` (a :class:`~synthbos.benchmarks.drivers.FileClaims` over every pair of the run, which
+    every worker is given) shares the pairs out as the workers free up: this worker runs the pairs it
+    takes. Without it, every pair whose files are missing. Returns ``(items written, pairs run)``."""
+    if claims is None:  # every missing item here
+        renders = [r for r in renders if not Path(r[1]).exists()]
+        scores = [s for s in scores if not Path(s[4]).exists()]
+    # (with claims every worker sees the same list, whose positions the claims name)
     pairs = sorted({str(r[1]) for r in renders} | {str(s[0]) for s in scores})
-    renders = [r for r in renders if not Path(r[1]).exists()]
-    scores = [s for s in scores if not Path(s[4]).exists()]
     there = PIPELINE_WORKER_DEVICE if worker_device is None else worker_device
     workers = host_workers()
     # its campaign pairs' density floors, each as soon as its pair file is there (the table reads them)
@@ -248,12 +259,15 @@ def pipeline_task(renders, scores, token: str, worker_device=None, stack=None) -
         _IN_FLIGHT[token] += 1
     try:
         run_pipeline(renders, scores, workers=workers, progress=False, worker_device=there, jobs=jobs,
-                     stop=lambda: token in _STOPPED, stack=stack,
+                     stop=lambda: token in _STOPPED, stack=stack, claims=claims,
                      pool=lambda: _kept_pool(workers - 1, worker_kernels(scores, worker_device=there, stack=stack)))
     finally:
         with _LOCK:
             _IN_FLIGHT[token] -= 1
-    return sum(Path(r[1]).exists() for r in renders) + sum(Path(s[4]).exists() for s in scores)
+    tasks = pair_tasks(renders, scores)
+    mine = [tasks[k] for k in claims.taken] if claims is not None else tasks
+    written = sum(Path(r[1]).exists() for r, _ in mine if r is not None)
+    return written + sum(Path(s[4]).exists() for _, items in mine for s in items), len(mine)
 
 
 #: This worker's pool of host processes, kept between its pipeline tasks: ``(size, pool)``.
@@ -272,24 +286,6 @@ def _kept_pool(n: int, kernels):
         if not _KEPT_POOL:
             _KEPT_POOL.append((n, host_pool(n, kernels)))
         return _KEPT_POOL[0][1]
-
-
-def shards(tasks, n: int) -> list[tuple[list, list]]:
-    """Deal a campaign's pair tasks (``scheduling.pair_tasks``) to ``n`` workers, every ``n``-th pair to
-    each (snapshots and pair sizes spread evenly): ``[(render args, score args)]``, empty shards left out.
-
-    Examples
-    --------
-    >>> tasks = [(("cfg", f"p{i}.h5", "cuda:0"), [(f"p{i}.h5", "tracking")]) for i in range(5)]
-    >>> [[r[1] for r in renders] for renders, _ in shards(tasks, 2)]
-    [['p0.h5', 'p2.h5', 'p4.h5'], ['p1.h5', 'p3.h5']]
-    """
-    out = []
-    for i in range(max(1, n)):
-        mine = tasks[i::max(1, n)]
-        if mine:
-            out.append(([r for r, _ in mine if r is not None], [s for _, items in mine for s in items]))
-    return out
 
 
 def _stop_run(token: str) -> int:
@@ -505,7 +501,13 @@ class DaskRunner:
         return self.client.gather(self.client.map(fn, *iterables, pure=False))
 
     def run_pairs(self, renders, scores, *, stack=None) -> int:
-        """Run a campaign's render and score items as one task per pair; return the items written.
+        """Run a campaign's render and score items on the cluster; return the items written.
+
+        CPU workers run one task per pair. GPU workers (``pipeline``) run one :func:`pipeline_task` each,
+        every task given every pair and the run's :class:`~synthbos.benchmarks.drivers.FileClaims` (a folder
+        beside the pair files), so each worker takes the next pair no one has taken as it frees up. Pairs
+        left missing (a worker that died kept the pairs it had taken) are run again, with new claims, up to
+        :data:`PIPELINE_ROUNDS` rounds in all.
 
         ``stack``: pairs per stack of the pipeline tasks' tracking items (:func:`pipeline_task`; None:
         the pipeline's default); refused (> 0) where the workers run one task per pair.
@@ -514,52 +516,73 @@ class DaskRunner:
         if stack and not self.pipeline:
             raise SynthbosError(f"--stack {stack}: these Dask workers run one task per pair; stacks are tracked "
                                 "by workers that run the pipeline (GPU workers)")
-        distributed = _distributed()
         tasks = _pair_tasks(renders, scores)
-        if not tasks:
-            return 0
+        bar = self._progress_bar(len(tasks)) if tasks else None
+        written = 0
+        for _ in range(PIPELINE_ROUNDS if self.pipeline else 1):
+            if not tasks:
+                break
+            written += self._run_round(tasks, stack, bar)
+            tasks = [(r if r is not None and not Path(r[1]).exists() else None,
+                      [s for s in items if not Path(s[4]).exists()]) for r, items in tasks]
+            tasks = [(r, items) for r, items in tasks if r is not None or items]
+        if tasks and self.pipeline:
+            raise SynthbosError(f"{len(tasks)} pair(s) still missing after {PIPELINE_ROUNDS} rounds of the Dask "
+                                "workers (did workers die?); run the campaign again to finish them")
+        return written
+
+    def _run_round(self, tasks, stack, bar) -> int:
+        """One round of :meth:`run_pairs` over ``tasks``: submit, wait, count; the items written."""
+        distributed = _distributed()
         token = uuid.uuid4().hex
         with self._lock:
             self._tokens.add(token)
-        futures = self._submit(tasks, token, stack)
+        paths = [r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items]
+        claims = None
+        if self.pipeline:
+            first = tasks[0][0][1] if tasks[0][0] is not None else tasks[0][1][0][0]
+            claims = FileClaims(Path(first).parent / f".claims-{token}", len(tasks))
+            Path(claims.folder).mkdir(parents=True)
+        futures = self._submit(tasks, token, stack, claims)
         with self._lock:
             self._futures.update(futures)
-        bar = self._progress_bar(len(tasks))
         written = 0
         try:
             for fut in distributed.as_completed(futures):
                 try:
-                    written += fut.result()
+                    items, pairs = fut.result()
                 except distributed.KilledWorker as err:
                     raise SynthbosError(f"a pair task took several workers down with it (out of memory?): "
                                         f"{err}") from None
-                bar.update(futures[fut])
+                written += items
+                bar.update(pairs)
         except BaseException:
             self.abort()
             raise
         finally:
             with self._lock:
                 self._futures.difference_update(futures)
-        _remove_stale_temporaries([r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items])
+            if claims is not None:
+                shutil.rmtree(claims.folder, ignore_errors=True)
+        _remove_stale_temporaries(paths)
         return written
 
-    def _submit(self, tasks, token: str, stack=None) -> dict:
-        """Submit ``tasks`` (``scheduling.pair_tasks``); return ``{future: pairs it holds}``. With
-        ``pipeline`` (GPU workers), one :func:`pipeline_task` per worker, each first offered to its own
-        worker; else (CPU workers), one :func:`pair_task` per pair."""
+    def _submit(self, tasks, token: str, stack=None, claims=None) -> dict:
+        """Submit ``tasks`` (``scheduling.pair_tasks``); return their futures. With ``pipeline`` (GPU
+        workers), one :func:`pipeline_task` per worker over every pair, sharing them through ``claims``,
+        each first offered to its own worker; else (CPU workers), one :func:`pair_task` per pair."""
         if not self.pipeline:
             return {self.client.submit(pair_task, render, items, token, pure=False, retries=0,
                                        key=f"{TASK_PREFIX}-{Path(render[1] if render else items[0][0]).stem}"
-                                           f"-{token[:8]}"): 1
+                                           f"-{token[:8]}")
                     for render, items in tasks}
+        renders = [r for r, _ in tasks if r is not None]
+        scores = [s for _, items in tasks for s in items]
         workers = sorted(self.client.nthreads())
-        futures = {}
-        for i, (renders, scores) in enumerate(shards(tasks, len(workers))):
-            key = f"{TASK_PREFIX}s-{i}-of-{len(workers)}-{token[:8]}"
-            fut = self.client.submit(pipeline_task, renders, scores, token, stack=stack, pure=False, retries=0,
-                                     key=key, workers=[workers[i]], allow_other_workers=True)
-            futures[fut] = len({s[0] for s in scores} | {r[1] for r in renders})
-        return futures
+        return {self.client.submit(pipeline_task, renders, scores, token, stack=stack, claims=claims, pure=False,
+                                   retries=0, key=f"{TASK_PREFIX}s-{i}-of-{len(workers)}-{token[:8]}",
+                                   workers=[worker], allow_other_workers=True)
+                for i, worker in enumerate(workers)}
 
     def abort(self) -> None:
         """Cancel every task; on a joined cluster, wait until no worker writes an item of ours."""

@@ -24,8 +24,8 @@ from multiprocessing import get_all_start_methods, get_context
 
 from synthbos import SynthbosError
 
-__all__ = ["Claims", "driver_context", "ignoring_sigint_forkserver", "join_drivers", "quiet_resource_tracker",
-           "start_drivers", "stop_drivers"]
+__all__ = ["Claims", "FileClaims", "driver_context", "ignoring_sigint_forkserver", "join_drivers",
+           "quiet_resource_tracker", "start_drivers", "stop_drivers"]
 
 # The warning multiprocessing's resource tracker prints at its exit for the semaphores of processes that a
 # Ctrl-C ended (it removes them all the same): noise after the one line of an interrupted run.
@@ -122,6 +122,67 @@ class Claims:
         out = []
         while not self._errors.empty():
             out.append(self._errors.get())
+        return out
+
+
+class FileClaims:
+    """The ``n`` tasks of a pipeline shared by processes that need not share a host: a Dask cluster's GPU
+    workers, each running the pipeline over every task of a campaign and taking the next one no worker
+    has taken, so that a worker that runs faster (a faster GPU, a less busy host) does more pairs and
+    none waits at the end for a slower one's fixed share.
+
+    A task is taken by creating its file in ``folder`` (``O_CREAT | O_EXCL``: atomic, on a shared file
+    system too, where every worker sees the campaign's folder); the folder belongs to one run (the client
+    makes it and removes it). Sent to the workers inside a task's arguments; :attr:`taken` holds the
+    tasks this copy took. A worker that dies keeps its tasks taken: the client runs what is left missing
+    again, with new claims (``distributed.DaskRunner.run_pairs``).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = tempfile.mkdtemp()
+    >>> a, b = FileClaims(folder, 3), FileClaims(folder, 3)  # two workers' copies
+    >>> a.take(), b.take(), b.take(), a.take()
+    (0, 1, 2, None)
+    >>> a.taken, b.taken
+    ([0], [1, 2])
+    """
+
+    def __init__(self, folder, n: int):
+        self.folder = os.fspath(folder)
+        self.n = int(n)
+        self.taken: list[int] = []
+        self._next = 0
+        self._done = 0
+        self._errors: list[str] = []
+
+    def take(self, driver: int = 0) -> int | None:
+        """The next task no worker has taken, now taken here (None: none left); ``driver`` is not used."""
+        while self._next < self.n:
+            k = self._next
+            self._next += 1
+            try:
+                os.close(os.open(os.path.join(self.folder, str(k)), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+            except FileExistsError:
+                continue
+            self.taken.append(k)
+            return k
+        return None
+
+    def counts(self, drivers: int) -> list[int]:
+        """The tasks taken here (this copy's process only)."""
+        return [len(self.taken)]
+
+    def advance(self, n: int) -> int:
+        """Add ``n`` finished items; return this copy's count."""
+        self._done += int(n)
+        return self._done
+
+    def fail(self, message: str) -> None:
+        self._errors.append(str(message))
+
+    def failures(self) -> list[str]:
+        out, self._errors = self._errors, []
         return out
 
 

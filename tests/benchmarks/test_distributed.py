@@ -365,13 +365,12 @@ def test_bench_scaling_smoke_on_cpu_workers(slow_only, tmp_path):
 
 
 def test_pipeline_tasks_on_a_local_cluster_give_the_plain_campaign(tmp_path):
-    """Workers that run their share of the pairs through the single-node pipeline (what a GPU worker does)
-    write the files of a campaign run in one process, and each task holds every second pair."""
+    """Workers that run the pairs they take through the single-node pipeline (what a GPU worker does)
+    write the files of a campaign run in one process, and leave no claims behind."""
     from dataclasses import replace
 
     from synthbos.benchmarks.campaign import run_campaign
-    from synthbos.benchmarks.distributed import DaskRunner, shards
-    from synthbos.benchmarks.scheduling import pair_tasks
+    from synthbos.benchmarks.distributed import DaskRunner
     from synthbos.benchmarks.spec import FULL
 
     spec = replace(FULL, name="dask-pipeline", snapshots=(1, 4), pairs_per_snapshot=1, noise_percent=(3.0,),
@@ -389,8 +388,62 @@ def test_pipeline_tasks_on_a_local_cluster_give_the_plain_campaign(tmp_path):
         with np.load(path) as a, np.load(dask / "scores" / path.name) as b:
             assert sorted(a.files) == sorted(b.files)
             assert all(a[k].tobytes() == b[k].tobytes() for k in a.files), path.name
-    tasks = pair_tasks([(None, f"p{i}.h5", "cpu") for i in range(3)], [])
-    assert [[r[1] for r in renders] for renders, _ in shards(tasks, 2)] == [["p0.h5", "p2.h5"], ["p1.h5"]]
+    assert not list(dask.rglob(".claims-*"))
+
+
+def _take_all(folder, n, out):
+    from synthbos.benchmarks.drivers import FileClaims
+
+    claims = FileClaims(folder, n)
+    while claims.take() is not None:
+        pass
+    out.put(claims.taken)
+
+
+def test_file_claims_give_each_pair_to_one_process(tmp_path):
+    """Four processes taking from one folder of claims: every task taken once, by one of them."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    out = context.SimpleQueue()
+    procs = [context.Process(target=_take_all, args=(str(tmp_path), 200, out)) for _ in range(4)]
+    for proc in procs:
+        proc.start()
+    taken = [out.get() for _ in procs]
+    for proc in procs:
+        proc.join(30)
+    assert sorted(k for part in taken for k in part) == list(range(200))
+    assert all(part == sorted(part) for part in taken)
+
+
+def test_pairs_left_missing_by_a_round_are_run_again(tmp_path, monkeypatch):
+    """A pipeline round that leaves pairs missing (a worker died with pairs it had taken) is followed by a
+    round over those pairs only; pairs still missing after ``PIPELINE_ROUNDS`` rounds are one clear error."""
+    from synthbos.benchmarks import distributed as dist
+
+    from synthbos import SynthbosError
+
+    renders = [({}, str(tmp_path / f"p{i}.h5"), "cuda:0") for i in range(3)]
+    scores = [(r[1], "tracking", 1.0, (1, 2), r[1].replace(".h5", ".npz"), {}, "cuda:0") for r in renders]
+    rounds = []
+
+    def run_round(tasks, stack, bar):
+        rounds.append([r[1] for r, _ in tasks])
+        for r, items in tasks[1:] if len(rounds) == 1 else tasks:  # the first round loses its first pair
+            for path in [r[1], *(s[4] for s in items)]:
+                Path(path).touch()
+        return 2 * len(tasks)
+
+    runner = dist.DaskRunner("local", device="cuda:0", progress=False)
+    monkeypatch.setattr(runner, "_run_round", run_round)
+    assert runner.run_pairs(renders, scores) == 6 + 2
+    assert rounds == [[r[1] for r in renders], [renders[0][1]]]
+
+    Path(renders[0][1]).unlink()
+    monkeypatch.setattr(runner, "_run_round", lambda tasks, stack, bar: rounds.append(len(tasks)) or 0)
+    with pytest.raises(SynthbosError, match=f"1 pair\\(s\\) still missing after {dist.PIPELINE_ROUNDS} rounds"):
+        runner.run_pairs(renders[:1], [])
+    assert rounds[2:] == [1] * dist.PIPELINE_ROUNDS
 
 
 def test_a_gpu_worker_keeps_its_host_processes_between_tasks():
