@@ -65,9 +65,9 @@ from .scheduling import (
     worker_kernels,
 )
 
-__all__ = ["LOCAL_WORKERS_PER_GPU", "PIPELINE_ROUNDS", "DaskRunner",
-           "campaign_runner", "check_address", "check_scheduler", "pair_task",
-           "pipeline_task", "run_pairs", "visible_gpus"]
+__all__ = ["LOCAL_WORKERS_PER_GPU", "PIPELINE_ROUNDS", "PROGRESS_POLL_S", "DaskRunner", "campaign_runner",
+           "check_address", "check_scheduler", "finished_pairs", "pair_task", "pipeline_task", "run_pairs",
+           "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
@@ -298,6 +298,37 @@ def _stop_run(token: str) -> int:
 def _in_flight(token: str) -> int:
     with _LOCK:
         return _IN_FLIGHT[token]
+
+
+#: Seconds between two looks at the files of a round's pipeline tasks, for the progress bar.
+PROGRESS_POLL_S = 1.0
+
+
+def finished_pairs(outputs) -> tuple[list, int]:
+    """Of ``outputs`` (each pair's output files, its score files last), the pairs not finished yet, and how
+    many are: a pair is finished once all its files are there (checked from the last, which most often
+    is not yet).
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> folder = tempfile.mkdtemp()
+    >>> done = os.path.join(folder, "a.npz"); open(done, "w").close()
+    >>> finished_pairs([[done], [done, os.path.join(folder, "b.npz")]])[1]
+    1
+    """
+    left = [files for files in outputs if not all(os.path.exists(f) for f in reversed(files))]
+    return left, len(outputs) - len(left)
+
+
+def _watch_pairs(outputs, bar, ended: threading.Event) -> None:
+    """Advance ``bar`` by each pair of ``outputs`` as its files appear, until ``ended`` (then once more)."""
+    while outputs:
+        stop = ended.wait(PROGRESS_POLL_S)
+        outputs, n = finished_pairs(outputs)
+        bar.update(n)
+        if stop:
+            return
 
 
 # --- the client side -------------------------------------------------------------------------------
@@ -532,17 +563,24 @@ class DaskRunner:
         return written
 
     def _run_round(self, tasks, stack, bar) -> int:
-        """One round of :meth:`run_pairs` over ``tasks``: submit, wait, count; the items written."""
+        """One round of :meth:`run_pairs` over ``tasks``: submit, wait, count; the items written. The bar
+        counts pair tasks as they end, or, for pipeline tasks (one a worker, ending together), each pair as
+        its files appear (:func:`finished_pairs`, every :data:`PROGRESS_POLL_S` seconds)."""
         distributed = _distributed()
         token = uuid.uuid4().hex
         with self._lock:
             self._tokens.add(token)
         paths = [r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items]
-        claims = None
+        claims = watcher = None
         if self.pipeline:
             first = tasks[0][0][1] if tasks[0][0] is not None else tasks[0][1][0][0]
             claims = FileClaims(Path(first).parent / f".claims-{token}", len(tasks))
             Path(claims.folder).mkdir(parents=True)
+            outputs = [[*([r[1]] if r is not None else []), *(s[4] for s in items)] for r, items in tasks]
+            ended = threading.Event()
+            watcher = threading.Thread(target=_watch_pairs, args=(outputs, bar, ended), daemon=True,
+                                       name="synthbos-dask-progress")
+            watcher.start()
         futures = self._submit(tasks, token, stack, claims)
         with self._lock:
             self._futures.update(futures)
@@ -555,13 +593,17 @@ class DaskRunner:
                     raise SynthbosError(f"a pair task took several workers down with it (out of memory?): "
                                         f"{err}") from None
                 written += items
-                bar.update(pairs)
+                if watcher is None:
+                    bar.update(pairs)
         except BaseException:
             self.abort()
             raise
         finally:
             with self._lock:
                 self._futures.difference_update(futures)
+            if watcher is not None:
+                ended.set()
+                watcher.join()
             if claims is not None:
                 shutil.rmtree(claims.folder, ignore_errors=True)
         _remove_stale_temporaries(paths)

@@ -463,3 +463,33 @@ def test_a_gpu_worker_keeps_its_host_processes_between_tasks():
     finally:
         while dist._KEPT_POOL:
             dist._KEPT_POOL.pop()[1].shutdown(wait=True)
+
+
+def test_the_bar_counts_pipeline_pairs_as_their_files_appear(tmp_path, monkeypatch):
+    """Pipeline tasks end together, one a worker: the bar advances by each pair whose files are all there,
+    while the tasks run, and once more when they have ended."""
+    from synthbos.benchmarks import distributed as dist
+
+    monkeypatch.setattr(dist, "PROGRESS_POLL_S", 0.05)
+    outputs = [[str(tmp_path / f"p{i}.h5"), str(tmp_path / f"p{i}.npz")] for i in range(3)]
+    counted = []
+
+    class Bar:
+        def update(self, n):
+            counted.append(n)
+
+    ended = threading.Event()
+    watcher = threading.Thread(target=dist._watch_pairs, args=(outputs, Bar(), ended))
+    watcher.start()
+    for path in outputs[1]:
+        Path(path).touch()
+    deadline = time.monotonic() + 10
+    while sum(counted) < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert sum(counted) == 1  # the pair with both files, while the tasks run
+    Path(outputs[0][0]).touch()  # half a pair: not finished
+    for path in outputs[2]:
+        Path(path).touch()
+    ended.set()
+    watcher.join(10)
+    assert not watcher.is_alive() and sum(counted) == 2
