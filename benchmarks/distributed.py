@@ -190,7 +190,7 @@ def _thread_share(n_workers: int) -> dict:
     return {var: k for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
-def pair_task(render, scores, token: str) -> int:
+def pair_task(render, scores, token: str) -> tuple[int, int]:
     """Render one pair (``render`` args, or None when its file exists) and score it (``scores`` args).
 
     Runs on a worker; skips every output that exists and stops between items once the run ``token``
