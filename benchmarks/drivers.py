@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import threading
 from multiprocessing import get_all_start_methods, get_context
 
@@ -132,10 +133,11 @@ class FileClaims:
     none waits at the end for a slower one's fixed share.
 
     A task is taken by creating its file in ``folder`` (``O_CREAT | O_EXCL``: atomic, on a shared file
-    system too, where every worker sees the campaign's folder); the folder belongs to one run (the client
-    makes it and removes it). Sent to the workers inside a task's arguments; :attr:`taken` holds the
-    tasks this copy took. A worker that dies keeps its tasks taken: the client runs what is left missing
-    again, with new claims (``distributed.DaskRunner.run_pairs``).
+    system too, where every worker sees the campaign's folder), which then names the host and process
+    that took it; the folder belongs to one run (the client makes it and removes it). Sent to the workers
+    inside a task's arguments; :attr:`taken` holds the tasks this copy took. A worker that dies keeps its
+    tasks taken: the client runs what is left missing again, with new claims
+    (``distributed.DaskRunner.run_pairs``).
 
     Examples
     --------
@@ -162,9 +164,13 @@ class FileClaims:
             k = self._next
             self._next += 1
             try:
-                os.close(os.open(os.path.join(self.folder, str(k)), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+                fd = os.open(os.path.join(self.folder, str(k)), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 continue
+            try:  # who took it: the host and process, for a person looking at a run
+                os.write(fd, f"{socket.gethostname()} {os.getpid()}\n".encode())
+            finally:
+                os.close(fd)
             self.taken.append(k)
             return k
         return None

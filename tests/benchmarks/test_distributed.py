@@ -397,23 +397,27 @@ def _take_all(folder, n, out):
     claims = FileClaims(folder, n)
     while claims.take() is not None:
         pass
-    out.put(claims.taken)
+    out.put((os.getpid(), claims.taken))
 
 
 def test_file_claims_give_each_pair_to_one_process(tmp_path):
     """Four processes taking from one folder of claims: every task taken once, by one of them."""
     import multiprocessing
+    import socket
 
     context = multiprocessing.get_context("spawn")
     out = context.SimpleQueue()
     procs = [context.Process(target=_take_all, args=(str(tmp_path), 200, out)) for _ in range(4)]
     for proc in procs:
         proc.start()
-    taken = [out.get() for _ in procs]
+    taken = dict(out.get() for _ in procs)
     for proc in procs:
         proc.join(30)
-    assert sorted(k for part in taken for k in part) == list(range(200))
-    assert all(part == sorted(part) for part in taken)
+    assert sorted(k for part in taken.values() for k in part) == list(range(200))
+    assert all(part == sorted(part) for part in taken.values())
+    host = socket.gethostname()
+    for pid, part in taken.items():  # each claim names the process that took it
+        assert all((tmp_path / str(k)).read_text() == f"{host} {pid}\n" for k in part)
 
 
 def test_pairs_left_missing_by_a_round_are_run_again(tmp_path, monkeypatch):
@@ -496,23 +500,32 @@ def test_the_bar_counts_pipeline_pairs_as_their_files_appear(tmp_path, monkeypat
 
 
 class KillPipelineOnce(distributed.WorkerPlugin):
-    """Kills the first worker that starts a pipeline task, once the campaign has its first score file."""
+    """Kills, once, a worker that has taken pairs (its name in a claim file) when the campaign's first score
+    file is there: it has not finished them (a pair is finished once its score files are all there). A
+    worker that has taken none is left alone."""
 
     def __init__(self, marker, folder):
         self.marker, self.folder = str(marker), Path(folder)
+        self.watching = False
 
     def transition(self, key, start, finish, **kwargs):
-        if finish != "executing" or not str(key).startswith(f"{TASK_PREFIX}s-"):
+        if finish != "executing" or not str(key).startswith(f"{TASK_PREFIX}s-") or self.watching:
+            return
+        self.watching = True
+        threading.Thread(target=self._kill_at_first_score, daemon=True).start()
+
+    def _kill_at_first_score(self):
+        import socket
+
+        while not list(self.folder.glob("scores/*.npz")):
+            time.sleep(0.002)
+        me = f"{socket.gethostname()} {os.getpid()}"
+        if not any(claim.read_text().strip() == me for claim in self.folder.glob("pairs/.claims-*/*")):
             return
         try:
             os.close(os.open(self.marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
         except FileExistsError:
             return
-        threading.Thread(target=self._kill_after_first_score, daemon=True).start()
-
-    def _kill_after_first_score(self):
-        while not list(self.folder.glob("scores/*.npz")):
-            time.sleep(0.002)
         Path(self.marker).write_text(json.dumps({"pid": os.getpid()}))
         os.kill(os.getpid(), signal.SIGKILL)
 
