@@ -67,7 +67,7 @@ from .scheduling import (
 
 __all__ = ["LOCAL_WORKERS_PER_GPU", "PIPELINE_ROUNDS", "PROGRESS_POLL_S", "DaskRunner", "campaign_runner",
            "check_address", "check_scheduler", "finished_pairs", "pair_task", "pipeline_task", "run_pairs",
-           "visible_gpus"]
+           "task_outputs", "visible_gpus"]
 
 DASHBOARD_ADDRESS = ":8787"
 TASK_PREFIX = "synthbos-pair"
@@ -266,8 +266,7 @@ def pipeline_task(renders, scores, token: str, worker_device=None, stack=None, c
             _IN_FLIGHT[token] -= 1
     tasks = pair_tasks(renders, scores)
     mine = [tasks[k] for k in claims.taken] if claims is not None else tasks
-    written = sum(Path(r[1]).exists() for r, _ in mine if r is not None)
-    return written + sum(Path(s[4]).exists() for _, items in mine for s in items), len(mine)
+    return sum(os.path.exists(f) for task in mine for f in task_outputs(task)), len(mine)
 
 
 #: This worker's pool of host processes, kept between its pipeline tasks: ``(size, pool)``.
@@ -298,6 +297,19 @@ def _stop_run(token: str) -> int:
 def _in_flight(token: str) -> int:
     with _LOCK:
         return _IN_FLIGHT[token]
+
+
+def task_outputs(task) -> list[str]:
+    """The files a pair task (``scheduling.pair_tasks``) writes: its pair file when it renders one, then its
+    score files.
+
+    Examples
+    --------
+    >>> task_outputs((("cfg", "p0.h5", "cpu"), [("p0.h5", "tracking", 1.0, (1, 2), "p0-t.npz")]))
+    ['p0.h5', 'p0-t.npz']
+    """
+    render, items = task
+    return [*([str(render[1])] if render is not None else []), *(str(s[4]) for s in items)]
 
 
 #: Seconds between two looks at the files of a round's pipeline tasks, for the progress bar.
@@ -570,13 +582,12 @@ class DaskRunner:
         token = uuid.uuid4().hex
         with self._lock:
             self._tokens.add(token)
-        paths = [r[1] for r, _ in tasks if r] + [s[4] for _, items in tasks for s in items]
+        outputs = [task_outputs(task) for task in tasks]
         claims = watcher = None
         if self.pipeline:
             first = tasks[0][0][1] if tasks[0][0] is not None else tasks[0][1][0][0]
             claims = FileClaims(Path(first).parent / f".claims-{token}", len(tasks))
             Path(claims.folder).mkdir(parents=True)
-            outputs = [[*([r[1]] if r is not None else []), *(s[4] for s in items)] for r, items in tasks]
             ended = threading.Event()
             watcher = threading.Thread(target=_watch_pairs, args=(outputs, bar, ended), daemon=True,
                                        name="synthbos-dask-progress")
@@ -606,7 +617,7 @@ class DaskRunner:
                 watcher.join()
             if claims is not None:
                 shutil.rmtree(claims.folder, ignore_errors=True)
-        _remove_stale_temporaries(paths)
+        _remove_stale_temporaries([f for files in outputs for f in files])
         return written
 
     def _submit(self, tasks, token: str, stack=None, claims=None) -> dict:

@@ -7,6 +7,7 @@ time and score files are zip archives stamped with their write time, so those tw
 compared by content, not as raw bytes.)
 """
 
+import contextlib
 import json
 import os
 import shutil
@@ -254,6 +255,23 @@ def test_an_error_in_a_task_stops_the_run_with_that_error(external_cluster, tmp_
     assert len(err) == 1 and "window size 0" in err[0]
 
 
+@contextlib.contextmanager
+def _worker_plugin(client, plugin, name: str):
+    """``plugin`` on every worker of ``client``'s cluster while the block runs (sent by value: the workers
+    cannot import this module)."""
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    try:
+        client.register_plugin(plugin, name=name)
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    try:
+        yield
+    finally:
+        client.unregister_worker_plugin(name)
+
+
 class KillOnce(distributed.WorkerPlugin):
     """Kills the first worker that starts a pair task, once that task has written its first score file."""
 
@@ -280,21 +298,13 @@ class KillOnce(distributed.WorkerPlugin):
 
 
 def test_a_worker_killed_mid_campaign_loses_only_its_item(plain, external_cluster, tmp_path):
-    import cloudpickle
     import psutil
 
     out = tmp_path / "sweep"
     marker = tmp_path / "killed.json"
-    with distributed.Client(scheduler_file=str(external_cluster)) as client:
-        cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this module
-        try:
-            client.register_plugin(KillOnce(marker, out), name="kill-once")
-        finally:
-            cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-        try:
-            _sweep(out, "--scheduler", str(external_cluster))
-        finally:
-            client.unregister_worker_plugin("kill-once")
+    with distributed.Client(scheduler_file=str(external_cluster)) as client, \
+            _worker_plugin(client, KillOnce(marker, out), "kill-once"):
+        _sweep(out, "--scheduler", str(external_cluster))
     killed = json.loads(marker.read_text())
     assert not psutil.pid_exists(killed["pid"])
     # The other worker finished the pair task in flight, and rewrote none of the files already there.
@@ -537,7 +547,6 @@ def test_a_gpu_style_worker_killed_with_pairs_taken_loses_none(slow_only, extern
     a run in one process."""
     from dataclasses import replace
 
-    import cloudpickle
     import psutil
     from synthbos.benchmarks.campaign import run_campaign
     from synthbos.benchmarks.distributed import DaskRunner
@@ -547,20 +556,13 @@ def test_a_gpu_style_worker_killed_with_pairs_taken_loses_none(slow_only, extern
                    config={"camera": {"pixels": [96, 96]}, "rays": {"per_dot": 20}})
     plain, dask, marker = tmp_path / "plain", tmp_path / "dask", tmp_path / "killed.json"
     run_campaign(spec, plain, device="cpu", workers=1, progress=False, figures=False)
+    rounds = []
     with distributed.Client(scheduler_file=str(external_cluster)) as client:
-        cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this module
-        try:
-            client.register_plugin(KillPipelineOnce(marker, dask), name="kill-pipeline-once")
-        finally:
-            cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
-        try:
-            with DaskRunner(str(external_cluster), progress=False, pipeline=True) as runner:
-                one_round = runner._run_round
-                rounds = []
-                runner._run_round = lambda tasks, *args: rounds.append(len(tasks)) or one_round(tasks, *args)
-                run_campaign(spec, dask, device="cpu", scheduler=runner, progress=False, figures=False)
-        finally:
-            client.unregister_worker_plugin("kill-pipeline-once")
+        with _worker_plugin(client, KillPipelineOnce(marker, dask), "kill-pipeline-once"), \
+                DaskRunner(str(external_cluster), progress=False, pipeline=True) as runner:
+            one_round = runner._run_round
+            runner._run_round = lambda tasks, *args: rounds.append(len(tasks)) or one_round(tasks, *args)
+            run_campaign(spec, dask, device="cpu", scheduler=runner, progress=False, figures=False)
         client.wait_for_workers(2, timeout=60)  # the nanny has started the killed one again
     assert not psutil.pid_exists(json.loads(marker.read_text())["pid"])
     # every pair in the first round; the pairs the killed worker had taken and not finished in the second (a
